@@ -1,0 +1,1 @@
+"""The application: session store, plans, runner, CLI (``gonio``), TUI, pipeline glue."""

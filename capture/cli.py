@@ -1,0 +1,38 @@
+"""The ``gonio`` command line. Each command group lives in its own ``cli_*.py`` module."""
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(
+    name="gonio",
+    help="Image-based reflectometry: drive the rig, record sessions, calibrate, reconstruct.\n\n"
+         "Every command that needs hardware takes --rig: 'sim' for the built-in simulated lab, "
+         "or a rig TOML file naming each device's driver and port.",
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+)
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", help="Print gonio's version and exit.",
+                                       is_eager=True)) -> None:
+    if version:
+        from importlib.metadata import version as _v
+        typer.echo(f"gonio {_v('gonio')}")
+        raise typer.Exit()
+
+
+def _register() -> None:
+    # one line per command group; each module defines `app`, a typer.Typer
+    pass
+
+
+_register()
+
+
+def main() -> None:  # console script entry point
+    app()
+
+
+if __name__ == "__main__":
+    main()

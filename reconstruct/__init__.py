@@ -1,0 +1,1 @@
+"""Reflectance models, coordinates, rendering, geometry and the reconstruction methods. Pure."""

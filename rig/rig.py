@@ -1,0 +1,165 @@
+"""The rig: the set of devices of one measurement setup, built from a TOML config.
+
+A rig file names each role's driver and port::
+
+    [turntable]
+    driver = "zaber"          # Zaber ASCII rotary stage
+    port = "/dev/ttyUSB0"
+
+    [positioner]
+    driver = "grbl"           # GRBL 1.1 light-stage positioner
+    port = "/dev/ttyACM0"
+    kinematics = "arm"        # or "gantry"
+
+    [polarizer]
+    driver = "elliptec"       # Thorlabs ELL14 rotation mount
+    port = "/dev/ttyUSB1"
+
+    [camera]
+    driver = "ptp"            # PTP/USB still camera
+    port = "usb:04a9:32b4"
+
+Any role may be left out. ``port = "sim"`` asks the application (``capture``) to start a
+simulator for that device; ``rig`` itself never imports the simulators.
+"""
+from __future__ import annotations
+
+import importlib
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .device import Axis, Camera, Device, LightPositioner
+from .errors import RigError
+
+#: driver name -> "module:Class"; each class has ``from_config(name, section, **context)``
+DRIVERS: dict[str, str] = {
+    "zaber": "rig.zaber:ZaberRotaryStage",
+    "grbl": "rig.grbl:GrblPositioner",
+    "elliptec": "rig.elliptec:ElliptecRotator",
+    "ptp": "rig.ptp_camera:PtpCamera",
+}
+
+ROLES: dict[str, type] = {"turntable": Axis, "positioner": LightPositioner,
+                          "polarizer": Axis, "camera": Camera}
+
+
+class ConfigError(RigError, ValueError):
+    """The rig config is malformed; the message names the file, section and key."""
+
+
+def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
+    """Read a rig TOML file (or pass a dict through), checking roles and drivers."""
+    where = "rig config"
+    if isinstance(source, dict):
+        cfg = source
+    else:
+        path = Path(source)
+        where = str(path)
+        if not path.is_file():
+            raise ConfigError(f"rig file {path} does not exist")
+        try:
+            cfg = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    for role, section in cfg.items():
+        if role == "rig":  # free metadata: name, notes
+            continue
+        if role not in ROLES:
+            raise ConfigError(f"{where}: unknown section [{role}]; expected one of "
+                              f"{', '.join(ROLES)} (or [rig] for metadata)")
+        if not isinstance(section, dict):
+            raise ConfigError(f"{where}: [{role}] must be a table")
+        driver = section.get("driver")
+        if driver not in DRIVERS:
+            raise ConfigError(f"{where}: [{role}] driver = {driver!r} is unknown; "
+                              f"known drivers: {', '.join(sorted(DRIVERS))}")
+        if not section.get("port"):
+            raise ConfigError(f"{where}: [{role}] needs a port (e.g. '/dev/ttyUSB0', "
+                              f"'usb:VID:PID' or 'sim')")
+    return cfg
+
+
+def driver_class(driver: str) -> type[Device]:
+    module, _, cls = DRIVERS[driver].partition(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+@dataclass
+class Rig:
+    """The devices of one setup, by role. Any role may be None (not fitted)."""
+
+    turntable: Axis | None = None
+    positioner: LightPositioner | None = None
+    polarizer: Axis | None = None
+    camera: Camera | None = None
+    config: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, source: str | Path | dict[str, Any], **context: Any) -> "Rig":
+        """Build (not connect) the devices named in a rig file or dict.
+
+        ``context`` is passed to every driver's ``from_config`` (e.g. ``usb_backend=`` for the
+        camera, so a simulated or custom pyusb backend can be used).
+        """
+        cfg = load_config(source)
+        devices: dict[str, Device] = {}
+        for role, section in cfg.items():
+            if role == "rig":
+                continue
+            if section["port"] == "sim":
+                raise ConfigError(f"[{role}] port = 'sim': start the simulators first "
+                                  "(gonio --rig sim, or sims.lab.SimLab) and pass their ports")
+            device = driver_class(section["driver"]).from_config(role, section, **context)
+            if not isinstance(device, ROLES[role]):
+                raise ConfigError(f"[{role}] driver {section['driver']!r} does not provide a "
+                                  f"{ROLES[role].__name__}")
+            devices[role] = device
+        return cls(**devices, config=cfg)
+
+    @property
+    def devices(self) -> dict[str, Device]:
+        """Fitted devices by role, in a fixed order."""
+        return {role: d for role in ROLES if (d := getattr(self, role)) is not None}
+
+    def connect(self) -> None:
+        """Connect every device; on failure, close the ones already connected and re-raise."""
+        done: list[Device] = []
+        try:
+            for device in self.devices.values():
+                device.connect()
+                done.append(device)
+        except BaseException:
+            for device in done:
+                device.close()
+            raise
+
+    def close(self) -> None:
+        for device in self.devices.values():
+            device.close()
+
+    def stop_all(self) -> None:
+        """Emergency stop: stop every moving device, collecting (not raising) errors."""
+        errors = []
+        for device in self.devices.values():
+            if hasattr(device, "stop"):
+                try:
+                    device.stop()
+                except RigError as exc:
+                    errors.append(exc)
+        if errors:
+            raise errors[0]
+
+    def describe(self) -> dict[str, dict[str, Any]]:
+        return {role: d.describe() for role, d in self.devices.items()}
+
+    def read(self) -> dict[str, dict[str, Any]]:
+        return {role: d.read() for role, d in self.devices.items()}
+
+    def __enter__(self) -> "Rig":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
