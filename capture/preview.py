@@ -1,0 +1,404 @@
+"""Quick-look rendering of camera frames for a terminal: half-block images and raw histograms.
+
+Pure functions, no UI: the operator console (``capture/tui``) calls them on a worker thread and
+draws the result. All pixel work is vectorised numpy; the only Python loop is over runs of equal
+colour in the *output* (a few thousand terminal cells at most).
+
+Pipeline for a DNG frame::
+
+    decode_dng(bytes) -> RawMosaic                  camera's CFA values, DN, untouched
+    bin_cfa(mosaic)   -> (H/2, W/2, 3) float32      linear, 0 = black level, 1 = white level
+    fit_cells(...) + downscale(...)                 area-average to the widget's cell grid
+    to_display(...)   -> uint8 sRGB                 gamma-encoded for the terminal
+    half_block_segments(...) -> rich Segments       one '▀' per cell: fg = upper pixel, bg = lower
+
+``raw_histogram(mosaic)`` counts each colour channel of the raw CFA in DN (before any scaling),
+with the fraction of pixels clipped at the black and the white level — the numbers an operator
+needs to pick the exposures of a bracket.
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import rawpy
+from rich.segment import Segment
+from rich.style import Style
+
+#: block characters for one-row bar charts, from empty to full
+SPARK = np.array(list(" ▁▂▃▄▅▆▇█"))
+CHANNELS = ("R", "G", "B")
+UPPER_HALF = "▀"
+
+
+class PreviewError(ValueError):
+    """A frame cannot be previewed (not a raw file rawpy reads, wrong array shape...)."""
+
+
+@dataclass(frozen=True)
+class RawMosaic:
+    """A Bayer mosaic as the camera recorded it.
+
+    Attributes
+    ----------
+    cfa : ndarray of shape (H, W), uint16
+        Raw values, digital numbers (DN), visible area only.
+    pattern : str
+        The 2x2 CFA tile from the top-left, row-major, e.g. ``"RGGB"``.
+    black_level : ndarray of shape (2, 2), float
+        Black level (DN) of each position of the 2x2 tile.
+    white_level : float
+        Saturation level, DN.
+    """
+
+    cfa: np.ndarray
+    pattern: str
+    black_level: np.ndarray
+    white_level: float
+
+    def channel_mask(self) -> np.ndarray:
+        """Channel index (0 = R, 1 = G, 2 = B) of every pixel, shape (H, W), uint8 (a view of a
+        tiled 2x2 array, not a copy per pixel)."""
+        tile = np.array([[CHANNELS.index(c) for c in self.pattern[:2]],
+                         [CHANNELS.index(c) for c in self.pattern[2:]]], dtype=np.uint8)
+        h, w = self.cfa.shape
+        return np.tile(tile, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+
+
+def decode_dng(data: bytes) -> RawMosaic:
+    """Read a raw file (DNG or any format LibRaw knows) from memory.
+
+    Parameters
+    ----------
+    data : bytes
+        The camera's file, as stored (``Frame.data``).
+
+    Returns
+    -------
+    RawMosaic
+
+    Raises
+    ------
+    PreviewError
+        If ``data`` is not a raw file LibRaw can open, or is not a 2x2 RGB Bayer mosaic.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) == 0:
+        raise PreviewError("data must be the non-empty bytes of a raw file")
+    try:
+        with rawpy.imread(io.BytesIO(bytes(data))) as raw:
+            cfa = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+            colors = raw.color_desc.decode("ascii")
+            idx = np.asarray(raw.raw_pattern)
+            black = np.asarray(raw.black_level_per_channel, dtype=float)
+            white = float(raw.white_level)
+    except (rawpy.LibRawError, OSError) as exc:
+        raise PreviewError(f"data is not a raw file LibRaw can read ({exc})") from None
+    if idx is None or idx.shape != (2, 2) or cfa.ndim != 2:
+        raise PreviewError("only 2x2 Bayer mosaics can be previewed (got pattern "
+                           f"{None if idx is None else idx.tolist()}, image shape {cfa.shape})")
+    pattern = "".join(colors[i] for i in idx.ravel())
+    if sorted(pattern) != ["B", "G", "G", "R"]:
+        raise PreviewError(f"CFA pattern {pattern!r} is not an RGB Bayer tile")
+    return RawMosaic(cfa=cfa, pattern=pattern, black_level=black[idx], white_level=white)
+
+
+def bin_cfa(mosaic: RawMosaic) -> np.ndarray:
+    """Demosaic-free quick RGB: each 2x2 CFA tile becomes one pixel (R, mean of the Gs, B).
+
+    Parameters
+    ----------
+    mosaic : RawMosaic
+
+    Returns
+    -------
+    ndarray of shape (H // 2, W // 2, 3), float32
+        Linear, black-subtracted and scaled so that 0 is the black level and 1 the white level
+        (values above 1 cannot occur; an odd last row / column is dropped).
+    """
+    h, w = mosaic.cfa.shape
+    if h < 2 or w < 2:
+        raise PreviewError(f"mosaic is {h}x{w} pixels; at least one 2x2 tile is needed")
+    tiles = mosaic.cfa[: h // 2 * 2, : w // 2 * 2].reshape(h // 2, 2, w // 2, 2)
+    tiles = tiles.transpose(0, 2, 1, 3).astype(np.float32)  # (h/2, w/2, 2, 2)
+    span = np.maximum(mosaic.white_level - mosaic.black_level, 1.0).astype(np.float32)
+    tiles = (tiles - mosaic.black_level.astype(np.float32)) / span
+    out = np.zeros((h // 2, w // 2, 3), dtype=np.float32)
+    counts = np.zeros(3, dtype=np.float32)
+    for k, c in enumerate(mosaic.pattern):  # four tile positions, not pixels
+        ch = CHANNELS.index(c)
+        out[..., ch] += tiles[..., k // 2, k % 2]
+        counts[ch] += 1
+    return np.clip(out / counts, 0.0, 1.0, out=out)
+
+
+def fit_cells(image_hw: tuple[int, int], cols: int, rows: int) -> tuple[int, int]:
+    """Largest cell grid inside ``cols x rows`` that keeps the image's aspect ratio.
+
+    A terminal cell holds two image pixels stacked (half blocks) and is about twice as tall as
+    wide, so one cell is one pixel wide and two pixels tall.
+
+    Parameters
+    ----------
+    image_hw : (int, int)
+        Image height and width, pixels.
+    cols, rows : int
+        Space available, terminal cells (>= 1).
+
+    Returns
+    -------
+    (int, int)
+        ``(cols, rows)`` to use, each >= 1.
+    """
+    h, w = image_hw
+    if cols < 1 or rows < 1:
+        raise PreviewError(f"cols and rows must be >= 1, got {cols}x{rows}")
+    if h < 1 or w < 1:
+        raise PreviewError(f"image_hw must be positive, got {image_hw}")
+    scale = min(cols / w, 2 * rows / h)
+    return max(1, min(cols, round(w * scale))), max(1, min(rows, round(h * scale / 2)))
+
+
+def downscale(image: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    """Area-average an image to ``2 * rows`` pixel rows by ``cols`` columns (for half blocks).
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W, 3), float
+        Linear RGB.
+    cols, rows : int
+        Target grid in terminal cells (see :func:`fit_cells`).
+
+    Returns
+    -------
+    ndarray of shape (2 * rows, cols, 3), float32
+    """
+    image = _check_rgb(image, "image")
+    interp = cv2.INTER_AREA if image.shape[0] >= 2 * rows else cv2.INTER_LINEAR
+    return cv2.resize(image, (cols, 2 * rows), interpolation=interp)
+
+
+def to_display(linear: np.ndarray, *, gain: float = 1.0) -> np.ndarray:
+    """Encode linear RGB for the screen: ``gain``, clip to [0, 1], sRGB transfer curve, 8 bit.
+
+    Parameters
+    ----------
+    linear : ndarray of shape (..., 3), float
+        Linear values, 1 = white.
+    gain : float
+        Multiplier applied before encoding (> 0); 1 shows the exposure as captured, so clipped
+        highlights look clipped.
+
+    Returns
+    -------
+    ndarray of shape (..., 3), uint8
+    """
+    if not gain > 0:
+        raise PreviewError(f"gain must be > 0, got {gain}")
+    x = np.clip(np.asarray(linear, dtype=np.float32) * np.float32(gain), 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.round(srgb * 255).astype(np.uint8)
+
+
+def half_block_segments(rgb8: np.ndarray) -> list[list[Segment]]:
+    """Terminal lines for an image: each cell is '▀' with the upper pixel as foreground colour
+    and the lower pixel as background.
+
+    Parameters
+    ----------
+    rgb8 : ndarray of shape (2 * rows, cols, 3), uint8
+        sRGB pixels; an odd height gets a black last row.
+
+    Returns
+    -------
+    list of list of rich.segment.Segment
+        ``rows`` lines of ``cols`` cells; runs of identical cells share one segment.
+    """
+    rgb8 = np.asarray(rgb8)
+    if rgb8.ndim != 3 or rgb8.shape[2] != 3 or rgb8.dtype != np.uint8:
+        raise PreviewError(f"rgb8 must be a (H, W, 3) uint8 array, got shape {rgb8.shape} "
+                           f"dtype {rgb8.dtype}")
+    if rgb8.shape[0] % 2:
+        rgb8 = np.concatenate([rgb8, np.zeros_like(rgb8[:1])], axis=0)
+    packed = (rgb8[..., 0].astype(np.uint32) << 16) | (rgb8[..., 1].astype(np.uint32) << 8) \
+        | rgb8[..., 2]
+    top, bottom = packed[0::2], packed[1::2]
+    key = (top.astype(np.uint64) << 24) | bottom  # one number per cell
+    rows, cols = key.shape
+    # run starts per line, found for all lines at once
+    change = np.ones((rows, cols), dtype=bool)
+    change[:, 1:] = key[:, 1:] != key[:, :-1]
+    styles: dict[int, Style] = {}
+    lines = []
+    for r in range(rows):
+        starts = np.flatnonzero(change[r])
+        ends = np.append(starts[1:], cols)
+        line = []
+        for s, e, k in zip(starts.tolist(), ends.tolist(), key[r, starts].tolist()):
+            style = styles.get(k)
+            if style is None:
+                style = styles[k] = Style(color=f"#{k >> 24:06x}", bgcolor=f"#{k & 0xFFFFFF:06x}")
+            line.append(Segment(UPPER_HALF * (e - s), style))
+        lines.append(line)
+    return lines
+
+
+@dataclass(frozen=True)
+class Histogram:
+    """Per-channel histogram of a frame with its clipping.
+
+    Attributes
+    ----------
+    counts : ndarray of shape (3, bins), int64
+        Pixel counts of R, G, B over ``edges``.
+    edges : ndarray of shape (bins + 1,), float
+        Bin edges in the frame's units (DN for raw frames, linear value for images).
+    clipped_black_pct, clipped_white_pct : ndarray of shape (3,), float
+        Percent of each channel's pixels at or below the black level / at or above the white
+        level.
+    black, white : float
+        The levels used, same units as ``edges``.
+    """
+
+    counts: np.ndarray
+    edges: np.ndarray
+    clipped_black_pct: np.ndarray
+    clipped_white_pct: np.ndarray
+    black: float
+    white: float
+
+    def warnings(self, threshold_pct: float = 0.1) -> list[str]:
+        """One line per channel and end clipped by more than ``threshold_pct`` percent."""
+        out = []
+        for name, lo, hi in zip(CHANNELS, self.clipped_black_pct, self.clipped_white_pct):
+            if hi > threshold_pct:
+                out.append(f"{name} {hi:.1f}% clipped white")
+            if lo > threshold_pct:
+                out.append(f"{name} {lo:.1f}% crushed black")
+        return out
+
+    def sparklines(self, width: int) -> list[str]:
+        """One row of block characters per channel, ``width`` characters each.
+
+        Bins are merged to ``width`` columns; heights are log-scaled (log1p of counts) so that
+        the thin tails that matter for clipping stay visible.
+        """
+        if width < 1:
+            raise PreviewError(f"width must be >= 1, got {width}")
+        bins = self.counts.shape[1]
+        starts = np.linspace(0, bins, min(width, bins) + 1).astype(int)[:-1]
+        merged = np.log1p(np.add.reduceat(self.counts, starts, axis=1).astype(float))
+        top = merged.max()
+        level = np.zeros_like(merged, dtype=int) if top == 0 else \
+            np.ceil(merged / top * (len(SPARK) - 1)).astype(int)
+        cols = np.repeat(np.arange(level.shape[1]), np.diff(np.linspace(0, width, level.shape[1] + 1)
+                                                             .astype(int)))
+        return ["".join(SPARK[row[cols]]) for row in level]
+
+
+def raw_histogram(mosaic: RawMosaic, bins: int = 64) -> Histogram:
+    """Histogram of the raw CFA values per colour channel, with clipping at black and white.
+
+    Parameters
+    ----------
+    mosaic : RawMosaic
+    bins : int
+        Number of equal bins between the lowest black level and the white level, DN.
+
+    Returns
+    -------
+    Histogram
+        Edges in DN. A pixel counts as clipped white at ``>= white_level`` and as crushed at
+        ``<= black_level`` of its own CFA position.
+    """
+    if bins < 1:
+        raise PreviewError(f"bins must be >= 1, got {bins}")
+    cfa = mosaic.cfa
+    h, w = cfa.shape
+    channel = mosaic.channel_mask()
+    black = np.tile(mosaic.black_level, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    lo, hi = float(mosaic.black_level.min()), float(mosaic.white_level)
+    edges = np.linspace(lo, hi, bins + 1)
+    b = np.clip(((cfa - lo) * (bins / max(hi - lo, 1.0))).astype(np.int64), 0, bins - 1)
+    counts = np.bincount((channel.astype(np.int64) * bins + b).ravel(),
+                         minlength=3 * bins).reshape(3, bins)
+    per_channel = np.bincount(channel.ravel(), minlength=3).astype(float)
+    crushed = np.bincount(channel.ravel(), weights=(cfa <= black).ravel(), minlength=3)
+    clipped = np.bincount(channel.ravel(), weights=(cfa >= hi).ravel(), minlength=3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return Histogram(counts=counts, edges=edges,
+                         clipped_black_pct=np.nan_to_num(100 * crushed / per_channel),
+                         clipped_white_pct=np.nan_to_num(100 * clipped / per_channel),
+                         black=lo, white=hi)
+
+
+def image_histogram(image: np.ndarray, bins: int = 64) -> Histogram:
+    """Histogram of a linear RGB image (0 = black, 1 = white) per channel.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W, 3), float
+    bins : int
+
+    Returns
+    -------
+    Histogram
+        Edges in linear units on [0, 1]; clipped white at ``>= 1``, crushed at ``<= 0``.
+    """
+    image = _check_rgb(image, "image")
+    if bins < 1:
+        raise PreviewError(f"bins must be >= 1, got {bins}")
+    flat = image.reshape(-1, 3)
+    b = np.clip((flat * bins).astype(np.int64), 0, bins - 1)
+    counts = np.stack([np.bincount(b[:, c], minlength=bins) for c in range(3)])
+    return Histogram(counts=counts, edges=np.linspace(0.0, 1.0, bins + 1),
+                     clipped_black_pct=100 * (flat <= 0).mean(axis=0),
+                     clipped_white_pct=100 * (flat >= 1).mean(axis=0), black=0.0, white=1.0)
+
+
+@dataclass(frozen=True)
+class Preview:
+    """What the console draws for one frame.
+
+    Attributes
+    ----------
+    linear : ndarray of shape (h, w, 3), float32
+        Full quick-look image (binned CFA or the given linear image), kept so a resized widget
+        can re-render without decoding again.
+    histogram : Histogram
+    """
+
+    linear: np.ndarray
+    histogram: Histogram
+
+    def render(self, cols: int, rows: int, *, gain: float = 1.0) -> list[list[Segment]]:
+        """Half-block lines fitting ``cols x rows`` cells, aspect ratio kept."""
+        c, r = fit_cells(self.linear.shape[:2], cols, rows)
+        return half_block_segments(to_display(downscale(self.linear, c, r), gain=gain))
+
+
+def make_preview(source: bytes | np.ndarray, bins: int = 64) -> Preview:
+    """Decode a frame once for display.
+
+    Parameters
+    ----------
+    source : bytes or ndarray of shape (H, W, 3)
+        Raw file bytes (DNG...) or a linear float RGB image (1 = white).
+    bins : int
+        Histogram bins.
+    """
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        mosaic = decode_dng(source)
+        return Preview(linear=bin_cfa(mosaic), histogram=raw_histogram(mosaic, bins))
+    image = _check_rgb(source, "source")
+    return Preview(linear=image, histogram=image_histogram(image, bins))
+
+
+def _check_rgb(image: np.ndarray, name: str) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] < 1 or image.shape[1] < 1:
+        raise PreviewError(f"{name} must have shape (H, W, 3), got {image.shape}")
+    if not np.issubdtype(image.dtype, np.floating):
+        raise PreviewError(f"{name} must be a float image (linear, 1 = white), got {image.dtype}")
+    return image.astype(np.float32, copy=False)
