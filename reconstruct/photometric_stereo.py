@@ -1,0 +1,180 @@
+"""Lambertian photometric stereo with known distant lights.
+
+Frame: the camera frame of OpenCV (x right along image columns, y down along rows, z forward into
+the scene). Light directions point from the surface towards the light, normals point out of the
+surface, so surfaces facing the camera have ``n_z < 0`` and lights in front of the object have
+``l_z < 0``. Images are linear (radiance or raw values, not gamma-encoded).
+
+Model per pixel: ``I_k = rho * max(0, n . l_k)`` (times a constant light intensity), solved for
+``g = rho * n`` by least squares over all pixels at once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class PhotometricStereoError(ValueError):
+    """Inputs that cannot give normals (too few lights, degenerate light directions, bad shapes)."""
+
+
+@dataclass(frozen=True)
+class PhotometricStereoResult:
+    """Normals and albedo recovered per pixel.
+
+    Attributes
+    ----------
+    normals : ndarray of shape (H, W, 3), float32
+        Unit normals in the camera frame; zero where ``mask`` is False.
+    albedo : ndarray of shape (H, W) or (H, W, C), float32
+        ``rho`` in the images' units (per channel for colour stacks).
+    mask : ndarray of shape (H, W), bool
+        Pixels with a valid solution (inside the input mask, enough usable lights).
+    residual : ndarray of shape (H, W), float32
+        RMS of the fit over the lights used, in image units.
+    lights_used : ndarray of shape (H, W), int16
+        Number of lights each pixel's solution used (robust mode drops shadows and highlights).
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    mask: np.ndarray
+    residual: np.ndarray
+    lights_used: np.ndarray
+
+
+def _check_inputs(images, light_dirs, mask):
+    images = np.asarray(images)
+    if images.ndim not in (3, 4):
+        raise PhotometricStereoError(
+            f"images must have shape (K, H, W) or (K, H, W, C), got {images.shape}")
+    L = np.asarray(light_dirs, dtype=np.float64)
+    if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] != images.shape[0]:
+        raise PhotometricStereoError(
+            f"light_dirs must have shape (K, 3) with K = {images.shape[0]} images, got {L.shape}")
+    if L.shape[0] < 3:
+        raise PhotometricStereoError(f"need at least 3 lights, got {L.shape[0]}")
+    norms = np.linalg.norm(L, axis=1)
+    if np.any(norms < 1e-9):
+        raise PhotometricStereoError("light_dirs contains a zero vector")
+    L = L / norms[:, None]
+    if np.linalg.matrix_rank(L, tol=1e-3) < 3:
+        raise PhotometricStereoError("light directions are (nearly) coplanar: normals are not "
+                                     "determined; spread the lights out of one plane")
+    H, W = images.shape[1:3]
+    if mask is None:
+        mask = np.ones((H, W), bool)
+    else:
+        mask = np.asarray(mask, bool)
+        if mask.shape != (H, W):
+            raise PhotometricStereoError(f"mask must have shape {(H, W)}, got {mask.shape}")
+    return images, L, mask
+
+
+def photometric_stereo(images: np.ndarray, light_dirs: np.ndarray, mask: np.ndarray | None = None,
+                       *, robust: bool = False, shadow_threshold: float = 0.0,
+                       drop_darkest: int = 2, drop_brightest: int = 1,
+                       refine_iterations: int = 3) -> PhotometricStereoResult:
+    """Recover normals and albedo from K images under K known distant lights.
+
+    Parameters
+    ----------
+    images : ndarray of shape (K, H, W) or (K, H, W, C)
+        Linear images, one per light. Colour stacks share one normal; the normal is solved on
+        the channel sum and the albedo per channel.
+    light_dirs : ndarray of shape (K, 3)
+        Directions towards each light in the camera frame (normalised here). Light intensities
+        are assumed equal (scale images beforehand otherwise).
+    mask : ndarray of shape (H, W), bool, optional
+        Pixels to solve; default all.
+    robust : bool
+        Reject per pixel the ``drop_darkest`` darkest observations (attached/cast shadows) and the
+        ``drop_brightest`` brightest (specular highlights), plus any at or below
+        ``shadow_threshold``; then solve the remaining (at least 3) by least squares.
+        Then ``refine_iterations`` re-weighting passes drop, per pixel, the lights the current
+        fit puts in shadow and those far above it (3 sigma of the global residual spread plus 5%:
+        highlights), and solve again.
+    shadow_threshold : float
+        Intensities at or below this are treated as shadowed (robust mode), image units.
+
+    Returns
+    -------
+    PhotometricStereoResult
+    """
+    images, L, mask = _check_inputs(images, light_dirs, mask)
+    K = L.shape[0]
+    color = images.ndim == 4
+    gray = images.sum(axis=3) if color else images
+    I = gray[:, mask].astype(np.float64).T                      # (P, K)
+    P = I.shape[0]
+
+    if not robust:
+        G = I @ np.linalg.pinv(L).T                               # (P, 3) = rho * n
+        weights = np.ones_like(I)
+    else:
+        if K - drop_darkest - drop_brightest < 3:
+            raise PhotometricStereoError(
+                f"robust mode drops {drop_darkest}+{drop_brightest} of {K} lights per pixel; "
+                "at least 3 must remain")
+        rank = np.argsort(np.argsort(I, axis=1), axis=1)          # 0 = darkest
+        weights = ((rank >= drop_darkest) & (rank < K - drop_brightest)
+                   & (I > shadow_threshold)).astype(np.float64)
+        G = _weighted_solve(I, L, weights)
+        # re-weighting: a Lambertian pixel is explained to within noise by its lit lights; lights
+        # whose value sits far above the fit (highlights) or that the fit puts in shadow are dropped
+        for _ in range(refine_iterations):
+            pred = G @ L.T
+            resid = I - pred
+            sigma = 1.4826 * np.median(np.abs(resid[weights > 0])) + 1e-12
+            keep = (I > shadow_threshold) & (pred > 0) & (resid < 3 * sigma + 0.05 * pred)
+            new_w = keep.astype(np.float64)
+            enough = new_w.sum(axis=1) >= 3
+            weights = np.where(enough[:, None], new_w, weights)
+            G = _weighted_solve(I, L, weights)
+
+    rho = np.linalg.norm(G, axis=1)
+    n = np.divide(G, rho[:, None], out=np.zeros_like(G), where=rho[:, None] > 0)
+    pred = np.clip(n @ L.T, 0, None) * rho[:, None]
+    used = weights.sum(axis=1)
+    resid = np.sqrt(np.sum(weights * (I - pred) ** 2, axis=1) / np.maximum(used, 1))
+    valid = (rho > 0) & (used >= 3)
+
+    H, W = mask.shape
+    normals = np.zeros((H, W, 3), np.float32)
+    normals[mask] = np.where(valid[:, None], n, 0)
+    out_mask = np.zeros((H, W), bool)
+    out_mask[mask] = valid
+    residual = np.zeros((H, W), np.float32)
+    residual[mask] = resid
+    lights_used = np.zeros((H, W), np.int16)
+    lights_used[mask] = used
+    if color:
+        # per-channel albedo: least squares of I_c = rho_c * shading over the lights used
+        shading = np.clip(n @ L.T, 0, None) * weights                # (P, K)
+        Ic = images[:, mask, :].astype(np.float64).transpose(1, 0, 2)  # (P, K, C)
+        denom = np.sum(shading ** 2, axis=1)
+        rho_c = np.einsum("pk,pkc->pc", shading, Ic) / np.maximum(denom, 1e-12)[:, None]
+        albedo = np.zeros((H, W, images.shape[3]), np.float32)
+        albedo[mask] = np.where(valid[:, None], rho_c, 0)
+    else:
+        albedo = np.zeros((H, W), np.float32)
+        albedo[mask] = np.where(valid, rho, 0)
+    return PhotometricStereoResult(normals=normals, albedo=albedo, mask=out_mask,
+                                   residual=residual, lights_used=lights_used)
+
+
+def _weighted_solve(I: np.ndarray, L: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Per-pixel weighted least squares for g = rho n: a batch of 3x3 normal equations."""
+    A = np.einsum("pk,ki,kj->pij", weights, L, L)
+    b = np.einsum("pk,pk,ki->pi", weights, I, L)
+    ok = (weights.sum(axis=1) >= 3) & (np.linalg.det(A) > 1e-9)
+    G = np.zeros((len(I), 3))
+    G[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    return G
+
+
+def angular_error_deg(n_est: np.ndarray, n_true: np.ndarray) -> np.ndarray:
+    """Angle between unit normals (..., 3) in degrees."""
+    dot = np.sum(np.asarray(n_est, float) * np.asarray(n_true, float), axis=-1)
+    return np.degrees(np.arccos(np.clip(dot, -1.0, 1.0)))
