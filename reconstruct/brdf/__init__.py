@@ -1,4 +1,9 @@
 """Reflectance models (see base.py for the conventions every model follows)."""
+from .analytic import (BlinnPhong, CookTorrance, ModifiedPhong, OrenNayar, Ward,
+                       microfacet_distribution, smith_lambda)
 from .base import BRDF, Lambertian
+from .dichromatic import Dichromatic
+from .lafortune import Lafortune
 
-__all__ = ["BRDF", "Lambertian"]
+__all__ = ["BRDF", "Lambertian", "OrenNayar", "ModifiedPhong", "BlinnPhong", "Ward",
+           "CookTorrance", "Lafortune", "Dichromatic", "microfacet_distribution", "smith_lambda"]

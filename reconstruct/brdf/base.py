@@ -8,6 +8,10 @@ Directions are unit vectors in the local shading frame (z = surface normal), bot
 from the surface: ``wi`` towards the light, ``wo`` towards the viewer. ``evaluate`` returns the
 BRDF value f_r in 1/sr, RGB, shape (N, 3), zero where either direction is below the surface.
 Radiance from a point light is then ``f_r * cos(theta_i) * E``.
+
+Every model can be split for polarisation-aware rendering: ``diffuse_part()`` (depolarising body
+reflection) and ``specular_part()`` (polarisation-preserving interface reflection) are models
+whose sum is the original.
 """
 from __future__ import annotations
 
@@ -30,11 +34,21 @@ class BRDF(abc.ABC):
         wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
         if wi.shape != wo.shape:
             raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
-        f = np.broadcast_to(self._evaluate(wi, wo).reshape(len(wi), -1), (len(wi), 3))
+        # rows below the horizon are zeroed below; their intermediate inf/NaN are expected
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            f = np.broadcast_to(self._evaluate(wi, wo).reshape(len(wi), -1), (len(wi), 3))
         above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
         return np.where(above[:, None], f, 0.0)
 
     __call__ = evaluate
+
+    def diffuse_part(self) -> "BRDF":
+        """The body (depolarising) reflection of this model; default: none (black)."""
+        return Lambertian(0.0)
+
+    def specular_part(self) -> "BRDF":
+        """The interface (polarisation-preserving) reflection; default: the whole model."""
+        return self
 
     def take(self, index: np.ndarray) -> "BRDF":
         """The same model with per-sample parameters indexed by ``index`` (spatial variation)."""
@@ -57,6 +71,24 @@ def rgb(value, n_extra_dims: int = 0) -> np.ndarray:
     return a
 
 
+def check_param(owner: str, name: str, value, *, low: float | None = 0.0,
+                high: float | None = None, low_open: bool = False) -> None:
+    """Raise ``ValueError`` naming ``owner.name`` unless ``value`` is finite and within bounds.
+
+    ``low``/``high`` are inclusive unless ``low_open`` (strictly greater than ``low``).
+    """
+    a = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{owner}.{name} must be finite, got non-finite values")
+    if a.size == 0:
+        raise ValueError(f"{owner}.{name} is empty")
+    if low is not None and (np.any(a <= low) if low_open else np.any(a < low)):
+        rel = ">" if low_open else ">="
+        raise ValueError(f"{owner}.{name} must be {rel} {low}, got minimum {a.min():g}")
+    if high is not None and np.any(a > high):
+        raise ValueError(f"{owner}.{name} must be <= {high}, got maximum {a.max():g}")
+
+
 def scalar(value) -> np.ndarray:
     """A scalar parameter as an array broadcastable to (N,): scalar -> (1,); (N,) stays."""
     return np.asarray(value, dtype=np.float64).reshape(-1)
@@ -69,10 +101,19 @@ class Lambertian(BRDF):
     Parameters
     ----------
     albedo : float, (3,), (N,) or (N, 3)
-        Diffuse reflectance in [0, 1] (RGB).
+        Diffuse reflectance (RGB), >= 0; <= 1 for a physical (energy-conserving) surface.
     """
 
     albedo: object = 0.5
 
+    def __post_init__(self):
+        check_param("Lambertian", "albedo", self.albedo)
+
     def _evaluate(self, wi, wo):
         return np.broadcast_to(rgb(self.albedo) / np.pi, (len(wi), 3))
+
+    def diffuse_part(self) -> "BRDF":
+        return self
+
+    def specular_part(self) -> "BRDF":
+        return Lambertian(0.0)
