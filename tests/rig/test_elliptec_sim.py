@@ -1,0 +1,146 @@
+"""ElliptecRotator against the ELL14 firmware simulator over a real pty."""
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from rig.elliptec import ElliptecRotator
+from rig.errors import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, ProtocolError
+from sims.elliptec_sim import ElliptecSim
+
+
+@pytest.fixture
+def sim():
+    s = ElliptecSim(name="polarizer", fast=True)
+    s.start()
+    yield s
+    s.stop()
+
+
+@pytest.fixture
+def rot(sim):
+    r = ElliptecRotator("polarizer", sim.port, timeout_s=0.3, move_timeout_s=2.0, busy_retry_s=0.5)
+    r.connect()
+    yield r
+    r.close()
+
+
+def test_connect_home_move_position(sim, rot):
+    assert rot.describe()["pulses_per_revolution"] == sim.pulses_per_rev
+    assert rot.position == pytest.approx(37.0, abs=360 / sim.pulses_per_rev)
+    rot.home().wait(2)
+    assert rot.homed and sim.homed and sim.angle_deg == 0.0
+    for target in (22.5, 90.0, 359.0, 0.0, 137.25):
+        assert rot.move_to(target).wait(2) == pytest.approx(target, abs=0.003)
+        assert sim.angle_deg == pytest.approx(target, abs=0.003)
+    assert rot.read()["position"]["value"] == pytest.approx(137.25, abs=0.003)
+
+
+def test_requests_on_the_wire_are_byte_exact(sim, rot):
+    rot.home().wait(2)
+    rot.move_to(90).wait(2)
+    assert sim.requests == [b"0in", b"0gs", b"0ho0", b"0ma00008C00"]
+
+
+def test_relative_move_wraps_past_full_turn(sim, rot):
+    rot.home().wait(2)
+    rot.move_to(350).wait(2)
+    assert rot.move_by(20).wait(2) == pytest.approx(10.0, abs=0.003)
+    assert sim.angle_deg == pytest.approx(10.0, abs=0.003)
+
+
+def test_timed_motion_and_stop():
+    with ElliptecSim(name="polarizer", fast=False, speed_deg_s=100.0) as sim:
+        r = ElliptecRotator("polarizer", sim.port, timeout_s=0.3, require_home=False)
+        r.connect()
+        t0 = time.monotonic()
+        st = r.move_to(37.0 + 30.0)  # 0.3 s at 100 deg/s
+        assert not st.done
+        assert st.wait(2) == pytest.approx(67.0, abs=0.003)
+        assert time.monotonic() - t0 == pytest.approx(0.3, abs=0.15)
+        st = r.move_to(337.0)  # 2.7 s: stop it half way
+        time.sleep(0.3)
+        assert 40 < sim.angle_deg < 120
+        r.stop()
+        stopped = st.wait(1)
+        assert stopped == pytest.approx(sim.angle_deg, abs=0.01) and not sim.moving
+        assert r.position == pytest.approx(stopped, abs=0.01)  # the port is clean after the stop
+        r.close()
+
+
+def test_busy_fault_retried(sim, rot):
+    rot.home().wait(2)
+    sim.inject("busy", 3)
+    assert rot.move_to(45).wait(2) == pytest.approx(45.0, abs=0.003)
+    assert sim.requests.count(b"0ma00004600") == 4
+
+
+def test_busy_forever_raises_device_busy(sim, rot):
+    sim.inject("busy", 1000)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceBusy):
+        rot.home().wait(2)
+    assert time.monotonic() - t0 < 1.0
+    sim.clear_faults()
+    rot.home().wait(2)  # recovers
+
+
+def test_mechanical_timeout(sim, rot):
+    rot.home().wait(2)
+    sim.inject("mechanical_timeout")
+    with pytest.raises(DeviceError, match="mechanical time out") as info:
+        rot.move_to(90).wait(2)
+    assert info.value.code == 2
+    assert 0 < sim.angle_deg < 90
+    assert rot.move_to(90).wait(2) == pytest.approx(90.0, abs=0.003)
+
+
+def test_out_of_range(sim, rot):
+    rot.home().wait(2)
+    sim.inject("out_of_range")
+    with pytest.raises(DeviceError, match="out of range") as info:
+        rot.move_to(90).wait(2)
+    assert info.value.code == 12
+
+
+def test_no_reply_times_out_then_recovers(sim, rot):
+    sim.inject("no_reply")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        rot.position
+    assert time.monotonic() - t0 < 0.6
+    assert rot.position == pytest.approx(37.0, abs=0.003)
+
+
+def test_garbled_reply_is_protocol_error_then_recovers(sim, rot):
+    sim.inject("garble")
+    with pytest.raises(ProtocolError):
+        rot.position
+    assert rot.position == pytest.approx(37.0, abs=0.003)
+
+
+def test_disconnect_then_reconnect(sim, rot):
+    rot.home().wait(2)
+    sim.inject("disconnect")
+    with pytest.raises((Disconnected, DeviceTimeout)):
+        rot.position
+    sim.reconnect()
+    rot.close()
+    rot.connect()
+    assert not rot.homed  # power-cycled: reference lost
+    rot.home().wait(2)
+    assert rot.move_to(10).wait(2) == pytest.approx(10.0, abs=0.003)
+
+
+def test_incomplete_request_answered_with_communication_timeout(sim, rot):
+    rot.transport.write(b"0ma0000")
+    with pytest.raises(DeviceTimeout, match="communication time out"):
+        rot._check_ok(rot._read_reply(timeout_s=1.5), "partial request")
+
+
+def test_other_address_gets_no_reply(sim):
+    r = ElliptecRotator("polarizer", sim.port, address="3", timeout_s=0.2)
+    with pytest.raises(DeviceTimeout):
+        r.connect()
+    r.close()
