@@ -8,6 +8,8 @@ poll thread and the caller can share a port.
 from __future__ import annotations
 
 import logging
+import os
+import select
 import threading
 import time
 
@@ -41,9 +43,11 @@ class SerialTransport:
         self.device = device
         self.lock = threading.RLock()
         self._serial: serial.Serial | None = None
+        self._rx = bytearray()  # bytes received but not yet consumed
 
     # -- link ---------------------------------------------------------------------------------
     def open(self) -> None:
+        self._rx.clear()
         try:
             self._serial = serial.Serial(self.port, self.baudrate, bytesize=8, parity="N",
                                          stopbits=1, timeout=self.timeout_s, write_timeout=self.timeout_s)
@@ -77,48 +81,135 @@ class SerialTransport:
             self.close()
             raise Disconnected(f"write to {self.port} failed: {exc}", device=self.device) from None
 
+    def _fill(self, port: serial.Serial, deadline: float) -> bool:
+        """Append what the port has to the receive buffer, waiting until ``deadline`` at most.
+
+        Reads whole chunks with ``select`` + ``os.read`` instead of pyserial's byte-at-a-time
+        ``read_until`` and never changes the port's timeout (each change is a ``tcsetattr``):
+        this halves a request/reply round trip. Returns False on timeout.
+        """
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return False
+        fd = port.fileno()
+        ready, _, _ = select.select([fd], [], [], remaining)
+        if not ready:
+            return False
+        chunk = os.read(fd, 4096)
+        if not chunk:  # readable but empty: the other end is gone
+            raise OSError("device reports readiness to read but returned no data")
+        self._rx += chunk
+        return True
+
     def read_until(self, terminator: bytes = b"\n", timeout_s: float | None = None) -> bytes:
         """Read up to and including ``terminator``; raise ``DeviceTimeout`` if it does not come."""
         timeout = self.timeout_s if timeout_s is None else timeout_s
         port = self._port()
+        deadline = time.monotonic() + timeout
         try:
-            if port.timeout != timeout:  # reconfiguring the tty costs a syscall; do it only on change
-                port.timeout = timeout
-            buf = port.read_until(terminator)  # pyserial returns early on timeout
+            while (i := self._rx.find(terminator)) < 0:
+                if not self._fill(port, deadline):
+                    raise DeviceTimeout(f"no complete reply (got {bytes(self._rx)!r})",
+                                        device=self.device, timeout_s=timeout)
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise Disconnected(f"read from {self.port} failed: {exc}", device=self.device) from None
-        if not buf.endswith(terminator):
-            raise DeviceTimeout(f"no complete reply (got {bytes(buf)!r})", device=self.device,
-                                timeout_s=timeout)
-        log.debug("%s < %r", self.device, buf)
-        return bytes(buf)
+        out = bytes(self._rx[: i + len(terminator)])
+        del self._rx[: i + len(terminator)]
+        log.debug("%s < %r", self.device, out)
+        return out
 
     def read_exactly(self, n: int, timeout_s: float | None = None) -> bytes:
         """Read exactly ``n`` bytes or raise ``DeviceTimeout``."""
         timeout = self.timeout_s if timeout_s is None else timeout_s
         port = self._port()
         deadline = time.monotonic() + timeout
-        buf = bytearray()
         try:
-            while len(buf) < n:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceTimeout(f"expected {n} bytes, got {bytes(buf)!r}", device=self.device,
-                                        timeout_s=timeout)
-                if port.timeout != remaining:
-                    port.timeout = remaining
-                buf += port.read(n - len(buf))
+            while len(self._rx) < n:
+                if not self._fill(port, deadline):
+                    raise DeviceTimeout(f"expected {n} bytes, got {bytes(self._rx)!r}",
+                                        device=self.device, timeout_s=timeout)
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise Disconnected(f"read from {self.port} failed: {exc}", device=self.device) from None
-        log.debug("%s < %r", self.device, bytes(buf))
-        return bytes(buf)
+        out = bytes(self._rx[:n])
+        del self._rx[:n]
+        log.debug("%s < %r", self.device, out)
+        return out
 
     def reset_input(self) -> None:
         """Drop unread bytes (stale replies after a timeout)."""
+        self._rx.clear()
         try:
             self._port().reset_input_buffer()
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise Disconnected(f"{self.port}: {exc}", device=self.device) from None
+
+
+class ScriptedTransport:
+    """A fake transport that plays a scripted byte exchange (protocol tests, no port).
+
+    Modelled on PyMeasure's ``expected_protocol``: ``script`` is a list of
+    ``(request_bytes, reply_bytes)`` pairs. Each ``write`` must equal the next expected request
+    (else ``AssertionError`` naming both); its reply is then readable. A reply of ``None`` means the
+    device stays silent, so the next read times out with ``DeviceTimeout``. ``unsolicited``
+    bytes are readable before the first request (a power-up banner). After the test,
+    :meth:`assert_done` checks that every pair was used and no reply byte is left unread.
+    """
+
+    def __init__(self, script: list[tuple[bytes, bytes | None]], *, unsolicited: bytes = b"",
+                 device: str = "", port: str = "scripted") -> None:
+        self.script = list(script)
+        self.device = device
+        self.port = port
+        self.timeout_s = 0.05
+        self.lock = threading.RLock()
+        self._rx = bytearray(unsolicited)
+        self._open = False
+        self.written: list[bytes] = []
+
+    def open(self) -> None:
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def write(self, data: bytes) -> None:
+        if not self._open:
+            raise Disconnected("scripted port is not open", device=self.device)
+        self.written.append(bytes(data))
+        assert self.script, f"unexpected write {data!r}: the script is exhausted"
+        expected, reply = self.script.pop(0)
+        assert data == expected, f"wrote {data!r}, the script expected {expected!r}"
+        if reply is not None:
+            self._rx += reply
+
+    def read_until(self, terminator: bytes = b"\n", timeout_s: float | None = None) -> bytes:
+        i = self._rx.find(terminator)
+        if i < 0:
+            raise DeviceTimeout(f"no complete reply (got {bytes(self._rx)!r})", device=self.device,
+                                timeout_s=self.timeout_s if timeout_s is None else timeout_s)
+        out = bytes(self._rx[: i + len(terminator)])
+        del self._rx[: i + len(terminator)]
+        return out
+
+    def read_exactly(self, n: int, timeout_s: float | None = None) -> bytes:
+        if len(self._rx) < n:
+            raise DeviceTimeout(f"expected {n} bytes, got {bytes(self._rx)!r}", device=self.device,
+                                timeout_s=self.timeout_s if timeout_s is None else timeout_s)
+        out = bytes(self._rx[:n])
+        del self._rx[:n]
+        return out
+
+    def reset_input(self) -> None:
+        self._rx.clear()
+
+    def assert_done(self) -> None:
+        """Every scripted request was sent and every reply byte read."""
+        assert not self.script, f"script not finished; still expected {self.script[0][0]!r}"
+        assert not self._rx, f"unread reply bytes left: {bytes(self._rx)!r}"

@@ -1,0 +1,315 @@
+"""Zaber ASCII firmware simulator: a continuous rotary stage (the turntable) on a pty.
+
+Speaks the frames described in ``rig/zaber.py`` byte for byte (commands ``/1 1 07 move abs
+1000:CC``, replies ``@01 1 07 OK BUSY -- 0:CC``), models motion with a trapezoidal profile
+(``maxspeed`` / ``accel`` in Zaber data units), and keeps the firmware's reference state: after
+power-up the axis reports ``WR`` (no reference position) and rejects absolute moves with
+``RJ IDLE WR BADCOMMAND`` until ``home`` has run.
+
+Simplifications, stated: one device with one axis; ``stop`` halts at the current position
+(deceleration is not modelled); replies carry a checksum exactly when the command did; a
+command whose checksum is wrong is dropped without a reply.
+
+Device faults for :meth:`inject` (besides the base ``no_reply``, ``garble``, ``disconnect``):
+
+- ``busy``    the next motion or ``set`` command is rejected ``RJ BUSY -- STATUSBUSY``;
+- ``stall``   the next move stops half way and latches fault ``FS`` (stalled and stopped);
+- ``encoder`` the next move stops half way and latches fault ``FQ`` (encoder error);
+- ``limit``   the next move trips a limit sensor half way: warning ``WL`` and the reference
+  position is lost (``WR``) until the axis is homed again.
+"""
+from __future__ import annotations
+
+import math
+import re
+import time
+
+from .serial_sim import SerialSim
+
+SPEED_UNITS = 1.6384            # data units per microstep/s (firmware 7)
+ACCEL_UNITS = 1.6384 / 10000.0  # data units per microstep/s^2
+
+_FLAG_ORDER = ("F", "W", "N")  # most urgent first
+
+
+def trapezoid_duration(distance: float, vmax: float, amax: float) -> float:
+    """Duration (s) of a rest-to-rest trapezoidal move over ``distance`` (any length unit)."""
+    distance = abs(distance)
+    if distance == 0.0:
+        return 0.0
+    if distance <= vmax * vmax / amax:
+        return 2.0 * math.sqrt(distance / amax)
+    return vmax / amax + distance / vmax
+
+
+def trapezoid_distance(distance: float, vmax: float, amax: float, t: float) -> float:
+    """Distance covered after ``t`` seconds of a rest-to-rest trapezoidal move.
+
+    Parameters
+    ----------
+    distance : float
+        Total (unsigned) distance of the move.
+    vmax, amax : float
+        Speed and acceleration limits in the same length unit per s and per s^2.
+    t : float
+        Time since the start of the move, seconds (clipped to the move's duration).
+    """
+    distance = abs(distance)
+    total = trapezoid_duration(distance, vmax, amax)
+    if t >= total:
+        return distance
+    if t <= 0.0:
+        return 0.0
+    t_acc = min(vmax / amax, total / 2.0)
+    v_peak = amax * t_acc
+    if t < t_acc:
+        return 0.5 * amax * t * t
+    if t > total - t_acc:
+        rest = total - t
+        return distance - 0.5 * amax * rest * rest
+    return 0.5 * amax * t_acc * t_acc + v_peak * (t - t_acc)
+
+
+def _checksum(body: str) -> str:
+    return f"{(-sum(body.encode('ascii'))) & 0xFF:02X}"
+
+
+_COMMAND = re.compile(r"/(?:(\d+)(?: (\d+))?(?: (\d+))?)? ?(.*)")
+
+
+class ZaberSim(SerialSim):
+    """A Zaber X-series continuous rotary stage (firmware 7) behind a pseudo-terminal.
+
+    Parameters
+    ----------
+    name : str
+        Role (port symlink name).
+    fast : bool
+        Moves complete at once.
+    device : int
+        Daisy-chain address.
+    device_id, firmware, serial : int, str, int
+        Identity reported by ``get deviceid`` / ``get version`` / ``get system.serial``.
+    cycle_microsteps : int
+        Microsteps per revolution (``limit.cycle.dist``); 1,536,000 is 0.000234375 deg/microstep.
+    speed_deg_s, accel_deg_s2 : float
+        Initial ``maxspeed`` and ``accel``, in degrees per second (squared).
+    homed : bool
+        Start with a reference position (skips the ``WR`` state after power-up).
+    power_up_angle_deg : float
+        Physical angle of the platter at power-up; the position counter starts at 0 there, so
+        the reported angle is wrong until the stage is homed (the home sensor is at 0 deg).
+    """
+
+    def __init__(self, name: str = "turntable", *, fast: bool = False, device: int = 1,
+                 device_id: int = 50419, firmware: str = "7.38", serial: int = 123456,
+                 cycle_microsteps: int = 1_536_000, resolution: int = 64,
+                 speed_deg_s: float = 90.0, accel_deg_s2: float = 360.0, homed: bool = False,
+                 power_up_angle_deg: float = 0.0) -> None:
+        super().__init__(name, fast=fast)
+        if cycle_microsteps <= 0:
+            raise ValueError(f"cycle_microsteps must be > 0, got {cycle_microsteps}")
+        self.device = device
+        self.device_id = device_id
+        self.firmware = firmware
+        self.serial = serial
+        self.cycle = cycle_microsteps
+        self.resolution = resolution
+        steps_per_deg = cycle_microsteps / 360.0
+        self.settings = {
+            "maxspeed": round(speed_deg_s * steps_per_deg * SPEED_UNITS),
+            "accel": round(accel_deg_s2 * steps_per_deg * ACCEL_UNITS),
+        }
+        self._start_homed = homed
+        self._power_up_angle = power_up_angle_deg
+        self.on_power_up()
+
+    # -- firmware state ---------------------------------------------------------------------------
+    def on_power_up(self) -> None:
+        with self._lock:
+            self._pos = 0.0                 # position counter, microsteps (unwrapped while moving)
+            self._offset = 0.0 if self._start_homed else self._power_up_angle * self.cycle / 360.0
+            self._motion: tuple[float, float, float, list[str]] | None = None  # t0, p0, delta, flags
+            self.flags: set[str] = set() if self._start_homed else {"WR"}
+
+    def on_disconnect(self) -> None:
+        with self._lock:
+            self._settle(time.monotonic())
+            self._motion = None  # power lost: the motor stops where it is
+
+    @property
+    def speed(self) -> float:
+        """Speed limit, microsteps/s."""
+        return self.settings["maxspeed"] / SPEED_UNITS
+
+    @property
+    def accel(self) -> float:
+        """Acceleration, microsteps/s^2."""
+        return self.settings["accel"] / ACCEL_UNITS
+
+    def _settle(self, now: float) -> None:
+        """Advance the motion model to ``now``; finish the move when its time is up."""
+        if self._motion is None:
+            return
+        t0, p0, delta, flags = self._motion
+        if self.fast or now - t0 >= trapezoid_duration(delta, self.speed, self.accel):
+            self._pos = p0 + delta
+            self._motion = None
+            if "home" in flags:  # reached the home sensor: it defines counter 0
+                self._pos = self._offset = 0.0
+                self.flags -= {"WR", "WL"}
+            else:
+                self.flags |= set(flags)
+                if "WL" in flags:
+                    self.flags.add("WR")
+        else:
+            self._pos = p0 + math.copysign(trapezoid_distance(delta, self.speed, self.accel, now - t0), delta)
+
+    def _start(self, delta: float, flags: list[str]) -> None:
+        """Begin a move by ``delta`` microsteps; ``flags`` are applied when it ends."""
+        if set(flags) & {"FS", "FQ", "WL"}:
+            delta = delta / 2.0  # the fault stops it half way
+        self._motion = (time.monotonic(), self._pos, delta, flags)
+
+    @property
+    def busy(self) -> bool:
+        with self._lock:
+            self._settle(time.monotonic())
+            return self._motion is not None
+
+    @property
+    def angle_deg(self) -> float:
+        """Physical platter angle, degrees in [0, 360) (what the camera sees)."""
+        with self._lock:
+            self._settle(time.monotonic())
+            return ((self._pos + self._offset) * 360.0 / self.cycle) % 360.0
+
+    def _counter(self) -> int:
+        return int(round(self._pos)) % self.cycle
+
+    def _flag(self) -> str:
+        for prefix in _FLAG_ORDER:
+            found = sorted(f for f in self.flags if f.startswith(prefix))
+            if found:
+                return found[0]
+        return "--"
+
+    def tick(self) -> bytes | None:
+        with self._lock:
+            self._settle(time.monotonic())
+        return None
+
+    # -- protocol ---------------------------------------------------------------------------------
+    def handle(self, request: bytes) -> bytes | None:
+        text = request.decode("ascii", "replace").strip("\r")
+        if not text.startswith("/"):
+            return None  # line noise; firmware ignores lines that are not commands
+        with_ck = len(text) >= 4 and text[-3] == ":"
+        if with_ck:
+            if _checksum(text[1:-3]) != text[-2:].upper():
+                return None
+            text = text[:-3]
+        m = _COMMAND.fullmatch(text)
+        if m is None:
+            return None
+        dev, axis, mid, command = m.groups()
+        dev_n = int(dev) if dev else 0
+        axis_n = int(axis) if axis else 0
+        if dev_n not in (0, self.device):
+            return None
+        with self._lock:
+            self._settle(time.monotonic())
+            flag, data = self._execute(axis_n, " ".join(command.split()))
+            status = "BUSY" if self._motion is not None else "IDLE"
+            body = f"{self.device:02d} {axis_n}"
+            if mid is not None:
+                body += f" {int(mid):02d}"
+            body += f" {flag} {status} {self._flag()} {data}"
+        if with_ck:
+            body += ":" + _checksum(body)
+        return ("@" + body + "\r\n").encode("ascii")
+
+    def _execute(self, axis: int, command: str) -> tuple[str, str]:
+        """Run one command; return (``OK``/``RJ``, data)."""
+        if axis not in (0, 1):
+            return "RJ", "BADAXIS"
+        words = command.split(" ") if command else []
+        if not words:
+            return "OK", "0"
+        verb = words[0]
+        if verb in ("move", "home", "set") and self.take_fault("busy"):
+            return "RJ", "STATUSBUSY"
+        if verb == "get" and len(words) == 2:
+            return self._get(axis, words[1])
+        if verb == "set" and len(words) == 3:
+            return self._set(words[1], words[2])
+        if verb == "move" and len(words) == 3 and words[1] in ("abs", "rel"):
+            return self._move(words[1], words[2])
+        if verb == "home" and len(words) == 1:
+            here = self._pos % self.cycle
+            # the home sensor sits at counter 0 of the physical platter: turn back to it
+            travel = -((here + self._offset) % self.cycle)
+            self._start(travel, ["home"])
+            return "OK", "0"
+        if verb == "stop" and len(words) == 1:
+            if self._motion is not None:
+                self._motion = None
+                self.flags.add("NI")
+            return "OK", "0"
+        if verb == "warnings":
+            listed = " ".join(sorted(self.flags))
+            if words[1:] == ["clear"]:
+                self.flags &= {"WR"}  # the missing reference clears only by homing
+            elif words[1:]:
+                return "RJ", "BADCOMMAND"
+            return "OK", f"{len(listed.split()):02d} {listed}".rstrip()
+        if verb == "system" and words[1:] == ["reset"]:
+            self.on_power_up()
+            return "OK", "0"
+        return "RJ", "BADCOMMAND"
+
+    def _get(self, axis: int, setting: str) -> tuple[str, str]:
+        device_settings = {"deviceid": self.device_id, "version": self.firmware,
+                           "system.serial": self.serial}
+        if setting in device_settings:
+            if axis != 0:
+                return "RJ", "DEVICEONLY"
+            return "OK", str(device_settings[setting])
+        values = {"pos": self._counter(), "resolution": self.resolution,
+                  "limit.cycle.dist": self.cycle, "limit.min": 0, "limit.max": self.cycle - 1,
+                  **self.settings}
+        if setting not in values:
+            return "RJ", "BADCOMMAND"
+        return "OK", str(values[setting])
+
+    def _set(self, setting: str, value: str) -> tuple[str, str]:
+        if setting not in self.settings:
+            return "RJ", "BADCOMMAND"
+        try:
+            number = int(value)
+        except ValueError:
+            return "RJ", "BADDATA"
+        if number <= 0:
+            return "RJ", "BADDATA"
+        self.settings[setting] = number
+        return "OK", "0"
+
+    def _move(self, mode: str, value: str) -> tuple[str, str]:
+        try:
+            number = int(value)
+        except ValueError:
+            return "RJ", "BADDATA"
+        if mode == "abs":
+            if "WR" in self.flags:
+                return "RJ", "BADCOMMAND"
+            if not 0 <= number < self.cycle:
+                return "RJ", "BADDATA"
+            # a cyclic axis takes the shorter way round
+            delta = (number - self._pos + self.cycle / 2) % self.cycle - self.cycle / 2
+        else:
+            delta = float(number)
+        self.flags.discard("NI")
+        faults = [flag for fault, flag in (("stall", "FS"), ("encoder", "FQ"), ("limit", "WL"))
+                  if self.take_fault(fault)]
+        self._start(delta, faults[:1])
+        return "OK", "0"
