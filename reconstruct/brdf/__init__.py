@@ -4,6 +4,8 @@ from .analytic import (BlinnPhong, CookTorrance, ModifiedPhong, OrenNayar, Ward,
 from .base import BRDF, Lambertian
 from .dichromatic import Dichromatic
 from .lafortune import Lafortune
+from .tabulated import Bivariate, TabulatedIsotropic
 
 __all__ = ["BRDF", "Lambertian", "OrenNayar", "ModifiedPhong", "BlinnPhong", "Ward",
-           "CookTorrance", "Lafortune", "Dichromatic", "microfacet_distribution", "smith_lambda"]
+           "CookTorrance", "Lafortune", "Dichromatic", "TabulatedIsotropic", "Bivariate",
+           "microfacet_distribution", "smith_lambda"]
