@@ -1,0 +1,599 @@
+"""Physically based direct-lighting renderer: point/directional/environment lights, shadows,
+SVBRDF materials, mirrors, linear polarizers, and geometry buffers.
+
+Frames and units: world = turntable frame (mm, +z up); the camera is a
+:class:`reconstruct.camera.CameraModel`. Radiance is linear RGB in the lights' units: a point
+light of radiant intensity ``I`` [X/sr] at distance ``r`` [mm] gives irradiance ``I / r^2``
+[X/mm^2] and radiance ``f_r * I / r^2 * cos(theta_i)`` [X/(mm^2 sr)]; a directional light's
+``irradiance`` and an environment map's radiance are used as given, so one scene should use one
+unit throughout.
+
+Light transport: direct lighting from every light (shadow rays when ``shadows``), Monte-Carlo
+environment lighting (importance sampled by luminance x solid angle), and perfect mirrors that
+follow reflection rays up to ``max_bounces`` (seeing surfaces, the environment, and spherical
+point lights with ``radius > 0``). Inter-reflections between non-mirror surfaces are not
+simulated. Surfaces are two-sided: seen from the back, the normals are flipped towards the
+viewer for shading.
+
+Polarization (ideal linear polarizers, angles in degrees in a common reference): a light with
+``polarizer`` emits light linearly polarized at that angle (its ``intensity`` is what leaves
+the polarizer); an analyser on the lens (``render(..., polarizer=beta)``) passes
+``cos^2(alpha - beta)`` of the specular (interface) reflection of light polarized at
+``alpha`` — specular reflection keeps the polarization — and half of everything depolarized:
+diffuse (body) reflection, unpolarized lights, the environment. The split comes from the
+models' ``diffuse_part()`` / ``specular_part()``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .brdf.base import BRDF
+from .camera import CameraModel
+from .envmap import EnvironmentMap
+from .frames import tangent_frames, to_local
+from .raycast import (Hits, Surface, first_hits, occluded, offset_origins, reflect,
+                      scene_scale)
+
+#: Rays processed together (bounds memory: ~1 kB per ray in flight).
+DEFAULT_CHUNK = 1 << 18
+
+
+# ----------------------------------------------------------------------------------------------
+# materials
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Mirror:
+    """A perfect specular reflector (delta BRDF): radiance = ``reflectance`` x radiance arriving
+    along the mirrored viewing ray. Polarization-preserving.
+
+    Parameters
+    ----------
+    reflectance : float or (3,)
+        Fraction reflected, RGB, in [0, 1] (chrome ~0.6-0.8; an ideal mirror 1).
+    """
+
+    reflectance: object = 1.0
+
+    def __post_init__(self):
+        r = np.asarray(self.reflectance, dtype=np.float64)
+        if r.shape not in ((), (3,)) or not np.all(np.isfinite(r)) or np.any(r < 0):
+            raise ValueError(f"Mirror.reflectance must be a scalar or RGB triple >= 0, got "
+                             f"{self.reflectance!r}")
+
+
+@dataclass(frozen=True)
+class MaterialMap:
+    """Several materials on one surface, chosen per hit point by an id.
+
+    Parameters
+    ----------
+    materials : sequence of materials
+        Each a BRDF, a :class:`Mirror` or a per-point callable (see :data:`Material`).
+    ids : ndarray of shape (F,) int, ndarray of shape (h, w) int, or callable
+        Per-face ids (meshes; indexed by ``face_index``); or an id texture looked up at the hit's
+        ``uv`` (nearest texel; column = u * w, row = v * h, row 0 at v = 0); or
+        ``ids(position (N, 3), uv (N, 2), face_index (N,)) -> (N,) int``.
+    """
+
+    materials: Sequence
+    ids: object
+
+    def __post_init__(self):
+        if len(self.materials) == 0:
+            raise ValueError("MaterialMap.materials is empty")
+        for k, m in enumerate(self.materials):
+            if isinstance(m, MaterialMap) or not (isinstance(m, (BRDF, Mirror)) or callable(m)):
+                raise TypeError(f"MaterialMap.materials[{k}] must be a BRDF, Mirror or callable, "
+                                f"got {type(m).__name__}")
+        if not callable(self.ids):
+            ids = np.asarray(self.ids)
+            if ids.ndim not in (1, 2) or not np.issubdtype(ids.dtype, np.integer):
+                raise ValueError("MaterialMap.ids must be an (F,) per-face or (h, w) texture "
+                                 f"integer array, or a callable; got {ids.dtype} {ids.shape}")
+            object.__setattr__(self, "ids", ids)
+
+    def resolve_ids(self, position, uv, face_index) -> np.ndarray:
+        """Material index of each hit point (N,)."""
+        if callable(self.ids):
+            ids = np.asarray(self.ids(position, uv, face_index))
+        elif self.ids.ndim == 1:
+            if np.any(face_index < 0) or np.any(face_index >= len(self.ids)):
+                raise ValueError("MaterialMap.ids is per-face but a hit has face_index outside "
+                                 f"[0, {len(self.ids)}) (is the surface a mesh?)")
+            ids = self.ids[face_index]
+        else:
+            if np.any(~np.isfinite(uv)):
+                raise ValueError("MaterialMap.ids is a texture but the surface has no uv")
+            h, w = self.ids.shape
+            col = np.clip((uv[:, 0] * w).astype(np.int64), 0, w - 1)
+            row = np.clip((uv[:, 1] * h).astype(np.int64), 0, h - 1)
+            ids = self.ids[row, col]
+        if ids.shape != (len(position),):
+            raise ValueError(f"MaterialMap ids must have shape ({len(position)},), got {ids.shape}")
+        if np.any(ids < 0) or np.any(ids >= len(self.materials)):
+            raise ValueError(f"MaterialMap id out of range [0, {len(self.materials)}): "
+                             f"{ids.min()}..{ids.max()}")
+        return ids
+
+
+#: A surface's material: a BRDF (uniform), a :class:`Mirror`, a :class:`MaterialMap`, or a
+#: callable ``material(position (N, 3) mm world, uv (N, 2), face_index (N,)) -> BRDF`` whose
+#: parameters have a leading (N,) axis (spatially varying BRDF).
+Material = BRDF | Mirror | MaterialMap | Callable
+
+
+# ----------------------------------------------------------------------------------------------
+# lights and scene
+# ----------------------------------------------------------------------------------------------
+def _rgb3(name, value) -> np.ndarray:
+    a = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,)).copy() \
+        if np.ndim(value) in (0, 1) and np.size(value) in (1, 3) else None
+    if a is None or not np.all(np.isfinite(a)) or np.any(a < 0):
+        raise ValueError(f"{name} must be a scalar or RGB triple of finite values >= 0, got "
+                         f"{value!r}")
+    return a
+
+
+def _angle(name, value):
+    if value is None:
+        return None
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be an angle in degrees or None, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """An isotropic point light (optionally a small sphere, for mirror highlights).
+
+    Parameters
+    ----------
+    position : (3,)
+        World frame, mm.
+    intensity : float or (3,)
+        Radiant intensity (RGB, per sr) leaving the light (after its polarizer, if any).
+    radius : float
+        Radius (mm) of the spherical emitter seen in mirrors, with uniform radiance
+        ``intensity / (pi radius^2)``; 0: a true point (invisible in mirrors). Diffuse and glossy
+        shading always treat the light as a point with inverse-square falloff.
+    polarizer : float or None
+        Angle (degrees) of a linear polarizer in front of the light; None: unpolarized.
+    """
+
+    position: object
+    intensity: object = 1.0
+    radius: float = 0.0
+    polarizer: float | None = None
+
+    def __post_init__(self):
+        p = np.asarray(self.position, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"PointLight.position must be a finite 3-vector in mm, got "
+                             f"{self.position!r}")
+        object.__setattr__(self, "position", p)
+        object.__setattr__(self, "intensity", _rgb3("PointLight.intensity", self.intensity))
+        if not np.isfinite(self.radius) or self.radius < 0:
+            raise ValueError(f"PointLight.radius must be >= 0 mm, got {self.radius!r}")
+        object.__setattr__(self, "polarizer", _angle("PointLight.polarizer", self.polarizer))
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """A distant light.
+
+    Parameters
+    ----------
+    direction : (3,)
+        World direction from the scene towards the light (normalised here).
+    irradiance : float or (3,)
+        Irradiance (RGB) on a surface facing the light.
+    polarizer : float or None
+        Linear polarizer angle (degrees) on the light; None: unpolarized.
+    """
+
+    direction: object
+    irradiance: object = 1.0
+    polarizer: float | None = None
+
+    def __post_init__(self):
+        d = np.asarray(self.direction, dtype=np.float64)
+        if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
+            raise ValueError(f"DirectionalLight.direction must be a non-zero 3-vector, got "
+                             f"{self.direction!r}")
+        object.__setattr__(self, "direction", d / np.linalg.norm(d))
+        object.__setattr__(self, "irradiance", _rgb3("DirectionalLight.irradiance",
+                                                     self.irradiance))
+        object.__setattr__(self, "polarizer", _angle("DirectionalLight.polarizer",
+                                                     self.polarizer))
+
+
+@dataclass
+class SceneObject:
+    """A placed surface and its material (see :data:`Material`)."""
+
+    surface: Surface
+    material: object
+    name: str = ""
+
+    def __post_init__(self):
+        if not isinstance(self.surface, Surface):
+            raise TypeError(f"SceneObject.surface must be a raycast.Surface, got "
+                            f"{type(self.surface).__name__}")
+        m = self.material
+        if not (isinstance(m, (BRDF, Mirror, MaterialMap)) or callable(m)):
+            raise TypeError(f"SceneObject.material of {self.name or 'object'} must be a BRDF, "
+                            f"Mirror, MaterialMap or callable, got {type(m).__name__}")
+
+
+@dataclass
+class Scene:
+    """What the renderer draws: objects, lights and an optional environment map.
+
+    ``surface_index`` in the geometry buffers indexes ``objects``.
+    """
+
+    objects: list[SceneObject] = field(default_factory=list)
+    lights: list = field(default_factory=list)
+    environment: EnvironmentMap | None = None
+
+    def add(self, surface: Surface, material, name: str = "") -> SceneObject:
+        """Append a surface with its material; returns the new object."""
+        obj = SceneObject(surface, material, name)
+        self.objects.append(obj)
+        return obj
+
+    def add_light(self, light) -> None:
+        if not isinstance(light, (PointLight, DirectionalLight)):
+            raise TypeError(f"light must be a PointLight or DirectionalLight, got "
+                            f"{type(light).__name__}")
+        self.lights.append(light)
+
+    @property
+    def surfaces(self) -> list[Surface]:
+        return [o.surface for o in self.objects]
+
+
+# ----------------------------------------------------------------------------------------------
+# results
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class RenderResult:
+    """A rendered frame and its geometry buffers (H x W).
+
+    Attributes
+    ----------
+    radiance : ndarray of shape (H, W, 3), float32
+        Linear radiance, RGB (units: see module docstring), after the analyser if any.
+    mask : ndarray of shape (H, W), bool
+        Pixels whose camera ray hit a surface.
+    normal : ndarray of shape (H, W, 3), float32
+        Unit shading normal, world frame, outward as stored (not flipped); zero off the mask.
+    position : ndarray of shape (H, W, 3), float64
+        Hit point, world frame, mm; NaN off the mask.
+    depth : ndarray of shape (H, W), float32
+        Camera-frame z of the hit, mm; inf off the mask.
+    uv : ndarray of shape (H, W, 2), float32
+        Surface coordinates (see the surface classes); NaN where undefined.
+    face_index : ndarray of shape (H, W), int32
+        Mesh triangle hit, -1 elsewhere.
+    surface_index : ndarray of shape (H, W), int32
+        Index into ``scene.objects``, -1 off the mask.
+    """
+
+    radiance: np.ndarray
+    mask: np.ndarray
+    normal: np.ndarray
+    position: np.ndarray
+    depth: np.ndarray
+    uv: np.ndarray
+    face_index: np.ndarray
+    surface_index: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Options:
+    shadows: bool
+    analyser: float | None
+    env_samples: int
+    env_sampling: str
+    max_bounces: int
+    rng: np.random.Generator
+
+
+# ----------------------------------------------------------------------------------------------
+# public entry points
+# ----------------------------------------------------------------------------------------------
+def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
+           polarizer: float | None = None, env_samples: int = 64,
+           env_sampling: str = "importance", max_bounces: int = 2, rng=0,
+           background=None, chunk: int = DEFAULT_CHUNK) -> RenderResult:
+    """Render ``scene`` as seen by ``camera``.
+
+    Parameters
+    ----------
+    scene : Scene
+    camera : CameraModel
+        Intrinsics, distortion and world -> camera pose.
+    shadows : bool
+        Cast shadow rays to point/directional lights and environment samples.
+    polarizer : float or None
+        Analyser angle on the lens, degrees (see module docstring); None: no analyser.
+    env_samples : int
+        Monte-Carlo samples per pixel for the environment map (ignored without one).
+    env_sampling : {'importance', 'uniform'}
+        Environment sampling: luminance x solid angle, or uniform over the sphere.
+    max_bounces : int
+        How many mirror reflections a ray may follow (0: mirrors see nothing).
+    rng : int or numpy.random.Generator
+        Seed or generator of the Monte-Carlo sampling.
+    background : None or float or (3,)
+        Radiance of pixels that hit nothing; None: the environment map seen through the
+        (analyser), black without one.
+    chunk : int
+        Camera rays processed together (memory bound).
+
+    Returns
+    -------
+    RenderResult
+    """
+    if not isinstance(camera, CameraModel):
+        raise TypeError(f"camera must be a CameraModel, got {type(camera).__name__}")
+    if int(chunk) < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk!r}")
+    H, W = camera.height, camera.width
+    n = H * W
+    rad = np.zeros((n, 3), np.float32)
+    mask = np.zeros(n, bool)
+    normal = np.zeros((n, 3), np.float32)
+    position = np.full((n, 3), np.nan)
+    uv = np.full((n, 2), np.nan, np.float32)
+    face = np.full(n, -1, np.int32)
+    surf = np.full(n, -1, np.int32)
+    ys, xs = np.divmod(np.arange(n), W)
+    pixels = np.stack([xs, ys], axis=1)
+    opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
+    bg = None if background is None else _rgb3("background", background)
+    for s in range(0, n, int(chunk)):
+        sl = slice(s, min(n, s + int(chunk)))
+        o, d = camera.pixel_rays(pixels[sl])
+        L, hits = _trace(scene, o, d, opts, 0, bg)
+        rad[sl] = L
+        mask[sl] = hits.mask
+        normal[sl] = hits.normal
+        position[sl] = hits.position
+        uv[sl] = hits.uv
+        face[sl] = hits.face_index
+        surf[sl] = hits.surface_index
+    depth = np.where(mask, position @ camera.R[2] + camera.t[2], np.inf).astype(np.float32)
+    return RenderResult(radiance=rad.reshape(H, W, 3), mask=mask.reshape(H, W),
+                        normal=normal.reshape(H, W, 3), position=position.reshape(H, W, 3),
+                        depth=depth.reshape(H, W), uv=uv.reshape(H, W, 2),
+                        face_index=face.reshape(H, W), surface_index=surf.reshape(H, W))
+
+
+def render_rays(scene: Scene, origins, dirs, *, shadows: bool = True,
+                polarizer: float | None = None, env_samples: int = 64,
+                env_sampling: str = "importance", max_bounces: int = 2, rng=0,
+                background=None) -> tuple[np.ndarray, Hits]:
+    """Radiance arriving at ``origins`` (N, 3) mm from world directions ``-dirs`` (N, 3), i.e.
+    along rays ``origins + t dirs`` (any camera model, lumitexel validation, probes).
+
+    Options as :func:`render`. Returns radiance (N, 3) float32 and the first :class:`Hits`.
+    """
+    from .raycast import _check_rays
+    o, d = _check_rays(origins, dirs)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
+    bg = None if background is None else _rgb3("background", background)
+    return _trace(scene, np.ascontiguousarray(o), d, opts, 0, bg)
+
+
+def _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng) -> _Options:
+    if env_sampling not in ("importance", "uniform"):
+        raise ValueError(f"env_sampling must be 'importance' or 'uniform', got {env_sampling!r}")
+    if int(env_samples) < 0:
+        raise ValueError(f"env_samples must be >= 0, got {env_samples!r}")
+    if int(max_bounces) < 0:
+        raise ValueError(f"max_bounces must be >= 0, got {max_bounces!r}")
+    if isinstance(rng, (bool, float)) or not isinstance(rng, (int, np.integer,
+                                                              np.random.Generator)):
+        raise TypeError(f"rng must be an int seed or a numpy.random.Generator, got {rng!r}")
+    return _Options(bool(shadows), _angle("polarizer", polarizer), int(env_samples),
+                    env_sampling, int(max_bounces), np.random.default_rng(rng))
+
+
+# ----------------------------------------------------------------------------------------------
+# transport
+# ----------------------------------------------------------------------------------------------
+def _weights(opts: _Options, light_polarizer):
+    """(diffuse, specular) transmission of the analyser for light of the given polarization."""
+    if opts.analyser is None:
+        return 1.0, 1.0
+    if light_polarizer is None:
+        return 0.5, 0.5
+    return 0.5, float(np.cos(np.radians(light_polarizer - opts.analyser)) ** 2)
+
+
+def _env_weight(opts: _Options) -> float:
+    return 1.0 if opts.analyser is None else 0.5
+
+
+def _trace(scene: Scene, o, d, opts: _Options, depth: int, background):
+    """Radiance along rays (unit ``d``) and their first hits."""
+    surfaces = scene.surfaces
+    n = len(d)
+    L = np.zeros((n, 3))
+    hits = first_hits(surfaces, o, d) if surfaces else _no_hits(n)
+    miss = ~hits.mask
+    if np.any(miss):
+        if background is not None and depth == 0:
+            L[miss] = background
+        elif scene.environment is not None:
+            L[miss] = _env_weight(opts) * scene.environment.lookup(d[miss])
+        if depth > 0:  # light spheres are seen only through mirrors
+            L[miss] += _light_spheres(scene, o[miss], d[miss], np.inf, opts)
+    idx = np.flatnonzero(hits.mask)
+    if len(idx):
+        L[idx] = _shade(scene, hits, idx, d[idx], opts, depth)
+    if depth > 0 and len(idx):
+        L[idx] += _light_spheres(scene, o[idx], d[idx], hits.t[idx], opts)
+    return L.astype(np.float32), hits
+
+
+def _no_hits(n) -> Hits:
+    return Hits(t=np.full(n, np.inf), position=np.full((n, 3), np.nan), normal=np.zeros((n, 3)),
+                geometric_normal=np.zeros((n, 3)), uv=np.full((n, 2), np.nan),
+                face_index=np.full(n, -1, np.int64), surface_index=np.full(n, -1, np.int64),
+                mask=np.zeros(n, bool))
+
+
+def _light_spheres(scene, o, d, t_limit, opts):
+    """Radiance of spherical point lights (radius > 0) hit by rays before ``t_limit``."""
+    L = np.zeros((len(d), 3))
+    best = np.broadcast_to(np.asarray(t_limit, float), (len(d),)).copy()
+    for light in scene.lights:
+        if not isinstance(light, PointLight) or light.radius <= 0:
+            continue
+        oc = o - light.position
+        b = np.einsum("ij,ij->i", d, oc)
+        disc = b * b - (np.einsum("ij,ij->i", oc, oc) - light.radius ** 2)
+        t = -b - np.sqrt(np.maximum(disc, 0.0))
+        hit = (disc >= 0) & (t > 0) & (t < best)
+        if np.any(hit):
+            best[hit] = t[hit]
+            wd, ws = _weights(opts, light.polarizer)
+            # a mirror keeps the light's polarization: the specular weight applies
+            L[hit] = ws * light.intensity / (np.pi * light.radius ** 2)
+    return L
+
+
+def _shade(scene: Scene, hits: Hits, idx, d, opts: _Options, depth: int):
+    """Radiance leaving hit points ``idx`` towards ``-d`` (unit, (M, 3))."""
+    M = len(idx)
+    p = hits.position[idx]
+    ng = hits.geometric_normal[idx]
+    ns = hits.normal[idx]
+    uv = hits.uv[idx]
+    face = hits.face_index[idx]
+    owner = hits.surface_index[idx]
+    wo = -d
+    # two-sided surfaces: face the viewer
+    back = np.einsum("ij,ij->i", ng, wo) < 0
+    ng[back] *= -1
+    ns[back] *= -1
+
+    # per-point materials: list of (local indices, BRDF-or-Mirror)
+    groups = []
+    for k in np.unique(owner):
+        sel = np.flatnonzero(owner == k)
+        groups.extend(_resolve(scene.objects[k], sel, p[sel], uv[sel], face[sel]))
+
+    out = np.zeros((M, 3))
+    brdf_groups = [(s, m) for s, m in groups if isinstance(m, BRDF)]
+    mirror_groups = [(s, m) for s, m in groups if isinstance(m, Mirror)]
+    if brdf_groups:
+        sel_all = np.concatenate([s for s, _ in brdf_groups])
+        frames = np.zeros((M, 3, 3))
+        frames[sel_all] = tangent_frames(ns[sel_all])
+        wo_l = to_local(wo, frames)
+        scale = scene_scale(scene.surfaces, p[sel_all])
+        for light in scene.lights:
+            wi, E = _light_irradiance(scene, light, p, ng, sel_all, scale, opts.shadows)
+            wi_l = to_local(wi, frames)
+            cos_i = np.clip(wi_l[:, 2], 0.0, None)[:, None]
+            w = _weights(opts, light.polarizer)
+            for sel, brdf in brdf_groups:
+                f = _split_eval(brdf, wi_l[sel], wo_l[sel], w)
+                out[sel] += f * cos_i[sel] * E[sel]
+        if scene.environment is not None and opts.env_samples > 0:
+            for sel, brdf in brdf_groups:
+                out[sel] += _env_lighting(scene, brdf, p[sel], ng[sel], frames[sel], wo_l[sel],
+                                          opts, scale)
+    for sel, mirror in mirror_groups:
+        if depth >= opts.max_bounces:
+            continue
+        r = reflect(d[sel], ns[sel])
+        scale = scene_scale(scene.surfaces, p[sel])
+        o2 = offset_origins(p[sel], ng[sel], r, scale)
+        Lr, _ = _trace(scene, o2, r, opts, depth + 1, None)
+        out[sel] += np.asarray(mirror.reflectance, float) * Lr
+    return out
+
+
+def _resolve(obj: SceneObject, sel, p, uv, face):
+    """Split the points ``sel`` of one object by material -> [(indices, BRDF or Mirror)]."""
+    mat = obj.material
+    if isinstance(mat, MaterialMap):
+        ids = mat.resolve_ids(p, uv, face)
+        out = []
+        for m in np.unique(ids):
+            sub = np.flatnonzero(ids == m)
+            out.extend((sel[s], b) for s, b in
+                       _resolve(SceneObject(obj.surface, mat.materials[m], obj.name), sub,
+                                p[sub], uv[sub], face[sub]))
+        return out
+    if isinstance(mat, (BRDF, Mirror)):
+        return [(sel, mat)]
+    brdf = mat(p, uv, face)
+    if not isinstance(brdf, (BRDF, Mirror)):
+        raise TypeError(f"material callable of {obj.name or 'object'} returned "
+                        f"{type(brdf).__name__}, expected a BRDF with (N,)-shaped parameters")
+    return [(sel, brdf)]
+
+
+def _split_eval(brdf: BRDF, wi_l, wo_l, weights):
+    """f_r weighted by the analyser: w_d * diffuse part + w_s * specular part."""
+    wd, ws = weights
+    if wd == ws:
+        return wd * brdf.evaluate(wi_l, wo_l)
+    return wd * brdf.diffuse_part().evaluate(wi_l, wo_l) + \
+        ws * brdf.specular_part().evaluate(wi_l, wo_l)
+
+
+def _light_irradiance(scene, light, p, ng, sel, scale, shadows):
+    """Unit directions to the light (M, 3) and the irradiance it delivers (M, 3) (zero where
+    shadowed or behind the light); only rows ``sel`` are computed."""
+    M = len(p)
+    wi = np.zeros((M, 3))
+    E = np.zeros((M, 3))
+    if isinstance(light, PointLight):
+        v = light.position - p[sel]
+        dist = np.linalg.norm(v, axis=1)
+        wi[sel] = v / dist[:, None]
+        E[sel] = light.intensity / (dist ** 2)[:, None]
+    else:
+        dist = np.full(len(sel), np.inf)
+        wi[sel] = light.direction
+        E[sel] = light.irradiance
+    if shadows:
+        lit = np.einsum("ij,ij->i", wi[sel], ng[sel]) > 0  # facing away: no ray needed
+        cand = sel[lit]
+        o = offset_origins(p[cand], ng[cand], wi[cand], scale)
+        blocked = occluded(scene.surfaces, o, wi[cand], dist[lit] - 2e-5 * scale)
+        E[cand[blocked]] = 0.0
+    return wi, E
+
+
+def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale):
+    """Monte-Carlo estimate of the environment's reflected radiance at points (K, 3): one
+    direction per point per pass, ``env_samples`` passes (memory O(K); the BRDF's per-point
+    parameters stay aligned with the points)."""
+    env = scene.environment
+    K = len(p)
+    S = opts.env_samples
+    acc = np.zeros((K, 3))
+    for _ in range(S):
+        wi, pdf = env.sample(K, opts.rng, method=opts.env_sampling)
+        wi_l = to_local(wi, frames)
+        cos_i = np.clip(wi_l[:, 2], 0.0, None)
+        contrib = brdf.evaluate(wi_l, wo_l) * (env.lookup(wi, interpolation="nearest")
+                                               * (cos_i / pdf)[:, None])
+        if opts.shadows:
+            live = np.flatnonzero(np.any(contrib > 0, axis=1))
+            o = offset_origins(p[live], ng[live], wi[live], scale)
+            contrib[live[occluded(scene.surfaces, o, wi[live])]] = 0.0
+        acc += contrib
+    return _env_weight(opts) * acc / S
