@@ -1,0 +1,858 @@
+"""Capture plans: what to measure, validated, expanded into motion-minimising steps.
+
+A plan is a TOML file (or :class:`Plan` built in Python)::
+
+    name = "teapot"                 # optional: object, operator, notes
+    repeats = 1                     # captures of each bracket at each pose
+
+    [turntable]
+    angles_deg = { start = 0, stop = 330, step = 30 }    # or a list [0, 45, 90]
+
+    [light]                         # a grid of directions ...
+    azimuth_deg = [0, 60, 120, 180, 240, 300]
+    elevation_deg = { start = 15, stop = 75, step = 30 }
+    # distance_mm = 600             # optional; default: the positioner's own radius
+    # ... or explicit points in the world (turntable) frame:
+    # xyz_mm = [[300, 0, 400], [0, 300, 400]]
+
+    [polarizer]
+    angles_deg = [0, 90]            # parallel / crossed; or  count = 4  (0, 45, 90, 135)
+
+    [exposure]
+    base_s = 0.02
+    stops = [-2, 0, 2]              # bracket: base * 2**stop
+    iso = 100
+
+    [[calibration]]                 # named calibration captures
+    kind = "dark"                   # dark | checkerboard | spheres | gray_card | mirror_probe
+    frames = 5
+
+Any list of numbers may be written as ``{ start, stop, step }`` (``stop`` included when the grid
+lands on it). Units: degrees, millimetres, seconds. Validation errors are :class:`PlanError`
+and name the field, e.g. ``light.elevation_deg[3] = 95 is outside the positioner's limit 0..85``.
+
+Expansion orders the measurement grid so motion time is smallest: each loop level is one axis
+(turntable, light elevation, light azimuth, polarizer), inner loops run serpentine (reversed on
+every other pass, so consecutive steps move one axis by one grid step), and the nesting order is
+the permutation with the least estimated motion time, using the devices' speeds from
+``describe()`` (or defaults). Faster axes therefore end up inside.
+"""
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+CALIBRATION_KINDS = {
+    # kind: (scene target the operator sets up, default frames, default light use)
+    "dark": ("lens_cap", 5, "none"),
+    "checkerboard": ("checkerboard", 1, "first"),
+    "spheres": ("spheres", 1, "grid"),
+    "gray_card": ("gray_card", 1, "grid"),
+    "mirror_probe": ("mirror_probe", 1, "none"),
+}
+
+#: motion model defaults where a device's describe() gives none (speed unit/s, accel unit/s^2)
+DEFAULT_SPEEDS = {
+    "turntable": (20.0, 40.0),     # deg/s, deg/s^2 (Zaber rotary stage, conservative)
+    "positioner": (15.0, 30.0),    # deg/s of each arm joint, or mm/s for a gantry
+    "polarizer": (180.0, 720.0),   # deg/s (Elliptec ELL14)
+}
+#: per-frame overhead beyond the exposure time (shutter, readout, USB transfer), s
+DEFAULT_FRAME_OVERHEAD_S = 0.5
+DEFAULT_FRAME_BYTES = 25_000_000
+USB_BYTES_PER_S = 35e6
+
+
+class PlanError(ValueError):
+    """The plan is malformed or unreachable; the message names the field and the reason."""
+
+
+# -- the plan dataclasses ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class LightGrid:
+    """Light positions, either a grid of directions or explicit points.
+
+    Attributes
+    ----------
+    azimuth_deg, elevation_deg : tuple of float
+        Directions in the world (turntable) frame: azimuth from +x towards +y, elevation above
+        the platter plane, degrees. The grid is their Cartesian product.
+    distance_mm : float or None
+        Light distance from the origin, mm (None: the positioner's own radius).
+    xyz_mm : tuple of (x, y, z) or None
+        Explicit light points in the world frame, mm (instead of the grid), visited in order.
+    """
+
+    azimuth_deg: tuple[float, ...] = ()
+    elevation_deg: tuple[float, ...] = ()
+    distance_mm: float | None = None
+    xyz_mm: tuple[tuple[float, float, float], ...] | None = None
+
+    @property
+    def count(self) -> int:
+        return len(self.xyz_mm) if self.xyz_mm is not None else len(self.azimuth_deg) * len(self.elevation_deg)
+
+    def targets(self) -> list[dict[str, Any]]:
+        """Every light position as a step's ``light`` dict (grid order: elevation, azimuth)."""
+        if self.xyz_mm is not None:
+            return [{"xyz_mm": list(p)} for p in self.xyz_mm]
+        return [_light_dir(az, el, self.distance_mm) for el in self.elevation_deg for az in self.azimuth_deg]
+
+
+def _light_dir(az: float, el: float, dist: float | None) -> dict[str, Any]:
+    d: dict[str, Any] = {"azimuth_deg": az, "elevation_deg": el}
+    if dist is not None:
+        d["distance_mm"] = dist
+    return d
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """Exposure bracket: ``base_s * 2**stop`` for each stop, seconds; ``iso`` optional.
+
+    Auto-bracketing from a metering shot is not implemented yet: ``auto = true`` in a plan file
+    is rejected with a PlanError saying so.
+    """
+
+    base_s: float = 0.01
+    stops: tuple[float, ...] = (0.0,)
+    iso: float | None = None
+
+    @property
+    def exposures_s(self) -> tuple[float, ...]:
+        return tuple(self.base_s * 2.0 ** s for s in self.stops)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A named calibration capture.
+
+    Attributes
+    ----------
+    kind : str
+        One of ``dark``, ``checkerboard``, ``spheres``, ``gray_card``, ``mirror_probe``.
+    frames : int or None
+        Captures per pose (None: the kind's default; dark frames default to 5).
+    exposure_s : float or None
+        Single exposure, seconds (None: the measurement bracket; dark frames match every
+        exposure of the bracket).
+    turntable_angles_deg : tuple of float or None
+        Turntable angles (checkerboard: the target imaged at several angles, for the axis);
+        None: the first measurement angle (8 evenly spaced angles for ``checkerboard``).
+    lights : str or None
+        ``grid`` (every light position), ``first`` or ``none`` (None: the kind's default).
+    when : str
+        ``before`` or ``after`` the measurement.
+    """
+
+    kind: str
+    frames: int | None = None
+    exposure_s: float | None = None
+    turntable_angles_deg: tuple[float, ...] | None = None
+    lights: str | None = None
+    when: str = "before"
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A whole capture plan. Angles in degrees, distances in mm, times in seconds."""
+
+    turntable_deg: tuple[float, ...] = ()
+    light: LightGrid | None = None
+    polarizer_deg: tuple[float, ...] = ()
+    exposure: Exposure = field(default_factory=Exposure)
+    repeats: int = 1
+    calibration: tuple[Calibration, ...] = ()
+    name: str = ""
+    object: str = ""
+    operator: str = ""
+    notes: str = ""
+
+    def __post_init__(self) -> None:
+        # coerce Python-built plans to the canonical tuple form, then validate
+        object.__setattr__(self, "turntable_deg", tuple(float(v) for v in self.turntable_deg))
+        object.__setattr__(self, "polarizer_deg", tuple(float(v) for v in self.polarizer_deg))
+        object.__setattr__(self, "calibration", tuple(self.calibration))
+        _validate(self)
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "Plan":
+        """Read and validate a plan file (errors name the file and the field)."""
+        path = Path(path)
+        if not path.is_file():
+            raise PlanError(f"plan file {path} does not exist")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise PlanError(f"{path}: not valid TOML: {exc}") from None
+        except UnicodeDecodeError:
+            raise PlanError(f"{path}: not a text file") from None
+        try:
+            return cls.from_dict(data)
+        except PlanError as exc:
+            raise PlanError(f"{path}: {exc}") from None
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "Plan":
+        """Build from a dict shaped like the TOML file (also accepts :meth:`to_dict` output)."""
+        return _parse(data)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Canonical form: every range expanded to a list, every number a float (except counts),
+        defaults filled in. ``Plan.from_dict(p.to_dict()) == p``."""
+        d: dict[str, Any] = {"name": self.name, "object": self.object, "operator": self.operator,
+                             "notes": self.notes, "repeats": self.repeats,
+                             "exposure": {"base_s": self.exposure.base_s, "stops": list(self.exposure.stops),
+                                          "iso": self.exposure.iso}}
+        if self.turntable_deg:
+            d["turntable"] = {"angles_deg": list(self.turntable_deg)}
+        if self.polarizer_deg:
+            d["polarizer"] = {"angles_deg": list(self.polarizer_deg)}
+        if self.light is not None:
+            if self.light.xyz_mm is not None:
+                d["light"] = {"xyz_mm": [list(p) for p in self.light.xyz_mm]}
+            else:
+                d["light"] = {"azimuth_deg": list(self.light.azimuth_deg),
+                              "elevation_deg": list(self.light.elevation_deg),
+                              "distance_mm": self.light.distance_mm}
+        d["calibration"] = [
+            {"kind": c.kind, "frames": c.frames, "exposure_s": c.exposure_s,
+             "turntable_angles_deg": None if c.turntable_angles_deg is None else list(c.turntable_angles_deg),
+             "lights": c.lights, "when": c.when} for c in self.calibration]
+        return _drop_none(d)
+
+    @property
+    def hash(self) -> str:
+        """SHA-256 of the canonical JSON of :meth:`to_dict` (what ``resume`` compares)."""
+        return plan_hash(self.to_dict())
+
+    # -- validation against a rig -------------------------------------------------------------
+    def check_rig(self, rig: Any) -> None:
+        """Check the plan against a rig: needed devices fitted, values inside their limits.
+
+        Limits come from each device's ``limits`` / ``describe()``. Raises :class:`PlanError`
+        naming the field, value and limit.
+        """
+        desc = _describe(rig)
+        _need(self.turntable_deg, rig, "turntable", "turntable.angles_deg")
+        _need(self.polarizer_deg, rig, "polarizer", "polarizer.angles_deg")
+        _need(self.light is not None and self.light.count > 0, rig, "positioner", "light")
+        if getattr(rig, "camera", None) is None:
+            raise PlanError("the rig has no camera; a plan needs one to capture anything")
+        for role, label, values in (("turntable", "turntable.angles_deg", self.turntable_deg),
+                                    ("polarizer", "polarizer.angles_deg", self.polarizer_deg)):
+            device = getattr(rig, role, None)
+            if device is not None:
+                _check_limits(label, values, _axis_limits(device), f"the {role}'s limit", "")
+        for i, c in enumerate(self.calibration):
+            if c.turntable_angles_deg and rig.turntable is not None:
+                _check_limits(f"calibration[{i}].turntable_angles_deg", c.turntable_angles_deg,
+                              _axis_limits(rig.turntable), "the turntable's limit", "")
+        if self.light is not None and rig.positioner is not None:
+            _check_reach(self.light, desc.get("positioner", {}))
+        cd = desc.get("camera", {})
+        lim = _limit_from(cd, "exposure")
+        if lim is not None:
+            for i, (stop, t) in enumerate(zip(self.exposure.stops, self.exposure.exposures_s)):
+                if not lim[0] * (1 - 1e-9) <= t <= lim[1] * (1 + 1e-9):
+                    raise PlanError(f"exposure.stops[{i}] = {stop:g} gives {t:g} s, outside the "
+                                    f"camera's range {lim[0]:g}..{lim[1]:g} s")
+            for i, c in enumerate(self.calibration):
+                if c.exposure_s is not None:
+                    _check_limits(f"calibration[{i}].exposure_s", [c.exposure_s], lim,
+                                  "the camera's range", " s", indexed=False)
+        if self.exposure.iso is not None:
+            _check_limits("exposure.iso", [self.exposure.iso], _limit_from(cd, "iso"),
+                          "the camera's range", "", indexed=False)
+
+    # -- expansion ----------------------------------------------------------------------------
+    def steps(self, rig: Any = None) -> list["Step"]:
+        """Expand into ordered steps: calibrations marked ``before``, the measurement grid in
+        motion-minimising order, then calibrations marked ``after``."""
+        model = MotionModel.from_rig(rig)
+        before = [s for c in self.calibration if c.when == "before" for s in self._calibration_steps(c)]
+        after = [s for c in self.calibration if c.when == "after" for s in self._calibration_steps(c)]
+        return [replace(s, index=i) for i, s in enumerate([*before, *self._measure_steps(model), *after])]
+
+    def _measure_steps(self, model: "MotionModel") -> list["Step"]:
+        axes: list[tuple[str, list[Any]]] = []
+        if self.turntable_deg:
+            axes.append(("turntable", list(self.turntable_deg)))
+        if self.light is not None:
+            if self.light.xyz_mm is not None:
+                axes.append(("light_xyz", [tuple(p) for p in self.light.xyz_mm]))
+            else:
+                axes.append(("light_el", list(self.light.elevation_deg)))
+                axes.append(("light_az", list(self.light.azimuth_deg)))
+        if self.polarizer_deg:
+            axes.append(("polarizer", list(self.polarizer_deg)))
+        if not axes:
+            return []
+        order = _best_nesting(axes, model)
+        names = [axes[i][0] for i in order]
+        steps = []
+        for combo in _serpentine([axes[i][1] for i in order]):
+            v = dict(zip(names, combo))
+            steps.append(Step(index=0, kind="measure", target="object",
+                              turntable_deg=v.get("turntable"), light=self._light_of(v),
+                              polarizer_deg=v.get("polarizer"),
+                              exposures_s=self.exposure.exposures_s, repeats=self.repeats,
+                              iso=self.exposure.iso))
+        return steps
+
+    def _light_of(self, v: dict[str, Any]) -> dict[str, Any] | None:
+        if "light_xyz" in v:
+            return {"xyz_mm": list(v["light_xyz"])}
+        if "light_az" in v:
+            return _light_dir(v["light_az"], v["light_el"], self.light.distance_mm)
+        return None
+
+    def _calibration_steps(self, c: Calibration) -> list["Step"]:
+        target, default_frames, default_lights = CALIBRATION_KINDS[c.kind]
+        frames = c.frames or default_frames
+        lights = c.lights or default_lights
+        if c.exposure_s is not None:
+            exposures = (c.exposure_s,)
+        else:
+            exposures = tuple(sorted(set(self.exposure.exposures_s)))
+        if c.turntable_angles_deg is not None:
+            angles: list[float | None] = list(c.turntable_angles_deg)
+        elif c.kind == "checkerboard" and self.turntable_deg:
+            angles = [self.turntable_deg[0] + k * 45.0 for k in range(8)]
+        else:
+            angles = [self.turntable_deg[0] if self.turntable_deg else None]
+        all_lights = self.light.targets() if self.light is not None else []
+        light_list: list[dict | None] = {"grid": all_lights, "first": all_lights[:1]}.get(lights, [])
+        light_list = light_list or [None]
+        # dark frames: lens cap on, nothing needs to move
+        pol = None if c.kind == "dark" or not self.polarizer_deg else self.polarizer_deg[0]
+        out = []
+        for a, lt in _serpentine([angles, light_list]):
+            out.append(Step(index=0, kind=c.kind, target=target,
+                            turntable_deg=None if c.kind == "dark" else a,
+                            light=None if c.kind == "dark" else lt, polarizer_deg=pol,
+                            exposures_s=exposures, repeats=frames, iso=self.exposure.iso))
+        return out
+
+    def estimate(self, rig: Any = None, steps: Sequence["Step"] | None = None) -> "Estimate":
+        """Steps, frames, bytes and duration of the plan on ``rig`` (or default speeds)."""
+        model = MotionModel.from_rig(rig)
+        steps = self.steps(rig) if steps is None else steps
+        return model.estimate(steps)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One pose of the rig and the frames captured there.
+
+    Attributes
+    ----------
+    index : int
+        Position in execution order (0-based).
+    kind : str
+        ``measure`` or a calibration kind (``dark``, ``checkerboard`` ...).
+    target : str
+        What must be in front of the camera (``object``, ``lens_cap``, ``checkerboard`` ...).
+    turntable_deg, polarizer_deg : float or None
+        Axis targets, degrees (None: leave where it is).
+    light : dict or None
+        ``{"azimuth_deg", "elevation_deg"[, "distance_mm"]}`` or ``{"xyz_mm": [x, y, z]}``,
+        world (turntable) frame; None: leave the light where it is.
+    exposures_s : tuple of float
+        The bracket, seconds, captured in this order.
+    repeats : int
+        Captures of the whole bracket.
+    iso : float or None
+    """
+
+    index: int
+    kind: str
+    target: str
+    turntable_deg: float | None
+    light: dict[str, Any] | None
+    polarizer_deg: float | None
+    exposures_s: tuple[float, ...]
+    repeats: int = 1
+    iso: float | None = None
+
+    @property
+    def frames(self) -> int:
+        return len(self.exposures_s) * self.repeats
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"index": self.index, "kind": self.kind, "target": self.target,
+                "turntable_deg": self.turntable_deg, "light": self.light,
+                "polarizer_deg": self.polarizer_deg, "exposures_s": list(self.exposures_s),
+                "repeats": self.repeats, "iso": self.iso, "frames": self.frames}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Step":
+        return cls(index=d["index"], kind=d["kind"], target=d["target"],
+                   turntable_deg=d["turntable_deg"], light=d["light"],
+                   polarizer_deg=d["polarizer_deg"], exposures_s=tuple(d["exposures_s"]),
+                   repeats=d["repeats"], iso=d.get("iso"))
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What a plan will take. Times in seconds, sizes in bytes."""
+
+    steps: int
+    frames: int
+    bytes: int
+    motion_s: float
+    exposure_s: float
+    overhead_s: float
+
+    @property
+    def seconds(self) -> float:
+        return self.motion_s + self.exposure_s + self.overhead_s
+
+
+def plan_hash(plan_dict: dict[str, Any]) -> str:
+    """SHA-256 hex of a canonical plan dict (sorted keys, compact JSON)."""
+    return hashlib.sha256(json.dumps(plan_dict, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+# -- motion model -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MotionModel:
+    """Trapezoidal move times per device (speed unit/s, acceleration unit/s^2), the expected
+    frame size (bytes) and per-frame overhead (s)."""
+
+    speeds: dict[str, tuple[float, float]] = field(default_factory=lambda: dict(DEFAULT_SPEEDS))
+    frame_bytes: int = DEFAULT_FRAME_BYTES
+    frame_overhead_s: float = DEFAULT_FRAME_OVERHEAD_S
+
+    @classmethod
+    def from_rig(cls, rig: Any) -> "MotionModel":
+        if rig is None:
+            return cls()
+        desc = _describe(rig)
+        speeds = dict(DEFAULT_SPEEDS)
+        for role in speeds:
+            d = desc.get(role, {})
+            v = _first_number(d, ("max_speed_deg_s", "speed_deg_s", "max_speed_mm_s", "speed_mm_s"))
+            a = _first_number(d, ("accel_deg_s2", "accel_mm_s2"))
+            speeds[role] = (v or speeds[role][0], a or speeds[role][1])
+        cam = desc.get("camera", {})
+        fb = _first_number(cam, ("frame_bytes",))
+        if fb is None and _first_number(cam, ("width",)) and _first_number(cam, ("height",)):
+            fb = cam["width"] * cam["height"] * 2 + 65536  # 16-bit raw plus header
+        return cls(speeds=speeds, frame_bytes=int(fb or DEFAULT_FRAME_BYTES),
+                   frame_overhead_s=0.2 + (fb or DEFAULT_FRAME_BYTES) / USB_BYTES_PER_S)
+
+    def move_s(self, role: str, distance: float) -> float:
+        """Time of one trapezoidal move of ``distance`` (device units), seconds."""
+        v, a = self.speeds[role]
+        d = abs(distance)
+        if d == 0:
+            return 0.0
+        return d / v + v / a if d > v * v / a else 2.0 * math.sqrt(d / a)
+
+    def step_move_s(self, prev: Step | None, step: Step) -> float:
+        """Time to go from ``prev`` to ``step``: axes move together, so the slowest counts."""
+        if prev is None:
+            return 0.0
+        t = [0.0]
+        if step.turntable_deg is not None and prev.turntable_deg is not None:
+            t.append(self.move_s("turntable", step.turntable_deg - prev.turntable_deg))
+        if step.polarizer_deg is not None and prev.polarizer_deg is not None:
+            t.append(self.move_s("polarizer", step.polarizer_deg - prev.polarizer_deg))
+        if step.light and prev.light:
+            t.append(self._light_move_s(prev.light, step.light))
+        return max(t)
+
+    def _light_move_s(self, a: dict[str, Any], b: dict[str, Any]) -> float:
+        if "xyz_mm" in a and "xyz_mm" in b:
+            return self.move_s("positioner", math.dist(a["xyz_mm"], b["xyz_mm"]))
+        if "azimuth_deg" in a and "azimuth_deg" in b:
+            return max(self.move_s("positioner", b["azimuth_deg"] - a["azimuth_deg"]),
+                       self.move_s("positioner", b["elevation_deg"] - a["elevation_deg"]))
+        return self.move_s("positioner", 90.0)  # mixed forms: assume a long move
+
+    def estimate(self, steps: Sequence[Step]) -> Estimate:
+        motion = sum(self.step_move_s(p, s) for p, s in zip([None, *steps[:-1]], steps))
+        frames = sum(s.frames for s in steps)
+        exposure = sum(sum(s.exposures_s) * s.repeats for s in steps)
+        return Estimate(steps=len(steps), frames=frames, bytes=frames * self.frame_bytes,
+                        motion_s=motion, exposure_s=exposure,
+                        overhead_s=frames * self.frame_overhead_s)
+
+
+def _axis_role(name: str) -> str:
+    return "positioner" if name.startswith("light") else name
+
+
+def _one_step_s(name: str, values: list[Any], model: MotionModel) -> float:
+    """Typical time of one move between neighbouring values of an axis."""
+    if len(values) < 2:
+        return 0.0
+    if name == "light_xyz":
+        d = [math.dist(p, q) for p, q in zip(values, values[1:])]
+    else:
+        d = [abs(q - p) for p, q in zip(values, values[1:])]
+    return sum(model.move_s(_axis_role(name), x) for x in d) / len(d)
+
+
+def _best_nesting(axes: list[tuple[str, list[Any]]], model: MotionModel) -> tuple[int, ...]:
+    """Loop order (outermost first) with the least estimated motion time.
+
+    With serpentine loops exactly one axis moves between consecutive steps; the axis at level k
+    moves ``prod(n_j, j < k) * (n_k - 1)`` times, each costing its one-step time. Ties go to the
+    order with faster axes inside.
+    """
+    t = [_one_step_s(n, v, model) for n, v in axes]
+    n = [len(v) for _, v in axes]
+
+    def cost(order: tuple[int, ...]) -> tuple[float, tuple[float, ...]]:
+        total, outer = 0.0, 1
+        for i in order:
+            total += outer * (n[i] - 1) * t[i]
+            outer *= n[i]
+        return round(total, 9), tuple(-t[i] for i in order)
+
+    return min(itertools.permutations(range(len(axes))), key=cost)
+
+
+def _serpentine(levels: list[list[Any]]) -> Iterable[tuple[Any, ...]]:
+    """Cartesian product, outermost level first, each inner block reversed on every other pass."""
+    if not levels:
+        yield ()
+        return
+    inner = list(_serpentine(levels[1:]))
+    for k, v in enumerate(levels[0]):
+        for rest in (reversed(inner) if k % 2 else inner):
+            yield (v, *rest)
+
+
+# -- parsing and validation -------------------------------------------------------------------
+_TOP = {"name", "object", "operator", "notes", "repeats", "turntable", "light", "polarizer",
+        "exposure", "calibration"}
+
+
+def _parse(data: Any) -> Plan:
+    if not isinstance(data, dict):
+        raise PlanError(f"a plan must be a table, got {type(data).__name__}")
+    _no_unknown(data, _TOP, "plan")
+    tt = _table(data, "turntable", {"angles_deg"})
+    lt = _table(data, "light", {"azimuth_deg", "elevation_deg", "distance_mm", "xyz_mm"})
+    po = _table(data, "polarizer", {"angles_deg", "count"})
+    ex = _table(data, "exposure", {"base_s", "stops", "iso", "auto"})
+    light = None
+    if lt is not None:
+        if "xyz_mm" in lt:
+            if {"azimuth_deg", "elevation_deg", "distance_mm"} & lt.keys():
+                raise PlanError("light: give either xyz_mm or azimuth_deg/elevation_deg, not both")
+            pts = lt["xyz_mm"]
+            if not isinstance(pts, list):
+                raise PlanError(f"light.xyz_mm must be a list of [x, y, z] points in mm, got {_tname(pts)}")
+            for i, p in enumerate(pts):
+                if not (isinstance(p, list) and len(p) == 3 and all(_is_num(x) for x in p)):
+                    raise PlanError(f"light.xyz_mm[{i}] must be [x, y, z] (three numbers, mm), got {p!r}")
+            light = LightGrid(xyz_mm=tuple(tuple(float(x) for x in p) for p in pts))
+        else:
+            for key in ("azimuth_deg", "elevation_deg"):
+                if key not in lt:
+                    raise PlanError(f"light.{key} is missing (or give light.xyz_mm instead)")
+            dist = lt.get("distance_mm")
+            if dist is not None and not _is_num(dist):
+                raise PlanError(f"light.distance_mm must be a number (mm), got {_tname(dist)}")
+            light = LightGrid(azimuth_deg=_numbers(lt["azimuth_deg"], "light.azimuth_deg"),
+                              elevation_deg=_numbers(lt["elevation_deg"], "light.elevation_deg"),
+                              distance_mm=None if dist is None else float(dist))
+    pol: tuple[float, ...] = ()
+    if po is not None:
+        if ("angles_deg" in po) == ("count" in po):
+            raise PlanError("polarizer: give exactly one of angles_deg or count")
+        if "count" in po:
+            n = po["count"]
+            if not _is_int(n) or n < 1:
+                raise PlanError(f"polarizer.count must be a whole number >= 1, got {n!r}")
+            pol = tuple(180.0 * k / n for k in range(n))  # polarization repeats every 180 deg
+        else:
+            pol = _numbers(po["angles_deg"], "polarizer.angles_deg")
+    exposure = Exposure()
+    if ex is not None:
+        base = ex.get("base_s", exposure.base_s)
+        if not _is_num(base):
+            raise PlanError(f"exposure.base_s must be a number (seconds), got {_tname(base)}")
+        iso = ex.get("iso")
+        if iso is not None and not _is_num(iso):
+            raise PlanError(f"exposure.iso must be a number, got {_tname(iso)}")
+        auto = ex.get("auto", False)
+        if not isinstance(auto, bool):
+            raise PlanError(f"exposure.auto must be true or false, got {_tname(auto)}")
+        if auto:
+            raise PlanError("exposure.auto = true: auto-bracketing from a metering shot is not "
+                            "implemented yet; give exposure.base_s and exposure.stops")
+        stops = _numbers(ex["stops"], "exposure.stops") if "stops" in ex else (0.0,)
+        exposure = Exposure(base_s=float(base), stops=stops, iso=None if iso is None else float(iso))
+    cals = data.get("calibration", [])
+    if not isinstance(cals, list):
+        raise PlanError(f"calibration must be an array of tables ([[calibration]]), got {_tname(cals)}")
+    calibration = tuple(_parse_calibration(c, i) for i, c in enumerate(cals))
+    meta = {}
+    for key in ("name", "object", "operator", "notes"):
+        v = data.get(key, "")
+        if not isinstance(v, str):
+            raise PlanError(f"{key} must be a string, got {_tname(v)}")
+        meta[key] = v
+    repeats = data.get("repeats", 1)
+    if not _is_int(repeats):
+        raise PlanError(f"repeats must be a whole number, got {_tname(repeats)}")
+    return Plan(turntable_deg=_numbers(tt["angles_deg"], "turntable.angles_deg") if tt and "angles_deg" in tt else (),
+                light=light, polarizer_deg=pol, exposure=exposure, repeats=repeats,
+                calibration=calibration, **meta)
+
+
+def _parse_calibration(c: Any, i: int) -> Calibration:
+    where = f"calibration[{i}]"
+    if not isinstance(c, dict):
+        raise PlanError(f"{where} must be a table, got {_tname(c)}")
+    _no_unknown(c, {"kind", "frames", "exposure_s", "turntable_angles_deg", "lights", "when"}, where)
+    if "kind" not in c:
+        raise PlanError(f"{where}.kind is missing; one of {', '.join(CALIBRATION_KINDS)}")
+    frames = c.get("frames")
+    if frames is not None and not _is_int(frames):
+        raise PlanError(f"{where}.frames must be a whole number, got {_tname(frames)}")
+    exp = c.get("exposure_s")
+    if exp is not None and not _is_num(exp):
+        raise PlanError(f"{where}.exposure_s must be a number (seconds), got {_tname(exp)}")
+    angles = c.get("turntable_angles_deg")
+    return Calibration(kind=c["kind"], frames=frames, exposure_s=None if exp is None else float(exp),
+                       turntable_angles_deg=None if angles is None else _numbers(angles, f"{where}.turntable_angles_deg"),
+                       lights=c.get("lights"), when=c.get("when", "before"))
+
+
+def _validate(p: Plan) -> None:
+    """Rig-independent checks (also run on Python-built plans)."""
+    if not _is_int(p.repeats) or p.repeats < 1:
+        raise PlanError(f"repeats = {p.repeats!r} must be a whole number >= 1")
+    e = p.exposure
+    if not (_is_num(e.base_s) and e.base_s > 0 and math.isfinite(e.base_s)):
+        raise PlanError(f"exposure.base_s = {e.base_s!r} must be a positive number of seconds")
+    if not e.stops:
+        raise PlanError("exposure.stops is empty; give at least one stop (0 = base exposure)")
+    _finite(e.stops, "exposure.stops")
+    if len(set(e.stops)) != len(e.stops):
+        raise PlanError(f"exposure.stops {list(e.stops)} has duplicates")
+    if e.iso is not None and not e.iso > 0:
+        raise PlanError(f"exposure.iso = {e.iso!r} must be positive")
+    _finite(p.turntable_deg, "turntable.angles_deg")
+    _finite(p.polarizer_deg, "polarizer.angles_deg")
+    if p.light is not None:
+        lt = p.light
+        if lt.xyz_mm is not None:
+            if not lt.xyz_mm:
+                raise PlanError("light.xyz_mm is empty; give at least one [x, y, z] point")
+            for i, pt in enumerate(lt.xyz_mm):
+                _finite(pt, f"light.xyz_mm[{i}]")
+        else:
+            for key, lo, hi in (("azimuth_deg", -360.0, 360.0), ("elevation_deg", -90.0, 90.0)):
+                values = getattr(lt, key)
+                if not values:
+                    raise PlanError(f"light.{key} is empty; the light grid needs at least one value")
+                _finite(values, f"light.{key}")
+                _check_limits(f"light.{key}", values, (lo, hi), "the valid range", "")
+            if lt.distance_mm is not None and not lt.distance_mm > 0:
+                raise PlanError(f"light.distance_mm = {lt.distance_mm!r} must be positive (mm)")
+    for i, c in enumerate(p.calibration):
+        where = f"calibration[{i}]"
+        if c.kind not in CALIBRATION_KINDS:
+            raise PlanError(f"{where}.kind = {c.kind!r} is unknown; one of {', '.join(CALIBRATION_KINDS)}")
+        if c.frames is not None and c.frames < 1:
+            raise PlanError(f"{where}.frames = {c.frames} must be >= 1")
+        if c.exposure_s is not None and not c.exposure_s > 0:
+            raise PlanError(f"{where}.exposure_s = {c.exposure_s!r} must be positive (seconds)")
+        if c.lights is not None and c.lights not in ("grid", "first", "none"):
+            raise PlanError(f"{where}.lights = {c.lights!r} must be 'grid', 'first' or 'none'")
+        if c.when not in ("before", "after"):
+            raise PlanError(f"{where}.when = {c.when!r} must be 'before' or 'after'")
+        if c.turntable_angles_deg is not None:
+            _finite(c.turntable_angles_deg, f"{where}.turntable_angles_deg")
+    measuring = p.turntable_deg or p.polarizer_deg or p.light is not None
+    if not measuring and not p.calibration:
+        raise PlanError("the plan captures nothing: give turntable, light or polarizer values, "
+                        "or a [[calibration]] capture")
+
+
+def _no_unknown(d: dict, allowed: set[str], where: str) -> None:
+    unknown = sorted(set(d) - allowed)
+    if unknown:
+        raise PlanError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} "
+                        f"{', '.join(map(repr, unknown))}; allowed: {', '.join(sorted(allowed))}")
+
+
+def _table(data: dict, key: str, allowed: set[str]) -> dict | None:
+    t = data.get(key)
+    if t is None:
+        return None
+    if not isinstance(t, dict):
+        raise PlanError(f"{key} must be a table ([{key}]), got {_tname(t)}")
+    _no_unknown(t, allowed, key)
+    return t
+
+
+def _is_num(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _tname(x: Any) -> str:
+    return {str: "a string", bool: "a boolean", dict: "a table", list: "a list"}.get(
+        type(x), type(x).__name__) + f" ({x!r})"
+
+
+def _numbers(v: Any, where: str) -> tuple[float, ...]:
+    """A list of numbers, or a ``{start, stop, step}`` range (stop included when on the grid)."""
+    if isinstance(v, dict):
+        _no_unknown(v, {"start", "stop", "step"}, where)
+        for k in ("start", "stop", "step"):
+            if k not in v:
+                raise PlanError(f"{where}.{k} is missing (a range needs start, stop and step)")
+            if not _is_num(v[k]):
+                raise PlanError(f"{where}.{k} must be a number, got {_tname(v[k])}")
+        start, stop, step = (float(v[k]) for k in ("start", "stop", "step"))
+        if step == 0 or (stop - start) * step < 0:
+            raise PlanError(f"{where}: step {step:g} never goes from {start:g} to {stop:g}")
+        n = math.floor((stop - start) / step + 1e-9) + 1
+        if n > 100_000:
+            raise PlanError(f"{where}: the range has {n} values; more than 100000 is surely a mistake")
+        return tuple(round(start + k * step, 9) for k in range(n))
+    if not isinstance(v, list):
+        raise PlanError(f"{where} must be a list of numbers or {{start, stop, step}}, got {_tname(v)}")
+    if not v:
+        raise PlanError(f"{where} is empty; give at least one value")
+    for i, x in enumerate(v):
+        if not _is_num(x):
+            raise PlanError(f"{where}[{i}] must be a number, got {_tname(x)}")
+    return tuple(float(x) for x in v)
+
+
+def _finite(values: Iterable[float], where: str) -> None:
+    for i, x in enumerate(values):
+        if not math.isfinite(x):
+            raise PlanError(f"{where}[{i}] = {x} is not a finite number")
+
+
+def _check_limits(where: str, values: Iterable[float], limits: tuple[float, float] | None,
+                  what: str, unit: str, *, indexed: bool = True) -> None:
+    """Raise naming ``where[i]`` (or ``where`` with ``{i}`` filled in) for the first value
+    outside ``limits``."""
+    if limits is None:
+        return
+    lo, hi = limits
+    for i, x in enumerate(values):
+        if not lo - 1e-9 <= x <= hi + 1e-9:
+            label = where.format(i=i) if "{i}" in where else (f"{where}[{i}]" if indexed else where)
+            raise PlanError(f"{label} = {x:g}{unit} is outside {what} {lo:g}..{hi:g}{unit}")
+
+
+def _describe(rig: Any) -> dict[str, dict[str, Any]]:
+    return rig.describe() if rig is not None else {}
+
+
+def _need(used: Any, rig: Any, role: str, field_name: str) -> None:
+    if used and getattr(rig, role, None) is None:
+        raise PlanError(f"{field_name} is given but the rig has no {role}")
+
+
+def _axis_limits(device: Any) -> tuple[float, float] | None:
+    try:
+        lo, hi = device.limits
+    except (AttributeError, TypeError, ValueError):
+        return None
+    return float(lo), float(hi)
+
+
+def _check_reach(light: LightGrid, desc: dict[str, Any]) -> None:
+    """Check every light position against the positioner's kinematics (from its describe())."""
+    from rig.errors import LimitError
+    from rig.kinematics import kinematics_from_config
+    from rig.device import LightTarget
+
+    config = desc.get("kinematics")
+    if not isinstance(config, dict):
+        return  # the driver does not tell its reach: the move itself will say
+    kin = kinematics_from_config(config)
+    if light.xyz_mm is not None:
+        for i, p in enumerate(light.xyz_mm):
+            try:
+                kin.inverse(LightTarget(xyz_mm=p))
+            except LimitError as exc:
+                raise PlanError(f"light.xyz_mm[{i}] = [{p[0]:g}, {p[1]:g}, {p[2]:g}] is out of the "
+                                f"positioner's reach: {exc.message}") from None
+        return
+    for j, el in enumerate(light.elevation_deg):
+        for i, az in enumerate(light.azimuth_deg):
+            try:
+                kin.inverse(LightTarget(azimuth_deg=az, elevation_deg=el, distance_mm=light.distance_mm))
+            except LimitError as exc:
+                lo, hi = exc.limits
+                if "elevation" in exc.message:
+                    field_, value = f"light.elevation_deg[{j}]", el
+                elif "azimuth" in exc.message:
+                    field_, value = f"light.azimuth_deg[{i}]", az
+                else:
+                    raise PlanError(f"light (azimuth {az:g}, elevation {el:g}) is out of the "
+                                    f"positioner's reach: {exc.message}") from None
+                raise PlanError(f"{field_} = {value:g} is outside the positioner's limit "
+                                f"{lo:g}..{hi:g}") from None
+
+
+def _limit_from(desc: dict[str, Any], name: str) -> tuple[float, float] | None:
+    """Find ``name``'s (low, high) in a describe() dict: ``<name>_limits[_deg|_mm|_s]``,
+    ``<name>_range[...]`` or ``limits: {<name>: [lo, hi]}``."""
+    candidates = [desc.get(f"{name}{mid}{suffix}") for mid in ("_limits", "_range")
+                  for suffix in ("", "_deg", "_mm", "_s")]
+    lims = desc.get("limits")
+    if isinstance(lims, dict):
+        candidates += [lims.get(name), lims.get(f"{name}_deg"), lims.get(f"{name}_mm"), lims.get(f"{name}_s")]
+    for c in candidates:
+        if isinstance(c, (list, tuple)) and len(c) == 2 and all(_is_num(x) for x in c):
+            return float(c[0]), float(c[1])
+    return None
+
+
+def _first_number(d: dict[str, Any], keys: Sequence[str]) -> float | None:
+    for k in keys:
+        if _is_num(d.get(k)) and d[k] > 0:
+            return float(d[k])
+    return None
+
+
+def _drop_none(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _drop_none(v) for k, v in d.items() if v is not None}
+    if isinstance(d, list):
+        return [_drop_none(v) for v in d]
+    return d
+
+
+def plan_diff(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    """Fields that differ between two canonical plan dicts, as ``path: old -> new`` lines."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        path = f"{prefix}{key}"
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += plan_diff(a, b, path + ".")
+        elif a != b:
+            out.append(f"{path}: {_short(a)} -> {_short(b)}")
+    return out
+
+
+def _short(v: Any) -> str:
+    text = json.dumps(v)
+    return text if len(text) <= 60 else text[:57] + "..."

@@ -1,0 +1,421 @@
+"""The capture runner: executes a session's steps on a rig, durably, resumably.
+
+For each step not yet done, in order: move every axis the step names at once (``move_to`` on
+each, then ``wait_all``), read back where they ended up, capture the bracket (``set_exposure`` +
+``capture`` per exposure, ``repeats`` times) and store each frame durably; the step's last frame
+marks it done in the same transaction. Events go to an :class:`~capture.events.EventBus` and into
+the store.
+
+Faults: a retryable device error (busy, timeout, garbled reply) is retried with bounded
+exponential back-off; when retries run out, or the error needs an operator (``Disconnected``,
+limits, homing), the rig is stopped and the session *paused* with the fault recorded, never a
+traceback. ``run()`` again (``gonio capture resume``) reconnects what dropped and continues from
+the first step not done; a half-done step is re-done and its frames replaced.
+
+Control from another thread (the CLI's Ctrl-C handler, a TUI button): :meth:`Runner.request_pause`
+(after the current step, or at once), :meth:`Runner.request_abort` (stops motion now).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from rig import LightTarget, RigError, wait_all
+from rig.errors import Disconnected
+
+from .events import Event, EventBus, EventKind
+from .plan import MotionModel, Plan, Step
+from .store import SessionInfo, Store, StoreFull
+
+#: free space kept in reserve on the store's disk, bytes
+DEFAULT_RESERVE_BYTES = 1 << 30
+
+
+class RunnerError(Exception):
+    """The session cannot be run as asked (aborted, not enough space ...); the message says why."""
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """Bounded exponential back-off: ``attempts`` tries in all, waiting ``base_delay_s *
+    factor**k`` (at most ``max_delay_s``) before try ``k + 2``."""
+
+    attempts: int = 4
+    base_delay_s: float = 0.05
+    factor: float = 2.0
+    max_delay_s: float = 2.0
+
+    def delay_s(self, failed_attempts: int) -> float:
+        return min(self.max_delay_s, self.base_delay_s * self.factor ** (failed_attempts - 1))
+
+
+class _Stop(Exception):
+    """Internal: leave the step loop (pause or abort requested, or a fault)."""
+
+    def __init__(self, state: str, message: str) -> None:
+        super().__init__(message)
+        self.state = state
+        self.message = message
+
+
+def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | None = None,
+                   plan_path: str | None = None, reserve_bytes: int = DEFAULT_RESERVE_BYTES
+                   ) -> SessionInfo:
+    """Validate ``plan`` against ``rig``, expand it and record a new ``planned`` session.
+
+    Parameters
+    ----------
+    name : str, optional
+        Session name; default ``<plan name or 'session'>-YYYYmmdd-HHMMSS``.
+    plan_path : str, optional
+        The plan file, remembered so ``resume`` can check it is unchanged.
+    reserve_bytes : int
+        Space to keep free beyond the plan's estimated bytes.
+
+    Raises
+    ------
+    PlanError
+        The plan does not fit the rig (the message names the field).
+    RunnerError
+        The store's disk lacks room for the plan's estimated frames.
+    """
+    if rig is not None:
+        plan.check_rig(rig)
+    steps = plan.steps(rig)
+    estimate = MotionModel.from_rig(rig).estimate(steps)
+    free = store.free_bytes()
+    if free < estimate.bytes + reserve_bytes:
+        raise RunnerError(f"not enough disk space in {store.root}: the plan needs about "
+                          f"{estimate.bytes / 1e9:.2f} GB (+{reserve_bytes / 1e9:.2f} GB reserve), "
+                          f"{free / 1e9:.2f} GB are free")
+    name = name or f"{plan.name or 'session'}-{time.strftime('%Y%m%d-%H%M%S')}"
+    return store.create_session(name, plan=plan.to_dict(), plan_hash=plan.hash,
+                                steps=[s.to_dict() for s in steps], plan_path=plan_path,
+                                operator=plan.operator, object=plan.object, notes=plan.notes)
+
+
+class Runner:
+    """Runs one session of a store on a rig.
+
+    Parameters
+    ----------
+    rig : rig.Rig
+        Connected (or connectable) devices; roles the plan does not use may be absent.
+    store : Store
+    session : str or SessionInfo
+        The session to run (created with :func:`create_session`).
+    bus : EventBus, optional
+        Where events go (a new bus by default; see :attr:`bus`).
+    retry : RetryPolicy
+    move_timeout_s : float
+        Longest a step's concurrent moves may take, seconds.
+    reserve_bytes : int
+        Free space to keep on the store's disk; below it the session pauses (``low_disk``).
+    prepare_target : callable(target, step), optional
+        Called when the scene must change (``checkerboard``, ``lens_cap``, ``object`` ...) before
+        the first step needing it, e.g. to prompt the operator or tell a simulator. Without it a
+        ``target`` event is emitted and the runner carries on.
+    """
+
+    def __init__(self, rig: Any, store: Store, session: str | SessionInfo, *,
+                 bus: EventBus | None = None, retry: RetryPolicy = RetryPolicy(),
+                 move_timeout_s: float = 300.0, reserve_bytes: int = DEFAULT_RESERVE_BYTES,
+                 prepare_target: Callable[[str, Step], None] | None = None) -> None:
+        self.rig = rig
+        self.store = store
+        self.name = session if isinstance(session, str) else session.name
+        self.bus = bus or EventBus()
+        self.retry = retry
+        self.move_timeout_s = move_timeout_s
+        self.reserve_bytes = reserve_bytes
+        self.prepare_target = prepare_target
+        self._pause = threading.Event()
+        self._pause_now = threading.Event()
+        self._abort = threading.Event()
+        self._wake = threading.Event()  # interrupts back-off sleeps
+        self._pending: list[Event] = []
+        self._drop: set[str] = set()  # roles whose link dropped: reconnect on the next run
+        self._session: SessionInfo | None = None
+        self._counters: dict[str, Any] = {}
+
+    # -- control (any thread) -----------------------------------------------------------------
+    def request_pause(self, *, now: bool = False) -> None:
+        """Pause after the current step; ``now=True`` also stops motion at once (the
+        interrupted step is re-done on resume)."""
+        self._pause.set()
+        if now:
+            self._pause_now.set()
+            self._wake.set()
+            self._stop_rig()
+
+    def request_abort(self) -> None:
+        """Abort: stop all motion now and end the session as ``aborted`` (final)."""
+        self._abort.set()
+        self._wake.set()
+        self._stop_rig()
+
+    def _stop_rig(self) -> None:
+        try:
+            self.rig.stop_all()
+        except RigError:
+            pass  # best effort: a device that cannot answer is not moving under our control
+
+    # -- events -------------------------------------------------------------------------------
+    def _emit(self, kind: EventKind, message: str = "", *, step: int | None = None,
+              device: str | None = None, **data: Any) -> Event:
+        event = Event(kind, self.name, message, step=step, device=device, data=data)
+        self._pending.append(event)  # persisted with the next store write
+        self.bus.emit(event)
+        return event
+
+    def _take_events(self) -> list[Event]:
+        events, self._pending = self._pending, []
+        return events
+
+    def _set_state(self, state: str) -> None:
+        self.store.set_state(self._session.id, state, self._take_events())
+
+    # -- the run ------------------------------------------------------------------------------
+    def run(self) -> str:
+        """Run (or resume) the session until done, paused or aborted; return that state.
+
+        Raises
+        ------
+        RunnerError
+            The session was aborted earlier (aborted sessions are final).
+        SessionBusy
+            Another process is writing this session.
+        """
+        info = self.store.session(self.name)
+        if info.state == "done":
+            return "done"
+        if info.state == "aborted":
+            raise RunnerError(f"session {self.name!r} was aborted; aborted sessions are final "
+                              "(start a new session from the plan)")
+        self._session = info
+        self._pause.clear()
+        self._pause_now.clear()
+        self._wake.clear()
+        with self.store.writer(self.name) as removed:
+            if removed:
+                self._emit(EventKind.NOTE, f"removed {len(removed)} file(s) left by an "
+                           "interrupted write", files=removed[:20])
+            try:
+                self._run_steps(resumed=info.state != "planned")
+            except _Stop as stop:
+                self._set_state(stop.state)
+                return stop.state
+            except BaseException as exc:
+                # a bug or KeyboardInterrupt: never leave the session marked running
+                self._stop_rig()
+                self._emit(EventKind.FAULT, f"unexpected error: {exc!r}", error=type(exc).__name__)
+                self._emit(EventKind.PAUSED, "paused after an unexpected error")
+                self._set_state("paused")
+                raise
+        return "done"
+
+    def _run_steps(self, *, resumed: bool) -> None:
+        sid = self._session.id
+        self._prepare_rig()
+        all_steps = self.store.steps(sid)
+        pending = [Step.from_dict(d) for _, d, done in all_steps if not done]
+        done_steps = [Step.from_dict(d) for _, d, done in all_steps if done]
+        progress = self.store.progress(sid)
+        frame_bytes = (progress.bytes_stored / progress.frames_stored if progress.frames_stored
+                       else MotionModel.from_rig(self.rig).frame_bytes)
+        self._counters = {"steps_total": len(all_steps), "steps_done": len(done_steps),
+                          "frames_total": progress.frames_total,
+                          "frames_done": sum(s.frames for s in done_steps), "eta_s": None}
+        self._check_space(sum(s.frames for s in pending) * frame_bytes, "to finish the session")
+        self._emit(EventKind.RESUMED if resumed else EventKind.SESSION_STARTED,
+                   f"{'resuming' if resumed else 'starting'} at step "
+                   f"{pending[0].index if pending else len(all_steps)} of {len(all_steps)}",
+                   **self._counters)
+        self._set_state("running")
+        target = None if resumed or not done_steps else done_steps[-1].target
+        started = time.monotonic()
+        for n, step in enumerate(pending):
+            self._check_requests()
+            self._check_space(step.frames * frame_bytes, f"for step {step.index}")
+            if step.target != target:
+                self._change_target(step)
+                target = step.target
+            self._run_step(step)
+            elapsed = time.monotonic() - started
+            self._counters["eta_s"] = elapsed / (n + 1) * (len(pending) - n - 1)
+        self._check_requests()
+        self._emit(EventKind.DONE, f"all {len(all_steps)} steps done", **self._counters)
+        self._set_state("done")
+
+    def _prepare_rig(self) -> None:
+        """Connect devices that are not (or whose link dropped in an earlier run), then record
+        the rig config and every device's describe() with the session."""
+        for role, device in self.rig.devices.items():
+            try:
+                if role in self._drop:
+                    device.close()
+                if role in self._drop or not device.connected:
+                    device.connect()
+                self._drop.discard(role)
+            except RigError as exc:
+                self._fault(exc, f"connecting the {role}", role, step=None)
+        try:
+            describe = self.rig.describe()
+        except RigError as exc:
+            self._fault(exc, "reading the devices' describe()", exc.device, step=None)
+        self.store.add_rig_snapshot(self._session.id, getattr(self.rig, "config", {}), describe)
+
+    def _check_requests(self, *, hard_only: bool = False) -> None:
+        """Leave the step loop if an abort (or a pause; with ``hard_only`` only an immediate
+        pause) was requested."""
+        if self._abort.is_set():
+            self._emit(EventKind.ABORTED, "aborted by operator", **self._counters)
+            raise _Stop("aborted", "aborted")
+        if self._pause_now.is_set() if hard_only else self._pause.is_set():
+            self._emit(EventKind.PAUSED, f"paused by operator; continue with: gonio capture "
+                       f"resume {self.name}", **self._counters)
+            raise _Stop("paused", "paused")
+
+    def _check_space(self, need_bytes: float, what: str) -> None:
+        free = self.store.free_bytes()
+        if free < need_bytes + self.reserve_bytes:
+            msg = (f"low disk space: {free / 1e9:.2f} GB free in {self.store.root}, about "
+                   f"{need_bytes / 1e9:.2f} GB needed {what} (+{self.reserve_bytes / 1e9:.2f} GB "
+                   f"reserve); free space, then: gonio capture resume {self.name}")
+            self._emit(EventKind.LOW_DISK, msg, free_bytes=free, need_bytes=need_bytes)
+            self._emit(EventKind.PAUSED, "paused: low disk space", **self._counters)
+            raise _Stop("paused", msg)
+
+    def _change_target(self, step: Step) -> None:
+        msg = {"object": "put the object on the turntable", "lens_cap": "put the lens cap on",
+               "checkerboard": "put the checkerboard target on the turntable",
+               "spheres": "put the calibration spheres on the turntable",
+               "gray_card": "put the gray card on the turntable",
+               "mirror_probe": "put the mirror sphere on the turntable"}.get(step.target,
+                                                                            f"set up {step.target}")
+        self._emit(EventKind.TARGET, msg, step=step.index, target=step.target, kind=step.kind)
+        if self.prepare_target is not None:
+            self.prepare_target(step.target, step)
+
+    # -- one step -----------------------------------------------------------------------------
+    def _run_step(self, step: Step) -> None:
+        sid = self._session.id
+        self._emit(EventKind.STEP_STARTED, f"step {step.index} ({step.kind})", step=step.index,
+                   **step.to_dict())
+        self._attempt(lambda: self._move(step), "moving", step)
+        positions = self._attempt(self._read_back, "reading positions", step)
+        self._emit(EventKind.MOVED, _where(positions), step=step.index, positions=positions)
+        camera = self.rig.camera
+        if step.iso is not None and camera.iso != step.iso:
+            self._attempt(lambda: camera.set_iso(step.iso), "setting ISO", step, device="camera")
+        total = step.frames
+        k = 0
+        for repeat in range(step.repeats):
+            for b, exposure in enumerate(step.exposures_s):
+                self._check_requests(hard_only=True)
+                taken, frame = self._attempt(lambda: self._capture(exposure), "capturing", step,
+                                             device="camera")
+                k += 1
+                try:
+                    _, sha = self.store.add_frame(
+                        sid, step.index, b, repeat, data=frame.data, filename=frame.filename,
+                        format=frame.format, exposure_requested_s=exposure,
+                        exposure_s=frame.exposure_s, iso=frame.iso, fnumber=frame.fnumber,
+                        positions=positions, captured_at=frame.timestamp,
+                        metadata={**frame.metadata, "exposure_set_s": taken},
+                        events=self._take_events(), completes_step=k == total)
+                except StoreFull as exc:
+                    self._emit(EventKind.LOW_DISK, str(exc), step=step.index)
+                    self._emit(EventKind.PAUSED, "paused: the disk is full", step=step.index,
+                               **self._counters)
+                    raise _Stop("paused", str(exc)) from None
+                self._counters["frames_done"] += 1
+                self._counters["steps_done"] += k == total
+                self._emit(EventKind.FRAME_STORED, f"{frame.filename} {frame.exposure_s:g} s",
+                           step=step.index, bracket_index=b, repeat=repeat, size=len(frame.data),
+                           sha256=sha, **self._counters)
+        self._emit(EventKind.STEP_DONE, f"step {step.index} done", step=step.index,
+                   **self._counters)
+
+    def _move(self, step: Step) -> None:
+        rig, statuses = self.rig, []
+        try:
+            if step.turntable_deg is not None:
+                statuses.append(rig.turntable.move_to(step.turntable_deg))
+            if step.light is not None:
+                light = dict(step.light)
+                if "xyz_mm" in light:
+                    light["xyz_mm"] = tuple(light["xyz_mm"])
+                statuses.append(rig.positioner.move_to(LightTarget(**light)))
+            if step.polarizer_deg is not None:
+                statuses.append(rig.polarizer.move_to(step.polarizer_deg))
+        except RigError:
+            # one device refused at once: let the moves already started end before reporting
+            try:
+                wait_all(statuses, timeout=self.move_timeout_s)
+            except RigError:
+                pass
+            raise
+        wait_all(statuses, timeout=self.move_timeout_s)
+
+    def _read_back(self) -> dict[str, Any]:
+        rig, pos = self.rig, {}
+        if rig.turntable is not None:
+            pos["turntable_deg"] = rig.turntable.position
+        if rig.positioner is not None:
+            pos["light_mm"] = list(rig.positioner.light_position_mm)
+        if rig.polarizer is not None:
+            pos["polarizer_deg"] = rig.polarizer.position
+        return pos
+
+    def _capture(self, exposure_s: float):
+        camera = self.rig.camera
+        taken = camera.set_exposure(exposure_s)
+        return taken, camera.capture()
+
+    def _attempt(self, fn: Callable[[], Any], what: str, step: Step, *, device: str | None = None):
+        """Call ``fn``; retry retryable device errors with back-off; otherwise fault-pause."""
+        for attempt in range(1, self.retry.attempts + 1):
+            try:
+                return fn()
+            except RigError as exc:
+                self._check_requests(hard_only=True)  # the error may be our own stop_all()
+                dev = exc.device or device
+                if not exc.retryable or attempt == self.retry.attempts:
+                    self._fault(exc, what, dev, step=step.index, attempts=attempt)
+                delay = self.retry.delay_s(attempt)
+                self._emit(EventKind.RETRY, f"{what}: {exc}; retry {attempt + 1} of "
+                           f"{self.retry.attempts} in {delay:g} s", step=step.index, device=dev,
+                           attempt=attempt, delay_s=delay, error=type(exc).__name__)
+                self._wake.wait(delay)
+                self._check_requests(hard_only=True)
+
+    def _fault(self, exc: RigError, what: str, device: str | None, *, step: int | None,
+               attempts: int = 1) -> None:
+        """Record a device fault, stop the rig and pause the session (raises _Stop)."""
+        if isinstance(exc, Disconnected) and device:
+            self._drop.add(device)
+        self._stop_rig()
+        tried = f" after {attempts} attempts" if attempts > 1 else ""
+        self._emit(EventKind.FAULT, f"{what} failed{tried}: {exc}", step=step, device=device,
+                   error=type(exc).__name__, retryable=exc.retryable, attempts=attempts)
+        msg = (f"paused: {exc}. Fix the cause, then continue with: gonio capture resume "
+               f"{self.name}")
+        self._emit(EventKind.PAUSED, msg, step=step, device=device, **self._counters)
+        raise _Stop("paused", msg)
+
+
+def _where(pos: dict[str, Any]) -> str:
+    parts = []
+    if "turntable_deg" in pos:
+        parts.append(f"turntable {pos['turntable_deg']:.2f}°")
+    if "light_mm" in pos:
+        parts.append("light ({:.1f}, {:.1f}, {:.1f}) mm".format(*pos["light_mm"]))
+    if "polarizer_deg" in pos:
+        parts.append(f"polarizer {pos['polarizer_deg']:.2f}°")
+    return ", ".join(parts) or "no axes"
+
+
+__all__ = ["DEFAULT_RESERVE_BYTES", "RetryPolicy", "Runner", "RunnerError", "create_session"]

@@ -1,0 +1,939 @@
+"""The session store: one SQLite database (WAL) plus content-addressed frame files beside it.
+
+Layout of a store directory::
+
+    gonio.sqlite            sessions, rig snapshots, planned steps, frames, events, results
+    objects/ab/cdef...      the camera's own bytes, named by their SHA-256 (read-only files)
+    locks/                  advisory locks (writers, one per running session)
+
+Durability: a frame file is written to a temporary name in its final directory, fsynced,
+renamed into place and the directory fsynced; only then is its row committed (``synchronous =
+FULL``). A frame row therefore never exists without its file, and identical bytes are stored
+once. A crash can leave at most an unreferenced file (an *orphan*) or a ``.tmp-`` file; the next
+writer that finds no other writer running removes them (:meth:`Store.writer`).
+
+Readers (the TUI, a second ``gonio`` process) read while a session writes: WAL gives each read
+transaction a consistent snapshot, write transactions are short, and ``busy_timeout`` waits
+out a concurrent commit instead of failing.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import functools
+import hashlib
+import json
+import os
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import tarfile
+import tempfile
+import threading
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+from .events import Event, EventKind
+
+DB_NAME = "gonio.sqlite"
+STATES = ("planned", "running", "paused", "done", "aborted")
+_TMP_PREFIX = ".tmp-"
+
+
+class StoreError(Exception):
+    """Base of the store's errors; the message says what to do."""
+
+
+class SessionNotFound(StoreError):
+    """No session of that name in this store."""
+
+
+class SessionExists(StoreError):
+    """A session of that name already exists."""
+
+
+class SessionBusy(StoreError):
+    """Another process (or runner) is writing this session right now."""
+
+
+class StoreFull(StoreError):
+    """The disk holding the store ran out of space while writing a frame."""
+
+
+class SchemaError(StoreError):
+    """The database was written by a newer gonio (unknown schema version)."""
+
+
+# -- crash hook points (tests kill the process here: GONIO_CRASH_AFTER=N) -----------------------
+_crash_lock = threading.Lock()
+_crash_count = 0
+
+
+def _crash_point(name: str) -> None:
+    """Kill this process with SIGKILL at the N-th hook point if ``GONIO_CRASH_AFTER=N`` is set.
+
+    The crash test walks N over every write/rename/commit point of a session to prove that a
+    kill at any of them leaves a store that ``resume`` completes with exactly the planned frames.
+    """
+    after = os.environ.get("GONIO_CRASH_AFTER")
+    if not after:
+        return
+    global _crash_count
+    with _crash_lock:
+        _crash_count += 1
+        if _crash_count == int(after):
+            sys.stderr.write(f"GONIO_CRASH at {name}\n")
+            sys.stderr.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+# -- schema and forward migrations ------------------------------------------------------------
+def _run_script(db: sqlite3.Connection, script: str) -> None:
+    # statement by statement: executescript() would COMMIT the migration transaction midway
+    for statement in script.split(";"):
+        if statement.strip():
+            db.execute(statement)
+
+
+def _m1_initial(db: sqlite3.Connection) -> None:
+    _run_script(db, """
+    CREATE TABLE sessions (
+        id INTEGER PRIMARY KEY,
+        name TEXT NOT NULL UNIQUE,
+        operator TEXT NOT NULL DEFAULT '',
+        object TEXT NOT NULL DEFAULT '',
+        notes TEXT NOT NULL DEFAULT '',
+        state TEXT NOT NULL CHECK (state IN ('planned','running','paused','done','aborted')),
+        plan_json TEXT NOT NULL,
+        plan_hash TEXT NOT NULL,
+        plan_path TEXT,
+        created REAL NOT NULL,
+        updated REAL NOT NULL
+    );
+    CREATE TABLE rig_snapshots (
+        id INTEGER PRIMARY KEY,
+        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
+        taken REAL NOT NULL,
+        config_json TEXT NOT NULL,
+        describe_json TEXT NOT NULL
+    );
+    CREATE TABLE steps (
+        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
+        idx INTEGER NOT NULL,
+        step_json TEXT NOT NULL,
+        frames INTEGER NOT NULL,
+        done INTEGER NOT NULL DEFAULT 0,
+        done_at REAL,
+        PRIMARY KEY (session_id, idx)
+    );
+    CREATE TABLE frames (
+        id INTEGER PRIMARY KEY,
+        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
+        step INTEGER NOT NULL,
+        bracket_index INTEGER NOT NULL,
+        repeat INTEGER NOT NULL,
+        sha256 TEXT NOT NULL,
+        size INTEGER NOT NULL,
+        filename TEXT NOT NULL,
+        format TEXT NOT NULL,
+        exposure_requested_s REAL,
+        exposure_s REAL,
+        iso REAL,
+        fnumber REAL,
+        positions_json TEXT NOT NULL,
+        captured_at REAL NOT NULL,
+        stored_at REAL NOT NULL,
+        metadata_json TEXT NOT NULL,
+        UNIQUE (session_id, step, bracket_index, repeat)
+    );
+    CREATE TABLE events (
+        id INTEGER PRIMARY KEY,
+        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
+        time REAL NOT NULL,
+        kind TEXT NOT NULL,
+        step INTEGER,
+        device TEXT,
+        message TEXT NOT NULL,
+        data_json TEXT NOT NULL
+    );
+    CREATE TABLE results (
+        id INTEGER PRIMARY KEY,
+        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
+        category TEXT NOT NULL CHECK (category IN ('calibration','reconstruction')),
+        kind TEXT NOT NULL,
+        created REAL NOT NULL,
+        params_json TEXT NOT NULL,
+        result_json TEXT NOT NULL,
+        input_frames_json TEXT NOT NULL,
+        code_version TEXT NOT NULL
+    );
+    CREATE TABLE result_objects (
+        result_id INTEGER NOT NULL REFERENCES results(id) ON DELETE CASCADE,
+        name TEXT NOT NULL,
+        sha256 TEXT NOT NULL,
+        size INTEGER NOT NULL,
+        PRIMARY KEY (result_id, name)
+    );
+    """)
+
+
+def _m2_indexes(db: sqlite3.Connection) -> None:
+    # reference look-ups (dedupe, garbage collection) and per-session event queries
+    _run_script(db, """
+    CREATE INDEX frames_sha ON frames(sha256);
+    CREATE INDEX result_objects_sha ON result_objects(sha256);
+    CREATE INDEX events_session ON events(session_id, id);
+    """)
+
+
+#: ordered forward migrations; migration i brings the schema to version i + 1
+MIGRATIONS: list[Callable[[sqlite3.Connection], None]] = [_m1_initial, _m2_indexes]
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+@functools.cache
+def code_version() -> str:
+    """``gonio <version>`` plus ``+g<commit>`` when the code runs from a git checkout."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        text = f"gonio {version('gonio')}"
+    except PackageNotFoundError:
+        text = "gonio (not installed)"
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).parent,
+                                capture_output=True, text=True, timeout=5)
+        if commit.returncode == 0 and commit.stdout.strip():
+            text += f"+g{commit.stdout.strip()}"
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return text
+
+
+# -- records ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SessionInfo:
+    """One session row. ``plan`` is the canonical plan dict; times are Unix seconds."""
+
+    id: int
+    name: str
+    state: str
+    operator: str
+    object: str
+    notes: str
+    plan: dict[str, Any]
+    plan_hash: str
+    plan_path: str | None
+    created: float
+    updated: float
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One stored frame. Exposures in seconds; ``positions`` are read-backs (degrees, mm)."""
+
+    id: int
+    session_id: int
+    step: int
+    bracket_index: int
+    repeat: int
+    sha256: str
+    size: int
+    filename: str
+    format: str
+    exposure_requested_s: float | None
+    exposure_s: float | None
+    iso: float | None
+    fnumber: float | None
+    positions: dict[str, Any]
+    captured_at: float
+    stored_at: float
+    metadata: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Counts of a session: planned and done steps, planned frames, stored frames and bytes."""
+
+    steps_total: int
+    steps_done: int
+    frames_total: int
+    frames_stored: int
+    bytes_stored: int
+
+
+@dataclass
+class VerifyReport:
+    """Outcome of :meth:`Store.verify`: lists of SHA-256 names / paths, empty when all is well."""
+
+    checked: int = 0
+    missing: list[str] = field(default_factory=list)
+    corrupt: list[str] = field(default_factory=list)
+    orphans: list[str] = field(default_factory=list)
+    incomplete_steps: list[int] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not (self.missing or self.corrupt or self.orphans or self.incomplete_steps)
+
+
+def _dumps(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
+
+
+def _json_default(obj: Any) -> Any:
+    # numpy scalars / arrays and tuples from device read-backs
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def sha256_file(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+class Store:
+    """A store directory: the SQLite database and the object files beside it.
+
+    Parameters
+    ----------
+    root : path
+        Store directory; created (with an empty, current-schema database) when ``create``.
+    create : bool
+        Create the directory and database if absent. Otherwise a missing store is an error.
+
+    Notes
+    -----
+    One connection is shared by the threads of a process under a lock (the TUI reads on its
+    thread while the runner writes on a worker). Other processes open their own ``Store``.
+    """
+
+    def __init__(self, root: str | os.PathLike, *, create: bool = True) -> None:
+        self.root = Path(root)
+        self.db_path = self.root / DB_NAME
+        if not self.db_path.exists():
+            if not create:
+                raise StoreError(f"{self.root} is not a gonio store (no {DB_NAME}); "
+                                 "give --store the folder a session was recorded in")
+            self.root.mkdir(parents=True, exist_ok=True)
+        self.objects = self.root / "objects"
+        self._lock = threading.RLock()
+        self._db = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False,
+                                   timeout=30.0)
+        self._db.row_factory = sqlite3.Row
+        self._db.execute("PRAGMA busy_timeout = 30000")
+        self._db.execute("PRAGMA journal_mode = WAL")
+        self._db.execute("PRAGMA synchronous = FULL")  # a committed frame survives power loss
+        self._db.execute("PRAGMA foreign_keys = ON")
+        self._migrate()
+        self._cleanup: Callable[[], None] | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------------
+    @classmethod
+    def open(cls, path: str | os.PathLike, *, create: bool = False) -> "Store":
+        """Open a store folder, or an exported ``.tar`` / ``.zip`` archive (extracted to a
+        temporary folder that is removed on :meth:`close`)."""
+        path = Path(path)
+        if path.is_file() and (tarfile.is_tarfile(path) or zipfile.is_zipfile(path)):
+            tmp = Path(tempfile.mkdtemp(prefix="gonio-store-"))
+            if zipfile.is_zipfile(path):
+                with zipfile.ZipFile(path) as z:
+                    z.extractall(tmp)
+            else:
+                with tarfile.open(path) as t:
+                    t.extractall(tmp, filter="data")
+            inner = [p.parent for p in tmp.rglob(DB_NAME)]
+            if len(inner) != 1:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise StoreError(f"{path}: archive holds {len(inner)} gonio stores, expected 1")
+            store = cls(inner[0], create=False)
+            store._cleanup = lambda: shutil.rmtree(tmp, ignore_errors=True)
+            return store
+        return cls(path, create=create)
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+        if self._cleanup is not None:
+            self._cleanup()
+            self._cleanup = None
+
+    def __enter__(self) -> "Store":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _migrate(self) -> None:
+        with self._write() as db:
+            db.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
+            row = db.execute("SELECT version FROM schema_version").fetchone()
+            current = 0 if row is None else row[0]
+            if current > SCHEMA_VERSION:
+                raise SchemaError(f"{self.db_path} has schema version {current}; this gonio "
+                                  f"knows up to {SCHEMA_VERSION}: upgrade gonio to open it")
+            for version in range(current, SCHEMA_VERSION):
+                MIGRATIONS[version](db)
+            if row is None:
+                db.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
+            else:
+                db.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION,))
+
+    @property
+    def schema_version(self) -> int:
+        return self._query("SELECT version FROM schema_version")[0][0]
+
+    # -- transactions -------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        """One short write transaction (``BEGIN IMMEDIATE``: takes the write lock up front so a
+        concurrent writer waits in busy_timeout rather than failing on lock upgrade)."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            _crash_point("before_commit")
+            self._db.execute("COMMIT")
+            _crash_point("after_commit")
+
+    @contextlib.contextmanager
+    def _read(self) -> Iterator[sqlite3.Connection]:
+        """A read transaction: every query inside sees the same snapshot."""
+        with self._lock:
+            self._db.execute("BEGIN")
+            try:
+                yield self._db
+            finally:
+                self._db.execute("COMMIT")
+
+    def _query(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
+        with self._read() as db:
+            return db.execute(sql, tuple(args)).fetchall()
+
+    @staticmethod
+    def _insert_events(db: sqlite3.Connection, session_id: int, events: Iterable[Event]) -> None:
+        db.executemany(
+            "INSERT INTO events (session_id, time, kind, step, device, message, data_json) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            [(session_id, e.time, e.kind.value, e.step, e.device, e.message, _dumps(e.data))
+             for e in events])
+
+    # -- locks --------------------------------------------------------------------------------
+    def _lock_file(self, name: str) -> int:
+        (self.root / "locks").mkdir(exist_ok=True)
+        return os.open(self.root / "locks" / name, os.O_RDWR | os.O_CREAT, 0o644)
+
+    @contextlib.contextmanager
+    def writer(self, session: str) -> Iterator[list[str] | None]:
+        """Hold the right to write ``session`` for the duration of the block.
+
+        Takes the session's exclusive lock (else :class:`SessionBusy`) and a shared store-writer
+        lock. If no other writer is active, first removes what crashed writers left behind (see
+        :meth:`collect_garbage`); yields the removed paths, or None when another writer was
+        active and cleaning had to wait. Locks die with the process, so a killed runner never
+        blocks a resume.
+        """
+        info = self.session(session)
+        sfd = self._lock_file(f"session-{info.id}.lock")
+        try:
+            try:
+                fcntl.flock(sfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise SessionBusy(f"session {session!r} is being written by another process; "
+                                  "wait for it to finish or pause it there") from None
+            wfd = self._lock_file("writers.lock")
+            try:
+                removed: list[str] | None = None
+                try:
+                    fcntl.flock(wfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    removed = self.collect_garbage()
+                except BlockingIOError:
+                    pass
+                fcntl.flock(wfd, fcntl.LOCK_SH)  # converts the exclusive lock if we held it
+                yield removed
+            finally:
+                os.close(wfd)
+        finally:
+            os.close(sfd)
+
+    # -- sessions -----------------------------------------------------------------------------
+    def create_session(self, name: str, *, plan: dict[str, Any], plan_hash: str,
+                       steps: list[dict[str, Any]], plan_path: str | None = None,
+                       operator: str = "", object: str = "", notes: str = "") -> SessionInfo:
+        """Record a new session in state ``planned`` with its expanded steps.
+
+        ``steps`` are JSON-serialisable dicts in execution order; each must carry ``frames``,
+        the number of frames the step stores (bracket length x repeats).
+        """
+        if not name or "/" in name or name.strip() != name:
+            raise StoreError(f"session name {name!r} is not allowed (non-empty, no '/', "
+                             "no surrounding spaces)")
+        for i, s in enumerate(steps):
+            if not isinstance(s.get("frames"), int) or s["frames"] < 0:
+                raise StoreError(f"steps[{i}] needs an integer 'frames' >= 0")
+        now = time.time()
+        try:
+            with self._write() as db:
+                cur = db.execute(
+                    "INSERT INTO sessions (name, operator, object, notes, state, plan_json, "
+                    "plan_hash, plan_path, created, updated) VALUES (?,?,?,?,?,?,?,?,?,?)",
+                    (name, operator, object, notes, "planned", _dumps(plan), plan_hash,
+                     plan_path, now, now))
+                sid = cur.lastrowid
+                db.executemany("INSERT INTO steps (session_id, idx, step_json, frames) "
+                               "VALUES (?,?,?,?)",
+                               [(sid, i, _dumps(s), s["frames"]) for i, s in enumerate(steps)])
+        except sqlite3.IntegrityError:
+            raise SessionExists(f"a session named {name!r} already exists in {self.root}; "
+                                "choose another --session name or resume it") from None
+        return self.session(name)
+
+    @staticmethod
+    def _session_from_row(row: sqlite3.Row) -> SessionInfo:
+        return SessionInfo(id=row["id"], name=row["name"], state=row["state"],
+                           operator=row["operator"], object=row["object"], notes=row["notes"],
+                           plan=json.loads(row["plan_json"]), plan_hash=row["plan_hash"],
+                           plan_path=row["plan_path"], created=row["created"],
+                           updated=row["updated"])
+
+    def session(self, name: str) -> SessionInfo:
+        rows = self._query("SELECT * FROM sessions WHERE name = ?", (name,))
+        if not rows:
+            known = [r[0] for r in self._query("SELECT name FROM sessions ORDER BY created")]
+            raise SessionNotFound(f"no session {name!r} in {self.root}"
+                                  + (f"; sessions: {', '.join(known)}" if known else
+                                     " (the store is empty)"))
+        return self._session_from_row(rows[0])
+
+    def sessions(self) -> list[SessionInfo]:
+        return [self._session_from_row(r) for r in
+                self._query("SELECT * FROM sessions ORDER BY created, id")]
+
+    def set_state(self, session_id: int, state: str, events: Iterable[Event] = ()) -> None:
+        if state not in STATES:
+            raise StoreError(f"state {state!r} is not one of {', '.join(STATES)}")
+        with self._write() as db:
+            db.execute("UPDATE sessions SET state = ?, updated = ? WHERE id = ?",
+                       (state, time.time(), session_id))
+            self._insert_events(db, session_id, events)
+
+    def add_rig_snapshot(self, session_id: int, config: dict[str, Any],
+                         describe: dict[str, Any]) -> None:
+        """Record the rig config and every device's ``describe()`` (one per run / resume)."""
+        with self._write() as db:
+            db.execute("INSERT INTO rig_snapshots (session_id, taken, config_json, describe_json) "
+                       "VALUES (?,?,?,?)", (session_id, time.time(), _dumps(config), _dumps(describe)))
+
+    def rig_snapshots(self, session_id: int) -> list[dict[str, Any]]:
+        return [{"taken": r["taken"], "config": json.loads(r["config_json"]),
+                 "describe": json.loads(r["describe_json"])}
+                for r in self._query("SELECT * FROM rig_snapshots WHERE session_id = ? "
+                                     "ORDER BY id", (session_id,))]
+
+    def add_events(self, session_id: int, events: Iterable[Event]) -> None:
+        with self._write() as db:
+            self._insert_events(db, session_id, events)
+
+    def events(self, session_id: int, *, kinds: Iterable[str] | None = None,
+               after_id: int = 0, limit: int | None = None) -> list[dict[str, Any]]:
+        """Stored events (oldest first), each a dict with ``id`` and :class:`Event`'s fields."""
+        sql = "SELECT * FROM events WHERE session_id = ? AND id > ?"
+        args: list[Any] = [session_id, after_id]
+        if kinds is not None:
+            kinds = list(kinds)
+            sql += f" AND kind IN ({','.join('?' * len(kinds))})"
+            args += kinds
+        sql += " ORDER BY id"
+        if limit is not None:
+            sql += " LIMIT ?"
+            args.append(limit)
+        return [{"id": r["id"], "time": r["time"], "kind": r["kind"], "step": r["step"],
+                 "device": r["device"], "message": r["message"], "data": json.loads(r["data_json"])}
+                for r in self._query(sql, args)]
+
+    # -- steps --------------------------------------------------------------------------------
+    def steps(self, session_id: int, *, pending_only: bool = False) -> list[tuple[int, dict, bool]]:
+        """``(index, step dict, done)`` in execution order."""
+        sql = "SELECT idx, step_json, done FROM steps WHERE session_id = ?"
+        if pending_only:
+            sql += " AND done = 0"
+        return [(r[0], json.loads(r[1]), bool(r[2]))
+                for r in self._query(sql + " ORDER BY idx", (session_id,))]
+
+    def progress(self, session_id: int) -> Progress:
+        with self._read() as db:
+            st, sd, ft = db.execute("SELECT count(*), coalesce(sum(done), 0), coalesce(sum(frames), 0) "
+                                    "FROM steps WHERE session_id = ?", (session_id,)).fetchone()
+            fs, bs = db.execute("SELECT count(*), coalesce(sum(size), 0) FROM frames "
+                                "WHERE session_id = ?", (session_id,)).fetchone()
+        return Progress(steps_total=st, steps_done=sd, frames_total=ft, frames_stored=fs,
+                        bytes_stored=bs)
+
+    # -- objects ------------------------------------------------------------------------------
+    def object_path(self, sha256: str) -> Path:
+        return self.objects / sha256[:2] / sha256[2:]
+
+    def read_object(self, sha256: str) -> bytes:
+        return self.object_path(sha256).read_bytes()
+
+    def _write_object(self, data: bytes | memoryview, sha: str) -> None:
+        path = self.object_path(sha)
+        try:
+            if not self.objects.is_dir():
+                self.objects.mkdir(parents=True, exist_ok=True)
+                _fsync_dir(self.root)
+            if not path.parent.is_dir():
+                path.parent.mkdir(exist_ok=True)
+                _fsync_dir(self.objects)
+            self._write_file(data, path)
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise StoreFull(f"no space left on the disk holding {self.root} while writing a "
+                                f"{len(data) / 1e6:.1f} MB frame; free space and resume") from None
+            raise
+
+    @staticmethod
+    def _write_file(data: bytes | memoryview, path: Path) -> None:
+        """Temp file in the final directory, fsync, rename, fsync the directory."""
+        fd, tmp = tempfile.mkstemp(prefix=_TMP_PREFIX, dir=path.parent)
+        try:
+            view = memoryview(data)
+            half = len(view) // 2
+            with os.fdopen(fd, "wb") as f:
+                f.write(view[:half])
+                f.flush()
+                _crash_point("object_half_written")
+                f.write(view[half:])
+                f.flush()
+                os.fsync(f.fileno())
+            os.chmod(tmp, 0o444)  # content-addressed files are immutable
+            _crash_point("object_fsynced")
+            os.replace(tmp, path)
+            _crash_point("object_renamed")
+            _fsync_dir(path.parent)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+
+    def _ensure_object(self, data: bytes | memoryview, sha: str) -> None:
+        path = self.object_path(sha)
+        try:
+            if path.stat().st_size == len(data):
+                return  # identical bytes are stored once
+        except FileNotFoundError:
+            pass
+        self._write_object(data, sha)
+
+    def put_object(self, data: bytes) -> str:
+        """Store bytes durably (without a row referencing them); return their SHA-256 hex."""
+        sha = hashlib.sha256(data).hexdigest()
+        self._ensure_object(data, sha)
+        return sha
+
+    def _unreferenced(self, db: sqlite3.Connection, sha: str) -> bool:
+        return db.execute("SELECT NOT EXISTS (SELECT 1 FROM frames WHERE sha256 = ?) AND "
+                          "NOT EXISTS (SELECT 1 FROM result_objects WHERE sha256 = ?)",
+                          (sha, sha)).fetchone()[0] == 1
+
+    # -- frames -------------------------------------------------------------------------------
+    def add_frame(self, session_id: int, step: int, bracket_index: int, repeat: int, *,
+                  data: bytes, filename: str, format: str, exposure_requested_s: float | None,
+                  exposure_s: float | None, iso: float | None = None, fnumber: float | None = None,
+                  positions: dict[str, Any] | None = None, captured_at: float | None = None,
+                  metadata: dict[str, Any] | None = None, events: Iterable[Event] = (),
+                  completes_step: bool = False) -> tuple[int, str]:
+        """Store one frame durably: file first (fsync, rename, fsync dir), then its row.
+
+        The key ``(step, bracket_index, repeat)`` is unique per session: storing it again (a step
+        re-done after a crash) replaces the row, and the replaced file is deleted if nothing else
+        references it. ``completes_step`` marks the step done in the same transaction (pass it
+        with the step's last frame: a step is done exactly when all its frames are durable).
+        ``events`` are persisted in that transaction too. Returns ``(frame id, sha256)``.
+
+        Raises
+        ------
+        StoreFull
+            The disk is full (nothing was recorded; the session can be resumed).
+        """
+        sha = hashlib.sha256(data).hexdigest()
+        self._ensure_object(data, sha)
+        now = time.time()
+        replaced = None
+        with self._write() as db:
+            # a concurrent writer may have deleted an identical, then-unreferenced file between
+            # our check and this transaction; writes are serialised here, so re-check inside
+            if not self.object_path(sha).exists():
+                self._write_object(data, sha)
+            old = db.execute("SELECT sha256 FROM frames WHERE session_id = ? AND step = ? AND "
+                             "bracket_index = ? AND repeat = ?",
+                             (session_id, step, bracket_index, repeat)).fetchone()
+            cur = db.execute(
+                "INSERT INTO frames (session_id, step, bracket_index, repeat, sha256, size, "
+                "filename, format, exposure_requested_s, exposure_s, iso, fnumber, positions_json, "
+                "captured_at, stored_at, metadata_json) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?) "
+                "ON CONFLICT (session_id, step, bracket_index, repeat) DO UPDATE SET "
+                "sha256 = excluded.sha256, size = excluded.size, filename = excluded.filename, "
+                "format = excluded.format, exposure_requested_s = excluded.exposure_requested_s, "
+                "exposure_s = excluded.exposure_s, iso = excluded.iso, fnumber = excluded.fnumber, "
+                "positions_json = excluded.positions_json, captured_at = excluded.captured_at, "
+                "stored_at = excluded.stored_at, metadata_json = excluded.metadata_json "
+                "RETURNING id",
+                (session_id, step, bracket_index, repeat, sha, len(data), filename, format,
+                 exposure_requested_s, exposure_s, iso, fnumber, _dumps(positions or {}),
+                 now if captured_at is None else captured_at, now, _dumps(metadata or {})))
+            frame_id = cur.fetchone()[0]
+            self._insert_events(db, session_id, events)
+            if completes_step:
+                db.execute("UPDATE steps SET done = 1, done_at = ? WHERE session_id = ? AND idx = ?",
+                           (now, session_id, step))
+                db.execute("UPDATE sessions SET updated = ? WHERE id = ?", (now, session_id))
+            if old is not None and old[0] != sha and self._unreferenced(db, old[0]):
+                replaced = old[0]
+                # deleted inside the write transaction: no other writer can start referencing it
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(self.object_path(replaced))
+        return frame_id, sha
+
+    @staticmethod
+    def _frame_from_row(r: sqlite3.Row) -> FrameRecord:
+        return FrameRecord(id=r["id"], session_id=r["session_id"], step=r["step"],
+                           bracket_index=r["bracket_index"], repeat=r["repeat"], sha256=r["sha256"],
+                           size=r["size"], filename=r["filename"], format=r["format"],
+                           exposure_requested_s=r["exposure_requested_s"],
+                           exposure_s=r["exposure_s"], iso=r["iso"], fnumber=r["fnumber"],
+                           positions=json.loads(r["positions_json"]), captured_at=r["captured_at"],
+                           stored_at=r["stored_at"], metadata=json.loads(r["metadata_json"]))
+
+    def frames(self, session_id: int, *, step: int | None = None) -> list[FrameRecord]:
+        sql, args = "SELECT * FROM frames WHERE session_id = ?", [session_id]
+        if step is not None:
+            sql += " AND step = ?"
+            args.append(step)
+        return [self._frame_from_row(r) for r in
+                self._query(sql + " ORDER BY step, repeat, bracket_index", args)]
+
+    def frame(self, frame_id: int) -> FrameRecord:
+        rows = self._query("SELECT * FROM frames WHERE id = ?", (frame_id,))
+        if not rows:
+            raise StoreError(f"no frame with id {frame_id}")
+        return self._frame_from_row(rows[0])
+
+    # -- results with provenance --------------------------------------------------------------
+    def add_result(self, session_id: int, category: str, kind: str, *, result: dict[str, Any],
+                   params: dict[str, Any] | None = None, input_frames: Iterable[int] = (),
+                   artifacts: dict[str, bytes] | None = None) -> int:
+        """Record a calibration or reconstruction result with its provenance.
+
+        Parameters
+        ----------
+        category : {'calibration', 'reconstruction'}
+        kind : str
+            What it is (``intrinsics``, ``light_positions``, ``lensch2003`` ...).
+        result : dict
+            JSON-serialisable summary (numbers, small arrays as lists).
+        params : dict
+            The parameters the computation ran with.
+        input_frames : iterable of int
+            Frame ids it was computed from.
+        artifacts : dict of str -> bytes
+            Large outputs (``.npz``, ``.tiff``, ``.png``) stored as content-addressed objects.
+
+        Returns
+        -------
+        int
+            The result id. ``code_version`` (gonio version + git commit) is recorded with it.
+        """
+        if category not in ("calibration", "reconstruction"):
+            raise StoreError(f"category {category!r} must be 'calibration' or 'reconstruction'")
+        frame_ids = sorted(set(int(i) for i in input_frames))
+        stored = {name: (self.put_object(blob), len(blob)) for name, blob in (artifacts or {}).items()}
+        with self._write() as db:
+            if frame_ids:
+                known = db.execute(f"SELECT count(*) FROM frames WHERE session_id = ? AND id IN "
+                                   f"({','.join('?' * len(frame_ids))})",
+                                   (session_id, *frame_ids)).fetchone()[0]
+                if known != len(frame_ids):
+                    raise StoreError(f"input_frames: {len(frame_ids) - known} of the ids are not "
+                                     "frames of this session")
+            cur = db.execute("INSERT INTO results (session_id, category, kind, created, params_json, "
+                             "result_json, input_frames_json, code_version) VALUES (?,?,?,?,?,?,?,?)",
+                             (session_id, category, kind, time.time(), _dumps(params or {}),
+                              _dumps(result), _dumps(frame_ids), code_version()))
+            rid = cur.lastrowid
+            db.executemany("INSERT INTO result_objects (result_id, name, sha256, size) VALUES (?,?,?,?)",
+                           [(rid, n, sha, size) for n, (sha, size) in stored.items()])
+        return rid
+
+    def add_calibration(self, session_id: int, kind: str, **kw: Any) -> int:
+        """:meth:`add_result` with ``category='calibration'``."""
+        return self.add_result(session_id, "calibration", kind, **kw)
+
+    def add_reconstruction(self, session_id: int, method: str, **kw: Any) -> int:
+        """:meth:`add_result` with ``category='reconstruction'``."""
+        return self.add_result(session_id, "reconstruction", method, **kw)
+
+    def results(self, session_id: int, category: str | None = None) -> list[dict[str, Any]]:
+        """Stored results, oldest first; ``artifacts`` maps name -> sha256 (read with
+        :meth:`read_object`)."""
+        sql, args = "SELECT * FROM results WHERE session_id = ?", [session_id]
+        if category is not None:
+            sql += " AND category = ?"
+            args.append(category)
+        with self._read() as db:
+            rows = db.execute(sql + " ORDER BY id", args).fetchall()
+            out = []
+            for r in rows:
+                arts = {a[0]: a[1] for a in db.execute(
+                    "SELECT name, sha256 FROM result_objects WHERE result_id = ?", (r["id"],))}
+                out.append({"id": r["id"], "category": r["category"], "kind": r["kind"],
+                            "created": r["created"], "params": json.loads(r["params_json"]),
+                            "result": json.loads(r["result_json"]),
+                            "input_frames": json.loads(r["input_frames_json"]),
+                            "code_version": r["code_version"], "artifacts": arts})
+        return out
+
+    # -- integrity ----------------------------------------------------------------------------
+    def _referenced(self) -> set[str]:
+        with self._read() as db:
+            return ({r[0] for r in db.execute("SELECT sha256 FROM frames")}
+                    | {r[0] for r in db.execute("SELECT sha256 FROM result_objects")})
+
+    def _object_files(self) -> Iterator[Path]:
+        if self.objects.is_dir():
+            for sub in sorted(self.objects.iterdir()):
+                if sub.is_dir():
+                    yield from sorted(sub.iterdir())
+
+    def orphans(self) -> list[Path]:
+        """Object files no row references, and temporary files of interrupted writes.
+
+        While another process writes, its just-renamed, not-yet-committed frame shows here too.
+        """
+        refs = self._referenced()
+        return [p for p in self._object_files()
+                if p.name.startswith(_TMP_PREFIX) or p.parent.name + p.name not in refs]
+
+    def collect_garbage(self) -> list[str]:
+        """Delete orphans (see :meth:`orphans`). Only safe with no writer running: use
+        :meth:`writer`, which calls this when it holds the store exclusively."""
+        removed = []
+        for p in self.orphans():
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+                removed.append(str(p.relative_to(self.root)))
+        return removed
+
+    def verify(self, session: str, *, progress: Callable[[int, int], None] | None = None
+               ) -> VerifyReport:
+        """Re-hash every file of a session; list missing and corrupt files, store-wide orphans
+        and done steps whose stored frame count differs from the plan.
+
+        ``progress(i, n)`` is called after each file (for a progress bar).
+        """
+        info = self.session(session)
+        with self._read() as db:
+            shas = sorted({r[0] for r in db.execute(
+                "SELECT sha256 FROM frames WHERE session_id = ? UNION SELECT o.sha256 FROM "
+                "result_objects o JOIN results r ON r.id = o.result_id WHERE r.session_id = ?",
+                (info.id, info.id))})
+            incomplete = [r[0] for r in db.execute(
+                "SELECT s.idx FROM steps s WHERE s.session_id = ? AND s.done = 1 AND s.frames != "
+                "(SELECT count(*) FROM frames f WHERE f.session_id = s.session_id AND f.step = s.idx) "
+                "ORDER BY s.idx", (info.id,))]
+        report = VerifyReport(incomplete_steps=incomplete)
+        for i, sha in enumerate(shas):
+            path = self.object_path(sha)
+            if not path.is_file():
+                report.missing.append(sha)
+            elif sha256_file(path) != sha:
+                report.corrupt.append(sha)
+            report.checked += 1
+            if progress is not None:
+                progress(i + 1, len(shas))
+        report.orphans = [str(p.relative_to(self.root)) for p in self.orphans()]
+        return report
+
+    def free_bytes(self) -> int:
+        """Free space on the disk holding the store, bytes."""
+        return shutil.disk_usage(self.root).free
+
+    # -- export -------------------------------------------------------------------------------
+    def export(self, session: str, dest: str | os.PathLike) -> Path:
+        """Write a self-contained store holding only ``session``: a folder, or a ``.tar`` /
+        ``.tar.gz`` / ``.zip`` archive of one (chosen by ``dest``'s suffix).
+
+        The database is copied with SQLite's online backup API (a consistent snapshot even while
+        the session is being written); other sessions are then deleted from the copy. Every
+        object file is re-hashed while copied; a corrupt one aborts the export.
+        """
+        dest = Path(dest)
+        name = dest.name.lower()
+        archive = next((s for s in (".tar.gz", ".tgz", ".tar", ".zip") if name.endswith(s)), None)
+        if dest.exists() and (archive or any(dest.iterdir())):
+            raise StoreError(f"export destination {dest} already exists; choose a new path")
+        info = self.session(session)
+        work = Path(tempfile.mkdtemp(prefix="gonio-export-", dir=dest.parent)) if archive else dest
+        folder = work / info.name if archive else dest
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            copy = sqlite3.connect(folder / DB_NAME, isolation_level=None)
+            try:
+                with self._lock:
+                    self._db.backup(copy)
+                copy.execute("PRAGMA foreign_keys = ON")
+                copy.execute("DELETE FROM sessions WHERE id != ?", (info.id,))
+                shas = {r[0] for r in copy.execute(
+                    "SELECT sha256 FROM frames UNION SELECT sha256 FROM result_objects")}
+                copy.execute("VACUUM")
+            finally:
+                copy.close()
+            for sha in sorted(shas):
+                src, dst = self.object_path(sha), folder / "objects" / sha[:2] / sha[2:]
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                if not src.is_file():
+                    raise StoreError(f"cannot export {session!r}: object {sha} is missing; "
+                                     f"run 'gonio session verify {session}'")
+                shutil.copyfile(src, dst)
+                if sha256_file(dst) != sha:
+                    raise StoreError(f"cannot export {session!r}: object {sha} is corrupt; "
+                                     f"run 'gonio session verify {session}'")
+                os.chmod(dst, 0o444)
+            if archive is None:
+                return dest
+            if archive == ".zip":
+                with zipfile.ZipFile(dest, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
+                    for p in sorted(folder.rglob("*")):
+                        if p.is_file():
+                            z.write(p, p.relative_to(work))
+            else:
+                mode = "w:gz" if archive in (".tar.gz", ".tgz") else "w"
+                with tarfile.open(dest, mode) as t:
+                    t.add(folder, arcname=info.name)
+            return dest
+        except BaseException:
+            if archive and dest.exists():
+                dest.unlink()
+            raise
+        finally:
+            if archive:
+                shutil.rmtree(work, ignore_errors=True)
