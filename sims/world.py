@@ -1,0 +1,422 @@
+"""The simulated lab's picture: rig state -> scene -> render -> sensor -> DNG.
+
+:class:`SimWorld` holds the fixed rig (ground-truth camera with lens distortion, sensor, light
+emitter, polarizer on the light) and what stands on the turntable (a ground-truth object and/or
+calibration targets). For each capture it reads the rig state (turntable angle, light position,
+analyser angle, exposure settings), builds the :class:`reconstruct.render.Scene`, renders it,
+exposes the sensor and writes the DNG the simulated camera returns (:meth:`SimWorld.frame_source`).
+:meth:`SimWorld.ground_truth` returns the same frame's noise-free radiance, geometry buffers,
+light position and camera so the whole pipeline can be checked against truth.
+
+Frames and units: world = turntable frame (origin on the axis at the platter surface, +z up,
+mm); everything on the turntable turns by ``Rz(angle)`` (see :func:`sims.objects.turntable_pose`).
+Radiance is in the renderer's units: the point light's radiant intensity over mm^2
+(:data:`LIGHT_INTENSITY` puts a white Lambertian surface facing the light at 500 mm near 40 % of
+the default sensor's full well at 1/100 s, f/8, ISO 100).
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, replace
+from datetime import datetime, timezone
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from reconstruct.camera import CameraModel
+from reconstruct.envmap import EnvironmentMap
+from reconstruct.render import PointLight, RenderResult, Scene, SceneObject, render
+from reconstruct.raycast import Plane
+from reconstruct.brdf import Lambertian
+
+from .objects import GroundTruthObject, make_object, turntable_pose
+from .sensor import ExpectedRaw, SensorModel
+from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, PrintedBoard,
+                      SphereRow)
+
+#: Radiant intensity of the rig's lamp (renderer units per sr), RGB (a slightly warm white).
+LIGHT_INTENSITY = (3.2e5, 3.0e5, 2.7e5)
+#: Default light arm: radius about its centre (mm) and the centre (world, mm).
+ARM_RADIUS_MM = 500.0
+ARM_CENTER_MM = (0.0, 0.0, 0.0)
+#: Scene kinds :meth:`SimWorld.for_capture` knows.
+CAPTURE_KINDS = ("object", "checkerboard", "charuco", "chrome", "spheres", "graycard", "probe",
+                 "dark", "flat")
+
+
+def light_position(azimuth_deg: float, elevation_deg: float, *, radius_mm: float = ARM_RADIUS_MM,
+                   center_mm=ARM_CENTER_MM) -> np.ndarray:
+    """World position (mm) of a light on a sphere of ``radius_mm`` about ``center_mm``:
+    azimuth from world +x towards +y, elevation above the xy-plane (degrees) -> (3,)."""
+    if not (np.isfinite(azimuth_deg) and -90 <= elevation_deg <= 90):
+        raise ValueError(f"light azimuth must be finite and elevation in [-90, 90] deg, got "
+                         f"{azimuth_deg!r}, {elevation_deg!r}")
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return np.asarray(center_mm, float) + radius_mm * np.array(
+        [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def default_camera(width: int = 1200, height: int = 800, *, fov_deg: float = 32.0,
+                   eye_mm=(650.0, 0.0, 260.0), target_mm=(0.0, 0.0, 55.0),
+                   dist=(-0.08, 0.06, 0.0005, -0.0003, 0.0)) -> CameraModel:
+    """The rig's fixed camera (ground truth): on the world +x side (azimuth 0) looking down at
+    the turntable centre, ~1 MP, with mild barrel distortion (OpenCV k1, k2, p1, p2, k3)."""
+    return CameraModel.look_at(eye_mm, target_mm, width=width, height=height, fov_deg=fov_deg,
+                               dist=np.asarray(dist, float))
+
+
+@dataclass(frozen=True)
+class RigState:
+    """What the camera sees depends on (units: degrees, mm, seconds).
+
+    ``polarizer_deg`` is the analyser on the lens (None: no analyser in the path).
+    """
+
+    turntable_deg: float = 0.0
+    light_position_mm: tuple[float, float, float] = tuple(light_position(0.0, 30.0))
+    polarizer_deg: float | None = None
+    exposure_s: float = 0.01
+    iso: float = 100.0
+    fnumber: float = 8.0
+
+    @classmethod
+    def from_state(cls, state: Mapping[str, Any] | None) -> "RigState":
+        """Read a frame-source state dict: camera settings ``exposure_s``, ``iso``, ``fnumber``
+        and the rig state, flat (``turntable_deg`` / ``turntable_angle_deg``,
+        ``light_position_mm``, ``polarizer_deg`` / ``polarizer_angle_deg``) or nested per role
+        (``{"turntable": {"angle_deg": ..}, "light": {"position_mm": ..}, "polarizer":
+        {"angle_deg": ..}}``). Missing entries keep their defaults."""
+        s = dict(state or {})
+        nested = {k: v for k, v in s.items() if isinstance(v, Mapping)}
+
+        def pick(*keys, role=None, sub=()):
+            for k in keys:
+                if k in s and not isinstance(s[k], Mapping) and s[k] is not None:
+                    return s[k]
+            if role in nested:
+                for k in sub:
+                    if nested[role].get(k) is not None:
+                        return nested[role][k]
+            return None
+
+        d = cls()
+        out = {}
+        v = pick("turntable_deg", "turntable_angle_deg", role="turntable",
+                 sub=("angle_deg", "position"))
+        if v is not None:
+            out["turntable_deg"] = _finite("turntable angle", v)
+        v = pick("light_position_mm", role="light", sub=("position_mm", "light_position_mm"))
+        if v is not None:
+            p = np.asarray(v, dtype=float)
+            if p.shape != (3,) or not np.all(np.isfinite(p)):
+                raise ValueError(f"state light_position_mm must be 3 finite numbers (mm), got {v!r}")
+            out["light_position_mm"] = tuple(p)
+        v = pick("polarizer_deg", "polarizer_angle_deg", role="polarizer", sub=("angle_deg", "position"))
+        if v is not None:
+            out["polarizer_deg"] = _finite("polarizer angle", v)
+        for key in ("exposure_s", "iso", "fnumber"):
+            v = pick(key, role="camera", sub=(key,))
+            if v is not None:
+                val = _finite(key, v)
+                if val <= 0:
+                    raise ValueError(f"state {key} must be > 0, got {v!r}")
+                out[key] = val
+        return replace(d, **out)
+
+
+def _finite(name, v) -> float:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"state {name} must be a number, got {v!r}") from None
+    if not np.isfinite(f):
+        raise ValueError(f"state {name} must be finite, got {v!r}")
+    return f
+
+
+@dataclass
+class GroundTruth:
+    """Everything true about one simulated frame.
+
+    Attributes
+    ----------
+    state : RigState
+    radiance : ndarray of shape (H, W, 3), float32
+        The noise-free radiance the sensor integrated (supersampled, analyser applied).
+    buffers : RenderResult
+        Geometry buffers at the pixel centres (mask, world normal, position mm, depth mm, uv,
+        face and surface index into ``scene.objects``).
+    scene : Scene
+        The rendered scene (surfaces placed for this state).
+    camera : CameraModel
+        The ground-truth camera (intrinsics, distortion, world -> camera pose).
+    light_position_mm : ndarray of shape (3,)
+    object_pose : ndarray of shape (4, 4)
+        Turntable (object frame) -> world.
+    expected : ExpectedRaw
+        Mean, sigma and saturation of the raw frame the sensor produces.
+    """
+
+    state: RigState
+    radiance: np.ndarray
+    buffers: RenderResult
+    scene: Scene
+    camera: CameraModel
+    light_position_mm: np.ndarray
+    object_pose: np.ndarray
+    expected: ExpectedRaw
+
+
+@dataclass
+class Target:
+    """A calibration target placed on the turntable (it turns with it) or fixed in the world.
+
+    ``scene_objects(angle_deg)`` gives its surfaces for a turntable angle; ``points_world``
+    (angle_deg) its known feature points (board corners, sphere centres) in the world frame."""
+
+    name: str
+    objects_at: Any
+    points_at: Any
+    on_turntable: bool = True
+    spec: Any = None
+
+    def scene_objects(self, angle_deg: float) -> list[SceneObject]:
+        return self.objects_at(angle_deg if self.on_turntable else 0.0)
+
+    def points_world(self, angle_deg: float) -> np.ndarray:
+        return self.points_at(angle_deg if self.on_turntable else 0.0)
+
+
+def board_on_turntable(board: PrintedBoard, *, tilt_deg: float = 25.0, height_mm: float | None = None,
+                       facing_deg: float = 0.0, name: str | None = None) -> Target:
+    """A printed board standing on the turntable: centre above the axis at ``height_mm`` (default:
+    half its height plus 10 mm), printed face towards azimuth ``facing_deg`` at turntable angle 0
+    (0: towards the default camera), leaning back by ``tilt_deg`` (its face turned up)."""
+    w, h = board.size_mm
+    zc = h / 2 + 10.0 if height_mm is None else height_mm
+    a, t = np.radians(facing_deg), np.radians(tilt_deg)
+    out = np.array([np.cos(a) * np.cos(t), np.sin(a) * np.cos(t), np.sin(t)])  # face normal
+    z = -out
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    center = np.eye(4)
+    center[:3, 0], center[:3, 1], center[:3, 2] = x, np.cross(z, x), z
+    center[:3, 3] = (0.0, 0.0, zc)
+    pose0 = board.centered_pose(center)
+    name = name or type(board).__name__.lower()
+    return Target(name, lambda ang: [board.scene_object(turntable_pose(ang) @ pose0, name)],
+                  lambda ang: board.corners_world(turntable_pose(ang) @ pose0), True, board)
+
+
+def spheres_target(kind: str = "steel", *, count: int = 6, radius_mm: float = 10.0,
+                   spacing_mm: float = 40.0, start_mm=(60.0, -100.0, 160.0),
+                   direction=(0.0, 1.0, 0.0)) -> Target:
+    """A fixed (world) row of mirror spheres (Lensch et al. 2003 Sec. 4.1), above and in front of
+    the object so they are seen by the default camera; ``kind`` ``"steel"`` or ``"chrome"``."""
+    row = SphereRow(count=count, radius_mm=radius_mm, spacing_mm=spacing_mm, kind=kind)
+    centers = row.centers(start_mm, direction)
+    return Target(f"{kind}_spheres", lambda ang: row.scene_objects(start_mm, direction),
+                  lambda ang: centers, False, row)
+
+
+def sphere_target(kind: str = "chrome", *, radius_mm: float = 25.4,
+                  center_mm=(0.0, 0.0, 25.4)) -> Target:
+    """One calibration sphere fixed in the world (default: resting on the platter centre)."""
+    ball = CalibrationSphere(radius_mm, kind)
+    c = np.asarray(center_mm, float)
+    return Target(f"{kind}_sphere", lambda ang: [ball.scene_object(c)], lambda ang: c[None], False, ball)
+
+
+def gray_card_target(*, tilt_deg: float = 25.0) -> Target:
+    """The 18 % gray card standing on the turntable like a board."""
+    card = GrayCard()
+    w, h = card.size_mm
+    t = np.radians(tilt_deg)
+    z = -np.array([np.cos(t), 0.0, np.sin(t)])
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    pose0 = np.eye(4)
+    pose0[:3, 0], pose0[:3, 1], pose0[:3, 2], pose0[:3, 3] = x, np.cross(z, x), z, (0, 0, h / 2 + 10)
+    corners = np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]])
+    return Target("gray_card", lambda ang: [card.scene_object(turntable_pose(ang) @ pose0)],
+                  lambda ang: corners @ (turntable_pose(ang) @ pose0)[:3, :3].T +
+                  (turntable_pose(ang) @ pose0)[:3, 3], True, card)
+
+
+class SimWorld:
+    """The simulated rig as the camera sees it.
+
+    Parameters
+    ----------
+    object : GroundTruthObject, str or None
+        What stands on the turntable: an object, a name from ``sims.objects.OBJECTS``, or None.
+    camera : CameraModel, optional
+        Ground-truth camera; default :func:`default_camera` (1200 x 800).
+    sensor : SensorModel, optional
+        Default :meth:`SensorModel.full_frame`.
+    targets : sequence of Target, optional
+        Calibration targets in the scene (see :func:`board_on_turntable`, :func:`spheres_target`,
+        :func:`sphere_target`, :func:`gray_card_target`).
+    environment : EnvironmentMap, optional
+        Lights the scene besides the lamp (passive reflectometry, light probes); also seen in
+        mirrors and as the background.
+    light_intensity : float or (3,)
+        Lamp radiant intensity (renderer units / sr); 0 switches the lamp off.
+    light_radius_mm : float
+        Radius of the lamp's emitter as mirrors see it (the highlight on chrome spheres).
+    light_polarizer_deg : float or None
+        Linear polarizer on the lamp (degrees, same reference as the lens analyser); None: none.
+    platter : bool
+        A dark matte cloth (albedo 3 %) on the plane z = 0 under everything.
+    supersample : int
+        Rays per pixel side (1: one ray through each pixel centre; 2: 2 x 2 box-filtered).
+    env_samples : int
+        Monte-Carlo environment samples per pixel (with ``environment``).
+    seed : int or numpy.random.Generator
+        Source of the sensor noise; each frame draws fresh noise from it.
+    """
+
+    def __init__(self, object: GroundTruthObject | str | None = "sphere", camera: CameraModel | None = None,
+                 sensor: SensorModel | None = None, targets: Sequence[Target] = (), *,
+                 environment: EnvironmentMap | None = None, light_intensity=LIGHT_INTENSITY,
+                 light_radius_mm: float = 5.0, light_polarizer_deg: float | None = 0.0,
+                 platter: bool = True, supersample: int = 1, env_samples: int = 32,
+                 seed: int | np.random.Generator = 0) -> None:
+        self.object = make_object(object) if isinstance(object, str) else object
+        if self.object is not None and not isinstance(self.object, GroundTruthObject):
+            raise TypeError(f"object must be a GroundTruthObject, a name or None, got {type(object).__name__}")
+        self.camera = default_camera() if camera is None else camera
+        if not isinstance(self.camera, CameraModel):
+            raise TypeError(f"camera must be a CameraModel, got {type(camera).__name__}")
+        self.sensor = SensorModel.full_frame() if sensor is None else sensor
+        self.targets = list(targets)
+        for i, t in enumerate(self.targets):
+            if not isinstance(t, Target):
+                raise TypeError(f"targets[{i}] must be a sims.world.Target, got {type(t).__name__}")
+        self.environment = environment
+        self.light_intensity = light_intensity
+        if not light_radius_mm >= 0:
+            raise ValueError(f"light_radius_mm must be >= 0, got {light_radius_mm!r}")
+        self.light_radius_mm = float(light_radius_mm)
+        self.light_polarizer_deg = light_polarizer_deg
+        self.platter = bool(platter)
+        if int(supersample) < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample!r}")
+        self.supersample = int(supersample)
+        self.env_samples = int(env_samples)
+        self._rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        self._lock = threading.Lock()  # the camera sim may call frame_source from its own thread
+        self.dark = False
+        self.flat_radiance: float | None = None
+
+    # -- preset scenes ------------------------------------------------------------------------
+    @classmethod
+    def for_capture(cls, kind: str, object: GroundTruthObject | str | None = "sphere", **kwargs) -> "SimWorld":
+        """The scene of one kind of capture: ``"object"`` (the object alone), ``"checkerboard"``
+        / ``"charuco"`` (a board standing on the turntable), ``"chrome"`` (one chrome sphere),
+        ``"spheres"`` (Lensch's row of six steel spheres, beside the object), ``"graycard"``,
+        ``"probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"dark"`` (lens
+        cap on: sensor dark frame), ``"flat"`` (a uniform white field)."""
+        if kind not in CAPTURE_KINDS:
+            raise ValueError(f"capture kind must be one of {CAPTURE_KINDS}, got {kind!r}")
+        if kind == "object":
+            return cls(object, **kwargs)
+        if kind == "checkerboard":
+            return cls(None, targets=[board_on_turntable(Checkerboard())], **kwargs)
+        if kind == "charuco":
+            return cls(None, targets=[board_on_turntable(CharucoTarget())], **kwargs)
+        if kind == "chrome":
+            return cls(None, targets=[sphere_target("chrome")], **kwargs)
+        if kind == "spheres":
+            return cls(object, targets=[spheres_target("steel")], **kwargs)
+        if kind == "graycard":
+            return cls(None, targets=[gray_card_target()], **kwargs)
+        if kind == "probe":
+            from .targets import environment
+            kwargs.setdefault("environment", environment("grace"))
+            kwargs.setdefault("light_intensity", 0.0)
+            return cls(None, targets=[sphere_target("chrome")], platter=False, **kwargs)
+        world = cls(None, **kwargs)
+        if kind == "dark":
+            world.dark = True
+        else:
+            world.flat_radiance = 0.4
+        return world
+
+    # -- scene --------------------------------------------------------------------------------
+    def scene(self, state: RigState | Mapping | None = None) -> Scene:
+        """The render scene for a rig state (world frame)."""
+        st = state if isinstance(state, RigState) else RigState.from_state(state)
+        sc = Scene(environment=self.environment)
+        if self.object is not None:
+            sc.objects.extend(self.object.scene_objects(st.turntable_deg))
+        for t in self.targets:
+            sc.objects.extend(t.scene_objects(st.turntable_deg))
+        if self.platter:
+            sc.add(Plane((800.0, 800.0)), Lambertian(0.03), "platter")
+        if np.any(np.asarray(self.light_intensity, float) > 0):
+            sc.add_light(PointLight(st.light_position_mm, self.light_intensity,
+                                    radius=self.light_radius_mm, polarizer=self.light_polarizer_deg))
+        return sc
+
+    def _render(self, sc: Scene, st: RigState, camera: CameraModel, seed) -> RenderResult:
+        return render(sc, camera, shadows=True, polarizer=st.polarizer_deg,
+                      env_samples=self.env_samples, rng=seed)
+
+    def radiance(self, state: RigState | Mapping | None = None, *, seed: int = 0) -> np.ndarray:
+        """Noise-free radiance (H, W, 3) float32 the sensor integrates for ``state``."""
+        st = state if isinstance(state, RigState) else RigState.from_state(state)
+        H, W = self.camera.height, self.camera.width
+        if self.dark:
+            return np.zeros((H, W, 3), np.float32)
+        if self.flat_radiance is not None:
+            return np.full((H, W, 3), self.flat_radiance, np.float32)
+        s = self.supersample
+        cam = self.camera if s == 1 else supersampled_camera(self.camera, s)
+        rad = self._render(self.scene(st), st, cam, seed).radiance
+        if s > 1:
+            rad = rad.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+        return rad
+
+    # -- the camera's frame source ------------------------------------------------------------
+    def frame_source(self, state: Mapping[str, Any] | None = None) -> bytes:
+        """DNG bytes of the frame the camera takes in rig ``state`` (see
+        :meth:`RigState.from_state` for the keys). Thread-safe; each call draws fresh noise."""
+        st = RigState.from_state(state)
+        rad = self.radiance(st)
+        with self._lock:
+            raw = self.sensor.expose(rad, st.exposure_s, st.iso, self._rng, **self._optics(st))
+        stamp = datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S")
+        return self.sensor.to_dng(raw, exposure_s=st.exposure_s, iso=st.iso, fnumber=st.fnumber,
+                                  datetime=stamp)
+
+    __call__ = frame_source
+
+    def _optics(self, st: RigState) -> dict:
+        K = self.camera.K
+        return dict(fnumber=st.fnumber, focal_px=float(np.sqrt(K[0, 0] * K[1, 1])),
+                    principal_point=(float(K[0, 2]), float(K[1, 2])))
+
+    def ground_truth(self, state: Mapping[str, Any] | RigState | None = None) -> GroundTruth:
+        """Truth of the frame :meth:`frame_source` makes for ``state`` (without its noise)."""
+        st = state if isinstance(state, RigState) else RigState.from_state(state)
+        sc = self.scene(st)
+        buffers = self._render(sc, st, self.camera, 0)
+        rad = buffers.radiance if (self.supersample == 1 and not self.dark and self.flat_radiance is None) \
+            else self.radiance(st)
+        expected = self.sensor.expected_raw(rad, st.exposure_s, st.iso, **self._optics(st))
+        return GroundTruth(state=st, radiance=rad, buffers=buffers, scene=sc, camera=self.camera,
+                           light_position_mm=np.asarray(st.light_position_mm, float),
+                           object_pose=turntable_pose(st.turntable_deg), expected=expected)
+
+
+def supersampled_camera(camera: CameraModel, s: int) -> CameraModel:
+    """The camera with ``s`` x ``s`` sub-pixels per pixel: hi-res pixel X maps to the low-res
+    coordinate (X + 1/2) / s - 1/2, the lens distortion (in normalised coordinates) unchanged."""
+    K = camera.K.copy()
+    K[0, 0] *= s
+    K[1, 1] *= s
+    K[0, 1] *= s
+    K[0, 2] = s * (K[0, 2] + 0.5) - 0.5
+    K[1, 2] = s * (K[1, 2] + 0.5) - 0.5
+    return replace(camera, K=K, width=camera.width * s, height=camera.height * s)
