@@ -276,8 +276,10 @@ class CookTorrance(BRDF):
     - ``"v-cavity"``: the original Cook-Torrance (Torrance-Sparrow) term
       G = min(1, 2 cos_h cos_o / cos_d, 2 cos_h cos_i / cos_d).
 
-    All are reciprocal. The specular lobe is single-scattering, so its albedo is <= max(F) <= 1;
-    with kd + f0 <= 1 the whole model conserves energy.
+    All are reciprocal. The specular lobe is single-scattering, so its albedo is <= max(F) <= 1
+    (white-furnace tested). The diffuse term is not reduced by (1 - F): since Schlick's F -> 1
+    at grazing angles, kd + f0 <= 1 does not bound the total near grazing view (kd = f0 = 0.5,
+    alpha = 0.3: albedo 1.06 at 89 degrees); keep kd + specular albedo <= 1 where it matters.
 
     Parameters
     ----------
