@@ -1,0 +1,146 @@
+"""``--rig sim|FILE`` -> a built (and usually connected) ``rig.Rig``, with its SimLab if any.
+
+Every command that needs hardware calls :func:`open_rig`::
+
+    with open_rig("sim") as opened:            # the whole simulated lab
+        opened.rig.turntable.move_to(30).wait()
+    with open_rig("lab.toml") as opened:       # real devices; any role with port = "sim"
+        ...                                    # gets a simulator of its own
+
+A rig file may mix real and simulated devices: sections whose ``port = "sim"`` are served by a
+:class:`sims.lab.SimLab` started for just those roles (a simulated positioner takes the file's
+``kinematics`` table).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rig import Axis, Rig, load_config, wait_all
+from rig.rig import ROLES
+from sims.lab import SimLab
+
+
+@dataclass
+class OpenedRig:
+    """A rig built by :func:`open_rig` and the simulators behind it (None for real hardware)."""
+
+    rig: Rig
+    lab: SimLab | None = None
+
+    def close(self) -> None:
+        """Close every device, then stop the simulators."""
+        try:
+            self.rig.close()
+        finally:
+            if self.lab is not None:
+                self.lab.stop()
+
+    def __enter__(self) -> "OpenedRig":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: bool = True,
+             home: bool = False, timeout_s: float = 120.0, **lab_options: Any) -> OpenedRig:
+    """Build the rig named by ``spec`` and (by default) connect it.
+
+    Parameters
+    ----------
+    spec : str, Path or dict
+        ``"sim"`` for the whole simulated lab, a rig TOML file, or a config dict.
+    fast : bool
+        For simulated devices: complete motion at once (``False`` models motion time).
+    connect : bool
+        Connect every device (on failure all are closed, the simulators stopped, and the error
+        re-raised).
+    home : bool
+        After connecting, home every axis and the positioner at the same time.
+    timeout_s : float
+        Time allowed for homing, seconds.
+    lab_options
+        Passed to :class:`SimLab` (``frame_source``, ``kinematics``, ``options``).
+
+    Raises
+    ------
+    rig.ConfigError
+        For a malformed rig file; ``RigError`` subclasses for device faults.
+    """
+    lab = None
+    if isinstance(spec, str) and spec == "sim":
+        lab = SimLab(fast=fast, **lab_options).start()
+        cfg = lab.rig_config()
+    else:
+        cfg = load_config(spec)
+        sim_roles = [role for role, section in cfg.items() if role in ROLES and section.get("port") == "sim"]
+        if sim_roles:
+            if "positioner" in sim_roles and "kinematics" in cfg["positioner"]:
+                lab_options.setdefault("kinematics", _kinematics_table(cfg["positioner"]["kinematics"]))
+            lab = SimLab(fast=fast, roles=sim_roles, **lab_options).start()
+            served = lab.rig_config()
+            cfg = {role: ({**section, "port": served[role]["port"]} if role in sim_roles else section)
+                   for role, section in cfg.items()}
+    try:
+        context = {"usb_backend": lab.usb_backend} if lab is not None and lab.usb_backend is not None else {}
+        rig = Rig.from_config(cfg, **context)
+        if connect:
+            rig.connect()
+            if home:
+                home_all(rig, timeout_s=timeout_s)
+    except BaseException:
+        if lab is not None:
+            lab.stop()
+        raise
+    return OpenedRig(rig, lab)
+
+
+def _kinematics_table(value: Any) -> Any:
+    from sims.lab import KINEMATICS
+    return KINEMATICS[value] if isinstance(value, str) and value in KINEMATICS else value
+
+
+def home_all(rig: Rig, *, timeout_s: float = 120.0, roles: list[str] | None = None) -> dict[str, Any]:
+    """Home the axes and the positioner of ``rig`` concurrently; return each one's result."""
+    devices = {role: d for role, d in rig.devices.items()
+               if (roles is None or role in roles) and hasattr(d, "home")}
+    statuses = {role: d.home() for role, d in devices.items()}
+    results = wait_all(list(statuses.values()), timeout=timeout_s)
+    return dict(zip(statuses, results))
+
+
+def position_text(device: Any) -> str:
+    """The device's current position with units, for tables (``123.456 deg``, ``(x, y, z) mm``)."""
+    if isinstance(device, Axis):
+        return f"{device.position:.3f} {device.units}"
+    if hasattr(device, "light_position_mm"):
+        x, y, z = device.light_position_mm
+        return f"({x:.1f}, {y:.1f}, {z:.1f}) mm"
+    if hasattr(device, "exposure_s"):
+        return f"exposure {device.exposure_s:g} s"
+    return ""
+
+
+def to_toml(cfg: dict[str, Any]) -> str:
+    """Write a rig config as TOML (tables per role; nested values as inline tables / arrays)."""
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{ " + ", ".join(f"{k} = {value(x)}" for k, x in v.items()) + " }"
+        raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+    blocks = []
+    for role, section in cfg.items():
+        lines = [f"[{role}]"] + [f"{k} = {value(v)}" for k, v in section.items()]
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks) + "\n"

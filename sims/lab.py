@@ -1,0 +1,162 @@
+"""The simulated lab: all four device simulators, started together, and their physical state.
+
+``SimLab`` starts the turntable (:class:`~sims.zaber_sim.ZaberSim`), the light positioner
+(:class:`~sims.grbl_sim.GrblSim`), the polarizer (``ElliptecSim``) and the camera
+(``PtpCameraSim``, a pyusb backend), and hands out what a driver needs to reach them: a rig
+config (driver + port per role, as ``rig.Rig.from_config`` reads it) and the camera's
+``usb_backend``. :meth:`SimLab.state` is the physical state the simulated camera renders from.
+
+Usage::
+
+    with SimLab(fast=True) as lab:
+        rig = Rig.from_config(lab.rig_config(), usb_backend=lab.usb_backend)
+
+(``capture.rigs.open_rig("sim")`` does this and connects; sims may not import rig.)
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any, Callable, Mapping
+
+from .grbl_sim import GrblSim, light_position_mm
+from .zaber_sim import ZaberSim
+
+ROLES = ("turntable", "positioner", "polarizer", "camera")
+
+#: default kinematics tables (the rig-file form); the same table configures sim and driver
+KINEMATICS: dict[str, dict[str, Any]] = {
+    "arm": {"type": "arm", "radius_mm": 500.0, "centre_mm": [0.0, 0.0, 0.0],
+            "azimuth_limits_deg": [-180.0, 180.0], "elevation_limits_deg": [0.0, 85.0]},
+    "gantry": {"type": "gantry", "origin_mm": [500.0, 500.0, 900.0], "yaw_deg": 0.0,
+               "travel_mm": {"X": [-1000.0, 0.0], "Y": [-1000.0, 0.0], "Z": [-1000.0, 0.0]},
+               "centre_mm": [0.0, 0.0, 0.0], "default_distance_mm": 500.0},
+}
+
+
+class SimLab:
+    """All simulators of the lab.
+
+    Parameters
+    ----------
+    fast : bool
+        Moves, homing and exposures complete at once (tests). ``False`` models motion time.
+    frame_source : callable, optional
+        ``frame_source(state) -> bytes`` (DNG) for the camera; ``state`` includes
+        :meth:`state`. Default: the camera simulator's placeholder frame.
+    kinematics : str or mapping
+        ``"arm"``, ``"gantry"`` (the defaults in :data:`KINEMATICS`) or a full table.
+    roles : iterable of str, optional
+        Which devices to simulate (default: all four).
+    options : mapping of role -> dict, optional
+        Extra keyword arguments per simulator, e.g. ``{"turntable": {"speed_deg_s": 30}}``.
+    """
+
+    def __init__(self, fast: bool = True, frame_source: Callable[[dict], bytes] | None = None,
+                 kinematics: str | Mapping[str, Any] = "arm", *, roles: Any = None,
+                 options: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+        self.fast = fast
+        self.frame_source = frame_source
+        if isinstance(kinematics, str):
+            if kinematics not in KINEMATICS:
+                raise ValueError(f"kinematics {kinematics!r} is unknown; use one of {', '.join(KINEMATICS)} "
+                                 "or a table")
+            kinematics = KINEMATICS[kinematics]
+        self.kinematics = dict(kinematics)
+        self.roles = tuple(ROLES if roles is None else roles)
+        unknown = set(self.roles) - set(ROLES)
+        if unknown:
+            raise ValueError(f"unknown role(s) {sorted(unknown)}; a SimLab simulates {', '.join(ROLES)}")
+        self.options = {role: dict(opts) for role, opts in (options or {}).items()}
+        if set(self.options) - set(ROLES):
+            raise ValueError(f"options for unknown role(s) {sorted(set(self.options) - set(ROLES))}")
+        self.sims: dict[str, Any] = {}
+        self.started = False
+
+    # -- lifecycle --------------------------------------------------------------------------------
+    def start(self) -> "SimLab":
+        """Create and start the simulators (serial ones get their ptys). Returns self."""
+        if self.started:
+            return self
+        try:
+            for role in self.roles:
+                sim = self._make(role, self.options.get(role, {}))
+                if hasattr(sim, "start"):
+                    sim.start()
+                self.sims[role] = sim
+        except BaseException:
+            self.stop()
+            raise
+        self.started = True
+        return self
+
+    def _make(self, role: str, opts: dict[str, Any]) -> Any:
+        if role == "turntable":
+            return ZaberSim(role, fast=self.fast, **opts)
+        if role == "positioner":
+            return GrblSim(role, fast=self.fast, kinematics=self.kinematics, **opts)
+        if role == "polarizer":
+            # imported lazily: the polarizer and camera simulators are separate modules
+            elliptec = importlib.import_module("sims.elliptec_sim")
+            return elliptec.ElliptecSim(role, fast=self.fast, **opts)
+        ptp = importlib.import_module("sims.ptp_sim")
+        kwargs = {"extra_state": self.state, "fast": self.fast, **opts}
+        if self.frame_source is not None:
+            kwargs["frame_source"] = self.frame_source
+        return ptp.PtpCameraSim(**kwargs)
+
+    def stop(self) -> None:
+        """Stop every simulator (safe to call twice)."""
+        for sim in self.sims.values():
+            if hasattr(sim, "stop"):
+                sim.stop()
+        self.sims.clear()
+        self.started = False
+
+    def __enter__(self) -> "SimLab":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # -- what drivers need ------------------------------------------------------------------------
+    @property
+    def usb_backend(self) -> Any:
+        """The camera simulator (a ``usb.backend.IBackend``), or None without a camera."""
+        return self.sims.get("camera")
+
+    def rig_config(self) -> dict[str, Any]:
+        """Driver and port per role, in the form ``rig.Rig.from_config`` reads."""
+        if not self.started:
+            raise RuntimeError("SimLab.rig_config(): start() the lab first")
+        cfg: dict[str, Any] = {"rig": {"name": "simulated lab", "fast": self.fast}}
+        for role, sim in self.sims.items():
+            if role == "turntable":
+                cfg[role] = {"driver": "zaber", "port": sim.port}
+            elif role == "positioner":
+                cfg[role] = {"driver": "grbl", "port": sim.port, "kinematics": dict(self.kinematics)}
+            elif role == "polarizer":
+                cfg[role] = {"driver": "elliptec", "port": sim.port}
+            else:
+                cfg[role] = {"driver": "ptp", "port": f"usb:{sim.vendor_id:04x}:{sim.product_id:04x}"}
+        return cfg
+
+    # -- physical state ---------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """What the scene looks like now: ``turntable_angle_deg`` (platter angle, deg),
+        ``light_position_mm`` (world frame, mm), ``polarizer_angle_deg`` (deg) -- for the roles
+        that are simulated."""
+        out: dict[str, Any] = {}
+        if "turntable" in self.sims:
+            out["turntable_angle_deg"] = self.sims["turntable"].angle_deg
+        if "positioner" in self.sims:
+            out["light_position_mm"] = self.sims["positioner"].light_position_mm
+        if "polarizer" in self.sims:
+            out["polarizer_angle_deg"] = self.sims["polarizer"].angle_deg
+        return out
+
+    def __repr__(self) -> str:
+        state = "running" if self.started else "stopped"
+        return f"<SimLab {state} {', '.join(self.roles)} fast={self.fast}>"
+
+
+__all__ = ["SimLab", "ROLES", "KINEMATICS", "light_position_mm"]
