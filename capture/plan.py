@@ -638,14 +638,14 @@ def _validate(p: Plan) -> None:
         raise PlanError(f"repeats = {p.repeats!r} must be a whole number >= 1")
     e = p.exposure
     if not (_is_num(e.base_s) and e.base_s > 0 and math.isfinite(e.base_s)):
-        raise PlanError(f"exposure.base_s = {e.base_s!r} must be a positive number of seconds")
+        raise PlanError(f"exposure.base_s = {_fmt(e.base_s)} must be a positive number of seconds")
     if not e.stops:
         raise PlanError("exposure.stops is empty; give at least one stop (0 = base exposure)")
     _finite(e.stops, "exposure.stops")
     if len(set(e.stops)) != len(e.stops):
         raise PlanError(f"exposure.stops {list(e.stops)} has duplicates")
     if e.iso is not None and not e.iso > 0:
-        raise PlanError(f"exposure.iso = {e.iso!r} must be positive")
+        raise PlanError(f"exposure.iso = {_fmt(e.iso)} must be positive")
     _finite(p.turntable_deg, "turntable.angles_deg")
     _finite(p.polarizer_deg, "polarizer.angles_deg")
     if p.light is not None:
@@ -663,7 +663,7 @@ def _validate(p: Plan) -> None:
                 _finite(values, f"light.{key}")
                 _check_limits(f"light.{key}", values, (lo, hi), "the valid range", "")
             if lt.distance_mm is not None and not lt.distance_mm > 0:
-                raise PlanError(f"light.distance_mm = {lt.distance_mm!r} must be positive (mm)")
+                raise PlanError(f"light.distance_mm = {_fmt(lt.distance_mm)} must be positive (mm)")
     for i, c in enumerate(p.calibration):
         where = f"calibration[{i}]"
         if c.kind not in CALIBRATION_KINDS:
@@ -671,7 +671,7 @@ def _validate(p: Plan) -> None:
         if c.frames is not None and c.frames < 1:
             raise PlanError(f"{where}.frames = {c.frames} must be >= 1")
         if c.exposure_s is not None and not c.exposure_s > 0:
-            raise PlanError(f"{where}.exposure_s = {c.exposure_s!r} must be positive (seconds)")
+            raise PlanError(f"{where}.exposure_s = {_fmt(c.exposure_s)} must be positive (seconds)")
         if c.lights is not None and c.lights not in ("grid", "first", "none"):
             raise PlanError(f"{where}.lights = {c.lights!r} must be 'grid', 'first' or 'none'")
         if c.when not in ("before", "after"):
@@ -699,6 +699,10 @@ def _table(data: dict, key: str, allowed: set[str]) -> dict | None:
         raise PlanError(f"{key} must be a table ([{key}]), got {_tname(t)}")
     _no_unknown(t, allowed, key)
     return t
+
+
+def _fmt(x: Any) -> str:
+    return f"{x:g}" if _is_num(x) else repr(x)
 
 
 def _is_num(x: Any) -> bool:

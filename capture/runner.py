@@ -163,7 +163,7 @@ class Runner:
             pass  # best effort: a device that cannot answer is not moving under our control
 
     # -- events -------------------------------------------------------------------------------
-    def _emit(self, kind: EventKind, message: str = "", *, step: int | None = None,
+    def _emit(self, kind: EventKind, message: str = "", /, *, step: int | None = None,
               device: str | None = None, **data: Any) -> Event:
         event = Event(kind, self.name, message, step=step, device=device, data=data)
         self._pending.append(event)  # persisted with the next store write
