@@ -1,0 +1,182 @@
+"""ZaberRotaryStage against ZaberSim over a real pseudo-terminal: state, motion, faults, recovery."""
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from rig import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, NotHomed, ProtocolError
+from rig.zaber import ZaberRotaryStage, move_time_s
+from sims.zaber_sim import ZaberSim, trapezoid_distance, trapezoid_duration
+
+TIMEOUT = 0.3  # reply timeout used here, seconds: every fault must surface within it (+ margin)
+
+
+@pytest.fixture
+def sim():
+    with ZaberSim(fast=True) as s:
+        yield s
+
+
+@pytest.fixture
+def stage(sim):
+    st = ZaberRotaryStage("turntable", sim.port, timeout_s=TIMEOUT, poll_interval_s=0.002,
+                          busy_backoff_s=0.005)
+    st.connect()
+    yield st
+    st.close()
+
+
+def test_trapezoid_profile_is_continuous_and_reaches_distance():
+    d, v, a = 100.0, 20.0, 50.0
+    total = trapezoid_duration(d, v, a)
+    assert total == pytest.approx(move_time_s(d, v, a))
+    ts = [total * k / 200 for k in range(201)]
+    s = [trapezoid_distance(d, v, a, t) for t in ts]
+    assert s[0] == 0 and s[-1] == pytest.approx(d)
+    assert all(b >= a_ - 1e-12 for a_, b in zip(s, s[1:]))  # monotone
+    steps = [b - a_ for a_, b in zip(s, s[1:])]
+    assert max(steps) <= v * total / 200 + 1e-9  # never faster than v
+
+
+def test_power_up_state_needs_homing(stage, sim):
+    assert stage.connected and not stage.homed
+    assert stage.warnings() == ["WR"]
+    with pytest.raises(NotHomed):
+        stage.move_to(10)
+    assert stage.home().wait(2) == pytest.approx(0.0)
+    assert stage.homed and stage.warnings() == []
+
+
+def test_moves_track_simulator_angle(stage, sim):
+    stage.home().wait(2)
+    for target in (30.0, 359.5, -45.0, 720.25):
+        final = stage.move_to(target).wait(2)
+        assert final == pytest.approx(target % 360, abs=stage.microstep_deg)
+        assert sim.angle_deg == pytest.approx(target % 360, abs=stage.microstep_deg)
+    assert stage.read()["angle"]["units"] == "deg"
+
+
+def test_homing_corrects_power_up_offset():
+    with ZaberSim(fast=True, power_up_angle_deg=123.0) as sim:
+        st = ZaberRotaryStage("turntable", sim.port, timeout_s=TIMEOUT)
+        st.connect()
+        assert st.position == 0.0 and sim.angle_deg == pytest.approx(123.0)  # counter is wrong
+        st.home().wait(2)
+        st.move_to(10).wait(2)
+        assert sim.angle_deg == pytest.approx(10.0, abs=1e-3)
+        st.close()
+
+
+def test_shortest_path_in_real_time():
+    with ZaberSim(fast=False, homed=True, speed_deg_s=90, accel_deg_s2=900) as sim:
+        st = ZaberRotaryStage("turntable", sim.port, timeout_s=TIMEOUT, poll_interval_s=0.005)
+        st.connect()
+        st.move_to(350.0).wait(3)  # 10 deg the short way round
+        t0 = time.monotonic()
+        st.move_to(10.0).wait(3)  # 20 deg across zero, not 340 deg
+        elapsed = time.monotonic() - t0
+        expected = move_time_s(20, 90, 900)
+        assert expected * 0.9 < elapsed < expected + 0.15
+        assert sim.angle_deg == pytest.approx(10.0, abs=1e-3)
+        st.close()
+
+
+def test_stop_interrupts_move():
+    with ZaberSim(fast=False, homed=True, speed_deg_s=30, accel_deg_s2=300) as sim:
+        st = ZaberRotaryStage("turntable", sim.port, timeout_s=TIMEOUT, poll_interval_s=0.005)
+        st.connect()
+        status = st.move_to(90.0)
+        time.sleep(0.2)
+        st.stop()
+        with pytest.raises(DeviceError, match="not at the target"):
+            status.wait(2)
+        assert 0.0 < sim.angle_deg < 90.0
+        st.close()
+
+
+def test_checksum_mismatch_on_the_wire_is_detected(stage, sim):
+    sim.inject("garble")
+    t0 = time.monotonic()
+    with pytest.raises(ProtocolError):
+        _ = stage.position
+    assert time.monotonic() - t0 < TIMEOUT + 0.2
+    assert stage.position == 0.0  # next request is fine
+
+
+def test_no_reply_times_out_then_recovers(stage, sim):
+    sim.inject("no_reply")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        _ = stage.position
+    assert time.monotonic() - t0 < TIMEOUT + 0.2
+    assert stage.position == 0.0
+
+
+def test_busy_is_retried(stage, sim):
+    stage.home().wait(2)
+    sim.inject("busy", 2)
+    assert stage.move_to(45).wait(2) == pytest.approx(45.0, abs=1e-3)
+    sim.inject("busy", 10)
+    with pytest.raises(DeviceBusy, match="STATUSBUSY"):
+        stage.move_to(50)
+    sim.clear_faults()
+
+
+@pytest.mark.parametrize("fault,flag,match", [("stall", "FS", "stalled"), ("encoder", "FQ", "encoder")])
+def test_stall_and_encoder_faults(stage, sim, fault, flag, match):
+    stage.home().wait(2)
+    sim.inject(fault)
+    with pytest.raises(DeviceError, match=match) as info:
+        stage.move_to(90).wait(2)
+    assert info.value.code == flag
+    assert sim.angle_deg == pytest.approx(45.0, abs=1e-3)  # stopped half way
+    assert flag not in stage.warnings()  # cleared by the driver
+    assert stage.move_to(90).wait(2) == pytest.approx(90.0, abs=1e-3)  # retry works
+
+
+def test_limit_trip_loses_reference_and_rehome_recovers(stage, sim):
+    stage.home().wait(2)
+    sim.inject("limit")
+    with pytest.raises(DeviceError, match="limit") as info:
+        stage.move_to(120).wait(2)
+    assert info.value.code == "WL"
+    assert not stage.homed
+    with pytest.raises(NotHomed):
+        stage.move_to(10)
+    stage.home().wait(2)
+    assert stage.move_to(10).wait(2) == pytest.approx(10.0, abs=1e-3)
+
+
+def test_disconnect_then_reconnect(stage, sim):
+    stage.home().wait(2)
+    sim.inject("disconnect")
+    t0 = time.monotonic()
+    with pytest.raises((Disconnected, DeviceTimeout)):
+        _ = stage.position
+    assert time.monotonic() - t0 < TIMEOUT + 0.2
+    with pytest.raises((Disconnected, DeviceTimeout)):
+        _ = stage.position
+    sim.reconnect()
+    stage.connect()
+    assert stage.connected and not stage.homed  # power-cycled
+    stage.home().wait(2)
+    assert stage.move_to(20).wait(2) == pytest.approx(20.0, abs=1e-3)
+
+
+def test_disconnect_mid_move_fails_the_status():
+    with ZaberSim(fast=False, homed=True, speed_deg_s=30, accel_deg_s2=300) as sim:
+        st = ZaberRotaryStage("turntable", sim.port, timeout_s=TIMEOUT, poll_interval_s=0.005)
+        st.connect()
+        status = st.move_to(90)
+        time.sleep(0.1)
+        sim.disconnect()
+        with pytest.raises((Disconnected, DeviceTimeout)):
+            status.wait(2)
+        st.close()
+
+
+def test_connect_to_missing_port_is_disconnected(tmp_path):
+    st = ZaberRotaryStage("turntable", str(tmp_path / "nope"))
+    with pytest.raises(Disconnected, match="cannot open"):
+        st.connect()
