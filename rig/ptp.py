@@ -25,6 +25,7 @@ import array
 import errno
 import logging
 import struct
+import threading
 import time
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -476,6 +477,8 @@ class PtpSession:
         chunk = max(max_packet, chunk_bytes // max_packet * max_packet)
         self._chunk = array.array("B", bytes(chunk))
         self._event_buf = array.array("B", bytes(max(64, max_packet)))
+        self._payload = bytearray()  # grows to the largest data phase seen
+        self.lock = threading.RLock()  # one transaction at a time (a UI may read while capturing)
         self.session_id = 0
         self._tid = 0
         self.reopened = 0  # sessions re-opened after SessionNotOpen (for logs and tests)
@@ -534,23 +537,26 @@ class PtpSession:
                 raise ProtocolError(f"{what}: container length {length} != {n} bytes received",
                                     device=self.device, raw=bytes(buf[:min(n, 64)]))
             return decode_container(memoryview(buf)[:n], device=self.device)
-        # large data phase: preallocate the payload, copy each chunk straight into it
-        payload = bytearray(length - HEADER_SIZE)
-        view = memoryview(payload)
+        # large data phase: chunks land in a download buffer kept between transfers, so a
+        # 48 MB frame does not pay for a fresh zero-filled allocation on every GetObject
+        size = length - HEADER_SIZE
+        if len(self._payload) < size:
+            self._payload = bytearray(size)
+        view = memoryview(self._payload)[:size]
         got = n - HEADER_SIZE
         view[:got] = memoryview(buf)[HEADER_SIZE:n]
         last = n
         timeout = max(self.timeout_s, 1.0)
-        while got < len(payload):
+        while got < size:
             if last % self.max_packet:  # a short packet ended the transfer early
                 break
             last = self._read(buf, timeout)
             if last == 0:
                 break
-            take = min(last, len(payload) - got)
+            take = min(last, size - got)
             view[got:got + take] = memoryview(buf)[:take]
             got += take
-        if got < len(payload):
+        if got < size:
             raise ShortRead(f"{what}: data phase ended after {got + HEADER_SIZE} of "
                                 f"{length} bytes (short read)", device=self.device)
         if length % self.max_packet == 0:
@@ -558,7 +564,7 @@ class PtpSession:
                 self._read(buf, min(self.timeout_s, 0.05))
             except DeviceTimeout:
                 pass
-        return Container(ctype, code, tid, (), bytes(payload))
+        return Container(ctype, code, tid, (), bytes(view))
 
     # -- transactions -------------------------------------------------------------------------
     def transaction(self, op: int, params: tuple[int, ...] = (), data_out: bytes | None = None,
@@ -580,6 +586,11 @@ class PtpSession:
         DeviceTimeout, Disconnected, ProtocolError
             Transfer-level failures.
         """
+        with self.lock:
+            return self._transaction(op, params, data_out, check, retry_busy, reopen)
+
+    def _transaction(self, op: int, params: tuple[int, ...], data_out: bytes | None, check: bool,
+                     retry_busy: bool, reopen: bool) -> Response:
         deadline = time.monotonic() + self.busy_timeout_s
         delay = 0.01
         retried_io = False
@@ -672,6 +683,10 @@ class PtpSession:
         """One event container from the interrupt endpoint, or None if none within ``timeout_s``."""
         ms = max(1, int(timeout_s * 1000))
         buf = self._event_buf
+        with self.lock:
+            return self._read_event(buf, ms, timeout_s)
+
+    def _read_event(self, buf: array.array, ms: int, timeout_s: float) -> Container | None:
         try:
             n = self._usb(lambda: self.dev.read(self.ep_event, buf, ms), "interrupt read", timeout_s)
         except DeviceTimeout:

@@ -338,10 +338,16 @@ class PtpCamera(Camera):
 
     # -- capture ------------------------------------------------------------------------------
     def _drain_events(self) -> None:
-        """Discard events left over from earlier captures."""
+        """Discard events left over from earlier captures; delete the objects they announce
+        (a capture whose transfer failed after the shutter fired), so the card does not fill."""
         session = self._session()
-        while session.read_event(0.001) is not None:
-            pass
+        while (event := session.read_event(0.001)) is not None:
+            if event.code == Event.ObjectAdded and event.params and not self.keep_on_camera:
+                try:
+                    session.delete_object(event.params[0])
+                    log.info("%s: deleted orphaned object %d", self.name, event.params[0])
+                except PtpError:
+                    pass
 
     def _free_store(self) -> None:
         """Delete the objects already downloaded (their bytes are safe on the host)."""

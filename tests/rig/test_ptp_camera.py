@@ -150,6 +150,7 @@ def test_stall_during_capture_is_protocol_error_then_next_capture_works():
         cam.capture()
     frame = cam.capture()
     assert decode(frame).shape == (400, 600)
+    assert sim.objects == {}  # the orphan of the failed capture was deleted too
 
 
 def test_short_read_is_repeated():
