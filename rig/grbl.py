@@ -367,6 +367,8 @@ class GrblPositioner(LightPositioner):
                     raise GrblAlarm(self.last_alarm, device=self.name)
                 if text.startswith("<") or BANNER.search(text):
                     continue  # a late status report or banner belongs to nobody
+                if not text.startswith(("[", "$")):
+                    raise ProtocolError(f"unexpected reply to {line!r}", device=self.name, raw=text.encode())
                 lines.append(text)
 
     def status(self) -> GrblStatus:
@@ -385,6 +387,9 @@ class GrblPositioner(LightPositioner):
                     if st.wco is not None:
                         self._wco = st.wco
                     return st
+                if not (text.startswith(("[", "ALARM:", "ok", "error:")) or BANNER.search(text)):
+                    raise ProtocolError("garbled line while waiting for a status report",
+                                        device=self.name, raw=text.encode())
 
     def soft_reset(self) -> str:
         """Ctrl-X: abort motion, flush buffers, wait for the banner; return GRBL's version."""
@@ -421,8 +426,8 @@ class GrblPositioner(LightPositioner):
             self._transport.reset_input()
             self.version = self.soft_reset()
             for line in self.send("$I"):
-                if line.startswith("[VER:"):
-                    self.build = line[5:-1]
+                if line.startswith("[VER:"):  # [VER:1.1h.20190825:<optional build string>]
+                    self.build = line[5:-1].partition(":")[0]
                 elif line.startswith("[OPT:"):
                     self.options = line[5:-1]
             self.settings = parse_settings(self.send("$$"))
@@ -483,7 +488,7 @@ class GrblPositioner(LightPositioner):
     # -- motion -----------------------------------------------------------------------------------
     def _check_ready(self, st: GrblStatus) -> None:
         if st.state == "Alarm":
-            if self.homing_enabled and not self._homed:
+            if self.last_alarm is None and self.homing_enabled and not self._homed:
                 raise NotHomed("GRBL is locked in the alarm state; home it first", device=self.name)
             raise GrblAlarm(self.last_alarm, device=self.name)
         if self.homing_enabled and not self._homed:

@@ -129,10 +129,11 @@ class ArmKinematics(Kinematics):
                                  device=self.device, what="distance (the arm radius is fixed)")
             az, el = float(target.azimuth_deg), float(target.elevation_deg)
         lo, hi = self.azimuth_limits_deg
-        wrapped = lo + (az - lo) % 360.0  # the equivalent azimuth at or above the low limit
-        if wrapped > hi:  # no whole-turn equivalent of az lies within the travel
-            raise LimitError(az, (lo, hi), "deg", device=self.device, what="azimuth (machine axis X)")
-        az = wrapped
+        if not lo <= az <= hi:
+            wrapped = lo + (az - lo) % 360.0  # the equivalent azimuth at or above the low limit
+            if wrapped > hi:  # no whole-turn equivalent of az lies within the travel
+                raise LimitError(az, (lo, hi), "deg", device=self.device, what="azimuth (machine axis X)")
+            az = wrapped
         elo, ehi = self.elevation_limits_deg
         if not elo <= el <= ehi:
             raise LimitError(el, (elo, ehi), "deg", device=self.device, what="elevation (machine axis Y)")

@@ -1,0 +1,181 @@
+"""GRBL 1.1 codec and GrblPositioner against scripted byte exchanges (gnea/grbl interface.md)."""
+from __future__ import annotations
+
+import pytest
+
+from rig import DeviceError, DeviceTimeout, LightTarget, LimitError, NotHomed, ProtocolError
+from rig.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblPositioner, format_move, parse_code,
+                      parse_settings, parse_status, path_time_s)
+from rig.transport import ScriptedTransport
+
+BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
+SETTINGS = b"".join(f"${n}={v}\r\n".encode() for n, v in [
+    (10, 1), (20, 0), (22, 1), (25, "3600.000"), (110, "5400.000"), (111, "5400.000"),
+    (112, "5400.000"), (120, "360.000"), (121, "360.000"), (122, "360.000"), (130, "370.000"),
+    (131, "95.000"), (132, "1.000")]) + b"ok\r\n"
+
+
+def connect_script(state: str = "Alarm") -> list:
+    return [(b"\x18", BANNER + (b"[MSG:'$H'|'$X' to unlock]\r\n" if state == "Alarm" else b"")),
+            (b"$I\n", b"[VER:1.1h.20190825:]\r\n[OPT:V,15,128]\r\nok\r\n"),
+            (b"$$\n", SETTINGS),
+            (b"?", f"<{state}|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n".encode())]
+
+
+def positioner(script, state="Alarm") -> tuple[GrblPositioner, ScriptedTransport]:
+    t = ScriptedTransport(connect_script(state) + script, device="positioner")
+    p = GrblPositioner("positioner", transport=t, poll_interval_s=0.0)
+    p.connect()
+    return p, t
+
+
+# -- codec ------------------------------------------------------------------------------------------
+def test_parse_status_mpos_fs_and_fields():
+    st = parse_status(b"<Run|MPos:12.500,-3.000,0.000|FS:5400,0|Pn:X|Ov:100,100,100>\r\n")
+    assert st.state == "Run" and st.substate is None
+    assert st.mpos == (12.5, -3.0, 0.0) and st.feed == 5400 and st.spindle == 0
+    assert st.fields["Pn"] == "X"
+    assert st.machine_position() == (12.5, -3.0, 0.0)
+
+
+def test_parse_status_wpos_with_wco_and_hold_substate():
+    st = parse_status("<Hold:0|WPos:1.000,2.000,3.000|F:500|WCO:10.000,20.000,30.000>")
+    assert (st.state, st.substate, st.feed) == ("Hold", 0, 500)
+    assert st.machine_position() == (11.0, 22.0, 33.0)
+    later = parse_status("<Idle|WPos:1.000,2.000,3.000|FS:0,0>")  # WCO only now and then
+    assert later.machine_position(wco=(10.0, 20.0, 30.0)) == (11.0, 22.0, 33.0)
+    with pytest.raises(ProtocolError, match="WCO"):
+        later.machine_position()
+
+
+@pytest.mark.parametrize("bad", ["Idle|MPos:0,0,0", "<Dancing|MPos:0,0,0>", "<Idle|MPos:a,b,c>",
+                                 "<Idle|MPos>"])
+def test_parse_status_rejects_malformed(bad):
+    with pytest.raises(ProtocolError):
+        parse_status(bad)
+
+
+def test_codes_tables_and_parse_code():
+    assert parse_code("error:9", "error") == 9 and parse_code("ok", "error") is None
+    assert parse_code("ALARM:1", "ALARM") == 1
+    with pytest.raises(ProtocolError):
+        parse_code("error:x", "error")
+    assert set(ERROR_CODES) == set(range(1, 18)) | set(range(20, 39))
+    assert set(ALARM_CODES) == set(range(1, 10))
+    assert "hard limit" in ALARM_CODES[1].lower() and "locked out" in ERROR_CODES[9]
+
+
+def test_settings_and_move_formatting():
+    assert parse_settings(["$110=5400.000", "$22=1", "junk", "[MSG:x]"]) == {110: 5400.0, 22: 1.0}
+    assert format_move({"Y": 30, "X": 45.12345}) == b"G53 G0 X45.123 Y30.000\n"
+    assert format_move({"Z": -1}, rapid=False, feed_mm_min=600) == b"G53 G1 Z-1.000 F600.0\n"
+    with pytest.raises(ValueError):
+        format_move({})
+    with pytest.raises(ValueError, match="finite"):
+        format_move({"X": float("nan")})
+    with pytest.raises(ValueError, match="feed"):
+        format_move({"X": 1}, rapid=False)
+
+
+def test_path_time_limits_each_axis():
+    # X alone at 60 units/s, accel 100: trapezoid
+    t = path_time_s((0, 0), (120, 0), (3600, 3600), (100, 100))
+    assert t == pytest.approx(60 / 100 + 120 / 60)
+    # a diagonal: the path speed is limited so neither axis exceeds its max rate
+    t_diag = path_time_s((0, 0), (120, 120), (3600, 3600), (1e9, 1e9))
+    assert t_diag == pytest.approx(120 / 60, rel=1e-6)
+
+
+# -- driver over a scripted transport ---------------------------------------------------------------
+def test_connect_reads_banner_build_settings_and_state():
+    p, t = positioner([])
+    assert p.version == "1.1h" and p.build == "1.1h.20190825" and p.options == "V,15,128"
+    assert p.homing_enabled and not p.homed
+    assert p.settings[110] == 5400.0
+    assert p.messages == ["'$H'|'$X' to unlock"]
+    d = p.describe()
+    assert d["firmware"] == "Grbl 1.1h" and d["kinematics"]["type"] == "arm"
+    t.assert_done()
+
+
+def test_move_before_homing_is_refused_without_sending_gcode():
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n")])
+    with pytest.raises(NotHomed, match="alarm"):
+        p.move_to(LightTarget(azimuth_deg=10, elevation_deg=20))
+    t.assert_done()
+
+
+def test_home_then_move_queues_gcode_and_polls_until_idle():
+    script = [(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
+              (b"\x18", BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+              (b"$H\n", b"ok\r\n"),
+              (b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
+              # move: state check, queue, poll
+              (b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
+              (b"G53 G0 X45.000 Y30.000\n", b"ok\r\n"),
+              (b"?", b"<Run|MPos:20.000,13.000,0.000|FS:5400,0>\r\n"),
+              (b"?", b"<Idle|MPos:45.000,30.000,0.000|FS:0,0>\r\n")]
+    p, t = positioner(script)
+    assert p.home().wait(2) == pytest.approx((500.0, 0.0, 0.0))
+    assert p.homed
+    x, y, z = p.move_to(LightTarget(azimuth_deg=45, elevation_deg=30)).wait(2)
+    assert (x, y, z) == pytest.approx((306.186, 306.186, 250.0), abs=1e-3)
+    t.assert_done()
+
+
+def test_limit_error_raised_before_anything_is_sent():
+    p, t = positioner([])
+    with pytest.raises(LimitError, match="elevation .*90 deg is outside the limits 0..85 deg"):
+        p.move_to(LightTarget(azimuth_deg=0, elevation_deg=90))
+    t.assert_done()
+
+
+def test_error_reply_maps_to_device_error_with_meaning():
+    p, t = positioner([(b"G4 X1\n", b"error:20\r\n")], state="Idle")
+    with pytest.raises(DeviceError, match="unsupported or invalid G-code") as info:
+        p.send("G4 X1")
+    assert info.value.code == "error:20"
+    t.assert_done()
+
+
+def test_alarm_during_move_fails_the_status():
+    script = [(b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
+              (b"G53 G0 X90.000 Y10.000\n", b"ok\r\n"),
+              (b"?", b"<Run|MPos:10.000,1.000,0.000|FS:5400,0>\r\n"),
+              (b"?", b"ALARM:1\r\n[MSG:Reset to continue]\r\n<Alarm|MPos:30.000,3.000,0.000|FS:0,0>\r\n")]
+    p, t = positioner(script, state="Idle")
+    p._homed = True
+    with pytest.raises(GrblAlarm, match="hard limit") as info:
+        p.move_to(LightTarget(azimuth_deg=90, elevation_deg=10)).wait(2)
+    assert info.value.alarm == 1 and info.value.code == "ALARM:1"
+    assert not p.homed  # a hard limit loses the position
+    assert "Reset to continue" in p.messages
+    t.assert_done()
+
+
+def test_alarm_push_instead_of_ok():
+    p, t = positioner([(b"G53 G0 X1.000\n", b"ALARM:2\r\n")], state="Idle")
+    with pytest.raises(GrblAlarm, match="soft limit"):
+        p.send("G53 G0 X1.000")
+    t.assert_done()
+
+
+def test_stop_is_feed_hold_then_reset():
+    script = [(b"!", None), (b"?", b"<Hold:1|MPos:5.000,0.000,0.000|FS:100,0>\r\n"),
+              (b"?", b"<Hold:0|MPos:6.000,0.000,0.000|FS:0,0>\r\n"), (b"\x18", BANNER)]
+    p, t = positioner(script, state="Idle")
+    p.stop()
+    t.assert_done()
+
+
+def test_status_timeout_is_typed():
+    p, t = positioner([(b"?", None)], state="Idle")
+    with pytest.raises(DeviceTimeout):
+        p.status()
+    t.assert_done()
+
+
+def test_send_rejects_realtime_characters():
+    p, t = positioner([], state="Idle")
+    with pytest.raises(ValueError, match="real-time"):
+        p.send("G0 X1?")

@@ -1,0 +1,227 @@
+"""GrblPositioner against GrblSim over a real pseudo-terminal: homing, motion, real-time commands,
+faults and recovery; the light position read back agrees with the simulator's physical one."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from rig import DeviceError, DeviceTimeout, Disconnected, LightTarget, NotHomed, ProtocolError
+from rig.grbl import GrblAlarm, GrblPositioner, path_time_s
+from sims.grbl_sim import GrblSim
+from sims.lab import KINEMATICS
+
+TIMEOUT = 0.3
+
+
+def make(sim, **kw) -> GrblPositioner:
+    p = GrblPositioner("positioner", sim.port, kinematics=sim.kinematics, timeout_s=TIMEOUT,
+                       poll_interval_s=0.005, **kw)
+    p.connect()
+    return p
+
+
+@pytest.fixture
+def sim():
+    with GrblSim(fast=True, kinematics=KINEMATICS["arm"]) as s:
+        yield s
+
+
+@pytest.fixture
+def pos(sim):
+    p = make(sim)
+    yield p
+    p.close()
+
+
+def test_power_up_alarm_unlock_and_home(pos, sim):
+    assert pos.version == "1.1h" and pos.status().state == "Alarm"
+    with pytest.raises(NotHomed):
+        pos.move_to(LightTarget(azimuth_deg=0, elevation_deg=10))
+    pos.unlock()
+    assert pos.status().state == "Idle"
+    assert "Caution: Unlocked" in pos.messages
+    pos.home().wait(2)
+    assert pos.homed and pos.status().state == "Idle"
+
+
+def test_moves_agree_with_simulated_light(pos, sim):
+    pos.home().wait(2)
+    for az, el in [(45, 30), (-170, 5), (350, 80), (0, 0)]:
+        final = pos.move_to(LightTarget(azimuth_deg=az, elevation_deg=el)).wait(2)
+        assert np.allclose(final, sim.light_position_mm, atol=0.01)
+        direction = np.array(final) / 500.0
+        assert np.degrees(np.arcsin(direction[2])) == pytest.approx(el, abs=1e-3)
+    assert pos.read()["light_position"]["units"] == "mm"
+
+
+def test_point_target_on_the_sphere(pos, sim):
+    pos.home().wait(2)
+    p = (0.0, 300.0, 400.0)
+    assert pos.move_to(LightTarget(xyz_mm=p)).wait(2) == pytest.approx(p, abs=0.01)
+
+
+def test_homing_corrects_power_up_position():
+    with GrblSim(fast=True, power_up_position=(30.0, 20.0, 0.0)) as sim:
+        p = make(sim)
+        assert sim.light_position_mm != pytest.approx(p.light_position_mm)  # MPos is 0 until homed
+        p.home().wait(2)
+        p.move_to(LightTarget(azimuth_deg=10, elevation_deg=10)).wait(2)
+        assert sim.light_position_mm == pytest.approx(p.light_position_mm, abs=0.01)
+        p.close()
+
+
+def test_real_time_move_duration_matches_planner():
+    with GrblSim(fast=False, settings={22: 0}) as sim:
+        p = make(sim)
+        assert p.homed  # homing disabled
+        t0 = time.monotonic()
+        p.move_to(LightTarget(azimuth_deg=30, elevation_deg=20)).wait(3)
+        elapsed = time.monotonic() - t0
+        expected = path_time_s((0, 0), (30, 20), (5400, 5400), (360, 360))
+        assert expected * 0.9 < elapsed < expected + 0.2
+        p.close()
+
+
+def test_wpos_reports_with_wco():
+    with GrblSim(fast=True, settings={10: 0, 22: 0}) as sim:
+        p = make(sim)
+        assert "WPos" in p.status().fields
+        final = p.move_to(LightTarget(azimuth_deg=20, elevation_deg=40)).wait(2)
+        assert final == pytest.approx(sim.light_position_mm, abs=0.01)
+        p.close()
+
+
+def test_feed_hold_and_resume():
+    with GrblSim(fast=False, settings={22: 0}) as sim:
+        p = make(sim)
+        status = p.move_to(LightTarget(azimuth_deg=60, elevation_deg=0))
+        time.sleep(0.15)
+        p.feed_hold()
+        time.sleep(0.05)
+        held = p.status()
+        assert held.state == "Hold" and held.substate == 0
+        x_held = held.mpos[0]
+        time.sleep(0.1)
+        assert p.status().mpos[0] == pytest.approx(x_held)  # not moving
+        p.resume()
+        status.wait(3)
+        assert p.machine_position()["X"] == pytest.approx(60.0)
+        p.close()
+
+
+def test_stop_keeps_position_without_alarm():
+    with GrblSim(fast=False, settings={22: 0}) as sim:
+        p = make(sim)
+        status = p.move_to(LightTarget(azimuth_deg=90, elevation_deg=0))
+        time.sleep(0.2)
+        p.stop()
+        with pytest.raises(DeviceError, match="from the target"):
+            status.wait(2)
+        st = p.status()
+        assert st.state == "Idle" and 0 < st.mpos[0] < 90  # hold then reset: no ALARM:3
+        assert p.move_to(LightTarget(azimuth_deg=0, elevation_deg=0)).wait(3)
+        p.close()
+
+
+def test_g4_p0_answers_after_motion_completes():
+    with GrblSim(fast=False, settings={22: 0}) as sim:
+        p = make(sim)
+        p.send("G53 G0 X20")
+        t0 = time.monotonic()
+        p.send("G4 P0", timeout_s=3)
+        elapsed = time.monotonic() - t0
+        assert elapsed > 0.5 * path_time_s((0,), (20,), (5400,), (360,))
+        assert p.status().state == "Idle" and p.machine_position()["X"] == pytest.approx(20)
+        p.close()
+
+
+def test_reset_during_motion_raises_alarm_3():
+    with GrblSim(fast=False, settings={22: 0}) as sim:
+        p = make(sim)
+        p.send("G53 G0 X90")
+        time.sleep(0.1)
+        p.soft_reset()
+        assert p.last_alarm == 3 and p.status().state == "Alarm"
+        p.unlock()
+        p.close()
+
+
+def test_error_fault(pos, sim):
+    pos.home().wait(2)
+    sim.inject("error")
+    with pytest.raises(DeviceError, match="target is invalid") as info:
+        pos.move_to(LightTarget(azimuth_deg=10, elevation_deg=10))
+    assert info.value.code == "error:33"
+    assert pos.move_to(LightTarget(azimuth_deg=10, elevation_deg=10)).wait(2)
+
+
+def test_gcode_locked_in_alarm_is_error_9(pos, sim):
+    with pytest.raises(DeviceError, match="locked out") as info:
+        pos.send("G53 G0 X1")
+    assert info.value.code == "error:9"
+
+
+def test_hard_limit_alarm_then_rehome(pos, sim):
+    pos.home().wait(2)
+    sim.inject("alarm")
+    t0 = time.monotonic()
+    with pytest.raises(GrblAlarm, match="hard limit"):
+        pos.move_to(LightTarget(azimuth_deg=100, elevation_deg=40)).wait(2)
+    assert time.monotonic() - t0 < 1.0
+    assert not pos.homed
+    with pytest.raises(GrblAlarm):
+        pos.move_to(LightTarget(azimuth_deg=10, elevation_deg=10))
+    pos.home().wait(3)  # soft reset, then $H
+    final = pos.move_to(LightTarget(azimuth_deg=10, elevation_deg=10)).wait(2)
+    assert final == pytest.approx(sim.light_position_mm, abs=0.01)
+
+
+def test_limit_switch_at_travel_edge():
+    # the driver is configured wider than the machine: the switch at +185 deg trips
+    kin = {**KINEMATICS["arm"], "azimuth_limits_deg": [-200.0, 200.0]}
+    with GrblSim(fast=True, kinematics=kin, settings={22: 0}) as sim:
+        p = make(sim)
+        with pytest.raises(GrblAlarm) as info:
+            p.move_to(LightTarget(azimuth_deg=195, elevation_deg=0)).wait(2)
+        assert info.value.alarm == 1
+        assert sim.physical_position[0] == pytest.approx(185.0)
+        p.close()
+
+
+def test_no_reply_and_garble(pos, sim):
+    sim.inject("no_reply")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        pos.status()
+    assert time.monotonic() - t0 < TIMEOUT + 0.2
+    sim.inject("garble")
+    with pytest.raises(ProtocolError):
+        pos.status()
+    assert pos.status().state == "Alarm"  # link recovered
+
+
+def test_disconnect_and_reconnect(pos, sim):
+    pos.home().wait(2)
+    sim.inject("disconnect")
+    with pytest.raises((Disconnected, DeviceTimeout)):
+        pos.status()
+    sim.reconnect()
+    pos.connect()
+    assert not pos.homed and pos.status().state == "Alarm"  # power-cycled
+    pos.home().wait(2)
+    assert pos.move_to(LightTarget(azimuth_deg=5, elevation_deg=5)).wait(2)
+
+
+def test_gantry_end_to_end():
+    kin = KINEMATICS["gantry"]
+    with GrblSim(fast=True, kinematics=kin) as sim:
+        p = make(sim)
+        p.home().wait(2)
+        target = (100.0, -50.0, 300.0)
+        assert p.move_to(LightTarget(xyz_mm=target)).wait(2) == pytest.approx(target, abs=0.01)
+        assert sim.light_position_mm == pytest.approx(target, abs=0.01)
+        final = p.move_to(LightTarget(azimuth_deg=90, elevation_deg=45, distance_mm=400)).wait(2)
+        assert final == pytest.approx((0.0, 400 * np.cos(np.pi / 4), 400 * np.sin(np.pi / 4)), abs=0.01)
+        p.close()
