@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import select
+import termios
 import threading
 import time
 
@@ -18,6 +19,10 @@ import serial
 from .errors import DeviceTimeout, Disconnected
 
 log = logging.getLogger("gonio.rig.wire")
+
+#: what a vanished port raises: pyserial's own errors, OS errors, and termios.error from
+#: tcdrain/tcflush on a closed pty (not an OSError subclass)
+_PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 
 
 class SerialTransport:
@@ -58,7 +63,7 @@ class SerialTransport:
         if self._serial is not None:
             try:
                 self._serial.close()
-            except (serial.SerialException, OSError):
+            except _PORT_ERRORS:
                 pass
             self._serial = None
 
@@ -77,7 +82,7 @@ class SerialTransport:
         try:
             self._port().write(data)
             self._port().flush()
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             self.close()
             raise Disconnected(f"write to {self.port} failed: {exc}", device=self.device) from None
 
@@ -111,7 +116,7 @@ class SerialTransport:
                 if not self._fill(port, deadline):
                     raise DeviceTimeout(f"no complete reply (got {bytes(self._rx)!r})",
                                         device=self.device, timeout_s=timeout)
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             self.close()
             raise Disconnected(f"read from {self.port} failed: {exc}", device=self.device) from None
         out = bytes(self._rx[: i + len(terminator)])
@@ -129,7 +134,7 @@ class SerialTransport:
                 if not self._fill(port, deadline):
                     raise DeviceTimeout(f"expected {n} bytes, got {bytes(self._rx)!r}",
                                         device=self.device, timeout_s=timeout)
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             self.close()
             raise Disconnected(f"read from {self.port} failed: {exc}", device=self.device) from None
         out = bytes(self._rx[:n])
@@ -142,7 +147,7 @@ class SerialTransport:
         self._rx.clear()
         try:
             self._port().reset_input_buffer()
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             self.close()
             raise Disconnected(f"{self.port}: {exc}", device=self.device) from None
 
