@@ -217,6 +217,7 @@ class PtpCameraSim(usb.backend.IBackend):
         self.faults: Counter[str] = Counter()
         self.commands: list[tuple[int, tuple[int, ...]]] = []  # (op, params) received, for tests
         self.captures = 0
+        self.busy_replies = 0  # DeviceBusy answers given, for tests
         self.disconnected = False
         self._lock = threading.RLock()
         self._dev = object()  # the enumerated device's identity
@@ -438,6 +439,7 @@ class PtpCameraSim(usb.backend.IBackend):
     # -- firmware -----------------------------------------------------------------------------
     def _reply(self, op: int, tid: int, code: int, params: tuple[int, ...] = (),
                data: bytes | memoryview | None = None) -> None:
+        self.busy_replies += code == DEVICE_BUSY
         if data is not None:
             self._queue_data(op, tid, data)
         self._in.append(_Transfer(_container(RESP, code, tid, params)))

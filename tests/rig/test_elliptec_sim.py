@@ -144,3 +144,13 @@ def test_other_address_gets_no_reply(sim):
     with pytest.raises(DeviceTimeout):
         r.connect()
     r.close()
+
+
+def test_built_from_rig_config(sim):
+    from rig import Rig
+    rig = Rig.from_config({"polarizer": {"driver": "elliptec", "port": sim.port, "timeout_s": 0.3}},
+                          usb_backend=None)
+    with rig:
+        rig.polarizer.home().wait(2)
+        assert rig.polarizer.move_to(45).wait(2) == pytest.approx(45.0, abs=0.003)
+        assert rig.describe()["polarizer"]["model"] == "ELL14"
