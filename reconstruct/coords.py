@@ -72,21 +72,25 @@ def halfway_difference(wi, wo):
     wo = _directions("wo", wo)
     if wi.shape != wo.shape:
         raise ValueError(f"wi and wo must have the same shape, got {wi.shape} and {wo.shape}")
-    h = wi + wo
-    norm = np.linalg.norm(h, axis=1, keepdims=True)
-    h = np.where(norm > 1e-12, h / np.maximum(norm, 1e-300), [0.0, 0.0, 1.0])
-    rho_h = np.hypot(h[:, 0], h[:, 1])
-    theta_h = np.arctan2(rho_h, h[:, 2])
-    phi_h = np.arctan2(h[:, 1], h[:, 0])
+    xi, yi, zi = wi.T
+    hx, hy, hz = (wi + wo).T  # unnormalised halfway vector: angles need no normalisation
+    rho_h = np.hypot(hx, hy)
+    norm_h = np.hypot(rho_h, hz)
+    degenerate = norm_h < 1e-12  # wi = -wo: use the normal as halfway vector
+    hz = np.where(degenerate, 1.0, hz)
+    norm_h = np.where(degenerate, 1.0, norm_h)
+    theta_h = np.arctan2(rho_h, hz)
+    phi_h = np.arctan2(hy, hx)
     # d = R_y(-theta_h) R_z(-phi_h) wi, with cos/sin of the angles taken from h directly
-    safe = np.where(rho_h > 0, rho_h, 1.0)
-    cp = np.where(rho_h > 0, h[:, 0] / safe, 1.0)
-    sp = h[:, 1] / safe
-    ct, st = h[:, 2], rho_h
-    x1 = cp * wi[:, 0] + sp * wi[:, 1]
-    y1 = -sp * wi[:, 0] + cp * wi[:, 1]
-    dx = ct * x1 - st * wi[:, 2]
-    dz = st * x1 + ct * wi[:, 2]
+    has_azimuth = rho_h > 0
+    safe = np.where(has_azimuth, rho_h, 1.0)
+    cp = np.where(has_azimuth, hx / safe, 1.0)
+    sp = hy / safe
+    ct, st = hz / norm_h, rho_h / norm_h
+    x1 = cp * xi + sp * yi
+    y1 = cp * yi - sp * xi
+    dx = ct * x1 - st * zi
+    dz = st * x1 + ct * zi
     theta_d = np.arctan2(np.hypot(dx, y1), dz)
     phi_d = np.arctan2(y1, dx)
     return theta_h, phi_h, theta_d, phi_d

@@ -6,7 +6,6 @@ gathers per sample, no per-sample Python).
 """
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,16 +33,14 @@ def _axis_nodes(x: np.ndarray, n: int, periodic: bool):
 
 
 def _corners(coords, shape, periodic):
-    """Yield (flat index (N,), weight (N,)) for each of the 2^D corners of the cell of each sample."""
+    """(flat index (N,), weight (N,)) for each of the 2^D corners of each sample's cell."""
     strides = np.cumprod((1,) + tuple(shape[:0:-1]))[::-1]
-    axes = [_axis_nodes(x, n, p) for x, n, p in zip(coords, shape, periodic)]
-    for corner in itertools.product((0, 1), repeat=len(shape)):
-        idx = 0
-        w = 1.0
-        for (i0, i1, wu), stride, c in zip(axes, strides, corner):
-            idx = idx + (i1 if c else i0) * stride
-            w = w * (wu if c else 1.0 - wu)
-        yield idx, w
+    corners = [(np.intp(0), 1.0)]
+    for x, n, p, stride in zip(coords, shape, periodic, strides):
+        i0, i1, wu = _axis_nodes(x, n, p)
+        lo, hi, wl = i0 * stride, i1 * stride, 1.0 - wu
+        corners = [c for idx, w in corners for c in ((idx + lo, w * wl), (idx + hi, w * wu))]
+    return corners
 
 
 def _interpolate(flat: np.ndarray, coords, shape, periodic, has_invalid: bool) -> np.ndarray:
@@ -53,14 +50,17 @@ def _interpolate(flat: np.ndarray, coords, shape, periodic, has_invalid: bool) -
     num = np.zeros((n, 3))
     if not has_invalid:
         for idx, w in _corners(coords, shape, periodic):
-            num += w[:, None] * flat[idx]
+            g = np.take(flat, idx, axis=0)  # np.take gathers rows ~4x faster than flat[idx]
+            g *= w[:, None]
+            num += g
         return num
-    valid = ~np.isnan(flat)
-    filled = np.where(valid, flat, 0.0)
+    valid = (~np.isnan(flat)).astype(np.float64)
+    filled = np.where(valid > 0, flat, 0.0)
     den = np.zeros((n, 3))
     for idx, w in _corners(coords, shape, periodic):
-        wv = w[:, None] * valid[idx]
-        num += wv * filled[idx]
+        wv = np.take(valid, idx, axis=0)
+        wv *= w[:, None]
+        num += wv * np.take(filled, idx, axis=0)
         den += wv
     return np.divide(num, den, out=np.zeros_like(num), where=den > 1e-12)
 
