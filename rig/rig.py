@@ -39,6 +39,7 @@ DRIVERS: dict[str, str] = {
     "grbl": "rig.grbl:GrblPositioner",
     "elliptec": "rig.elliptec:ElliptecRotator",
     "ptp": "rig.ptp_camera:PtpCamera",
+    "gphoto2": "rig.gphoto2_camera:Gphoto2Camera",  # optional: pip install 'gonio[gphoto2]'
 }
 
 ROLES: dict[str, type] = {"turntable": Axis, "positioner": LightPositioner,
