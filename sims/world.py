@@ -145,7 +145,9 @@ class GroundTruth:
         The noise-free radiance the sensor integrated (supersampled, analyser applied).
     buffers : RenderResult
         Geometry buffers at the pixel centres (mask, world normal, position mm, depth mm, uv,
-        face and surface index into ``scene.objects``).
+        face and surface index into ``scene.objects``; its ``radiance`` is the pixel-centre
+        sample). With an odd ``supersample`` they come from the same render (its middle
+        sub-pixels), otherwise from a second one.
     scene : Scene
         The rendered scene (surfaces placed for this state).
     camera : CameraModel
@@ -366,17 +368,26 @@ class SimWorld:
     def radiance(self, state: RigState | Mapping | None = None, *, seed: int = 0) -> np.ndarray:
         """Noise-free radiance (H, W, 3) float32 the sensor integrates for ``state``."""
         st = state if isinstance(state, RigState) else RigState.from_state(state)
+        return self._radiance_and_buffers(st, seed, buffers=False)[0]
+
+    def _radiance_and_buffers(self, st: RigState, seed, *, buffers: bool):
         H, W = self.camera.height, self.camera.width
-        if self.dark:
-            return np.zeros((H, W, 3), np.float32)
-        if self.flat_radiance is not None:
-            return np.full((H, W, 3), self.flat_radiance, np.float32)
+        special = self.dark or self.flat_radiance is not None
+        if special:
+            rad = np.full((H, W, 3), 0.0 if self.dark else self.flat_radiance, np.float32)
+            return rad, (self._render(self.scene(st), st, self.camera, seed) if buffers else None)
         s = self.supersample
-        cam = self.camera if s == 1 else supersampled_camera(self.camera, s)
-        rad = self._render(self.scene(st), st, cam, seed).radiance
-        if s > 1:
-            rad = rad.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
-        return rad
+        if s == 1:
+            res = self._render(self.scene(st), st, self.camera, seed)
+            return res.radiance, res
+        hi = self._render(self.scene(st), st, supersampled_camera(self.camera, s), seed)
+        rad = hi.radiance.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+        if not buffers:
+            return rad, None
+        if s % 2:  # the middle sub-pixel of an odd grid sits on the pixel centre
+            c = s // 2
+            return rad, RenderResult(**{f: getattr(hi, f)[c::s, c::s] for f in RenderResult.__dataclass_fields__})
+        return rad, self._render(self.scene(st), st, self.camera, seed)
 
     # -- the camera's frame source ------------------------------------------------------------
     def frame_source(self, state: Mapping[str, Any] | None = None) -> bytes:
@@ -400,12 +411,9 @@ class SimWorld:
     def ground_truth(self, state: Mapping[str, Any] | RigState | None = None) -> GroundTruth:
         """Truth of the frame :meth:`frame_source` makes for ``state`` (without its noise)."""
         st = state if isinstance(state, RigState) else RigState.from_state(state)
-        sc = self.scene(st)
-        buffers = self._render(sc, st, self.camera, 0)
-        rad = buffers.radiance if (self.supersample == 1 and not self.dark and self.flat_radiance is None) \
-            else self.radiance(st)
+        rad, buffers = self._radiance_and_buffers(st, 0, buffers=True)
         expected = self.sensor.expected_raw(rad, st.exposure_s, st.iso, **self._optics(st))
-        return GroundTruth(state=st, radiance=rad, buffers=buffers, scene=sc, camera=self.camera,
+        return GroundTruth(state=st, radiance=rad, buffers=buffers, scene=self.scene(st), camera=self.camera,
                            light_position_mm=np.asarray(st.light_position_mm, float),
                            object_pose=turntable_pose(st.turntable_deg), expected=expected)
 
