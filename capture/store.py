@@ -29,7 +29,6 @@ import shutil
 import signal
 import sqlite3
 import subprocess
-import sys
 import tarfile
 import tempfile
 import threading
@@ -88,8 +87,7 @@ def _crash_point(name: str) -> None:
     with _crash_lock:
         _crash_count += 1
         if _crash_count == int(after):
-            sys.stderr.write(f"GONIO_CRASH at {name}\n")
-            sys.stderr.flush()
+            os.write(2, f"GONIO_CRASH at {name}\n".encode())  # fd 2: unbuffered, never redirected
             os.kill(os.getpid(), signal.SIGKILL)
 
 
@@ -317,6 +315,11 @@ class Store:
         Store directory; created (with an empty, current-schema database) when ``create``.
     create : bool
         Create the directory and database if absent. Otherwise a missing store is an error.
+    durable : bool, optional
+        fsync frame files, their directories and every commit (``synchronous = FULL``), so a
+        stored frame survives power loss. False keeps the write order (a killed process still
+        leaves a consistent store) but not power-loss durability: for scratch stores and tests.
+        Default: True unless the environment sets ``GONIO_STORE_DURABLE=0``.
 
     Notes
     -----
@@ -324,8 +327,10 @@ class Store:
     thread while the runner writes on a worker). Other processes open their own ``Store``.
     """
 
-    def __init__(self, root: str | os.PathLike, *, create: bool = True) -> None:
+    def __init__(self, root: str | os.PathLike, *, create: bool = True,
+                 durable: bool | None = None) -> None:
         self.root = Path(root)
+        self.durable = os.environ.get("GONIO_STORE_DURABLE", "1") != "0" if durable is None else durable
         self.db_path = self.root / DB_NAME
         if not self.db_path.exists():
             if not create:
@@ -339,7 +344,8 @@ class Store:
         self._db.row_factory = sqlite3.Row
         self._db.execute("PRAGMA busy_timeout = 30000")
         self._db.execute("PRAGMA journal_mode = WAL")
-        self._db.execute("PRAGMA synchronous = FULL")  # a committed frame survives power loss
+        # FULL: a committed frame survives power loss; NORMAL (in WAL): survives a killed process
+        self._db.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
         self._db.execute("PRAGMA foreign_keys = ON")
         self._migrate()
         self._cleanup: Callable[[], None] | None = None
@@ -600,10 +606,10 @@ class Store:
         try:
             if not self.objects.is_dir():
                 self.objects.mkdir(parents=True, exist_ok=True)
-                _fsync_dir(self.root)
+                self._sync_dir(self.root)
             if not path.parent.is_dir():
                 path.parent.mkdir(exist_ok=True)
-                _fsync_dir(self.objects)
+                self._sync_dir(self.objects)
             self._write_file(data, path)
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -611,8 +617,11 @@ class Store:
                                 f"{len(data) / 1e6:.1f} MB frame; free space and resume") from None
             raise
 
-    @staticmethod
-    def _write_file(data: bytes | memoryview, path: Path) -> None:
+    def _sync_dir(self, path: Path) -> None:
+        if self.durable:
+            _fsync_dir(path)
+
+    def _write_file(self, data: bytes | memoryview, path: Path) -> None:
         """Temp file in the final directory, fsync, rename, fsync the directory."""
         fd, tmp = tempfile.mkstemp(prefix=_TMP_PREFIX, dir=path.parent)
         try:
@@ -624,12 +633,13 @@ class Store:
                 _crash_point("object_half_written")
                 f.write(view[half:])
                 f.flush()
-                os.fsync(f.fileno())
+                if self.durable:
+                    os.fsync(f.fileno())
             os.chmod(tmp, 0o444)  # content-addressed files are immutable
             _crash_point("object_fsynced")
             os.replace(tmp, path)
             _crash_point("object_renamed")
-            _fsync_dir(path.parent)
+            self._sync_dir(path.parent)
         except BaseException:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
