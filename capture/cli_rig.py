@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import json
-import threading
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -129,16 +128,14 @@ def sim(fast: bool = typer.Option(False, help="Complete moves instantly (default
             write.write_text(toml)
             typer.echo(f"rig file written to {write}")
         typer.echo("serving; press Ctrl-C to stop", err=True)
-        stop = threading.Event()
         try:
-            stop.wait(duration) if duration is not None else _wait_forever(stop)
+            if duration is not None:
+                time.sleep(duration)
+            else:
+                while True:  # the simulators serve on their own threads
+                    time.sleep(3600)
         except KeyboardInterrupt:
             pass
     finally:
         lab.stop()
     typer.echo("simulators stopped", err=True)
-
-
-def _wait_forever(stop: threading.Event) -> None:
-    while not stop.wait(3600):
-        time.sleep(0)
