@@ -154,3 +154,22 @@ def test_built_from_rig_config(sim):
         rig.polarizer.home().wait(2)
         assert rig.polarizer.move_to(45).wait(2) == pytest.approx(45.0, abs=0.003)
         assert rig.describe()["polarizer"]["model"] == "ELL14"
+
+
+def test_firmware_framing_by_command_length(sim):
+    """Raw bytes on the pty: back-to-back requests in one write, an unknown command, a bad home
+    direction."""
+    import serial
+    with serial.Serial(sim.port, 9600, timeout=0.5) as port:
+        port.write(b"0gs0gp0in")
+        assert port.readline() == b"0GS00\r\n"
+        assert port.readline() == b"0PO0000398E\r\n"  # 37 deg = 14734 pulses at power-up
+        assert port.readline() == b"0IN0E1140012320231701016800023000\r\n"
+        port.write(b"0xx")
+        assert port.readline() == b"0GS03\r\n"
+        port.write(b"0ho7")
+        assert port.readline() == b"0GS04\r\n"
+        port.write(b"0ma0000")  # three data characters short: dropped with a communication time out
+        assert port.readline() == b""
+        time.sleep(0.3)
+        assert port.readline() == b"0GS01\r\n"
