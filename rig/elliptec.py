@@ -301,7 +301,7 @@ class ElliptecRotator(Axis):
             self.transport.open()
         self.transport.reset_input()
         self._homed = False
-        info = parse_info(self._exchange("in"), device=self.name)
+        info = parse_info(self._query("in", "IN"), device=self.name)
         if info.motor_type != 14:
             self.close()
             raise DeviceError(info.motor_type, f"expected an ELL14 rotation mount (type 14), the "
@@ -352,6 +352,14 @@ class ElliptecRotator(Axis):
             time.sleep(delay)
             delay = min(delay * 2, 0.2)
 
+    def _query(self, command: str, expected: str) -> Reply:
+        """Exchange ``command`` and return its ``expected`` reply; a ``GS`` error status in its
+        place raises that status's typed error."""
+        reply = self._exchange(command)
+        if reply.code == "GS" and expected != "GS":
+            self._check_ok(reply, f"'{command}'")
+        return reply
+
     def _check_ok(self, reply: Reply, context: str) -> None:
         error = status_error(parse_status(reply, device=self.name), device=self.name, context=context)
         if error is not None:
@@ -393,9 +401,10 @@ class ElliptecRotator(Axis):
 
     @property
     def position(self) -> float:
-        """Read-back angle in degrees, [0, 360)."""
+        """Read-back angle in degrees, [0, 360). Waits for a running move to finish (the port
+        is busy with it until its ``PO`` reply)."""
         self._require_info()
-        return self._pulses_to_deg(parse_position(self._exchange("gp"), device=self.name))
+        return self._pulses_to_deg(parse_position(self._query("gp", "PO"), device=self.name))
 
     def move_to(self, value: float) -> MoveStatus:
         """Rotate to ``value`` degrees (wrapped into [0, 360)); returns at once.

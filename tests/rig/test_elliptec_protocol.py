@@ -209,3 +209,13 @@ def test_from_config_validates_keys():
         ElliptecRotator.from_config("polarizer", {"driver": "elliptec", "port": "x", "speed": 1})
     with pytest.raises(ValueError, match="timeout_s"):
         ElliptecRotator("p", "x", timeout_s=0)
+
+
+def test_status_reply_in_place_of_data_raises_its_error():
+    rot, t = make([(b"0gp", b"0GS0D\r\n")])
+    with pytest.raises(DeviceError, match="over current") as info:
+        rot.position
+    assert info.value.code == 13
+    t2 = Scripted([(b"0in", b"0GS03\r\n")])
+    with pytest.raises(DeviceError, match="command error"):
+        ElliptecRotator("polarizer", "/dev/null", transport=t2).connect()
