@@ -34,6 +34,8 @@ class Lafortune(BRDF):
     - C_x > 0, C_z > 0: retro-reflective lobe around u itself.
     - C_x = 0, C_z > 0: lobe about the normal, (C_z^2 cos theta_i cos theta_o)^N (generalised
       diffuse falling off at grazing angles).
+    - C_x = C_z = -1 is not a reflection lobe here: the cosine is -wi . wo, a lobe around the
+      straight-through direction -wi, visible only near grazing.
     The lobe's magnitude (its albedo) grows with |C|^N; its width shrinks with N.
     The model is reciprocal: the lobe term is symmetric in u and v.
 

@@ -207,6 +207,23 @@ def test_beckmann_lambda_matches_walter_rational_approximation():
     np.testing.assert_allclose(1 / (1 + exact), 1 / (1 + approx), rtol=5e-3)
 
 
+def test_oren_nayar_matches_the_angle_form():
+    """Against Oren and Nayar's Eq. 30 written with angles: rho/pi (A + B max(0, cos(phi_i -
+    phi_o)) sin(alpha) tan(beta)); and sigma = 0 is Lambertian."""
+    rng = np.random.default_rng(17)
+    wi, wo = hemisphere(rng, 3000), hemisphere(rng, 3000)
+    ti, to = np.arccos(wi[:, 2]), np.arccos(wo[:, 2])
+    dphi = np.arctan2(wi[:, 1], wi[:, 0]) - np.arctan2(wo[:, 1], wo[:, 0])
+    sigma, rho = 0.45, 0.7
+    a = 1 - 0.5 * sigma ** 2 / (sigma ** 2 + 0.33)
+    b = 0.45 * sigma ** 2 / (sigma ** 2 + 0.09)
+    ref = rho / np.pi * (a + b * np.maximum(0, np.cos(dphi)) * np.sin(np.maximum(ti, to))
+                         * np.tan(np.minimum(ti, to)))
+    np.testing.assert_allclose(OrenNayar(rho, sigma).evaluate(wi, wo)[:, 1], ref, rtol=1e-9)
+    np.testing.assert_allclose(OrenNayar(rho, 0.0).evaluate(wi, wo),
+                               Lambertian(rho).evaluate(wi, wo), rtol=1e-12)
+
+
 def test_cook_torrance_normal_incidence_value():
     """wi = wo = n: h = n, D = 1/(pi alpha^2) (GGX), G = 1, F = f0 -> f = kd/pi + f0/(4 pi alpha^2)."""
     kd, f0, alpha = 0.3, 0.7, 0.25
