@@ -80,7 +80,8 @@ def test_bunny_sits_on_the_platter(shared_data):
     assert np.argmax(mesh.vertices[:, 2]) == np.argmax(src.vertices[:, 1])
     A = np.linalg.lstsq(np.c_[src.vertices, np.ones(len(src.vertices))], mesh.vertices, rcond=None)[0]
     assert np.linalg.det(A[:3]) > 0  # a rotation and scale, not a reflection
-    assert np.allclose(A[:3] @ [0, 1, 0] / np.linalg.norm(A[:3] @ [0, 1, 0]), [0, 0, 1])
+    up = A[:3].T @ [0, 1, 0]  # row-vector fit: the linear map is A[:3].T
+    assert np.allclose(up / np.linalg.norm(up), [0, 0, 1])
     small = bunny_mesh(60.0, full=False, data_dir=shared_data)
     assert len(small.faces) == 16301
 
