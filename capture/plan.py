@@ -63,10 +63,10 @@ DEFAULT_SPEEDS = {
     "positioner": (15.0, 30.0),    # deg/s of each arm joint, or mm/s for a gantry
     "polarizer": (180.0, 720.0),   # deg/s (Elliptec ELL14)
 }
-#: per-frame overhead beyond the exposure time (shutter, readout, USB transfer), s
-DEFAULT_FRAME_OVERHEAD_S = 0.5
 DEFAULT_FRAME_BYTES = 25_000_000
 USB_BYTES_PER_S = 35e6
+#: per-frame overhead beyond the exposure time: shutter and readout, then the USB transfer, s
+DEFAULT_FRAME_OVERHEAD_S = 0.2 + DEFAULT_FRAME_BYTES / USB_BYTES_PER_S
 
 
 class PlanError(ValueError):

@@ -1,0 +1,272 @@
+"""``gonio capture``: plan, run and resume capture sessions.
+
+- ``gonio capture plan PLAN [--rig sim|FILE] [--steps]`` validates the plan (against the rig's
+  limits when ``--rig`` is given) and prints steps, frames, bytes and time.
+- ``gonio capture run PLAN --rig sim|FILE --store DIR [--session NAME]`` records a new session
+  with a progress bar (steps, frames, ETA).
+- ``gonio capture resume NAME --rig ... --store DIR`` continues from the first step not done,
+  refusing (with the differences) if the plan file changed since the session was planned.
+
+Ctrl-C pauses after the current step (state saved); a second Ctrl-C stops motion at once (the
+interrupted step is re-done on resume). Exit status: 0 done, 3 paused, 4 aborted, 2 errors.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+from collections import Counter
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from rig import RigError
+
+from .cli_session import STORE_OPTION, fail, human_bytes, human_time, open_store
+from .events import Event, EventKind
+from .plan import Plan, PlanError, Step, plan_diff
+from .rigs import OpenedRig, home_all, open_rig
+from .runner import Runner, RunnerError, create_session
+from .store import StoreError
+
+app = typer.Typer(name="capture", help="Plan, run and resume capture sessions.", no_args_is_help=True)
+
+RIG_HELP = "'sim' for the built-in simulated lab, or a rig TOML file (driver and port per device)."
+EXIT = {"done": 0, "paused": 3, "aborted": 4}
+
+
+def _load_plan(path: Path) -> Plan:
+    try:
+        return Plan.from_toml(path)
+    except PlanError as exc:
+        raise fail(str(exc)) from None
+
+
+def _open_rig(spec: str, fast: bool, home: bool) -> OpenedRig:
+    try:
+        opened = open_rig(spec, fast=fast)
+    except (RigError, ValueError, OSError) as exc:
+        raise fail(f"cannot open rig {spec!r}: {exc}") from None
+    if home:
+        roles = [r for r, d in opened.rig.devices.items() if getattr(d, "homed", True) is False]
+        if roles:
+            typer.echo(f"homing {', '.join(roles)} ...")
+            try:
+                home_all(opened.rig, roles=roles)
+            except RigError as exc:
+                opened.close()
+                raise fail(f"homing failed: {exc}") from None
+    return opened
+
+
+def _light_text(light: dict[str, Any] | None) -> str:
+    if light is None:
+        return "-"
+    if "xyz_mm" in light:
+        return "({:g}, {:g}, {:g}) mm".format(*light["xyz_mm"])
+    return f"az {light['azimuth_deg']:g}° el {light['elevation_deg']:g}°"
+
+
+@app.command()
+def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
+         rig: Optional[str] = typer.Option(None, "--rig", help=RIG_HELP + " Checks limits and uses "
+                                           "the devices' speeds; without it, default speeds."),
+         steps: bool = typer.Option(False, "--steps", help="Also list every step."),
+         fast: bool = typer.Option(True, help="Simulated devices move instantly.")) -> None:
+    """Validate a plan and print its steps, frames, bytes and estimated time."""
+    p = _load_plan(plan_file)
+    opened = _open_rig(rig, fast, home=False) if rig else None
+    try:
+        if opened is not None:
+            try:
+                p.check_rig(opened.rig)
+            except PlanError as exc:
+                raise fail(f"{plan_file}: {exc}") from None
+        the_rig = opened.rig if opened is not None else None
+        expanded = p.steps(the_rig)
+        est = p.estimate(the_rig, expanded)
+    finally:
+        if opened is not None:
+            opened.close()
+    c = Console(width=140, highlight=False)
+    c.print(f"plan [bold]{p.name or plan_file.stem}[/] ({plan_file}), hash {p.hash[:12]}")
+    c.print(f"rig: {rig} (limits checked, device speeds)" if rig else
+            "rig: none given (limits not checked, default speeds)")
+    c.print(f"steps {est.steps}, frames {est.frames}, data {human_bytes(est.bytes)}, time "
+            f"{human_time(est.seconds)} (motion {human_time(est.motion_s)}, exposure "
+            f"{human_time(est.exposure_s)}, readout/transfer {human_time(est.overhead_s)})")
+    by_kind: Counter[str] = Counter()
+    frames_by_kind: Counter[str] = Counter()
+    for s in expanded:
+        by_kind[s.kind] += 1
+        frames_by_kind[s.kind] += s.frames
+    c.print("by kind: " + ", ".join(f"{k} {n} step{'s' if n > 1 else ''} / {frames_by_kind[k]} frames"
+                                    for k, n in by_kind.items()))
+    if steps:
+        table = Table()
+        for col in ("#", "kind", "target", "turntable", "light", "polarizer", "exposures (s)", "repeats"):
+            table.add_column(col)
+        for s in expanded:
+            table.add_row(str(s.index), s.kind, s.target,
+                          "-" if s.turntable_deg is None else f"{s.turntable_deg:g}°",
+                          _light_text(s.light), "-" if s.polarizer_deg is None else f"{s.polarizer_deg:g}°",
+                          ", ".join(f"{t:g}" for t in s.exposures_s), str(s.repeats))
+        c.print(table)
+
+
+class _ProgressView:
+    """Turns runner events into a rich progress bar plus lines for notable events."""
+
+    def __init__(self, progress: Progress) -> None:
+        self.progress = progress
+        self.task = None
+
+    def __call__(self, e: Event) -> None:
+        d = e.data
+        if "steps_total" in d:
+            fields = dict(frames=f"{d['frames_done']}/{d['frames_total']} frames",
+                          eta=f"ETA {human_time(d.get('eta_s'))}")
+            if self.task is None:
+                self.task = self.progress.add_task(e.session, total=d["steps_total"],
+                                                   completed=d["steps_done"], **fields)
+            self.progress.update(self.task, completed=d["steps_done"], **fields)
+        if e.kind in (EventKind.RETRY, EventKind.FAULT, EventKind.LOW_DISK):
+            self.progress.console.print(f"[yellow]{e.kind.value}[/] {e.device or ''} {e.message}",
+                                        highlight=False)
+        elif e.kind in (EventKind.TARGET, EventKind.NOTE, EventKind.PAUSED, EventKind.ABORTED):
+            self.progress.console.print(f"{e.kind.value}: {e.message}", highlight=False)
+
+
+def _prompt_target(interactive: bool):
+    """Ask the operator to set up each calibration target (real rigs, interactive terminals)."""
+    if not interactive:
+        return None
+
+    def ask(target: str, step: Step) -> None:
+        typer.prompt(f"step {step.index} needs '{target}' in front of the camera; set it up and "
+                     "press Enter", default="", show_default=False)
+    return ask
+
+
+def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
+    """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly."""
+    columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("steps"), TextColumn("{task.fields[frames]}"), TimeElapsedColumn(),
+               TextColumn("{task.fields[eta]}")]
+    outcome: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            outcome["state"] = runner.run()
+        except BaseException as exc:  # noqa: BLE001 - reported on the main thread
+            outcome["error"] = exc
+
+    with Progress(*columns, console=Console(stderr=True), transient=False,
+                  disable=quiet) as progress:
+        runner.bus.subscribe(_ProgressView(progress))
+        worker = threading.Thread(target=work, name="gonio-runner", daemon=True)
+        worker.start()
+        interrupts = 0
+        while worker.is_alive():
+            try:
+                worker.join(0.2)
+            except KeyboardInterrupt:
+                interrupts += 1
+                if interrupts == 1:
+                    progress.console.print("[yellow]pausing after the current step[/] "
+                                           "(Ctrl-C again to stop motion now)")
+                    runner.request_pause()
+                else:
+                    progress.console.print("[yellow]stopping now[/]; the interrupted step will be re-done")
+                    runner.request_pause(now=True)
+    if "error" in outcome:
+        exc = outcome["error"]
+        if isinstance(exc, (RunnerError, StoreError)):
+            raise fail(str(exc))
+        raise fail(f"unexpected error (session paused): {exc!r}")
+    state = outcome["state"]
+    if state == "done":
+        typer.secho(f"session {runner.name} done", fg=typer.colors.GREEN)
+    elif state == "paused":
+        typer.secho(f"session {runner.name} paused; continue with:\n  gonio capture resume "
+                    f"{runner.name} --rig <rig> --store {store_path}", fg=typer.colors.YELLOW)
+    else:
+        typer.secho(f"session {runner.name} aborted", fg=typer.colors.RED)
+    raise typer.Exit(EXIT[state])
+
+
+@app.command()
+def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
+        rig: str = typer.Option(..., "--rig", help=RIG_HELP),
+        store: str = STORE_OPTION,
+        session: Optional[str] = typer.Option(None, "--session", help="Session name (default: "
+                                              "<plan name>-<date>-<time>)."),
+        operator: Optional[str] = typer.Option(None, help="Operator (overrides the plan's)."),
+        fast: bool = typer.Option(True, help="Simulated devices move instantly."),
+        home: bool = typer.Option(True, help="Home axes that report not homed before starting."),
+        yes: bool = typer.Option(False, "--yes", "-y", help="Do not prompt for target changes."),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
+    """Record a new session from a plan."""
+    p = _load_plan(plan_file)
+    if operator is not None:
+        p = Plan.from_dict({**p.to_dict(), "operator": operator})
+    st = open_store(store, create=True)
+    with st:
+        opened = _open_rig(rig, fast, home)
+        with opened:
+            try:
+                info = create_session(st, p, opened.rig, name=session,
+                                      plan_path=str(plan_file.resolve()))
+            except (PlanError, RunnerError, StoreError) as exc:
+                raise fail(str(exc)) from None
+            typer.echo(f"session {info.name}: {len(st.steps(info.id))} steps, "
+                       f"{st.progress(info.id).frames_total} frames -> {store}")
+            interactive = opened.lab is None and not yes and sys.stdin.isatty()
+            runner = Runner(opened.rig, st, info, prepare_target=_prompt_target(interactive))
+            _execute(runner, store, quiet)
+
+
+@app.command()
+def resume(name: str = typer.Argument(..., help="Session name."),
+           rig: str = typer.Option(..., "--rig", help=RIG_HELP),
+           store: str = STORE_OPTION,
+           plan_file: Optional[Path] = typer.Option(None, "--plan", help="Plan file to compare "
+                                                    "against (default: the one the session was planned from)."),
+           fast: bool = typer.Option(True, help="Simulated devices move instantly."),
+           home: bool = typer.Option(True, help="Home axes that report not homed before resuming."),
+           yes: bool = typer.Option(False, "--yes", "-y", help="Do not prompt for target changes."),
+           quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
+    """Continue a paused or interrupted session from its first step not done."""
+    st = open_store(store)
+    with st:
+        try:
+            info = st.session(name)
+        except StoreError as exc:
+            raise fail(str(exc)) from None
+        if info.state == "done":
+            typer.echo(f"session {name} is already done")
+            return
+        path = plan_file or (Path(info.plan_path) if info.plan_path else None)
+        if path is not None and path.is_file():
+            on_disk = _load_plan(path)
+            if on_disk.hash != info.plan_hash:
+                diff = plan_diff(info.plan, on_disk.to_dict())
+                raise fail(f"refusing to resume {name}: the plan {path} changed since the session "
+                           "was planned:\n  " + "\n  ".join(diff) + "\nrestore it, or start a new "
+                           "session with 'gonio capture run'")
+        elif path is not None:
+            typer.secho(f"note: plan file {path} is gone; resuming from the plan stored with "
+                        "the session", fg=typer.colors.YELLOW)
+        opened = _open_rig(rig, fast, home)
+        with opened:
+            try:
+                Plan.from_dict(info.plan).check_rig(opened.rig)
+            except PlanError as exc:
+                raise fail(f"the session's plan does not fit this rig: {exc}") from None
+            interactive = opened.lab is None and not yes and sys.stdin.isatty()
+            runner = Runner(opened.rig, st, info, prepare_target=_prompt_target(interactive))
+            _execute(runner, store, quiet)
+

@@ -1,0 +1,195 @@
+"""``gonio session``: list, show, verify and export recorded sessions.
+
+- ``gonio session list [--store DIR]`` one line per session: state, steps, frames, size.
+- ``gonio session show NAME`` plan summary, progress, rig snapshot, recent faults and events,
+  results with provenance.
+- ``gonio session verify NAME`` re-hashes every file; lists missing, corrupt and orphaned files
+  and done steps with the wrong frame count; exit status 1 if anything is wrong.
+- ``gonio session export NAME DEST`` writes a self-contained store (folder, ``.tar``, ``.tar.gz``
+  or ``.zip``) holding only that session, which ``--store`` can open directly.
+
+``--store`` defaults to ``$GONIO_STORE`` or ``./gonio-store`` and also accepts an exported
+archive (read in a temporary folder).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+from collections import Counter
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+from rich.table import Table
+
+from .store import Store, StoreError
+
+app = typer.Typer(name="session", help="List, inspect, verify and export recorded sessions.",
+                  no_args_is_help=True)
+
+STORE_OPTION = typer.Option("gonio-store", "--store", envvar="GONIO_STORE",
+                            help="Store folder (or an exported .tar/.zip). Env: GONIO_STORE.")
+
+
+def fail(message: str, code: int = 2) -> typer.Exit:
+    typer.secho(f"error: {message}", err=True, fg=typer.colors.RED)
+    return typer.Exit(code)
+
+
+def open_store(path: str, *, create: bool = False) -> Store:
+    """Open ``--store`` or exit with a clear message."""
+    try:
+        return Store.open(path, create=create)
+    except StoreError as exc:
+        raise fail(str(exc)) from None
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if abs(n) < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    raise AssertionError("unreachable")
+
+
+def human_time(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    s = int(round(seconds))
+    if s < 60:
+        return f"{seconds:.1f} s" if seconds < 10 else f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
+def _when(t: float) -> str:
+    return _dt.datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
+
+
+@app.command("list")
+def list_(store: str = STORE_OPTION,
+          as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
+    """One line per session of the store."""
+    with open_store(store) as st:
+        rows = []
+        for s in st.sessions():
+            p = st.progress(s.id)
+            rows.append({"name": s.name, "state": s.state, "steps_done": p.steps_done,
+                         "steps_total": p.steps_total, "frames_stored": p.frames_stored,
+                         "frames_total": p.frames_total, "bytes": p.bytes_stored,
+                         "object": s.object, "operator": s.operator, "created": s.created})
+    if as_json:
+        typer.echo(json.dumps(rows, indent=2))
+        return
+    if not rows:
+        typer.echo(f"no sessions in {store}")
+        return
+    table = Table(title=f"sessions in {store}")
+    for col in ("name", "state", "steps", "frames", "size", "object", "created"):
+        table.add_column(col)
+    colour = {"done": "green", "paused": "yellow", "running": "cyan", "aborted": "red", "planned": "white"}
+    for r in rows:
+        table.add_row(r["name"], f"[{colour[r['state']]}]{r['state']}[/]",
+                      f"{r['steps_done']}/{r['steps_total']}", f"{r['frames_stored']}/{r['frames_total']}",
+                      human_bytes(r["bytes"]), r["object"], _when(r["created"]))
+    Console(width=140).print(table)
+
+
+@app.command()
+def show(name: str = typer.Argument(..., help="Session name."), store: str = STORE_OPTION,
+         events: int = typer.Option(10, help="How many recent events to print."),
+         as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
+    """Details of one session: plan, progress, rig, faults, recent events, results."""
+    with open_store(store) as st:
+        try:
+            info = st.session(name)
+        except StoreError as exc:
+            raise fail(str(exc)) from None
+        p = st.progress(info.id)
+        kinds = Counter(d["kind"] for _, d, _ in st.steps(info.id))
+        snaps = st.rig_snapshots(info.id)
+        faults = st.events(info.id, kinds=["fault", "low_disk"])
+        recent = st.events(info.id)[-events:] if events > 0 else []
+        results = st.results(info.id)
+    if as_json:
+        typer.echo(json.dumps({"name": info.name, "state": info.state, "operator": info.operator,
+                               "object": info.object, "notes": info.notes, "plan": info.plan,
+                               "plan_hash": info.plan_hash, "plan_path": info.plan_path,
+                               "created": info.created, "updated": info.updated,
+                               "progress": p.__dict__, "steps_by_kind": kinds,
+                               "rig": snaps[-1] if snaps else None, "faults": faults,
+                               "events": recent, "results": results}, indent=2, default=str))
+        return
+    c = Console(width=140)
+    c.print(f"[bold]{info.name}[/]  state [bold]{info.state}[/]  object {info.object or '-'}  "
+            f"operator {info.operator or '-'}")
+    c.print(f"created {_when(info.created)}, updated {_when(info.updated)}; plan "
+            f"{info.plan_path or '(built in Python)'} hash {info.plan_hash[:12]}")
+    if info.notes:
+        c.print(f"notes: {info.notes}")
+    c.print(f"steps {p.steps_done}/{p.steps_total}, frames {p.frames_stored}/{p.frames_total}, "
+            f"{human_bytes(p.bytes_stored)} stored; steps by kind: "
+            + ", ".join(f"{k} {n}" for k, n in kinds.items()))
+    if snaps:
+        last = snaps[-1]["describe"]
+        c.print("rig: " + "; ".join(f"{role} {d.get('model', d.get('driver', '?'))}"
+                                    + (f" fw {d['firmware']}" if d.get("firmware") else "")
+                                    for role, d in last.items())
+                + f" ({len(snaps)} snapshot{'s' if len(snaps) > 1 else ''})")
+    for f in faults:
+        c.print(f"[red]{f['kind']}[/] {_when(f['time'])} step {f['step']} {f['device'] or ''}: {f['message']}",
+                markup=True, highlight=False)
+    if recent:
+        table = Table(title="recent events")
+        for col in ("time", "kind", "step", "device", "message"):
+            table.add_column(col, overflow="fold")
+        for e in recent:
+            table.add_row(_when(e["time"]), e["kind"], "" if e["step"] is None else str(e["step"]),
+                          e["device"] or "", e["message"])
+        c.print(table)
+    for r in results:
+        c.print(f"{r['category']} {r['kind']} #{r['id']} ({_when(r['created'])}, {r['code_version']}, "
+                f"{len(r['input_frames'])} input frames, artifacts: {', '.join(r['artifacts']) or '-'})")
+
+
+@app.command()
+def verify(name: str = typer.Argument(..., help="Session name."), store: str = STORE_OPTION) -> None:
+    """Re-hash every file of the session; exit 1 on missing, corrupt or orphaned files."""
+    with open_store(store) as st:
+        try:
+            st.session(name)
+        except StoreError as exc:
+            raise fail(str(exc)) from None
+        with Progress(TextColumn("verifying"), BarColumn(), MofNCompleteColumn(),
+                      transient=True) as bar:
+            task = bar.add_task("verify", total=None)
+            report = st.verify(name, progress=lambda i, n: bar.update(task, completed=i, total=n))
+    typer.echo(f"{report.checked} file(s) checked")
+    for label, items in (("missing", report.missing), ("corrupt", report.corrupt),
+                         ("orphaned", report.orphans)):
+        for item in items:
+            typer.secho(f"{label}: {item}", fg=typer.colors.RED)
+    for step in report.incomplete_steps:
+        typer.secho(f"incomplete: step {step} is marked done but has the wrong number of frames",
+                    fg=typer.colors.RED)
+    if not report.ok:
+        raise fail(f"{len(report.missing)} missing, {len(report.corrupt)} corrupt, "
+                   f"{len(report.orphans)} orphaned file(s), {len(report.incomplete_steps)} "
+                   f"incomplete step(s)", 1)
+    typer.secho("ok: every file is present and matches its SHA-256", fg=typer.colors.GREEN)
+
+
+@app.command()
+def export(name: str = typer.Argument(..., help="Session name."),
+           dest: Path = typer.Argument(..., help="New folder, or a .tar / .tar.gz / .zip file."),
+           store: str = STORE_OPTION) -> None:
+    """Write a self-contained store holding only this session (open it with --store DEST)."""
+    with open_store(store) as st:
+        try:
+            out = st.export(name, dest)
+        except StoreError as exc:
+            raise fail(str(exc)) from None
+    size = out.stat().st_size if out.is_file() else sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    typer.echo(f"exported {name} to {out} ({human_bytes(size)}); open with --store {out}")
