@@ -455,6 +455,8 @@ class PtpSession:
         Endpoint addresses: bulk OUT, bulk IN, interrupt IN.
     max_packet : int
         ``wMaxPacketSize`` of the bulk IN endpoint, bytes (512 at high speed).
+    interface : int
+        bInterfaceNumber of the still-image interface (class requests are addressed to it).
     timeout_s : float
         Per-transfer timeout, seconds.
     busy_timeout_s : float
@@ -466,9 +468,10 @@ class PtpSession:
     """
 
     def __init__(self, dev: Any, *, ep_out: int, ep_in: int, ep_event: int, max_packet: int = 512,
-                 timeout_s: float = 5.0, busy_timeout_s: float = 10.0,
+                 interface: int = 0, timeout_s: float = 5.0, busy_timeout_s: float = 10.0,
                  chunk_bytes: int = 8 << 20, device: str = "camera") -> None:
         self.dev = dev
+        self.interface = interface
         self.ep_out, self.ep_in, self.ep_event = ep_out, ep_in, ep_event
         self.max_packet = max_packet
         self.timeout_s = timeout_s
@@ -598,6 +601,9 @@ class PtpSession:
         while True:
             try:
                 resp = self._transaction_once(op, params, data_out)
+            except DeviceTimeout:
+                self.cancel(self._tid)  # drop what the camera may still send for it
+                raise
             except (_Stall, ProtocolError) as exc:
                 stalled = isinstance(exc, _Stall)
                 if stalled:
@@ -660,6 +666,24 @@ class PtpSession:
             return Response(c.code, c.params, data)
         raise ProtocolError(f"{op_name(op)}: no response container for transaction {tid}",
                             device=self.device)
+
+    def cancel(self, transaction_id: int) -> bool:
+        """Still-image class Cancel Request (0x64) for ``transaction_id``, then Get Device Status
+        (0x67) until the camera is no longer busy (USB Still Image Capture Device Definition,
+        5.2.1 and 5.2.4). Best effort after a timeout; returns True if the camera reported OK.
+        """
+        ms = max(1, int(min(self.timeout_s, 1.0) * 1000))
+        try:
+            self.dev.ctrl_transfer(0x21, 0x64, 0, self.interface,
+                                   struct.pack("<HI", Event.CancelTransaction, transaction_id), ms)
+            for _ in range(50):
+                status = self.dev.ctrl_transfer(0xA1, 0x67, 0, self.interface, 64, ms)
+                if len(status) >= 4 and struct.unpack_from("<H", bytes(status), 2)[0] != Resp.DeviceBusy:
+                    return struct.unpack_from("<H", bytes(status), 2)[0] == Resp.OK
+                time.sleep(0.01)
+        except (usb.core.USBError, ValueError, NotImplementedError) as exc:
+            log.warning("%s: cancel of transaction %d failed: %s", self.device, transaction_id, exc)
+        return False
 
     def open(self, session_id: int = 1) -> None:
         """OpenSession (transaction id 0); an already open session is accepted."""

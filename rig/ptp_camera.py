@@ -216,7 +216,8 @@ class PtpCamera(Camera):
         self.session = PtpSession(dev, ep_out=bulk_out.bEndpointAddress,
                                   ep_in=bulk_in.bEndpointAddress,
                                   ep_event=event_in.bEndpointAddress,
-                                  max_packet=bulk_in.wMaxPacketSize, timeout_s=self.timeout_s,
+                                  max_packet=bulk_in.wMaxPacketSize,
+                                  interface=intf.bInterfaceNumber, timeout_s=self.timeout_s,
                                   busy_timeout_s=self.busy_timeout_s, chunk_bytes=self.chunk_bytes,
                                   device=self.name)
         try:

@@ -218,6 +218,7 @@ class PtpCameraSim(usb.backend.IBackend):
         self.commands: list[tuple[int, tuple[int, ...]]] = []  # (op, params) received, for tests
         self.captures = 0
         self.busy_replies = 0  # DeviceBusy answers given, for tests
+        self.cancels = 0  # class Cancel requests received
         self.disconnected = False
         self._lock = threading.RLock()
         self._dev = object()  # the enumerated device's identity
@@ -369,9 +370,15 @@ class PtpCameraSim(usb.backend.IBackend):
             self.reconnect()
 
     def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
-        """Still-image class requests: Get Device Status (0x67), Device Reset (0x66)."""
+        """Still-image class requests: Cancel (0x64), Device Reset (0x66), Get Device Status
+        (0x67)."""
         with self._lock:
             self._check()
+            if bmRequestType == 0x21 and bRequest == 0x64:
+                self.cancels += 1
+                self._in.clear()  # the cancelled transaction's data and response are dropped
+                self._pending_data_op = None
+                return len(data)
             if bmRequestType == 0xA1 and bRequest == 0x67:
                 code = DEVICE_BUSY if time.monotonic() < self._busy_until else OK
                 status = struct.pack("<HH", 4, code)

@@ -133,6 +133,7 @@ def test_no_reply_times_out_then_recovers():
     with pytest.raises(DeviceTimeout):
         cam.read()
     assert time.monotonic() - t0 < 1.0
+    assert sim.cancels == 1  # the driver cancelled the lost transaction
     assert cam.read()["iso"]["value"] == 100.0
 
 

@@ -1,6 +1,7 @@
 """PTP codec, datasets and PtpSession against scripted USB transfers (no device)."""
 from __future__ import annotations
 
+import array
 import errno
 import struct
 import time
@@ -38,6 +39,7 @@ class ScriptedUsb:
     def __init__(self, script):
         self.script = list(script)
         self.cleared = []
+        self.control = []
 
     def write(self, ep, payload, timeout):
         kind, expected = self.script.pop(0)
@@ -56,6 +58,13 @@ class ScriptedUsb:
 
     def clear_halt(self, ep):
         self.cleared.append(ep)
+
+    def ctrl_transfer(self, bm_request_type, b_request, w_value, w_index, data_or_length, timeout):
+        self.control.append((bm_request_type, b_request, w_index, bytes(data_or_length)
+                             if b_request == 0x64 else data_or_length))
+        if b_request == 0x67:  # Get Device Status: OK
+            return array.array("B", struct.pack("<HH", 4, 0x2001))
+        return len(data_or_length)
 
 
 def session(script, **kw) -> tuple[PtpSession, ScriptedUsb]:
@@ -278,6 +287,8 @@ def test_stale_response_from_timed_out_transaction_is_dropped():
                      ("r", data(0x1015, 2, b"\x90\x01")), ("r", resp(0x2001, 2))])
     with pytest.raises(DeviceTimeout):
         s.get_prop_value(0x500F, DataType.UINT16)
+    # the timed-out transaction was cancelled with the class request, then the status polled
+    assert dev.control == [(0x21, 0x64, 0, struct.pack("<HI", 0x4001, 1)), (0xA1, 0x67, 0, 64)]
     assert s.get_prop_value(0x500F, DataType.UINT16) == 400
 
 
