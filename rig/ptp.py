@@ -27,7 +27,7 @@ import logging
 import struct
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
@@ -261,7 +261,7 @@ class Reader:
     def value(self, datatype: int) -> int | str:
         if datatype == DataType.STR:
             return self.string()
-        fmt = _INT_FORMATS.get(DataType(datatype) if datatype in DataType._value2member_map_ else None)
+        fmt = _INT_FORMATS.get(datatype)
         if fmt is None:
             raise ProtocolError(f"{self.what}: unsupported data type 0x{datatype:04X}", device=self.device)
         return struct.unpack("<" + fmt, self._take(struct.calcsize(fmt)))[0]
@@ -309,10 +309,11 @@ def pack_value(datatype: int, value: int | str) -> bytes:
     """Encode one property value of ``datatype``."""
     if datatype == DataType.STR:
         return pack_string(str(value))
+    fmt = _INT_FORMATS.get(datatype)
+    if fmt is None:
+        raise ValueError(f"unsupported PTP data type 0x{datatype:04X}")
     try:
-        return struct.pack("<" + _INT_FORMATS[DataType(datatype)], int(value))
-    except (KeyError, ValueError):
-        raise ValueError(f"unsupported PTP data type 0x{datatype:04X}") from None
+        return struct.pack("<" + fmt, int(value))
     except struct.error as exc:
         raise ValueError(f"value {value} does not fit PTP type {DataType(datatype).name}: {exc}") from None
 
@@ -435,7 +436,6 @@ class Response:
     code: int
     params: tuple[int, ...] = ()
     data: bytes | None = None
-    events: list[Container] = field(default_factory=list)
 
 
 #: operations that may be repeated after a stall or short data phase without side effects
