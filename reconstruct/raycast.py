@@ -115,6 +115,7 @@ class Surface:
 
     def _set_transform(self, transform) -> None:
         self.transform = _check_transform(transform)
+        self._identity = bool(np.array_equal(self.transform, np.eye(4)))
         self._inv = np.linalg.inv(self.transform)
         self._normal_matrix = self._inv[:3, :3].T  # inverse-transpose takes normals to the world
         self.scale = float(abs(np.linalg.det(self.transform[:3, :3])) ** (1 / 3))
@@ -148,7 +149,21 @@ class Surface:
 
     # world frame ------------------------------------------------------------------------------
     def _to_local(self, origins, dirs):
-        return origins @ self._inv[:3, :3].T + self._inv[:3, 3], dirs @ self._inv[:3, :3].T
+        if self._identity:
+            return origins, dirs
+        A, b = self._inv[:3, :3], self._inv[:3, 3]
+        if origins.strides[0] == 0:  # one shared origin (camera rays): transform it once
+            o = np.broadcast_to(A @ origins[0] + b, origins.shape)
+        else:
+            o = _linear(A, origins) + b
+        return o, _linear(A, dirs)
+
+    def _to_world(self, p, ng, ns):
+        """Object-frame points and (unnormalised) normals -> world points and unit normals."""
+        if self._identity:
+            return p, _unit(ng), _unit(ns)
+        return (_linear(self.transform[:3, :3], p) + self.transform[:3, 3],
+                _unit(_linear(self._normal_matrix, ng)), _unit(_linear(self._normal_matrix, ns)))
 
     def intersect(self, origins, dirs, t_max=None):
         """Ray parameters of the first hits of world rays (N, 3): ``t`` (N,) with ``inf`` on
@@ -174,6 +189,8 @@ class Mesh(Surface):
     Notes
     -----
     ``uv`` of a hit is the mesh's texture coordinate (``mesh.visual.uv``) interpolated, or NaN.
+    The mesh's arrays are copied at construction (trimesh re-hashes its arrays on every access);
+    build a new ``Mesh`` after editing the trimesh.
     """
 
     def __init__(self, mesh: trimesh.Trimesh, transform=None, *, smooth: bool = True):
@@ -184,28 +201,31 @@ class Mesh(Surface):
         super().__init__(transform)
         self.mesh = mesh
         self.smooth = smooth
-        self._cache: dict = {}  # shared by with_transform copies
+        uv = getattr(mesh.visual, "uv", None)
+        # plain arrays shared by with_transform copies (the Embree scene is added on first use)
+        self._geom = {
+            "vertices": np.array(mesh.vertices, dtype=np.float64),
+            "faces": np.array(mesh.faces, dtype=np.int64),
+            "face_normals": np.array(mesh.face_normals, dtype=np.float64),
+            "vertex_normals": np.array(mesh.vertex_normals, dtype=np.float64),
+            "uv": None if uv is None or len(uv) != len(mesh.vertices) else np.array(uv, float),
+            "corners": trimesh.bounds.corners(mesh.bounds),
+        }
 
     @property
     def bounding_radius(self) -> float:
-        corners = trimesh.bounds.corners(self.mesh.bounds)
-        return float(np.linalg.norm(corners @ self.transform[:3, :3].T + self.transform[:3, 3],
-                                    axis=1).max())
-
-    @property
-    def _uv(self):
-        uv = getattr(self.mesh.visual, "uv", None)
-        return None if uv is None or len(uv) != len(self.mesh.vertices) else np.asarray(uv, float)
+        corners = self._geom["corners"] @ self.transform[:3, :3].T + self.transform[:3, 3]
+        return float(np.linalg.norm(corners, axis=1).max())
 
     def _embree(self):
-        if "scene" not in self._cache:
-            centre = self.mesh.bounds.mean(axis=0)
+        g = self._geom
+        if "scene" not in g:
+            centre = g["corners"].mean(axis=0)
             scene = _rtcs.EmbreeScene()
-            _EmbreeTriangles(scene=scene,
-                             vertices=(self.mesh.vertices - centre).astype(np.float32),
-                             indices=np.ascontiguousarray(self.mesh.faces, dtype=np.int32))
-            self._cache["scene"] = (scene, centre)
-        return self._cache["scene"]
+            _EmbreeTriangles(scene=scene, vertices=(g["vertices"] - centre).astype(np.float32),
+                             indices=g["faces"].astype(np.int32))
+            g["scene"] = (scene, centre)
+        return g["scene"]
 
     def _intersect(self, o, d, t_max):
         if not HAVE_EMBREE:
@@ -248,13 +268,13 @@ class Mesh(Surface):
         return t, prim, b1, b2
 
     def _attributes(self, o, d, t, prim, b1, b2):
-        faces = self.mesh.faces[prim]
+        g = self._geom
+        faces = g["faces"][prim]
         w = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
-        v = self.mesh.vertices
-        p = np.einsum("nk,nkj->nj", w, v[faces])
-        ng = self.mesh.face_normals[prim]
-        ns = np.einsum("nk,nkj->nj", w, self.mesh.vertex_normals[faces]) if self.smooth else ng
-        uv = self._uv
+        p = np.einsum("nk,nkj->nj", w, g["vertices"][faces])
+        ng = g["face_normals"][prim]
+        ns = np.einsum("nk,nkj->nj", w, g["vertex_normals"][faces]) if self.smooth else ng
+        uv = g["uv"]
         uv = np.einsum("nk,nkj->nj", w, uv[faces]) if uv is not None else np.full((len(prim), 2),
                                                                                    np.nan)
         return p, ng, ns, uv
@@ -467,40 +487,49 @@ def first_hits(surfaces: Sequence[Surface] | Surface, origins, dirs, t_max=None)
     """
     surfaces = _check_surfaces(surfaces)
     o, d = _check_rays(origins, dirs)
+    return _first_hits(surfaces, o, d, t_max)
+
+
+def _first_hits(surfaces: list[Surface], o, d, t_max=None) -> Hits:
+    """:func:`first_hits` on checked float64 arrays."""
     n = len(d)
     best = np.full(n, np.inf) if t_max is None else np.broadcast_to(
         np.asarray(t_max, float), (n,)).copy()
     owner = np.full(n, -1, dtype=np.int64)
-    local = []
+    found = []
     for k, s in enumerate(surfaces):
-        lo, ld = s._to_local(o, d)
-        t, prim, b1, b2 = s._intersect(lo, ld, best)
+        t, prim, b1, b2 = s._intersect(*s._to_local(o, d), best)
         closer = t < best
-        best = np.where(closer, t, best)
+        best[closer] = t[closer]
         owner[closer] = k
-        local.append((lo, ld, t, prim, b1, b2))
+        found.append((prim, b1, b2))
 
     mask = owner >= 0
-    hits = Hits(t=np.where(mask, best, np.inf), position=np.full((n, 3), np.nan),
-                normal=np.zeros((n, 3)), geometric_normal=np.zeros((n, 3)),
-                uv=np.full((n, 2), np.nan), face_index=np.full(n, -1, dtype=np.int64),
-                surface_index=owner, mask=mask)
+    hits = Hits(t=best if t_max is None else np.where(mask, best, np.inf),
+                position=np.full((n, 3), np.nan), normal=np.zeros((n, 3)),
+                geometric_normal=np.zeros((n, 3)), uv=np.full((n, 2), np.nan),
+                face_index=np.full(n, -1, dtype=np.int64), surface_index=owner, mask=mask)
     for k, s in enumerate(surfaces):
         idx = np.flatnonzero(owner == k)
         if len(idx) == 0:
             continue
-        lo, ld, t, prim, b1, b2 = (a[idx] for a in local[k])
-        p, ng, ns, uv = s._attributes(lo, ld, t, prim, b1, b2)
-        pw = p @ s.transform[:3, :3].T + s.transform[:3, 3]
+        oi, di = o[idx], d[idx]
+        prim, b1, b2 = (a[idx] for a in found[k])
+        p, ng, ns, uv = s._attributes(*s._to_local(oi, di), best[idx], prim, b1, b2)
+        pw, ngw, nsw = s._to_world(p, ng, ns)
         hits.position[idx] = pw
         # float64 t from the exact hit point (Embree's tfar is float32)
-        hits.t[idx] = np.einsum("ij,ij->i", pw - o[idx], d[idx]) / np.einsum("ij,ij->i", d[idx],
-                                                                              d[idx])
-        hits.geometric_normal[idx] = _unit(ng @ s._normal_matrix.T)
-        hits.normal[idx] = _unit(ns @ s._normal_matrix.T)
+        hits.t[idx] = np.einsum("ij,ij->i", pw - oi, di) / np.einsum("ij,ij->i", di, di)
+        hits.geometric_normal[idx] = ngw
+        hits.normal[idx] = nsw
         hits.uv[idx] = uv
         hits.face_index[idx] = prim
     return hits
+
+
+def _linear(M, v):
+    """Rows of ``v`` (N, 3) times the 3x3 ``M`` (``v @ M.T``; this form is ~4x faster in numpy)."""
+    return (M @ v.T).T
 
 
 def _unit(v):
@@ -561,12 +590,20 @@ def occluded(surfaces: Sequence[Surface] | Surface, origins, dirs, max_t=None, *
         eps = OFFSET_EPS * scene_scale(surfaces, o)
         o = offset_origins(o, nrm, d, eps / OFFSET_EPS)
         tm = tm - 2 * eps / np.linalg.norm(d, axis=1)
-    blocked = np.zeros(n, dtype=bool)
+    return _occluded(surfaces, o, d, tm)
+
+
+def _occluded(surfaces: list[Surface], o, d, tm) -> np.ndarray:
+    """:func:`occluded` on checked arrays (origins already offset), ``tm`` (N,)."""
+    blocked = np.zeros(len(d), dtype=bool)
     for s in surfaces:
         idx = np.flatnonzero(~blocked)
         if len(idx) == 0:
             break
-        blocked[idx] = s._occluded(*s._to_local(o[idx], d[idx]), tm[idx])
+        if len(idx) == len(d):
+            blocked = s._occluded(*s._to_local(o, d), tm)
+        else:
+            blocked[idx] = s._occluded(*s._to_local(o[idx], d[idx]), tm[idx])
     return blocked
 
 

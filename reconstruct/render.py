@@ -9,7 +9,8 @@ light of radiant intensity ``I`` [X/sr] at distance ``r`` [mm] gives irradiance 
 unit throughout.
 
 Light transport: direct lighting from every light (shadow rays when ``shadows``), Monte-Carlo
-environment lighting (importance sampled by luminance x solid angle), and perfect mirrors that
+environment lighting (by default multiple importance sampling: the map's luminance x solid angle
+combined with cosine-weighted hemisphere sampling, balance heuristic), and perfect mirrors that
 follow reflection rays up to ``max_bounces`` (seeing surfaces, the environment, and spherical
 point lights with ``radius > 0``). Inter-reflections between non-mirror surfaces are not
 simulated. Surfaces are two-sided: seen from the back, the normals are flipped towards the
@@ -34,11 +35,11 @@ from .brdf.base import BRDF
 from .camera import CameraModel
 from .envmap import EnvironmentMap
 from .frames import tangent_frames, to_local
-from .raycast import (Hits, Surface, first_hits, occluded, offset_origins, reflect,
-                      scene_scale)
+from .raycast import (OFFSET_EPS, Hits, Surface, _check_rays, _first_hits, _occluded,
+                      offset_origins, reflect, scene_scale)
 
 #: Rays processed together (bounds memory: ~1 kB per ray in flight).
-DEFAULT_CHUNK = 1 << 18
+DEFAULT_CHUNK = 1 << 17
 
 
 # ----------------------------------------------------------------------------------------------
@@ -308,7 +309,7 @@ class _Options:
 # ----------------------------------------------------------------------------------------------
 def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
            polarizer: float | None = None, env_samples: int = 64,
-           env_sampling: str = "importance", max_bounces: int = 2, rng=0,
+           env_sampling: str = "mis", max_bounces: int = 2, rng=0,
            background=None, chunk: int = DEFAULT_CHUNK) -> RenderResult:
     """Render ``scene`` as seen by ``camera``.
 
@@ -323,8 +324,11 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
         Analyser angle on the lens, degrees (see module docstring); None: no analyser.
     env_samples : int
         Monte-Carlo samples per pixel for the environment map (ignored without one).
-    env_sampling : {'importance', 'uniform'}
-        Environment sampling: luminance x solid angle, or uniform over the sphere.
+    env_sampling : {'mis', 'importance', 'uniform'}
+        Environment sampling: 'mis' (half the samples by luminance x solid angle, half
+        cosine-weighted about the normal, balance heuristic; robust for bright, small sources
+        and broad skies alike), 'importance' (luminance x solid angle only) or 'uniform' over
+        the sphere. All are unbiased estimates of the piecewise-constant map's reflection.
     max_bounces : int
         How many mirror reflections a ray may follow (0: mirrors see nothing).
     rng : int or numpy.random.Generator
@@ -352,13 +356,13 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     uv = np.full((n, 2), np.nan, np.float32)
     face = np.full(n, -1, np.int32)
     surf = np.full(n, -1, np.int32)
-    ys, xs = np.divmod(np.arange(n), W)
-    pixels = np.stack([xs, ys], axis=1)
     opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
     bg = None if background is None else _rgb3("background", background)
-    for s in range(0, n, int(chunk)):
-        sl = slice(s, min(n, s + int(chunk)))
-        o, d = camera.pixel_rays(pixels[sl])
+    rows = max(1, int(chunk) // W)
+    for r0 in range(0, H, rows):
+        r1 = min(H, r0 + rows)
+        sl = slice(r0 * W, r1 * W)
+        o, d = _camera_rays(camera, r0, r1)
         L, hits = _trace(scene, o, d, opts, 0, bg)
         rad[sl] = L
         mask[sl] = hits.mask
@@ -374,16 +378,29 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
                         face_index=face.reshape(H, W), surface_index=surf.reshape(H, W))
 
 
+def _camera_rays(camera: CameraModel, r0: int, r1: int):
+    """World rays (origins, unit directions) of pixel rows [r0, r1), row-major."""
+    W = camera.width
+    if np.any(camera.dist):
+        ys, xs = np.mgrid[r0:r1, 0:W]
+        return camera.pixel_rays(np.stack([xs.ravel(), ys.ravel()], axis=1))
+    # no distortion: d = R^T K^-1 (x, y, 1) = x a + y b + c, an outer sum (no per-pixel matmul)
+    a, b, c = (camera.R.T @ np.linalg.inv(camera.K)).T
+    d = (np.arange(W, dtype=np.float64)[None, :, None] * a
+         + (np.arange(r0, r1, dtype=np.float64)[:, None, None] * b + c)).reshape(-1, 3)
+    d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+    return np.broadcast_to(camera.center, d.shape), d
+
+
 def render_rays(scene: Scene, origins, dirs, *, shadows: bool = True,
                 polarizer: float | None = None, env_samples: int = 64,
-                env_sampling: str = "importance", max_bounces: int = 2, rng=0,
+                env_sampling: str = "mis", max_bounces: int = 2, rng=0,
                 background=None) -> tuple[np.ndarray, Hits]:
     """Radiance arriving at ``origins`` (N, 3) mm from world directions ``-dirs`` (N, 3), i.e.
     along rays ``origins + t dirs`` (any camera model, lumitexel validation, probes).
 
     Options as :func:`render`. Returns radiance (N, 3) float32 and the first :class:`Hits`.
     """
-    from .raycast import _check_rays
     o, d = _check_rays(origins, dirs)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
@@ -392,8 +409,9 @@ def render_rays(scene: Scene, origins, dirs, *, shadows: bool = True,
 
 
 def _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng) -> _Options:
-    if env_sampling not in ("importance", "uniform"):
-        raise ValueError(f"env_sampling must be 'importance' or 'uniform', got {env_sampling!r}")
+    if env_sampling not in ("mis", "importance", "uniform"):
+        raise ValueError(f"env_sampling must be 'mis', 'importance' or 'uniform', got "
+                         f"{env_sampling!r}")
     if int(env_samples) < 0:
         raise ValueError(f"env_samples must be >= 0, got {env_samples!r}")
     if int(max_bounces) < 0:
@@ -426,7 +444,7 @@ def _trace(scene: Scene, o, d, opts: _Options, depth: int, background):
     surfaces = scene.surfaces
     n = len(d)
     L = np.zeros((n, 3))
-    hits = first_hits(surfaces, o, d) if surfaces else _no_hits(n)
+    hits = _first_hits(surfaces, o, d) if surfaces else _no_hits(n)
     miss = ~hits.mask
     if np.any(miss):
         if background is not None and depth == 0:
@@ -476,49 +494,45 @@ def _shade(scene: Scene, hits: Hits, idx, d, opts: _Options, depth: int):
     p = hits.position[idx]
     ng = hits.geometric_normal[idx]
     ns = hits.normal[idx]
-    uv = hits.uv[idx]
-    face = hits.face_index[idx]
     owner = hits.surface_index[idx]
     wo = -d
     # two-sided surfaces: face the viewer
     back = np.einsum("ij,ij->i", ng, wo) < 0
-    ng[back] *= -1
-    ns[back] *= -1
+    if np.any(back):
+        ng[back] *= -1
+        ns[back] *= -1
 
     # per-point materials: list of (local indices, BRDF-or-Mirror)
     groups = []
+    uv, face = hits.uv[idx], hits.face_index[idx]
     for k in np.unique(owner):
-        sel = np.flatnonzero(owner == k)
+        sel = np.flatnonzero(owner == k) if len(scene.objects) > 1 else np.arange(M)
         groups.extend(_resolve(scene.objects[k], sel, p[sel], uv[sel], face[sel]))
 
     out = np.zeros((M, 3))
     brdf_groups = [(s, m) for s, m in groups if isinstance(m, BRDF)]
-    mirror_groups = [(s, m) for s, m in groups if isinstance(m, Mirror)]
+    scale = scene_scale(scene.surfaces, p)
     if brdf_groups:
-        sel_all = np.concatenate([s for s, _ in brdf_groups])
-        frames = np.zeros((M, 3, 3))
-        frames[sel_all] = tangent_frames(ns[sel_all])
+        frames = tangent_frames(ns)
         wo_l = to_local(wo, frames)
-        scale = scene_scale(scene.surfaces, p[sel_all])
         for light in scene.lights:
-            wi, E = _light_irradiance(scene, light, p, ng, sel_all, scale, opts.shadows)
+            wi, g = _light_geometry(scene, light, p, ng, scale, opts.shadows)
             wi_l = to_local(wi, frames)
-            cos_i = np.clip(wi_l[:, 2], 0.0, None)[:, None]
+            g *= np.clip(wi_l[:, 2], 0.0, None)  # cos(theta_i) / r^2 (or 1), zero in shadow
+            gain = light.intensity if isinstance(light, PointLight) else light.irradiance
             w = _weights(opts, light.polarizer)
             for sel, brdf in brdf_groups:
-                f = _split_eval(brdf, wi_l[sel], wo_l[sel], w)
-                out[sel] += f * cos_i[sel] * E[sel]
+                out[sel] += _split_eval(brdf, wi_l[sel], wo_l[sel], w) * g[sel, None] * gain
         if scene.environment is not None and opts.env_samples > 0:
             for sel, brdf in brdf_groups:
                 out[sel] += _env_lighting(scene, brdf, p[sel], ng[sel], frames[sel], wo_l[sel],
                                           opts, scale)
-    for sel, mirror in mirror_groups:
-        if depth >= opts.max_bounces:
+    for sel, mirror in groups:
+        if not isinstance(mirror, Mirror) or depth >= opts.max_bounces:
             continue
         r = reflect(d[sel], ns[sel])
-        scale = scene_scale(scene.surfaces, p[sel])
-        o2 = offset_origins(p[sel], ng[sel], r, scale)
-        Lr, _ = _trace(scene, o2, r, opts, depth + 1, None)
+        Lr, _ = _trace(scene, offset_origins(p[sel], ng[sel], r, scale), r, opts, depth + 1,
+                       None)
         out[sel] += np.asarray(mirror.reflectance, float) * Lr
     return out
 
@@ -553,28 +567,24 @@ def _split_eval(brdf: BRDF, wi_l, wo_l, weights):
         ws * brdf.specular_part().evaluate(wi_l, wo_l)
 
 
-def _light_irradiance(scene, light, p, ng, sel, scale, shadows):
-    """Unit directions to the light (M, 3) and the irradiance it delivers (M, 3) (zero where
-    shadowed or behind the light); only rows ``sel`` are computed."""
-    M = len(p)
-    wi = np.zeros((M, 3))
-    E = np.zeros((M, 3))
+def _light_geometry(scene, light, p, ng, scale, shadows):
+    """Unit directions (M, 3) from points ``p`` to the light and the geometric factor (M,):
+    1 / r^2 (mm^-2) for a point light, 1 for a directional one, zero where shadowed."""
     if isinstance(light, PointLight):
-        v = light.position - p[sel]
-        dist = np.linalg.norm(v, axis=1)
-        wi[sel] = v / dist[:, None]
-        E[sel] = light.intensity / (dist ** 2)[:, None]
+        v = light.position - p
+        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
+        wi = v / dist[:, None]
+        g = 1.0 / dist ** 2
     else:
-        dist = np.full(len(sel), np.inf)
-        wi[sel] = light.direction
-        E[sel] = light.irradiance
+        dist = np.full(len(p), np.inf)
+        wi = np.broadcast_to(light.direction, p.shape)
+        g = np.ones(len(p))
     if shadows:
-        lit = np.einsum("ij,ij->i", wi[sel], ng[sel]) > 0  # facing away: no ray needed
-        cand = sel[lit]
+        cand = np.flatnonzero(np.einsum("ij,ij->i", wi, ng) > 0)  # facing away: no ray needed
         o = offset_origins(p[cand], ng[cand], wi[cand], scale)
-        blocked = occluded(scene.surfaces, o, wi[cand], dist[lit] - 2e-5 * scale)
-        E[cand[blocked]] = 0.0
-    return wi, E
+        blocked = _occluded(scene.surfaces, o, wi[cand], dist[cand] - 2 * OFFSET_EPS * scale)
+        g[cand[blocked]] = 0.0
+    return wi, g
 
 
 def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale):
@@ -585,15 +595,36 @@ def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale)
     K = len(p)
     S = opts.env_samples
     acc = np.zeros((K, 3))
-    for _ in range(S):
-        wi, pdf = env.sample(K, opts.rng, method=opts.env_sampling)
-        wi_l = to_local(wi, frames)
+    for j in range(S):
+        if opts.env_sampling == "mis" and j % 2 == 1:
+            wi_l = _cosine_hemisphere(K, opts.rng)
+            wi = np.einsum("nji,nj->ni", frames, wi_l)
+        else:
+            wi = env.sample(K, opts.rng, method="uniform" if opts.env_sampling == "uniform"
+                            else "importance")[0]
+            wi_l = to_local(wi, frames)
         cos_i = np.clip(wi_l[:, 2], 0.0, None)
+        if opts.env_sampling == "mis":  # balance heuristic over the two strategies
+            pdf = 0.5 * (env.pdf(wi) + cos_i / np.pi)
+        elif opts.env_sampling == "importance":
+            pdf = env.pdf(wi)
+        else:
+            pdf = np.full(K, 1 / (4 * np.pi))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            weight = np.where(cos_i > 0, cos_i / pdf, 0.0)
         contrib = brdf.evaluate(wi_l, wo_l) * (env.lookup(wi, interpolation="nearest")
-                                               * (cos_i / pdf)[:, None])
+                                               * weight[:, None])
         if opts.shadows:
             live = np.flatnonzero(np.any(contrib > 0, axis=1))
             o = offset_origins(p[live], ng[live], wi[live], scale)
-            contrib[live[occluded(scene.surfaces, o, wi[live])]] = 0.0
+            contrib[live[_occluded(scene.surfaces, o, wi[live], np.full(len(live), np.inf))]] = 0.0
         acc += contrib
     return _env_weight(opts) * acc / S
+
+
+def _cosine_hemisphere(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Cosine-weighted local directions (n, 3) about +z (pdf cos(theta) / pi)."""
+    r = np.sqrt(rng.random(n))
+    phi = 2 * np.pi * rng.random(n)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - r * r))],
+                    axis=1)
