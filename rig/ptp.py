@@ -561,7 +561,7 @@ class PtpSession:
             got += take
         if got < size:
             raise ShortRead(f"{what}: data phase ended after {got + HEADER_SIZE} of "
-                                f"{length} bytes (short read)", device=self.device)
+                            f"{length} bytes (short read)", device=self.device)
         if length % self.max_packet == 0:
             try:  # the terminating zero-length packet
                 self._read(buf, min(self.timeout_s, 0.05))

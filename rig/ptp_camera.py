@@ -129,7 +129,6 @@ class PtpCamera(Camera):
         self.session: PtpSession | None = None
         self.info: DeviceInfo | None = None
         self._dev: Any = None
-        self._interface: int | None = None
         self._descs: dict[int, PropDesc] = {}
         self._values: dict[int, int] = {}
         self._kept: list[int] = []  # downloaded handles left on the card
@@ -212,7 +211,10 @@ class PtpCamera(Camera):
         except usb.core.USBError as exc:
             usb.util.dispose_resources(dev)
             raise self._usb_error(exc, "claiming the camera interface") from None
-        self._dev, self._interface = dev, intf.bInterfaceNumber
+        except BaseException:
+            usb.util.dispose_resources(dev)
+            raise
+        self._dev = dev
         self.session = PtpSession(dev, ep_out=bulk_out.bEndpointAddress,
                                   ep_in=bulk_in.bEndpointAddress,
                                   ep_event=event_in.bEndpointAddress,
@@ -227,7 +229,7 @@ class PtpCamera(Camera):
             if missing:
                 raise DeviceError("unsupported", f"{self.info.manufacturer} {self.info.model} does "
                                   f"not offer standard PTP {', '.join(missing)}; it needs vendor "
-                                  "operations (use a libgphoto2-based driver)", device=self.name)
+                                  "operations (use driver = 'gphoto2')", device=self.name)
             self.session.open(self.session_id)
             self._descs = {p: self.session.get_prop_desc(p)
                            for p in (Prop.ExposureTime, Prop.ExposureIndex, Prop.FNumber)

@@ -263,3 +263,15 @@ def _timed(fn) -> float:
     t0 = time.perf_counter()
     fn()
     return time.perf_counter() - t0
+
+
+def test_body_without_standard_capture_points_to_gphoto2():
+    class VendorOnly(PtpCameraSim):
+        def _device_info(self):
+            raw = super()._device_info()
+            return raw.replace(b"\x0e\x10", b"\x01\x90", 1)  # InitiateCapture -> a vendor op
+
+    cam = PtpCamera("camera", VID, PID, backend=VendorOnly(), timeout_s=0.3)
+    with pytest.raises(DeviceError, match="gphoto2"):
+        cam.connect()
+    assert not cam.connected
