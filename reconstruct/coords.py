@@ -124,7 +124,7 @@ def from_halfway_difference(theta_h, phi_h, theta_d, phi_d):
 
 
 def zickler_uvw(theta_h, theta_d, phi_d) -> np.ndarray:
-    """Zickler et al.'s (u, v, w) = (sin theta_h cos 2 phi_d, sin theta_h sin 2 phi_d, 2 theta_d / pi).
+    """Zickler et al.'s (u, v, w) = (sin th_h cos 2 phi_d, sin th_h sin 2 phi_d, 2 th_d / pi).
 
     The doubled phi_d makes f(u, v, w) reciprocal (phi_d -> phi_d + pi leaves it unchanged) and
     removes the theta_h = 0 singularity of the halfway/difference angles (Eq. 1). Inputs in
@@ -153,7 +153,7 @@ def zickler_uvw_inverse(uvw):
 
 
 def uvw_from_directions(wi, wo) -> np.ndarray:
-    """Zickler (u, v, w) (N, 3) of local direction pairs (N, 3) — ``halfway_difference`` + Eq. 1."""
+    """Zickler (u, v, w) (N, 3) of local direction pairs (N, 3): angles, then Eq. 1."""
     theta_h, _, theta_d, phi_d = halfway_difference(wi, wo)
     return zickler_uvw(theta_h, theta_d, phi_d)
 

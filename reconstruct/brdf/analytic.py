@@ -35,7 +35,8 @@ class OrenNayar(BRDF):
     alpha = max(theta_i, theta_o), beta = min(theta_i, theta_o),
     A = 1 - 0.5 s^2/(s^2 + 0.33), B = 0.45 s^2/(s^2 + 0.09), s = ``sigma``.
     Evaluated in the equivalent singularity-free form
-    max(0, cos(phi_i - phi_o)) sin(alpha) tan(beta) = max(0, wi_x wo_x + wi_y wo_y) / max(cos theta_i, cos theta_o).
+    max(0, cos(phi_i - phi_o)) sin(alpha) tan(beta)
+    = max(0, wi_x wo_x + wi_y wo_y) / max(cos theta_i, cos theta_o).
 
     Parameters
     ----------
@@ -238,7 +239,8 @@ def microfacet_distribution(cos_h: np.ndarray, alpha: np.ndarray, kind: str) -> 
         Roughness (broadcast against ``cos_h``), > 0: the RMS slope for Beckmann, the
         Trowbridge-Reitz width for GGX.
     kind : {"ggx", "beckmann"}
-        GGX: alpha^2 / (pi (cos^2 (alpha^2 - 1) + 1)^2); Beckmann: exp(-tan^2/alpha^2) / (pi alpha^2 cos^4).
+        GGX: alpha^2 / (pi (cos^2 (alpha^2 - 1) + 1)^2);
+        Beckmann: exp(-tan^2 / alpha^2) / (pi alpha^2 cos^4).
     """
     a2 = alpha ** 2
     c2 = cos_h ** 2
@@ -316,7 +318,8 @@ class CookTorrance(BRDF):
             raise ValueError(f"CookTorrance.distribution must be one of {_DISTRIBUTIONS}, "
                              f"got {self.distribution!r}")
         if self.masking not in _MASKINGS:
-            raise ValueError(f"CookTorrance.masking must be one of {_MASKINGS}, got {self.masking!r}")
+            raise ValueError(f"CookTorrance.masking must be one of {_MASKINGS}, "
+                             f"got {self.masking!r}")
 
     def _evaluate(self, wi, wo):
         alpha = rgb(self.alpha)

@@ -1,4 +1,4 @@
-"""Tabulated isotropic BRDFs: a 3-D (theta_h, theta_d, phi_d) table and a bivariate (theta_h, theta_d) one.
+"""Tabulated isotropic BRDFs: a 3-D (theta_h, theta_d, phi_d) table and a bivariate one.
 
 Both look their values up through the Rusinkiewicz halfway/difference angles of
 ``reconstruct.coords`` and interpolate multilinearly between table nodes (vectorised: a few
@@ -89,7 +89,8 @@ class TabulatedIsotropic(BRDF):
     positions MERL's nearest-bin lookup (BRDFRead.cpp) assigns to its bins, so a MERL table
     reads unchanged; between nodes this model interpolates trilinearly in the warped
     coordinates instead of taking the lower bin. NaN entries mark invalid (unmeasured) nodes:
-    they are skipped and the remaining corner weights renormalised.
+    they are skipped and the remaining corner weights renormalised. A measured table has no
+    diffuse/specular split: ``specular_part()`` is the whole table (the base-class default).
 
     Parameters
     ----------

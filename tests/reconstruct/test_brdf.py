@@ -107,7 +107,8 @@ def test_lambert_albedo_is_rho():
         a, se = directional_albedo(Lambertian(rho), theta_o, rng)
         assert np.all(np.abs(a - rho) <= 4 * se + 1e-12), (a, se)
     wi = hemisphere(rng, 10)
-    np.testing.assert_allclose(Lambertian(rho).evaluate(wi, wi[::-1]), np.tile(rho / np.pi, (10, 1)))
+    np.testing.assert_allclose(Lambertian(rho).evaluate(wi, wi[::-1]),
+                               np.tile(rho / np.pi, (10, 1)))
 
 
 @pytest.mark.parametrize("model, truth", [
@@ -225,7 +226,8 @@ def test_oren_nayar_matches_the_angle_form():
 
 
 def test_cook_torrance_normal_incidence_value():
-    """wi = wo = n: h = n, D = 1/(pi alpha^2) (GGX), G = 1, F = f0 -> f = kd/pi + f0/(4 pi alpha^2)."""
+    """wi = wo = n: h = n, D = 1/(pi alpha^2) (GGX and Beckmann), G = 1, F = f0
+    -> f = kd/pi + f0/(4 pi alpha^2)."""
     kd, f0, alpha = 0.3, 0.7, 0.25
     z = np.array([[0.0, 0.0, 1.0]])
     for masking in ("smith-correlated", "smith-separable", "v-cavity"):
@@ -242,7 +244,8 @@ def test_ward_bounded_equals_unnormalised_halfway_form():
     H = wi + wo
     hn = H[:, 2]
     tan2 = (np.sum(H * H, axis=1) - hn ** 2) / hn ** 2
-    ref = rho_s * np.sum(H * H, axis=1) / (np.pi * alpha ** 2 * hn ** 4) * np.exp(-tan2 / alpha ** 2)
+    ref = (rho_s * np.sum(H * H, axis=1) / (np.pi * alpha ** 2 * hn ** 4)
+           * np.exp(-tan2 / alpha ** 2))
     np.testing.assert_allclose(Ward(0.0, rho_s, alpha, "bounded").evaluate(wi, wo)[:, 0], ref,
                                rtol=1e-10)
 
