@@ -429,7 +429,12 @@ class PtpCamera(Camera):
         # RAW+JPEG bodies add two objects: keep the raw one
         handle = next((h for h in handles if infos[h].object_format in _RAW_FORMATS), handles[0])
         info = infos[handle]
-        data = self._download(handle, info.compressed_size)
+        try:
+            data = self._download(handle, info.compressed_size)
+        except RigError:
+            # the shot exists only on the card now: leave it there rather than lose it
+            log.error("%s: download of %s failed; it stays on the camera", self.name, info.filename)
+            raise
         if self.keep_on_camera:
             self._kept.extend(handles)
         else:

@@ -69,14 +69,14 @@ class ElliptecSim(SerialSim):
         self.firmware = firmware
         self.speed_deg_s = speed_deg_s
         self.comm_timeout_s = comm_timeout_s
-        self._start_angle_deg = start_angle_deg
         self._partial_since: float | None = None
         self._partial_buf: bytearray | None = None
+        self._pos = round(start_angle_deg / 360.0 * pulses_per_rev) % pulses_per_rev
         self.on_power_up()
 
     # -- state --------------------------------------------------------------------------------
     def on_power_up(self) -> None:
-        self._pos = round(self._start_angle_deg / 360.0 * self.pulses_per_rev) % self.pulses_per_rev
+        """The mount stays where it physically is; motion and the homed flag are lost."""
         self._motion: tuple[float, float, int, int, str | None] | None = None  # t0, t1, p0, p1, fault
         self.homed = False
 

@@ -169,7 +169,31 @@ def test_firmware_framing_by_command_length(sim):
         assert port.readline() == b"0GS03\r\n"
         port.write(b"0ho7")
         assert port.readline() == b"0GS04\r\n"
+        sim.comm_timeout_s = 1.0
         port.write(b"0ma0000")  # three data characters short: dropped with a communication time out
+        t0 = time.monotonic()
+        port.timeout = 0.3
         assert port.readline() == b""
-        time.sleep(0.3)
+        port.timeout = 2.0
         assert port.readline() == b"0GS01\r\n"
+        assert time.monotonic() - t0 >= 1.0
+
+
+def test_cable_pulled_mid_move_fails_fast():
+    with ElliptecSim(name="polarizer", fast=False, speed_deg_s=50.0) as sim:
+        r = ElliptecRotator("polarizer", sim.port, timeout_s=0.3, move_timeout_s=5.0,
+                            require_home=False)
+        r.connect()
+        st = r.move_to(300)  # ~5 s of motion
+        time.sleep(0.2)
+        t0 = time.monotonic()
+        sim.disconnect()
+        with pytest.raises(Disconnected):
+            st.wait(2)
+        assert time.monotonic() - t0 < 1.0
+        stopped_at = sim.angle_deg
+        assert 37 < stopped_at < 60  # power lost: the mount stopped where it was
+        sim.reconnect()
+        r.close()
+        r.connect()
+        assert r.position == pytest.approx(stopped_at, abs=0.01)

@@ -275,3 +275,12 @@ def test_body_without_standard_capture_points_to_gphoto2():
     with pytest.raises(DeviceError, match="gphoto2"):
         cam.connect()
     assert not cam.connected
+
+
+def test_repeated_short_read_is_protocol_error():
+    cam, sim = make()
+    sim.inject("short_read", 2)
+    with pytest.raises(ProtocolError, match="short read"):
+        cam.capture()
+    assert decode(cam.capture()).shape == (400, 600)
+    assert [o["filename"] for o in sim.objects.values()] == ["IMG_0001.DNG"]  # kept, not lost
