@@ -53,6 +53,7 @@ class EnvironmentMap:
             raise ValueError(f"rotation must be a 3x3 rotation matrix, got {R!r}")
         object.__setattr__(self, "image", img)
         object.__setattr__(self, "rotation", R)
+        object.__setattr__(self, "_dist", None)  # sampling tables, built on first use
 
     # -- construction ---------------------------------------------------------------------------
     @classmethod
@@ -108,14 +109,12 @@ class EnvironmentMap:
         ``interpolation``: 'bilinear' (wraps in azimuth, clamps at the poles) or 'nearest'
         (the exact pixel value, as the importance sampler's pdf assumes).
         """
-        xy = self.to_pixel(dirs)
         H, W = self.shape
         if interpolation == "nearest":
-            j = np.mod(np.floor(xy[:, 0] + 0.5).astype(np.int64), W)
-            i = np.clip(np.floor(xy[:, 1] + 0.5).astype(np.int64), 0, H - 1)
-            return self.image[i, j]
+            return self.image.reshape(-1, 3)[self._pixel_index(dirs)]
         if interpolation != "bilinear":
             raise ValueError(f"interpolation must be 'bilinear' or 'nearest', got {interpolation!r}")
+        xy = self.to_pixel(dirs)
         x0 = np.floor(xy[:, 0])
         y = np.clip(xy[:, 1], 0, H - 1)
         y0 = np.minimum(np.floor(y), H - 2)
@@ -172,8 +171,7 @@ class EnvironmentMap:
         if method != "importance":
             raise ValueError(f"method must be 'importance' or 'uniform', got {method!r}")
         H, W = self.shape
-        p_pix, sa = self._pixel_distribution()
-        cdf = np.cumsum(p_pix)
+        p_pix, sa, cdf = self._pixel_distribution()
         k = np.minimum(np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right"), H * W - 1)
         i, j = np.divmod(k, W)
         # uniform in solid angle within the pixel: uniform in phi and in cos(theta)
@@ -187,19 +185,31 @@ class EnvironmentMap:
 
     def pdf(self, dirs) -> np.ndarray:
         """Importance-sampling pdf (1/sr) of world directions (N, 3) -> (N,)."""
+        return self.lookup_pdf(dirs)[1]
+
+    def lookup_pdf(self, dirs) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest-pixel radiance (N, 3) and importance-sampling pdf (N,) (1/sr) of world
+        directions (N, 3), finding each pixel once (the Monte-Carlo estimator needs both)."""
+        k = self._pixel_index(dirs)
+        p_pix, sa, _ = self._pixel_distribution()
+        return self.image.reshape(-1, 3)[k], p_pix[k] / sa[k]
+
+    def _pixel_index(self, dirs) -> np.ndarray:
+        """Flat index of the pixel containing each world direction (N, 3) -> (N,)."""
         H, W = self.shape
-        p_pix, sa = self._pixel_distribution()
         xy = self.to_pixel(dirs)
         j = np.mod(np.floor(xy[:, 0] + 0.5).astype(np.int64), W)
         i = np.clip(np.floor(xy[:, 1] + 0.5).astype(np.int64), 0, H - 1)
-        k = i * W + j
-        return p_pix[k] / sa[k]
+        return i * W + j
 
     def _pixel_distribution(self):
-        sa = self.solid_angles().ravel()
-        w = self.luminance().ravel().astype(np.float64) * sa
-        p = w / w.sum() if w.sum() > 0 else sa / sa.sum()
-        return p, sa
+        """(probability of each pixel, its solid angle, cumulative probability), flattened."""
+        if self._dist is None:
+            sa = self.solid_angles().ravel()
+            w = self.luminance().ravel().astype(np.float64) * sa
+            p = w / w.sum() if w.sum() > 0 else sa / sa.sum()
+            object.__setattr__(self, "_dist", (p, sa, np.cumsum(p)))
+        return self._dist
 
 
 def _check_dirs(dirs) -> np.ndarray:
@@ -228,7 +238,7 @@ def direction_to_pixel(dirs, height: int, width: int) -> np.ndarray:
     """Continuous pixel coordinates (x, y) of map-frame unit directions (N, 3) -> (N, 2)."""
     d = _check_dirs(dirs)
     phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
-    theta = np.arccos(np.clip(d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0))
+    theta = np.arccos(np.clip(d[:, 2] / np.sqrt(np.einsum("ij,ij->i", d, d)), -1.0, 1.0))
     return np.stack([phi / (2 * np.pi) * width - 0.5, theta / np.pi * height - 0.5], axis=1)
 
 

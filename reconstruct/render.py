@@ -604,16 +604,14 @@ def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale)
                             else "importance")[0]
             wi_l = to_local(wi, frames)
         cos_i = np.clip(wi_l[:, 2], 0.0, None)
+        L_env, pdf = env.lookup_pdf(wi)
         if opts.env_sampling == "mis":  # balance heuristic over the two strategies
-            pdf = 0.5 * (env.pdf(wi) + cos_i / np.pi)
-        elif opts.env_sampling == "importance":
-            pdf = env.pdf(wi)
-        else:
+            pdf = 0.5 * (pdf + cos_i / np.pi)
+        elif opts.env_sampling == "uniform":
             pdf = np.full(K, 1 / (4 * np.pi))
         with np.errstate(divide="ignore", invalid="ignore"):
             weight = np.where(cos_i > 0, cos_i / pdf, 0.0)
-        contrib = brdf.evaluate(wi_l, wo_l) * (env.lookup(wi, interpolation="nearest")
-                                               * weight[:, None])
+        contrib = brdf.evaluate(wi_l, wo_l) * (L_env * weight[:, None])
         if opts.shadows:
             live = np.flatnonzero(np.any(contrib > 0, axis=1))
             o = offset_origins(p[live], ng[live], wi[live], scale)

@@ -22,6 +22,13 @@ def _unit(v):
 
 
 @pytest.fixture
+def small_cam():
+    """A 64x48 camera 300 mm from a 40 mm sphere at (0, 0, 50) (Monte-Carlo tests)."""
+    return CameraModel.look_at((0.0, -300.0, 50.0), (0.0, 0.0, 50.0), width=64, height=48,
+                               fov_deg=22)
+
+
+@pytest.fixture
 def sphere_cam():
     """A 120x100 camera 300 mm from a 40 mm sphere at (0, 0, 50)."""
     return CameraModel.look_at((0.0, -300.0, 50.0), (0.0, 0.0, 50.0), width=120, height=100,
@@ -244,7 +251,7 @@ def _assert_unbiased_mc(rel_by_samples):
 
 @pytest.mark.parametrize("method, rms_max", [("mis", 0.06), ("importance", 0.1),
                                               ("uniform", 0.3)])
-def test_env_lit_lambertian_sphere_matches_numeric_irradiance(sphere_cam, method, rms_max):
+def test_env_lit_lambertian_sphere_matches_numeric_irradiance(small_cam, method, rms_max):
     """Lambertian sphere under a sky with a sun: radiance = albedo / pi * E(n), E summed
     directly over every map pixel (EnvironmentMap.irradiance)."""
     env = EnvironmentMap.from_function(_sky, 32)
@@ -253,7 +260,7 @@ def test_env_lit_lambertian_sphere_matches_numeric_irradiance(sphere_cam, method
     sc.add(Sphere(40.0, center=(0, 0, 50)), Lambertian(albedo))
     rel = {}
     for S in (64, 256):
-        res = render(sc, sphere_cam, env_samples=S, env_sampling=method, rng=S, shadows=False)
+        res = render(sc, small_cam, env_samples=S, env_sampling=method, rng=S, shadows=False)
         m = res.mask
         expected = albedo / np.pi * env.irradiance(res.normal[m].astype(float))
         rel[S] = (res.radiance[m] / expected - 1)[:, 1]
@@ -266,7 +273,7 @@ def test_env_lighting_shadowed_by_a_mesh_blocker():
     radius a at height h, offset s from its axis:
     F = (1 - (h^2 + s^2 - a^2) / sqrt((h^2 + s^2 + a^2)^2 - 4 a^2 s^2)) / 2."""
     env = EnvironmentMap.constant(1.0, 16)
-    cam = CameraModel.look_at((0.0, -200.0, 25.0), (0.0, 0.0, 0.0), width=96, height=72,
+    cam = CameraModel.look_at((0.0, -200.0, 25.0), (0.0, 0.0, 0.0), width=64, height=48,
                               fov_deg=50)
     a, h = 30.0, 30.0
     disc = trimesh.creation.cylinder(radius=a, height=0.02, sections=256)
@@ -281,19 +288,19 @@ def test_env_lighting_shadowed_by_a_mesh_blocker():
         s2 = np.sum(res.position[on_plane][:, :2] ** 2, axis=1)
         F = 0.5 * (1 - (h * h + s2 - a * a) / np.sqrt((h * h + s2 + a * a) ** 2
                                                       - 4 * a * a * s2))
-        assert F.max() > 0.4 and (F > 0.1).sum() > 200  # the view includes the deep shadow
+        assert F.max() > 0.4 and (F > 0.1).sum() > 100  # the view includes the deep shadow
         rel[S] = res.radiance[on_plane][:, 0] / (1 - F) - 1
     assert _assert_unbiased_mc(rel) < 0.06
 
 
 @pytest.mark.realdata
-def test_env_lit_sphere_real_probe(shared_data, sphere_cam):
+def test_env_lit_sphere_real_probe(shared_data, small_cam):
     env = EnvironmentMap.load(shared_data / "probes" / "uffizi.hdr").resized(32)
     sc = Scene(environment=env)
     sc.add(Sphere(40.0, center=(0, 0, 50)), Lambertian(0.5))
     rel = {}
     for S in (64, 256):
-        res = render(sc, sphere_cam, env_samples=S, rng=S, shadows=False)
+        res = render(sc, small_cam, env_samples=S, rng=S, shadows=False)
         m = res.mask
         expected = 0.5 / np.pi * env.irradiance(res.normal[m].astype(float))
         rel[S] = (res.radiance[m] / expected - 1)[:, 1]
