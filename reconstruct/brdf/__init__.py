@@ -1,4 +1,5 @@
 """Reflectance models (see base.py for the conventions every model follows)."""
+from .albedo import directional_albedo
 from .analytic import (BlinnPhong, CookTorrance, ModifiedPhong, OrenNayar, Ward,
                        microfacet_distribution, smith_lambda)
 from .base import BRDF, Lambertian
@@ -8,4 +9,4 @@ from .tabulated import Bivariate, TabulatedIsotropic
 
 __all__ = ["BRDF", "Lambertian", "OrenNayar", "ModifiedPhong", "BlinnPhong", "Ward",
            "CookTorrance", "Lafortune", "Dichromatic", "TabulatedIsotropic", "Bivariate",
-           "microfacet_distribution", "smith_lambda"]
+           "microfacet_distribution", "smith_lambda", "directional_albedo"]
