@@ -271,13 +271,15 @@ class GrblPositioner(LightPositioner):
     poll_interval_s : float
         Status poll period during a move, seconds (GRBL recommends at most 5-10 Hz for a GUI;
         a driver waiting for one move may poll faster).
+    poll_retries : int
+        Consecutive garbled or unanswered status reports tolerated during a move.
     position_tolerance : float
         How close (machine units) the read-back must be to the target to count as arrived.
     """
 
     def __init__(self, name: str = "positioner", port: str | None = None, *, transport: Any = None,
                  kinematics: Kinematics | str | dict = "arm", baudrate: int = 115200,
-                 timeout_s: float = 1.0, poll_interval_s: float = 0.02,
+                 timeout_s: float = 1.0, poll_interval_s: float = 0.02, poll_retries: int = 2,
                  position_tolerance: float = 0.01) -> None:
         super().__init__(name)
         if transport is None and not port:
@@ -287,6 +289,7 @@ class GrblPositioner(LightPositioner):
         self.kinematics = kinematics_from_config(kinematics, device=name)
         self.timeout_s = timeout_s
         self.poll_interval_s = poll_interval_s
+        self.poll_retries = poll_retries
         self.position_tolerance = position_tolerance
         self.settings: dict[int, float] = {}
         self.version = ""
@@ -304,7 +307,7 @@ class GrblPositioner(LightPositioner):
         an inline table), optional ``baudrate``, ``timeout_s``, ``poll_interval_s``."""
         from .rig import ConfigError
         allowed = {"driver", "port", "kinematics", "baudrate", "timeout_s", "poll_interval_s",
-                   "position_tolerance"}
+                   "poll_retries", "position_tolerance"}
         unknown = set(section) - allowed
         if unknown:
             raise ConfigError(f"[{name}] unknown key(s) for the grbl driver: {', '.join(sorted(unknown))}; "
@@ -368,6 +371,7 @@ class GrblPositioner(LightPositioner):
                 if text.startswith("<") or BANNER.search(text):
                     continue  # a late status report or banner belongs to nobody
                 if not text.startswith(("[", "$")):
+                    t.reset_input()
                     raise ProtocolError(f"unexpected reply to {line!r}", device=self.name, raw=text.encode())
                 lines.append(text)
 
@@ -383,11 +387,13 @@ class GrblPositioner(LightPositioner):
                     try:
                         st = parse_status(text)
                     except ProtocolError as exc:
+                        t.reset_input()
                         raise ProtocolError(exc.message, device=self.name, raw=exc.raw) from None
                     if st.wco is not None:
                         self._wco = st.wco
                     return st
                 if not (text.startswith(("[", "ALARM:", "ok", "error:")) or BANNER.search(text)):
+                    t.reset_input()  # noise may have split the report: drop the rest of it
                     raise ProtocolError("garbled line while waiting for a status report",
                                         device=self.name, raw=text.encode())
 
@@ -518,8 +524,17 @@ class GrblPositioner(LightPositioner):
         deadline = time.monotonic() + timeout
         moved = False
         grace = time.monotonic() + 0.25  # GRBL may report Idle for a moment before the block starts
+        failures = 0
         while True:
-            st = self.status()
+            try:
+                st = self.status()
+            except (ProtocolError, DeviceTimeout):
+                # a status poll is idempotent: line noise or one lost report must not fail the move
+                failures += 1
+                if failures > self.poll_retries:
+                    raise
+                continue
+            failures = 0
             if st.state == "Alarm":
                 raise GrblAlarm(self.last_alarm, device=self.name)
             if st.state == "Idle":

@@ -318,6 +318,9 @@ class ZaberRotaryStage(Axis):
         Degrees per microstep for stages without ``limit.cycle.dist``.
     poll_interval_s : float
         Status poll period while a move runs, seconds.
+    poll_retries : int
+        Consecutive garbled or unanswered status polls tolerated during a move before its status
+        fails with the ``ProtocolError`` / ``DeviceTimeout``.
     busy_retries : int
         How often a command rejected as busy (STATUSBUSY, AGAIN, FULL) is repeated, with a
         doubling back-off from ``busy_backoff_s``, before ``DeviceBusy`` is raised.
@@ -328,7 +331,7 @@ class ZaberRotaryStage(Axis):
     def __init__(self, name: str = "turntable", port: str | None = None, *, transport: Any = None,
                  device: int = 1, axis: int = 1, baudrate: int = 115200, timeout_s: float = 0.5,
                  use_checksum: bool = True, microstep_deg: float | None = None,
-                 poll_interval_s: float = 0.01, busy_retries: int = 3,
+                 poll_interval_s: float = 0.01, poll_retries: int = 2, busy_retries: int = 3,
                  busy_backoff_s: float = 0.02) -> None:
         super().__init__(name)
         if transport is None and not port:
@@ -346,6 +349,7 @@ class ZaberRotaryStage(Axis):
         self.timeout_s = timeout_s
         self.use_checksum = use_checksum
         self.poll_interval_s = poll_interval_s
+        self.poll_retries = poll_retries
         self.busy_retries = busy_retries
         self.busy_backoff_s = busy_backoff_s
         self._microstep_deg_config = microstep_deg
@@ -361,7 +365,7 @@ class ZaberRotaryStage(Axis):
         ``baudrate``, ``timeout_s``, ``use_checksum``, ``microstep_deg``."""
         from .rig import ConfigError
         allowed = {"driver", "port", "device", "axis", "baudrate", "timeout_s", "use_checksum",
-                   "microstep_deg", "poll_interval_s", "busy_retries"}
+                   "microstep_deg", "poll_interval_s", "poll_retries", "busy_retries"}
         unknown = set(section) - allowed
         if unknown:
             raise ConfigError(f"[{name}] unknown key(s) for the zaber driver: {', '.join(sorted(unknown))}; "
@@ -404,6 +408,7 @@ class ZaberRotaryStage(Axis):
                 try:
                     msg = parse_message(line)
                 except ProtocolError as exc:
+                    t.reset_input()  # noise may have split the reply: drop the rest of it
                     raise ProtocolError(f"bad reply to {command!r} ({exc.message})", device=self.name,
                                         raw=line) from None
                 if msg.kind == "!":
@@ -593,8 +598,17 @@ class ZaberRotaryStage(Axis):
 
     def _wait_idle(self, target_deg: float | None, timeout: float) -> float:
         deadline = time.monotonic() + timeout
+        failures = 0
         while True:
-            msg = self.request("")
+            try:
+                msg = self.request("")
+            except (ProtocolError, DeviceTimeout):
+                # a poll is idempotent: line noise or one lost reply must not fail the move
+                failures += 1
+                if failures > self.poll_retries:
+                    raise
+                continue
+            failures = 0
             if not msg.busy:
                 break
             if time.monotonic() > deadline:

@@ -9,7 +9,7 @@ from rig import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, NotHomed, 
 from rig.zaber import ZaberRotaryStage, move_time_s
 from sims.zaber_sim import ZaberSim, trapezoid_distance, trapezoid_duration
 
-TIMEOUT = 0.3  # reply timeout used here, seconds: every fault must surface within it (+ margin)
+TIMEOUT = 0.5  # reply timeout used here, seconds: every fault must surface within it (+ margin)
 
 
 @pytest.fixture
@@ -180,3 +180,21 @@ def test_connect_to_missing_port_is_disconnected(tmp_path):
     st = ZaberRotaryStage("turntable", str(tmp_path / "nope"))
     with pytest.raises(Disconnected, match="cannot open"):
         st.connect()
+
+
+def test_move_survives_one_garbled_or_lost_poll_but_not_many():
+    with ZaberSim(fast=False, homed=True, speed_deg_s=90, accel_deg_s2=900) as sim:
+        st = ZaberRotaryStage("turntable", sim.port, timeout_s=0.2, poll_interval_s=0.005)
+        st.connect()
+        status = st.move_to(30)
+        sim.inject("garble")
+        sim.inject("no_reply")
+        assert status.wait(3) == pytest.approx(30.0, abs=1e-3)
+        status = st.move_to(60)
+        sim.inject("no_reply", 5)
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout):
+            status.wait(3)
+        assert time.monotonic() - t0 < 3 * 0.2 + 0.4  # poll_retries=2: three lost polls, then fail
+        sim.clear_faults()
+        st.close()
