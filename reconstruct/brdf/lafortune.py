@@ -99,7 +99,13 @@ class Lafortune(BRDF):
         return f
 
     def take(self, index) -> "Lafortune":
-        """Per-sample parameters indexed by ``index`` (axis 0 of rho_d, axis 1 of lobe arrays)."""
+        """Per-sample parameters indexed by ``index`` (axis 0 of rho_d, axis 1 of lobe arrays).
+
+        ``index`` is an integer array or a boolean mask over samples."""
+        index = np.asarray(index)
+        if index.dtype == bool:
+            index = np.flatnonzero(index)
+
         def sel(v, axis):
             a = np.asarray(v)
             return a.take(index, axis=axis) if a.ndim > axis and a.shape[axis] > 3 else v

@@ -321,6 +321,19 @@ def test_spatially_varying_parameters_match_per_sample_models():
     np.testing.assert_allclose(laf.evaluate(wi, wo), expected, rtol=1e-12)
     np.testing.assert_allclose(laf.take(np.arange(5, 9)).evaluate(wi[5:9], wo[5:9]),
                                expected[5:9], rtol=1e-12)
+    mask = np.zeros(n, bool)
+    mask[[3, 17, 31]] = True
+    np.testing.assert_allclose(laf.take(mask).evaluate(wi[mask], wo[mask]), expected[mask],
+                               rtol=1e-12)
+
+    dich = Dichromatic(Lambertian(kd), CookTorrance(0.0, 0.04, alpha),
+                       specular_color=rng.uniform(0.5, 1.0, (n, 3)))
+    expected = np.concatenate([
+        Dichromatic(Lambertian(kd[i]), CookTorrance(0.0, 0.04, alpha[i]),
+                    dich.specular_color[i]).evaluate(wi[i], wo[i]) for i in range(n)])
+    np.testing.assert_allclose(dich.evaluate(wi, wo), expected, rtol=1e-12)
+    np.testing.assert_allclose(dich.take(np.arange(20, 30)).evaluate(wi[20:30], wo[20:30]),
+                               expected[20:30], rtol=1e-12)
 
 
 def test_dichromatic_is_zickler_eq7():
