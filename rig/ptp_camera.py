@@ -16,6 +16,7 @@ own driver, rather than by vendor branches here.
 """
 from __future__ import annotations
 
+import dataclasses
 import errno
 import logging
 import math
@@ -28,8 +29,8 @@ import usb.util
 
 from .device import Camera, Frame, reading
 from .errors import DeviceError, DeviceTimeout, Disconnected, LimitError, ProtocolError, RigError
-from .ptp import (OBJECT_FORMATS, Event, Op, PropDesc, Prop, PtpError, PtpSession, Resp,
-                  DeviceInfo)
+from .ptp import (OBJECT_FORMATS, DataType, DeviceInfo, Event, Op, Prop, PropDesc, PtpError,
+                  PtpSession, Resp)
 
 log = logging.getLogger("gonio.rig.ptp")
 
@@ -65,6 +66,14 @@ def libusb_backend():
     if backend is None:
         raise Disconnected("libusb-package is installed but its libusb could not be loaded")
     return backend
+
+
+def _usable(desc: PropDesc) -> tuple[int, ...]:
+    """Enumerated values that are real settings: positive, and not the all-ones sentinels some
+    bodies list for bulb / time / auto (0xFFFFFFFF, 0xFFFFFFFD, 0xFFFF ...)."""
+    top = {DataType.UINT16: 0xFFFF, DataType.UINT32: 0xFFFFFFFF}.get(desc.datatype)
+    return tuple(v for v in desc.values
+                 if isinstance(v, int) and v > 0 and (top is None or v < top - 15))
 
 
 def snap(desc: PropDesc, raw: float, *, log_scale: bool = True) -> int:
@@ -276,8 +285,14 @@ class PtpCamera(Camera):
         if not desc.writable:
             raise DeviceError("read-only", f"{what} is read-only on this camera (check the mode "
                               "dial: manual exposure is needed)", device=self.name)
-        allowed = [v for v in desc.values if isinstance(v, int)] if desc.form == "enum" else \
-            [desc.minimum, desc.maximum] if desc.form == "range" else []
+        if desc.form == "enum":
+            desc = dataclasses.replace(desc, values=_usable(desc))
+            allowed = list(desc.values)
+            if not allowed:
+                raise DeviceError("unsupported", f"the camera enumerates no settable {what}",
+                                  device=self.name)
+        else:
+            allowed = [desc.minimum, desc.maximum] if desc.form == "range" else []
         if allowed:
             lo, hi = min(allowed), max(allowed)
             if not (lo / _RANGE_SLACK <= raw <= hi * _RANGE_SLACK):
@@ -317,7 +332,7 @@ class PtpCamera(Camera):
     def exposure_values(self) -> tuple[float, ...]:
         """Exposure times the camera offers, seconds (enumerated form only)."""
         desc = self._descs.get(Prop.ExposureTime)
-        return tuple(v / 10000.0 for v in desc.values) if desc and desc.form == "enum" else ()
+        return tuple(v / 10000.0 for v in _usable(desc)) if desc and desc.form == "enum" else ()
 
     @property
     def iso(self) -> float | None:
@@ -468,5 +483,5 @@ class PtpCamera(Camera):
                                  ("fnumber_values", Prop.FNumber, 100.0)):
             desc = self._descs.get(prop)
             if desc is not None and desc.form == "enum":
-                out[key] = [v / scale for v in desc.values]
+                out[key] = [v / scale for v in _usable(desc)]
         return out

@@ -284,3 +284,14 @@ def test_repeated_short_read_is_protocol_error():
         cam.capture()
     assert decode(cam.capture()).shape == (400, 600)
     assert [o["filename"] for o in sim.objects.values()] == ["IMG_0001.DNG"]  # kept, not lost
+
+
+def test_bulb_and_auto_sentinels_are_never_chosen():
+    sim = PtpCameraSim()
+    sim.props[0x500D][3] = sim.props[0x500D][3] + (0xFFFFFFFD, 0xFFFFFFFF)  # time, bulb (Nikon)
+    sim.props[0x500F][3] = sim.props[0x500F][3] + (0xFFFF,)                # auto ISO
+    cam, _ = make(sim)
+    assert cam.set_exposure(30) == 30.0 and cam.exposure_values[-1] == 30.0
+    with pytest.raises(LimitError):
+        cam.set_exposure(3600)
+    assert cam.set_iso(6400) == 6400
