@@ -419,6 +419,11 @@ class GrblPositioner(LightPositioner):
         with self._transport.lock:
             self._transport.write(CYCLE_START)
 
+    def sync(self, timeout_s: float = 60.0) -> None:
+        """Block until every queued motion has finished: ``G4 P0`` is answered only once the
+        planner is empty (GRBL's documented way to synchronise with motion)."""
+        self.send("G4 P0", timeout_s=timeout_s)
+
     def unlock(self) -> None:
         """``$X``: kill the alarm lock without homing (the position may be wrong)."""
         self.send("$X")

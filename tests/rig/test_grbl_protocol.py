@@ -179,3 +179,22 @@ def test_send_rejects_realtime_characters():
     p, t = positioner([], state="Idle")
     with pytest.raises(ValueError, match="real-time"):
         p.send("G0 X1?")
+
+
+def test_unlock_resume_and_sync_bytes():
+    script = [(b"$X\n", b"[MSG:Caution: Unlocked]\r\nok\r\n"),
+              (b"~", None),
+              (b"G4 P0\n", b"ok\r\n")]
+    p, t = positioner(script)
+    p.unlock()
+    assert p.messages[-1] == "Caution: Unlocked"
+    p.resume()
+    p.sync(timeout_s=1)
+    t.assert_done()
+
+
+def test_late_status_report_and_banner_do_not_confuse_a_response():
+    p, t = positioner([(b"$G\n", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n" + BANNER
+                        + b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n")], state="Idle")
+    assert p.send("$G") == ["[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]"]
+    t.assert_done()

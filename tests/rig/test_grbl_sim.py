@@ -130,7 +130,7 @@ def test_g4_p0_answers_after_motion_completes():
         p = make(sim)
         p.send("G53 G0 X20")
         t0 = time.monotonic()
-        p.send("G4 P0", timeout_s=3)
+        p.sync(timeout_s=3)
         elapsed = time.monotonic() - t0
         assert elapsed > 0.5 * path_time_s((0,), (20,), (5400,), (360,))
         assert p.status().state == "Idle" and p.machine_position()["X"] == pytest.approx(20)
