@@ -12,14 +12,19 @@ Prints
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
+import sys
 import time
 
-import numpy as np
+# benchmarks/rig.py would shadow the rig package when this runs as a script: drop this folder
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != os.path.dirname(os.path.abspath(__file__))]
 
-from rig.ptp_camera import PtpCamera
-from sims.dng import write_dng
-from sims.ptp_sim import PtpCameraSim, placeholder_frame
+import numpy as np  # noqa: E402
+
+from rig.ptp_camera import PtpCamera  # noqa: E402
+from sims.dng import write_dng  # noqa: E402
+from sims.ptp_sim import PtpCameraSim, placeholder_frame  # noqa: E402
 
 
 def big_dng(width: int = 6000, height: int = 4000) -> bytes:
