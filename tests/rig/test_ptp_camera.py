@@ -251,8 +251,9 @@ def test_built_from_rig_config_with_usb_backend():
 
 @pytest.mark.slow
 def test_get_object_throughput_24mp():
-    from benchmarks.rig_camera import big_dng
-    dng = big_dng()
+    from sims.dng import write_dng
+    raw = np.random.default_rng(0).integers(512, 15000, size=(4000, 6000), dtype=np.uint16)
+    dng = write_dng(raw, black_level=512, white_level=15871)
     cam, sim = make(PtpCameraSim(lambda s: dng), keep_on_camera=True, timeout_s=5)
     handle = cam.capture().metadata["handle"]
     best = min(_timed(lambda: cam.session.get_object(handle)) for _ in range(5))
