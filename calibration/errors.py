@@ -1,0 +1,32 @@
+"""Typed calibration errors.
+
+``calibration`` is pure and imports nothing of ours, so its errors live here rather than in
+``rig.errors``. Each one says what was wrong and where (frame name, argument, view index), so a
+caller can show it to an operator as is.
+"""
+from __future__ import annotations
+
+
+class CalibrationError(ValueError):
+    """Base of all calibration failures (a ``ValueError``: the input could not be calibrated)."""
+
+
+class TargetNotFound(CalibrationError):
+    """No calibration target (board, sphere, highlight) could be found in a frame."""
+
+    def __init__(self, message: str, *, frame: str | None = None) -> None:
+        self.frame = frame
+        super().__init__(f"{frame}: {message}" if frame else message)
+
+
+class TooFewViews(CalibrationError):
+    """Fewer usable views (or samples) than the fit needs."""
+
+    def __init__(self, message: str, *, have: int, need: int) -> None:
+        self.have = have
+        self.need = need
+        super().__init__(f"{message} (have {have}, need at least {need})")
+
+
+class DegenerateFit(CalibrationError):
+    """The data cannot determine the parameters (parallel views, collinear points, no spread)."""
