@@ -102,6 +102,10 @@ class Lambertian(BRDF):
     ----------
     albedo : float, (3,), (N,) or (N, 3)
         Diffuse reflectance (RGB), >= 0; <= 1 for a physical (energy-conserving) surface.
+
+    References
+    ----------
+    J. H. Lambert, "Photometria", 1760.
     """
 
     albedo: object = 0.5

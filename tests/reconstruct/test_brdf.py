@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reconstruct.brdf import (BRDF, BlinnPhong, CookTorrance, Dichromatic, Lafortune, Lambertian,
-                              ModifiedPhong, OrenNayar, Ward, directional_albedo,
-                              microfacet_distribution, smith_lambda)
+from reconstruct.brdf import (BRDF, Bivariate, BlinnPhong, CookTorrance, Dichromatic, Lafortune,
+                              Lambertian, ModifiedPhong, OrenNayar, TabulatedIsotropic, Ward,
+                              directional_albedo, microfacet_distribution, smith_lambda)
 
 N_MC = 100_000
 GUIDE_ALPHA = 0.15
@@ -51,6 +51,8 @@ ALL_MODELS = {
                            cz=[[0.95, 0.9, 0.85], [0.6, 0.6, 0.6]], n=[[20, 15, 10], [3, 3, 3]]),
     "dichromatic": Dichromatic(OrenNayar([0.5, 0.3, 0.2], 0.3), CookTorrance(0.0, 0.04, 0.2),
                                specular_color=[1.0, 0.9, 0.8]),
+    "tabulated": TabulatedIsotropic.from_brdf(CookTorrance(0.2, 0.5, 0.3), (16, 16, 32)),
+    "bivariate": Bivariate.from_brdf(CookTorrance(0.2, 0.5, 0.3), 16, 16),
 }
 
 
