@@ -96,3 +96,25 @@ def test_readme_command():
     proc = subprocess.run(["gonio", "rig", "check", "--rig", "sim"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "positioner" in proc.stdout
+
+
+def test_rig_file_from_running_sim_is_usable_while_it_serves(tmp_path):
+    import threading
+    import time
+
+    from rig import Rig
+
+    out = tmp_path / "live.toml"
+    worker = threading.Thread(target=runner.invoke,
+                              args=(app, ["rig", "sim", "--fast", "--duration", "2", "--write", str(out)]))
+    worker.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not out.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with Rig.from_config(out) as rig:  # as another process would
+            rig.turntable.home().wait(2)
+            assert rig.turntable.move_to(45).wait(2) == pytest.approx(45.0, abs=1e-3)
+            assert rig.positioner.describe()["firmware"] == "Grbl 1.1h"
+    finally:
+        worker.join(10)
