@@ -117,12 +117,16 @@ class Runner:
         Called when the scene must change (``checkerboard``, ``lens_cap``, ``object`` ...) before
         the first step needing it, e.g. to prompt the operator or tell a simulator. Without it a
         ``target`` event is emitted and the runner carries on.
+    home : bool
+        Home (all at once) the axes that report ``homed == False`` when a run starts, e.g. a
+        positioner that lost its reference after a power cycle. False: such an axis faults.
     """
 
     def __init__(self, rig: Any, store: Store, session: str | SessionInfo, *,
                  bus: EventBus | None = None, retry: RetryPolicy = RetryPolicy(),
                  move_timeout_s: float = 300.0, reserve_bytes: int = DEFAULT_RESERVE_BYTES,
-                 prepare_target: Callable[[str, Step], None] | None = None) -> None:
+                 prepare_target: Callable[[str, Step], None] | None = None,
+                 home: bool = True) -> None:
         self.rig = rig
         self.store = store
         self.name = session if isinstance(session, str) else session.name
@@ -131,6 +135,7 @@ class Runner:
         self.move_timeout_s = move_timeout_s
         self.reserve_bytes = reserve_bytes
         self.prepare_target = prepare_target
+        self.home = home
         self._pause = threading.Event()
         self._pause_now = threading.Event()
         self._abort = threading.Event()
@@ -261,6 +266,15 @@ class Runner:
                 self._drop.discard(role)
             except RigError as exc:
                 self._fault(exc, f"connecting the {role}", role, step=None)
+        if self.home:
+            try:
+                unhomed = [(role, d) for role, d in self.rig.devices.items()
+                           if getattr(d, "homed", True) is False]
+                if unhomed:
+                    self._emit(EventKind.NOTE, f"homing {', '.join(r for r, _ in unhomed)}")
+                    wait_all([d.home() for _, d in unhomed], timeout=self.move_timeout_s)
+            except RigError as exc:
+                self._fault(exc, "homing", exc.device, step=None)
         try:
             describe = self.rig.describe()
         except RigError as exc:
