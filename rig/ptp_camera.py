@@ -356,16 +356,22 @@ class PtpCamera(Camera):
 
     # -- capture ------------------------------------------------------------------------------
     def _drain_events(self) -> None:
-        """Discard events left over from earlier captures; delete the objects they announce
-        (a capture whose transfer failed after the shutter fired), so the card does not fill."""
+        """Handle events that arrived since the last capture: re-read settings the camera says
+        changed (a turned dial), and delete objects announced by a capture whose transfer failed
+        after the shutter fired, so the card does not fill."""
         session = self._session()
+        changed = set()
         while (event := session.read_event(0.001)) is not None:
-            if event.code == Event.ObjectAdded and event.params and not self.keep_on_camera:
+            if event.code == Event.DevicePropChanged and event.params:
+                changed.add(event.params[0])
+            elif event.code == Event.ObjectAdded and event.params and not self.keep_on_camera:
                 try:
                     session.delete_object(event.params[0])
                     log.info("%s: deleted orphaned object %d", self.name, event.params[0])
                 except PtpError:
                     pass
+        for prop in changed & set(self._descs):
+            self._values[prop] = int(session.get_prop_value(prop, self._descs[prop].datatype))
 
     def _free_store(self) -> None:
         """Delete the objects already downloaded (their bytes are safe on the host)."""

@@ -63,7 +63,7 @@ OK, GENERAL_ERROR, SESSION_NOT_OPEN, INVALID_TID = 0x2001, 0x2002, 0x2003, 0x200
 OP_NOT_SUPPORTED, INVALID_HANDLE, PROP_NOT_SUPPORTED = 0x2005, 0x2009, 0x200A
 STORE_FULL, DEVICE_BUSY, INVALID_PROP_VALUE = 0x200C, 0x2019, 0x201C
 INVALID_PARAMETER, SESSION_ALREADY_OPEN = 0x201D, 0x201E
-EV_OBJECT_ADDED, EV_CAPTURE_COMPLETE = 0x4002, 0x400D
+EV_OBJECT_ADDED, EV_PROP_CHANGED, EV_CAPTURE_COMPLETE = 0x4002, 0x4006, 0x400D
 PROP_FNUMBER, PROP_EXPOSURE, PROP_ISO = 0x5007, 0x500D, 0x500F
 UINT16, UINT32 = 0x0004, 0x0006
 
@@ -249,6 +249,15 @@ class PtpCameraSim(usb.backend.IBackend):
     @property
     def exposure_s(self) -> float:
         return self.prop(PROP_EXPOSURE) / 10000.0
+
+    def turn_dial(self, code: int, value: int) -> None:
+        """Change a property on the camera body (its dial), as a user would: the camera announces
+        it with a DevicePropChanged event."""
+        with self._lock:
+            if value not in self.props[code][3]:
+                raise ValueError(f"0x{code:04X} does not offer {value}; allowed: {self.props[code][3]}")
+            self.props[code][2] = value
+            self._events.append((time.monotonic(), _container(EVENT, EV_PROP_CHANGED, 0, (code,))))
 
     def inject(self, fault: str, count: int = 1) -> None:
         """Arm ``fault`` (see the module docstring) for its next ``count`` occurrences."""
@@ -506,7 +515,8 @@ class PtpCameraSim(usb.backend.IBackend):
 
     def _device_info(self) -> bytes:
         return (struct.pack("<HIH", 100, 0, 0) + _str("") + struct.pack("<H", 0)
-                + _u16s(sorted(OP.values())) + _u16s([EV_OBJECT_ADDED, EV_CAPTURE_COMPLETE])
+                + _u16s(sorted(OP.values()))
+                + _u16s([EV_OBJECT_ADDED, EV_PROP_CHANGED, EV_CAPTURE_COMPLETE])
                 + _u16s(sorted(self.props)) + _u16s([FORMAT_DNG]) + _u16s([FORMAT_DNG])
                 + _str("gonio") + _str("SimCam PTP") + _str("1.0.0") + _str(self.serial_number))
 
@@ -537,6 +547,7 @@ class PtpCameraSim(usb.backend.IBackend):
             return (INVALID_PROP_VALUE,)
         self.props[code][2] = value
         self._busy_until = now + self.busy_after_set_s
+        self._events.append((now, _container(EVENT, EV_PROP_CHANGED, 0, (code,))))
         return (OK,)
 
     def _capture(self, tid: int) -> tuple[int]:

@@ -296,3 +296,11 @@ def test_bulb_and_auto_sentinels_are_never_chosen():
     with pytest.raises(LimitError):
         cam.set_exposure(3600)
     assert cam.set_iso(6400) == 6400
+
+
+def test_setting_changed_on_the_body_is_reported_in_the_frame():
+    cam, sim = make()
+    sim.turn_dial(0x500D, 40)  # someone turns the shutter dial to 1/250 s
+    frame = cam.capture()
+    assert frame.exposure_s == 0.004 == cam.exposure_s
+    assert dng_exposure(frame) == pytest.approx(0.004)

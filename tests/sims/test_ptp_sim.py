@@ -110,6 +110,7 @@ def test_timed_capture_and_busy_window():
     r = Raw(sim)
     r.run(0x1002, 0, 1)
     r.run(0x1016, 1, 0x500D, data=struct.pack("<I", 1000))          # 0.1 s
+    assert struct.unpack("<IHHII", r.read(64, ep=0x83)) == (16, 4, 0x4006, 0, 0x500D)  # PropChanged
     t0 = time.monotonic()
     r.run(0x100E, 2, 0, 0)
     with pytest.raises(usb.core.USBTimeoutError):
