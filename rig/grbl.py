@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .device import LightPositioner, LightTarget, reading
-from .errors import DeviceError, DeviceTimeout, NotHomed, ProtocolError, RigError
+from .errors import DeviceError, DeviceTimeout, Disconnected, NotHomed, ProtocolError
 from .kinematics import Kinematics, kinematics_from_config
 from .status import MoveStatus
 from .transport import SerialTransport
@@ -319,13 +319,13 @@ class GrblPositioner(LightPositioner):
             raise ConfigError(f"[{name}] {exc}") from None
 
     # -- wire -------------------------------------------------------------------------------------
-    def _readline(self, deadline: float, what: str) -> str:
-        """Next non-empty line; pushes (ALARM, MSG) are recorded and returned too."""
+    def _readline(self, deadline: float, what: str, timeout: float) -> str:
+        """Next non-empty line before ``deadline``; pushes (ALARM, MSG) are recorded and returned
+        too. ``timeout`` (s) is only for the error message."""
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise DeviceTimeout(f"no reply to {what}", device=self.name,
-                                    timeout_s=self.timeout_s)
+                raise DeviceTimeout(f"no reply to {what}", device=self.name, timeout_s=timeout)
             raw = self._transport.read_until(b"\n", remaining)
             try:
                 line = raw.decode("ascii").strip()
@@ -360,7 +360,7 @@ class GrblPositioner(LightPositioner):
             deadline = time.monotonic() + timeout
             lines = []
             while True:
-                text = self._readline(deadline, repr(line))
+                text = self._readline(deadline, repr(line), timeout)
                 if text == "ok":
                     return lines
                 if (code := parse_code(text, "error")) is not None:
@@ -382,7 +382,7 @@ class GrblPositioner(LightPositioner):
             t.write(REALTIME_STATUS)
             deadline = time.monotonic() + self.timeout_s
             while True:
-                text = self._readline(deadline, "'?'")
+                text = self._readline(deadline, "'?'", self.timeout_s)
                 if text.startswith("<"):
                     try:
                         st = parse_status(text)
@@ -402,9 +402,10 @@ class GrblPositioner(LightPositioner):
         t = self._transport
         with t.lock:
             t.write(SOFT_RESET)
-            deadline = time.monotonic() + 2.0 * self.timeout_s + 1.0
+            timeout = 2.0 * self.timeout_s + 1.0  # the board may still be printing its boot lines
+            deadline = time.monotonic() + timeout
             while True:
-                text = self._readline(deadline, "soft reset")
+                text = self._readline(deadline, "soft reset", timeout)
                 m = BANNER.search(text)
                 if m:
                     return m.group(1)
@@ -463,7 +464,7 @@ class GrblPositioner(LightPositioner):
 
     def _require(self) -> None:
         if not self._connected:
-            raise RigError("not connected; call connect() first", device=self.name)
+            raise Disconnected("not connected; call connect() first", device=self.name)
 
     # -- state ------------------------------------------------------------------------------------
     @property

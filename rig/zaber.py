@@ -33,7 +33,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from .device import Axis, reading
-from .errors import DeviceBusy, DeviceError, DeviceTimeout, LimitError, NotHomed, ProtocolError, RigError
+from .errors import (DeviceBusy, DeviceError, DeviceTimeout, Disconnected, LimitError, NotHomed,
+                     ProtocolError, RigError)
 from .status import MoveStatus
 from .transport import SerialTransport
 
@@ -517,7 +518,7 @@ class ZaberRotaryStage(Axis):
 
     def _require(self) -> None:
         if not self._connected:
-            raise RigError("not connected; call connect() first", device=self.name)
+            raise Disconnected("not connected; call connect() first", device=self.name)
 
     def _target_microsteps(self, deg: float) -> tuple[int, float]:
         """Microstep target for ``deg`` and the travel to it in degrees (shortest way if cyclic)."""
