@@ -80,9 +80,16 @@ class EnvironmentMap:
         return cls(np.asarray(fn(d), np.float32).reshape(height, width, 3))
 
     def resized(self, height: int) -> "EnvironmentMap":
-        """Area-averaged to ``height`` x 2 ``height`` (faster integration and sampling)."""
-        img = cv2.resize(self.image, (2 * height, height), interpolation=cv2.INTER_AREA)
-        return EnvironmentMap(img, self.rotation)
+        """Averaged to ``height`` x 2 ``height`` (faster integration and sampling), weighting
+        by solid angle so that the radiance integral over the sphere is kept (exactly for an
+        integer reduction factor)."""
+        if int(height) < 2:
+            raise ValueError(f"height must be >= 2 pixels, got {height!r}")
+        size = (2 * int(height), int(height))
+        sa = self.solid_angles().astype(np.float32)
+        num = cv2.resize(self.image * sa[..., None], size, interpolation=cv2.INTER_AREA)
+        den = cv2.resize(sa, size, interpolation=cv2.INTER_AREA)
+        return EnvironmentMap(num / den[..., None], self.rotation)
 
     # -- geometry -------------------------------------------------------------------------------
     @property

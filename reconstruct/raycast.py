@@ -270,9 +270,24 @@ class Mesh(Surface):
     def _attributes(self, o, d, t, prim, b1, b2):
         g = self._geom
         faces = g["faces"][prim]
-        w = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
-        p = np.einsum("nk,nkj->nj", w, g["vertices"][faces])
+        tri = g["vertices"][faces]
         ng = g["face_normals"][prim]
+        # Embree's t and barycentrics are float32: redo the ray-plane hit and the barycentrics
+        # in float64 so positions lie on the ray and on the face to ~1e-12 relative
+        dn = np.einsum("ij,ij->i", d, ng)
+        ok = np.abs(dn) > 1e-12 * np.linalg.norm(d, axis=1)
+        t64 = np.einsum("ij,ij->i", tri[:, 0] - o, ng) / np.where(ok, dn, 1.0)
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        q = o + t64[:, None] * d - tri[:, 0]
+        d11, d12, d22 = (np.einsum("ij,ij->i", a, c) for a, c in ((e1, e1), (e1, e2), (e2, e2)))
+        q1, q2 = np.einsum("ij,ij->i", q, e1), np.einsum("ij,ij->i", q, e2)
+        den = d11 * d22 - d12 * d12
+        ok &= np.abs(den) > 0
+        den = np.where(ok, den, 1.0)
+        b1 = np.where(ok, (d22 * q1 - d12 * q2) / den, b1)
+        b2 = np.where(ok, (d11 * q2 - d12 * q1) / den, b2)
+        w = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
+        p = np.einsum("nk,nkj->nj", w, tri)
         ns = np.einsum("nk,nkj->nj", w, g["vertex_normals"][faces]) if self.smooth else ng
         uv = g["uv"]
         uv = np.einsum("nk,nkj->nj", w, uv[faces]) if uv is not None else np.full((len(prim), 2),
