@@ -279,6 +279,7 @@ class ElliptecRotator(Axis):
         self.info: DeviceInfo | None = None
         self._homed = False
         self._stop_sent = threading.Event()
+        self._late_reply_possible = False
         self._motion: MoveStatus | None = None
 
     @classmethod
@@ -337,11 +338,18 @@ class ElliptecRotator(Axis):
         delay = 0.01
         while True:
             with self.transport.lock:
+                if self._late_reply_possible:
+                    # an earlier request timed out: its reply may still arrive; drop it
+                    self.transport.reset_input()
+                    self._late_reply_possible = False
                 self.transport.write(request)
                 try:
                     reply = self._read_reply(timeout_s)
                 except ProtocolError:
                     self.transport.reset_input()  # drop the rest of a garbled line
+                    raise
+                except DeviceTimeout:
+                    self._late_reply_possible = True
                     raise
             busy = reply.code == "GS" and parse_status(reply, device=self.name) == BUSY
             if not busy or command == "gs":

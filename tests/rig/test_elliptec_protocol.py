@@ -219,3 +219,11 @@ def test_status_reply_in_place_of_data_raises_its_error():
     t2 = Scripted([(b"0in", b"0GS03\r\n")])
     with pytest.raises(DeviceError, match="command error"):
         ElliptecRotator("polarizer", "/dev/null", transport=t2).connect()
+
+
+def test_late_reply_after_timeout_is_discarded():
+    rot, t = make([(b"0gp", None), (b"0gp", b"0PO00008C00\r\n")])
+    with pytest.raises(DeviceTimeout):
+        rot.position
+    t.pending = b"0PO00004600\r\n"  # the first request's reply turns up late
+    assert rot.position == pytest.approx(90.0)
