@@ -253,8 +253,11 @@ class GrblPositioner(LightPositioner):
     (:mod:`rig.kinematics`) turns a target into machine coordinates (raising ``LimitError`` at
     once if it is out of reach) and a read-back ``MPos`` into :attr:`light_position_mm`.
 
-    ``homed`` is True when homing is disabled (``$22=0``), or when this driver has run ``$H``
-    successfully and no alarm has since cost the position (hard limit, reset in motion).
+    ``homed`` (GRBL has no such report) is True when homing is disabled (``$22=0``); when the
+    controller was idle, not alarm-locked, at :meth:`connect` (with homing enabled GRBL powers up
+    locked, so it has been homed -- or deliberately unlocked with ``$X`` -- since power-up); or
+    after this driver's ``$H``. An alarm that loses the position (hard limit, reset in motion)
+    clears it; :meth:`unlock` does not set it.
 
     Parameters
     ----------
@@ -450,7 +453,9 @@ class GrblPositioner(LightPositioner):
         except BaseException:
             self._transport.close()
             raise
-        self._homed = not self.homing_enabled
+        # GRBL does not report "homed": with homing enabled it powers up locked in Alarm, so an
+        # Idle controller has been homed (or deliberately unlocked) since power-up
+        self._homed = not self.homing_enabled or state != "Alarm"
         self._connected = True
         log.info("%s: Grbl %s, state %s", self.name, self.version, state)
 

@@ -322,6 +322,9 @@ class ZaberRotaryStage(Axis):
     poll_retries : int
         Consecutive garbled or unanswered status polls tolerated during a move before its status
         fails with the ``ProtocolError`` / ``DeviceTimeout``.
+    speed_deg_s, accel_deg_s2 : float, optional
+        Speed (deg/s) and acceleration (deg/s^2) to set at :meth:`connect`; default: keep the
+        device's settings.
     busy_retries : int
         How often a command rejected as busy (STATUSBUSY, AGAIN, FULL) is repeated, with a
         doubling back-off from ``busy_backoff_s``, before ``DeviceBusy`` is raised.
@@ -333,7 +336,8 @@ class ZaberRotaryStage(Axis):
                  device: int = 1, axis: int = 1, baudrate: int = 115200, timeout_s: float = 0.5,
                  use_checksum: bool = True, microstep_deg: float | None = None,
                  poll_interval_s: float = 0.01, poll_retries: int = 2, busy_retries: int = 3,
-                 busy_backoff_s: float = 0.02) -> None:
+                 busy_backoff_s: float = 0.02, speed_deg_s: float | None = None,
+                 accel_deg_s2: float | None = None) -> None:
         super().__init__(name)
         if transport is None and not port:
             raise ValueError(f"{name}: give a serial port or a transport")
@@ -354,6 +358,8 @@ class ZaberRotaryStage(Axis):
         self.busy_retries = busy_retries
         self.busy_backoff_s = busy_backoff_s
         self._microstep_deg_config = microstep_deg
+        self._speed_deg_s = speed_deg_s
+        self._accel_deg_s2 = accel_deg_s2
         self._ids = itertools.cycle(range(100))
         self._id_lock = threading.Lock()
         self._connected = False
@@ -363,10 +369,12 @@ class ZaberRotaryStage(Axis):
     @classmethod
     def from_config(cls, name: str, section: dict[str, Any], **context: Any) -> "ZaberRotaryStage":
         """Build from a rig-file section: ``port`` and optional ``device``, ``axis``,
-        ``baudrate``, ``timeout_s``, ``use_checksum``, ``microstep_deg``."""
+        ``baudrate``, ``timeout_s``, ``use_checksum``, ``microstep_deg``, ``speed_deg_s``,
+        ``accel_deg_s2``, ``poll_interval_s``, ``poll_retries``, ``busy_retries``."""
         from .rig import ConfigError
         allowed = {"driver", "port", "device", "axis", "baudrate", "timeout_s", "use_checksum",
-                   "microstep_deg", "poll_interval_s", "poll_retries", "busy_retries"}
+                   "microstep_deg", "poll_interval_s", "poll_retries", "busy_retries", "speed_deg_s",
+                   "accel_deg_s2"}
         unknown = set(section) - allowed
         if unknown:
             raise ConfigError(f"[{name}] unknown key(s) for the zaber driver: {', '.join(sorted(unknown))}; "
@@ -477,6 +485,10 @@ class ZaberRotaryStage(Axis):
                               "the axis cannot move with zero speed or acceleration", device=self.name)
         self.info = info
         self._connected = True
+        if self._speed_deg_s is not None:
+            self.set_speed(self._speed_deg_s)
+        if self._accel_deg_s2 is not None:
+            self.set_accel(self._accel_deg_s2)
 
     def close(self) -> None:
         self._connected = False
@@ -534,6 +546,28 @@ class ZaberRotaryStage(Axis):
         if not lo <= deg <= hi:
             raise LimitError(deg, (lo, hi), "deg", device=self.name)
         return round(deg / self.microstep_deg), abs(deg - self.position)
+
+    def set_speed(self, deg_s: float) -> float:
+        """Set the maximum speed (``set maxspeed``), degrees per second; return the value the
+        device took (its data units are whole numbers)."""
+        self._require()
+        if not (math.isfinite(deg_s) and deg_s > 0):
+            raise ValueError(f"{self.name}: speed must be > 0 deg/s, got {deg_s}")
+        data = max(1, round(deg_s / self.microstep_deg * SPEED_UNITS))
+        self.command(f"set maxspeed {data}")
+        self.info["maxspeed"] = self.get("maxspeed")
+        return self.speed_deg_s
+
+    def set_accel(self, deg_s2: float) -> float:
+        """Set the acceleration (``set accel``), degrees per second squared; return the value the
+        device took."""
+        self._require()
+        if not (math.isfinite(deg_s2) and deg_s2 > 0):
+            raise ValueError(f"{self.name}: acceleration must be > 0 deg/s^2, got {deg_s2}")
+        data = max(1, round(deg_s2 / self.microstep_deg * ACCEL_UNITS))
+        self.command(f"set accel {data}")
+        self.info["accel"] = self.get("accel")
+        return self.accel_deg_s2
 
     # -- state ------------------------------------------------------------------------------------
     @property

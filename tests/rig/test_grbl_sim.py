@@ -235,3 +235,16 @@ def test_move_survives_one_garbled_status_report():
         sim.inject("no_reply")
         assert status.wait(3) == pytest.approx(sim.light_position_mm, abs=0.01)
         p.close()
+
+
+def test_homed_state_survives_a_new_connection(pos, sim):
+    pos.home().wait(2)
+    pos.close()
+    again = make(sim)  # another process connecting later: the controller is idle, not locked
+    assert again.homed
+    assert again.move_to(LightTarget(azimuth_deg=15, elevation_deg=15)).wait(2)
+    again.close()
+    sim.reconnect()  # power cycle: locked again
+    third = make(sim)
+    assert not third.homed and third.status().state == "Alarm"
+    third.close()

@@ -198,3 +198,20 @@ def test_move_survives_one_garbled_or_lost_poll_but_not_many():
         assert time.monotonic() - t0 < 3 * 0.2 + 0.4  # poll_retries=2: three lost polls, then fail
         sim.clear_faults()
         st.close()
+
+
+def test_speed_and_acceleration_settings_change_move_time():
+    with ZaberSim(fast=False, homed=True, speed_deg_s=90, accel_deg_s2=900) as sim:
+        st = ZaberRotaryStage("turntable", sim.port, timeout_s=TIMEOUT, poll_interval_s=0.005,
+                              speed_deg_s=180.0, accel_deg_s2=1800.0)
+        st.connect()
+        assert st.speed_deg_s == pytest.approx(180.0, rel=1e-4)
+        assert st.accel_deg_s2 == pytest.approx(1800.0, rel=1e-3)
+        t0 = time.monotonic()
+        st.move_to(90).wait(3)
+        elapsed = time.monotonic() - t0
+        expected = move_time_s(90, 180, 1800)
+        assert expected * 0.9 < elapsed < expected + 0.15
+        with pytest.raises(ValueError, match="speed"):
+            st.set_speed(0)
+        st.close()
