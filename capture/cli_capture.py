@@ -157,12 +157,15 @@ def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
                TextColumn("steps"), TextColumn("{task.fields[frames]}"), TimeElapsedColumn(),
                TextColumn("{task.fields[eta]}")]
     outcome: dict[str, Any] = {}
+    finished = threading.Event()
 
     def work() -> None:
         try:
             outcome["state"] = runner.run()
         except BaseException as exc:  # noqa: BLE001 - reported on the main thread
             outcome["error"] = exc
+        finally:
+            finished.set()
 
     with Progress(*columns, console=Console(stderr=True), transient=False,
                   disable=quiet) as progress:
@@ -170,9 +173,11 @@ def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
         worker = threading.Thread(target=work, name="gonio-runner", daemon=True)
         worker.start()
         interrupts = 0
-        while worker.is_alive():
+        # wait on an Event, not Thread.join: a KeyboardInterrupt inside join() can leave the
+        # thread looking finished while it still runs (a known CPython pitfall)
+        while not finished.is_set():
             try:
-                worker.join(0.2)
+                finished.wait(0.2)
             except KeyboardInterrupt:
                 interrupts += 1
                 if interrupts == 1:
@@ -182,6 +187,7 @@ def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
                 else:
                     progress.console.print("[yellow]stopping now[/]; the interrupted step will be re-done")
                     runner.request_pause(now=True)
+        worker.join()
     if "error" in outcome:
         exc = outcome["error"]
         if isinstance(exc, (RunnerError, StoreError)):

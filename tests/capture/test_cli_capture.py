@@ -1,0 +1,143 @@
+"""``gonio capture plan|run|resume`` and ``gonio session list|show|verify|export``."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from capture.cli_capture import app as capture_app
+from capture.cli_session import app as session_app
+from capture.plan import Plan
+from capture.runner import create_session
+from capture.store import Store
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "plan.toml"
+TINY = """
+name = "tiny"
+object = "sphere"
+[turntable]
+angles_deg = [0, 90]
+[light]
+azimuth_deg = [0]
+elevation_deg = [40]
+[exposure]
+base_s = 0.01
+stops = [0]
+"""
+cli = CliRunner()
+
+
+def _plan(tmp_path: Path, text: str = TINY) -> Path:
+    p = tmp_path / "plan.toml"
+    p.write_text(text)
+    return p
+
+
+def test_plan_prints_steps_frames_bytes_time():
+    r = cli.invoke(capture_app, ["plan", str(EXAMPLE)])
+    assert r.exit_code == 0, r.output
+    est = Plan.from_toml(EXAMPLE).estimate()
+    assert f"steps {est.steps}, frames {est.frames}" in r.output
+    assert "limits not checked" in r.output and "measure 240 steps / 720 frames" in r.output
+
+
+def test_plan_with_sim_rig_lists_steps(tmp_path):
+    r = cli.invoke(capture_app, ["plan", str(_plan(tmp_path)), "--rig", "sim", "--steps"])
+    assert r.exit_code == 0, r.output
+    assert "limits checked" in r.output and "steps 2, frames 2" in r.output
+    assert "az 0° el 40°" in r.output
+
+
+def test_plan_errors_name_the_field(tmp_path):
+    r = cli.invoke(capture_app, ["plan", str(_plan(tmp_path, TINY.replace("[40]", "[40, 88]"))),
+                                 "--rig", "sim"])
+    assert r.exit_code == 2
+    assert "light.elevation_deg[1] = 88 is outside the positioner's limit 0..85" in r.output
+    r = cli.invoke(capture_app, ["plan", str(_plan(tmp_path, TINY + "\n[extra]\nx = 1\n"))])
+    assert r.exit_code == 2 and "plan: unknown key 'extra'" in r.output
+
+
+def test_run_then_list_show_verify_export(tmp_path):
+    store = tmp_path / "store"
+    r = cli.invoke(capture_app, ["run", str(_plan(tmp_path)), "--rig", "sim", "--store", str(store),
+                                 "--session", "one", "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert "session one done" in r.output
+    r = cli.invoke(session_app, ["list", "--store", str(store)])
+    assert r.exit_code == 0 and "one" in r.output and "done" in r.output and "2/2" in r.output
+    r = cli.invoke(session_app, ["show", "one", "--store", str(store)])
+    assert r.exit_code == 0 and "steps 2/2, frames 2/2" in r.output and "SimCam PTP" in r.output
+    r = cli.invoke(session_app, ["verify", "one", "--store", str(store)])
+    assert r.exit_code == 0 and "2 file(s) checked" in r.output
+    r = cli.invoke(session_app, ["export", "one", str(tmp_path / "one.zip"), "--store", str(store)])
+    assert r.exit_code == 0, r.output
+    r = cli.invoke(session_app, ["verify", "one", "--store", str(tmp_path / "one.zip")])
+    assert r.exit_code == 0, r.output
+    # damage one file and orphan another: verify says so and fails
+    with Store(store) as st:
+        f = st.frames(st.session("one").id)[0]
+        path = st.object_path(f.sha256)
+        orphan = st.put_object(b"stray")
+    os.chmod(path, 0o644)
+    path.write_bytes(b"damaged")
+    r = cli.invoke(session_app, ["verify", "one", "--store", str(store)])
+    assert r.exit_code == 1
+    assert f"corrupt: {f.sha256}" in r.output and f"orphaned: objects/{orphan[:2]}/{orphan[2:]}" in r.output
+    r = cli.invoke(session_app, ["show", "nope", "--store", str(store)])
+    assert r.exit_code == 2 and "no session 'nope'" in r.output
+
+
+def test_resume_refuses_a_changed_plan(tmp_path):
+    plan_file = _plan(tmp_path)
+    store = tmp_path / "store"
+    with Store(store) as st:
+        create_session(st, Plan.from_toml(plan_file), None, name="s", plan_path=str(plan_file),
+                       reserve_bytes=0)
+    plan_file.write_text(TINY.replace("[0, 90]", "[0, 45, 90]"))
+    r = cli.invoke(capture_app, ["resume", "s", "--rig", "sim", "--store", str(store)])
+    assert r.exit_code == 2
+    assert "the plan" in r.output and "changed since the session was planned" in r.output
+    assert "turntable.angles_deg: [0.0, 90.0] -> [0.0, 45.0, 90.0]" in r.output
+    plan_file.write_text(TINY)
+    r = cli.invoke(capture_app, ["resume", "s", "--rig", "sim", "--store", str(store), "--quiet"])
+    assert r.exit_code == 0, r.output
+    with Store(store) as st:
+        assert st.session("s").state == "done" and st.verify("s").ok
+
+
+def test_ctrl_c_pauses_cleanly_and_resume_finishes(tmp_path):
+    """A real SIGINT to ``gonio capture run`` with motion taking real time."""
+    plan_file = _plan(tmp_path, TINY.replace("[0, 90]", "[0, 90, 180, 270]"))
+    store = tmp_path / "store"
+    gonio = [sys.executable, "-m", "capture.cli"]
+    p = subprocess.Popen([*gonio, "capture", "run", str(plan_file), "--rig", "sim", "--no-fast",
+                          "--store", str(store), "--session", "slow", "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # wait until the session is running
+        time.sleep(0.2)
+        if (store / "gonio.sqlite").exists():
+            with Store(store) as st:
+                if st.sessions() and st.session("slow").state == "running":
+                    break
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 3, out + err
+    assert "gonio capture resume slow" in out
+    with Store(store) as st:
+        info = st.session("slow")
+        assert info.state == "paused"
+        assert st.progress(info.id).steps_done < 4
+        assert st.events(info.id)[-1]["kind"] == "paused"
+    r = subprocess.run([*gonio, "capture", "resume", "slow", "--rig", "sim", "--store", str(store),
+                        "--quiet"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    with Store(store) as st:
+        assert st.session("slow").state == "done" and st.verify("slow").ok
+        assert len(st.frames(st.session("slow").id)) == 4
