@@ -326,6 +326,14 @@ class CookTorrance(BRDF):
         f0 = rgb(self.f0)
         cos_i, cos_o, cos_h, cos_d = _cosines(wi, wo)
         d = microfacet_distribution(cos_h, alpha, self.distribution)
+        fresnel = f0 + (1.0 - f0) * (1.0 - cos_d) ** 5
+        if self.distribution == "ggx" and self.masking == "smith-correlated":
+            # G / (4 cos_i cos_o) in closed form (Heitz 2014): 1 + Lambda(c) = (c + s(c)) / (2c)
+            # with s(c) = sqrt(alpha^2 + (1 - alpha^2) c^2); half the work of the Lambda route
+            a2 = alpha * alpha
+            vis = 0.5 / (cos_o * np.sqrt(a2 + (1 - a2) * cos_i ** 2)
+                         + cos_i * np.sqrt(a2 + (1 - a2) * cos_o ** 2))
+            return rgb(self.kd) / np.pi + fresnel * d * vis
         if self.masking == "v-cavity":
             g = np.minimum(1.0, 2 * cos_h * np.minimum(cos_i, cos_o) / cos_d)
         else:
@@ -333,7 +341,6 @@ class CookTorrance(BRDF):
             lo = smith_lambda(cos_o, alpha, self.distribution)
             g = 1.0 / (1.0 + li + lo) if self.masking == "smith-correlated" else \
                 1.0 / ((1.0 + li) * (1.0 + lo))
-        fresnel = f0 + (1.0 - f0) * (1.0 - cos_d) ** 5
         return rgb(self.kd) / np.pi + fresnel * d * g / (4 * cos_i * cos_o)
 
     def diffuse_part(self) -> BRDF:
