@@ -36,6 +36,9 @@ from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, 
 
 #: Radiant intensity of the rig's lamp (renderer units per sr), RGB (a slightly warm white).
 LIGHT_INTENSITY = (3.2e5, 3.0e5, 2.7e5)
+#: The ring flash around the lens: intensity (renderer units / sr) and radius of its emitter, mm.
+RING_FLASH_INTENSITY = 2.0e5
+RING_FLASH_RADIUS_MM = 40.0
 #: Default light arm: radius about its centre (mm) and the centre (world, mm).
 ARM_RADIUS_MM = 500.0
 ARM_CENTER_MM = (0.0, 0.0, 0.0)
@@ -70,6 +73,8 @@ class RigState:
     """What the camera sees depends on (units: degrees, mm, seconds).
 
     ``polarizer_deg`` is the analyser on the lens (None: no analyser in the path).
+    ``ring_flash``: a ring flash on the lens fires instead of the lamp (Lensch et al. 2003,
+    Sec. 4.1: its highlight sits at the centre of each mirror sphere as seen by the camera).
     """
 
     turntable_deg: float = 0.0
@@ -78,6 +83,7 @@ class RigState:
     exposure_s: float = 0.01
     iso: float = 100.0
     fnumber: float = 8.0
+    ring_flash: bool = False
 
     @classmethod
     def from_state(cls, state: Mapping[str, Any] | None) -> "RigState":
@@ -85,7 +91,7 @@ class RigState:
         and the rig state, flat (``turntable_deg`` / ``turntable_angle_deg``,
         ``light_position_mm``, ``polarizer_deg`` / ``polarizer_angle_deg``) or nested per role
         (``{"turntable": {"angle_deg": ..}, "light": {"position_mm": ..}, "polarizer":
-        {"angle_deg": ..}}``). Missing entries keep their defaults."""
+        {"angle_deg": ..}}``), and ``ring_flash`` (bool). Missing entries keep their defaults."""
         s = dict(state or {})
         nested = {k: v for k, v in s.items() if isinstance(v, Mapping)}
 
@@ -114,6 +120,8 @@ class RigState:
         v = pick("polarizer_deg", "polarizer_angle_deg", role="polarizer", sub=("angle_deg", "position"))
         if v is not None:
             out["polarizer_deg"] = _finite("polarizer angle", v)
+        if "ring_flash" in s:
+            out["ring_flash"] = bool(s["ring_flash"])
         for key in ("exposure_s", "iso", "fnumber"):
             v = pick(key, role="camera", sub=(key,))
             if v is not None:
@@ -210,11 +218,13 @@ def board_on_turntable(board: PrintedBoard, *, tilt_deg: float = 25.0, height_mm
                   lambda ang: board.corners_world(turntable_pose(ang) @ pose0), True, board)
 
 
-def spheres_target(kind: str = "steel", *, count: int = 6, radius_mm: float = 10.0,
-                   spacing_mm: float = 40.0, start_mm=(60.0, -100.0, 160.0),
+def spheres_target(kind: str = "steel", *, count: int = 6, radius_mm: float = 12.7,
+                   spacing_mm: float = 40.0, start_mm=(-80.0, -100.0, 120.0),
                    direction=(0.0, 1.0, 0.0)) -> Target:
-    """A fixed (world) row of mirror spheres (Lensch et al. 2003 Sec. 4.1), above and in front of
-    the object so they are seen by the default camera; ``kind`` ``"steel"`` or ``"chrome"``."""
+    """A fixed (world) row of mirror spheres (Lensch et al. 2003 Sec. 4.1: 1-inch bearing balls
+    on a bar), behind and above the object so the default camera sees them above it; ``kind``
+    ``"steel"`` or ``"chrome"``. Capture once with the lamp and once with ``ring_flash`` in the
+    state (the flash's highlights mark the sphere centres' viewing rays, Eq. 1)."""
     row = SphereRow(count=count, radius_mm=radius_mm, spacing_mm=spacing_mm, kind=kind)
     centers = row.centers(start_mm, direction)
     return Target(f"{kind}_spheres", lambda ang: row.scene_objects(start_mm, direction),
@@ -265,7 +275,8 @@ class SimWorld:
     light_intensity : float or (3,)
         Lamp radiant intensity (renderer units / sr); 0 switches the lamp off.
     light_radius_mm : float
-        Radius of the lamp's emitter as mirrors see it (the highlight on chrome spheres).
+        Radius of the lamp's emitter as mirrors see it (the highlight on chrome spheres; 25 mm:
+        a 50 mm diffuser, whose highlight on a 1-inch ball spans a few pixels).
     light_polarizer_deg : float or None
         Linear polarizer on the lamp (degrees, same reference as the lens analyser); None: none.
     platter : bool
@@ -281,7 +292,7 @@ class SimWorld:
     def __init__(self, object: GroundTruthObject | str | None = "sphere", camera: CameraModel | None = None,
                  sensor: SensorModel | None = None, targets: Sequence[Target] = (), *,
                  environment: EnvironmentMap | None = None, light_intensity=LIGHT_INTENSITY,
-                 light_radius_mm: float = 5.0, light_polarizer_deg: float | None = 0.0,
+                 light_radius_mm: float = 25.0, light_polarizer_deg: float | None = 0.0,
                  platter: bool = True, supersample: int = 1, env_samples: int = 32,
                  seed: int | np.random.Generator = 0) -> None:
         self.object = make_object(object) if isinstance(object, str) else object
@@ -356,7 +367,9 @@ class SimWorld:
             sc.objects.extend(t.scene_objects(st.turntable_deg))
         if self.platter:
             sc.add(Plane((800.0, 800.0)), Lambertian(0.03), "platter")
-        if np.any(np.asarray(self.light_intensity, float) > 0):
+        if st.ring_flash:  # around the lens: at the camera centre, unpolarised
+            sc.add_light(PointLight(self.camera.center, RING_FLASH_INTENSITY, radius=RING_FLASH_RADIUS_MM))
+        elif np.any(np.asarray(self.light_intensity, float) > 0):
             sc.add_light(PointLight(st.light_position_mm, self.light_intensity,
                                     radius=self.light_radius_mm, polarizer=self.light_polarizer_deg))
         return sc
