@@ -348,7 +348,8 @@ class SimWorld:
             from .targets import environment
             kwargs.setdefault("environment", environment("grace"))
             kwargs.setdefault("light_intensity", 0.0)
-            return cls(None, targets=[sphere_target("chrome")], platter=False, **kwargs)
+            kwargs.setdefault("platter", False)
+            return cls(None, targets=[sphere_target("chrome")], **kwargs)
         world = cls(None, **kwargs)
         if kind == "dark":
             world.dark = True

@@ -225,3 +225,16 @@ def test_bad_settings_are_named():
         SensorModel(bit_depth=12, black_level=5000)
     with pytest.raises(ValueError, match="white level"):
         s.to_dng(np.full((2, 2), 65535, np.uint16))
+
+
+def test_dng_colour_matrix_develops_to_the_scene_colours_in_srgb():
+    """ColorMatrix1 + AsShotNeutral are consistent: rawpy's camera -> sRGB matrix is the
+    identity after white balance, so a developed frame has the simulator's (linear sRGB) colours."""
+    s = SensorModel.full_frame(vignetting="none")
+    rad = np.broadcast_to(np.array([0.4, 0.1, 0.2], np.float32), (64, 96, 3)).copy()
+    with rawpy.imread(io.BytesIO(s.to_dng(s.expose(rad, 0.01, 100, 0)))) as r:
+        assert np.allclose(r.color_matrix[:3, :3], np.eye(3), atol=1e-4)
+        rgb = r.postprocess(use_camera_wb=True, no_auto_bright=True, gamma=(1, 1), output_bps=16)
+    m = rgb[8:-8, 8:-8].reshape(-1, 3).mean(axis=0)
+    # shot noise averages out over ~4000 pixels: ratios within 1 %
+    assert m[0] / m[1] == pytest.approx(4.0, rel=0.01) and m[2] / m[1] == pytest.approx(2.0, rel=0.01)
