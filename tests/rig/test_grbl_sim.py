@@ -80,7 +80,7 @@ def test_real_time_move_duration_matches_planner():
         p.move_to(LightTarget(azimuth_deg=30, elevation_deg=20)).wait(3)
         elapsed = time.monotonic() - t0
         expected = path_time_s((0, 0), (30, 20), (5400, 5400), (360, 360))
-        assert expected * 0.9 < elapsed < expected + 0.2
+        assert expected * 0.9 < elapsed < expected + 0.3  # + polling and scheduling slack
         p.close()
 
 

@@ -77,7 +77,7 @@ def test_shortest_path_in_real_time():
         st.move_to(10.0).wait(3)  # 20 deg across zero, not 340 deg
         elapsed = time.monotonic() - t0
         expected = move_time_s(20, 90, 900)
-        assert expected * 0.9 < elapsed < expected + 0.15
+        assert expected * 0.9 < elapsed < expected + 0.3  # + polling and scheduling slack
         assert sim.angle_deg == pytest.approx(10.0, abs=1e-3)
         st.close()
 
@@ -211,7 +211,7 @@ def test_speed_and_acceleration_settings_change_move_time():
         st.move_to(90).wait(3)
         elapsed = time.monotonic() - t0
         expected = move_time_s(90, 180, 1800)
-        assert expected * 0.9 < elapsed < expected + 0.15
+        assert expected * 0.9 < elapsed < expected + 0.3  # + polling and scheduling slack
         with pytest.raises(ValueError, match="speed"):
             st.set_speed(0)
         st.close()
