@@ -145,6 +145,7 @@ class Gphoto2Camera(Camera):
         return f"usb:{dev.bus:03d},{dev.address:03d}"
 
     def connect(self) -> None:
+        """Select the port (and model), initialise the camera, read its settings."""
         self.close()
         gp = self._gp = _gphoto2()
         camera = gp.Camera()
@@ -225,6 +226,7 @@ class Gphoto2Camera(Camera):
         return value
 
     def set_exposure(self, seconds: float) -> float:
+        """Nearest offered shutter speed to ``seconds``; returns what the camera reports, s."""
         return self._set("exposure", float(seconds), "s")
 
     @property
@@ -232,6 +234,7 @@ class Gphoto2Camera(Camera):
         return self._values.get("iso")
 
     def set_iso(self, iso: float) -> float:
+        """Nearest offered ISO; returns what the camera reports."""
         return self._set("iso", float(iso), "ISO")
 
     @property
@@ -239,10 +242,12 @@ class Gphoto2Camera(Camera):
         return self._values.get("fnumber")
 
     def set_fnumber(self, fnumber: float) -> float:
+        """Nearest offered f-number; returns what the camera reports."""
         return self._set("fnumber", float(fnumber), "f/")
 
     # -- capture ------------------------------------------------------------------------------
     def capture(self) -> Frame:
+        """Capture, download the file, delete it from the card (unless ``keep_on_camera``)."""
         gp, camera = self._gp, self._cam()
         exposure, iso, fnumber = self.exposure_s, self.iso, self.fnumber  # no numeric shutter: raise
         path = self._call("capture", camera.capture, gp.GP_CAPTURE_IMAGE)

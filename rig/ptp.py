@@ -340,6 +340,7 @@ class DeviceInfo:
 
 
 def parse_device_info(data: bytes, *, device: str = "") -> DeviceInfo:
+    """Decode the GetDeviceInfo data phase; ``ProtocolError`` if it is truncated or malformed."""
     r = Reader(data, "DeviceInfo", device)
     return DeviceInfo(r.u16(), r.u32(), r.u16(), r.string(), r.u16(), r.u16_array(),
                       r.u16_array(), r.u16_array(), r.u16_array(), r.u16_array(), r.string(),
@@ -367,6 +368,7 @@ class PropDesc:
 
 
 def parse_prop_desc(data: bytes, *, device: str = "") -> PropDesc:
+    """Decode a GetDevicePropDesc data phase (values in the property's raw device units)."""
     r = Reader(data, "DevicePropDesc", device)
     code, dtype, getset = r.u16(), r.u16(), r.u8()
     factory, current = r.value(dtype), r.value(dtype)
@@ -414,6 +416,7 @@ class ObjectInfo:
 
 
 def parse_object_info(data: bytes, *, device: str = "") -> ObjectInfo:
+    """Decode a GetObjectInfo data phase (sizes in bytes, image size in pixels)."""
     r = Reader(data, "ObjectInfo", device)
     return ObjectInfo(r.u32(), r.u16(), r.u16(), r.u32(), r.u16(), r.u32(), r.u32(), r.u32(),
                       r.u32(), r.u32(), r.u32(), r.u32(), r.u16(), r.u32(), r.u32(), r.string(),
@@ -726,32 +729,42 @@ class PtpSession:
 
     # -- operations ---------------------------------------------------------------------------
     def get_device_info(self) -> DeviceInfo:
+        """GetDeviceInfo (0x1001); allowed outside a session."""
         return parse_device_info(self.transaction(Op.GetDeviceInfo).data or b"", device=self.device)
 
     def get_prop_desc(self, prop: int) -> PropDesc:
+        """GetDevicePropDesc (0x1014): type, current value and allowed values of ``prop``."""
         return parse_prop_desc(self.transaction(Op.GetDevicePropDesc, (prop,)).data or b"",
                                device=self.device)
 
     def get_prop_value(self, prop: int, datatype: int) -> int | str:
+        """GetDevicePropValue (0x1015), decoded as ``datatype``; raw device units
+        (ExposureTime in 1/10000 s, FNumber x 100)."""
         data = self.transaction(Op.GetDevicePropValue, (prop,)).data or b""
         return Reader(data, f"value of 0x{prop:04X}", self.device).value(datatype)
 
     def set_prop_value(self, prop: int, datatype: int, value: int | str) -> None:
+        """SetDevicePropValue (0x1016) with ``value`` (raw device units) in the data phase."""
         self.transaction(Op.SetDevicePropValue, (prop,), pack_value(datatype, value))
 
     def initiate_capture(self, storage_id: int = 0, object_format: int = 0) -> None:
+        """InitiateCapture (0x100E); the result arrives as ObjectAdded / CaptureComplete events."""
         self.transaction(Op.InitiateCapture, (storage_id, object_format))
 
     def get_object_handles(self, storage_id: int = 0xFFFFFFFF) -> tuple[int, ...]:
+        """GetObjectHandles (0x1007) of all objects on ``storage_id`` (default: every store)."""
         data = self.transaction(Op.GetObjectHandles, (storage_id, 0, 0)).data or b""
         return Reader(data, "ObjectHandles", self.device).u32_array()
 
     def get_object_info(self, handle: int) -> ObjectInfo:
+        """GetObjectInfo (0x1008) of ``handle``."""
         return parse_object_info(self.transaction(Op.GetObjectInfo, (handle,)).data or b"",
                                  device=self.device)
 
     def get_object(self, handle: int) -> bytes:
+        """GetObject (0x1009): the object's bytes (a data phase of many transfers)."""
         return self.transaction(Op.GetObject, (handle,)).data or b""
 
     def delete_object(self, handle: int) -> None:
+        """DeleteObject (0x100B) of ``handle``."""
         self.transaction(Op.DeleteObject, (handle, 0))

@@ -144,6 +144,7 @@ class PtpCamera(Camera):
 
     @property
     def port(self) -> str:
+        """The rig-file port, ``usb:VID:PID`` (hex)."""
         return f"usb:{self.vendor_id:04x}:{self.product_id:04x}"
 
     @classmethod
@@ -336,6 +337,7 @@ class PtpCamera(Camera):
 
     @property
     def iso(self) -> float | None:
+        """ISO (ExposureIndex) the camera reports, or None if it has no such property."""
         v = self._values.get(Prop.ExposureIndex)
         return None if v is None else float(v)
 
@@ -346,6 +348,7 @@ class PtpCamera(Camera):
 
     @property
     def fnumber(self) -> float | None:
+        """Aperture f-number the camera reports, or None if it has no such property."""
         v = self._values.get(Prop.FNumber)
         return None if v is None else v / 100.0
 

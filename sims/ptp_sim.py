@@ -248,6 +248,7 @@ class PtpCameraSim(usb.backend.IBackend):
 
     @property
     def exposure_s(self) -> float:
+        """Current exposure time, seconds."""
         return self.prop(PROP_EXPOSURE) / 10000.0
 
     def turn_dial(self, code: int, value: int) -> None:
