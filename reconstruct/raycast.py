@@ -227,25 +227,33 @@ class Mesh(Surface):
             g["scene"] = (scene, centre)
         return g["scene"]
 
+    def _embree_rays(self, o, d, t_max):
+        """float32 origins (relative to the mesh centre), directions and far limits."""
+        scene, centre = self._embree()
+        if o.strides[0] == 0:  # a shared origin (camera rays): subtract once
+            o32 = np.ascontiguousarray(np.broadcast_to((o[0] - centre).astype(np.float32),
+                                                       o.shape))
+        else:
+            o32 = (o - centre).astype(np.float32)
+        # inf -> float32 max (Embree's "no limit")
+        dists = np.minimum(t_max, np.finfo(np.float32).max).astype(np.float32)
+        return scene, o32, d.astype(np.float32), dists
+
     def _intersect(self, o, d, t_max):
         if not HAVE_EMBREE:
             return self._intersect_fallback(o, d, t_max)
-        scene, centre = self._embree()
-        dists = np.where(np.isfinite(t_max), t_max, np.finfo(np.float32).max).astype(np.float32)
-        out = scene.run((o - centre).astype(np.float32), d.astype(np.float32), dists=dists,
-                        output=1)
-        prim = out["primID"].astype(np.int64)
-        hit = prim >= 0
-        t = np.where(hit, out["tfar"].astype(np.float64), np.inf)
-        return t, np.where(hit, prim, -1), out["u"].astype(np.float64), out["v"].astype(np.float64)
+        scene, o32, d32, dists = self._embree_rays(o, d, t_max)
+        out = scene.run(o32, d32, dists=dists, output=1)
+        prim = out["primID"]
+        t = np.where(prim >= 0, out["tfar"], np.float32(np.inf))
+        # u, v stay float32: _attributes recomputes the barycentrics in float64
+        return t, prim.astype(np.int64), out["u"], out["v"]
 
     def _occluded(self, o, d, t_max):
         if not HAVE_EMBREE:
             return super()._occluded(o, d, t_max)
-        scene, centre = self._embree()
-        dists = np.where(np.isfinite(t_max), t_max, np.finfo(np.float32).max).astype(np.float32)
-        return scene.run((o - centre).astype(np.float32), d.astype(np.float32), dists=dists,
-                         query="OCCLUDED") >= 0
+        scene, o32, d32, dists = self._embree_rays(o, d, t_max)
+        return scene.run(o32, d32, dists=dists, query="OCCLUDED") >= 0
 
     def _intersect_fallback(self, o, d, t_max):
         _warn_slow()

@@ -26,7 +26,9 @@ models' ``diffuse_part()`` / ``specular_part()``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -310,7 +312,8 @@ class _Options:
 def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
            polarizer: float | None = None, env_samples: int = 64,
            env_sampling: str = "mis", max_bounces: int = 2, rng=0,
-           background=None, chunk: int = DEFAULT_CHUNK) -> RenderResult:
+           background=None, chunk: int = DEFAULT_CHUNK,
+           threads: int | None = None) -> RenderResult:
     """Render ``scene`` as seen by ``camera``.
 
     Parameters
@@ -332,12 +335,17 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     max_bounces : int
         How many mirror reflections a ray may follow (0: mirrors see nothing).
     rng : int or numpy.random.Generator
-        Seed or generator of the Monte-Carlo sampling.
+        Seed or generator of the Monte-Carlo sampling. Each chunk of rows draws from its own
+        child generator (``Generator.spawn``), so a frame is reproducible for a given seed and
+        ``chunk`` whatever the number of threads.
     background : None or float or (3,)
         Radiance of pixels that hit nothing; None: the environment map seen through the
         (analyser), black without one.
     chunk : int
-        Camera rays processed together (memory bound).
+        Camera rays processed together (memory bound: ~1 kB per ray in flight per thread).
+    threads : int or None
+        Chunks rendered concurrently (numpy releases the GIL in its array loops); None: the
+        CPUs available to this process, at most 4.
 
     Returns
     -------
@@ -347,6 +355,10 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
         raise TypeError(f"camera must be a CameraModel, got {type(camera).__name__}")
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk!r}")
+    if threads is None:
+        threads = min(4, len(os.sched_getaffinity(0)))
+    if int(threads) < 1:
+        raise ValueError(f"threads must be >= 1, got {threads!r}")
     H, W = camera.height, camera.width
     n = H * W
     rad = np.zeros((n, 3), np.float32)
@@ -359,18 +371,29 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
     bg = None if background is None else _rgb3("background", background)
     rows = max(1, int(chunk) // W)
-    for r0 in range(0, H, rows):
+    starts = list(range(0, H, rows))
+
+    def run(r0, gen):
         r1 = min(H, r0 + rows)
         sl = slice(r0 * W, r1 * W)
         o, d = _camera_rays(camera, r0, r1)
-        L, hits = _trace(scene, o, d, opts, 0, bg)
-        rad[sl] = L
+        L, hits = _trace(scene, o, d, replace(opts, rng=gen), 0, bg)
+        rad[sl] = L  # chunks write disjoint slices: safe from threads
         mask[sl] = hits.mask
         normal[sl] = hits.normal
         position[sl] = hits.position
         uv[sl] = hits.uv
         face[sl] = hits.face_index
         surf[sl] = hits.surface_index
+
+    gens = opts.rng.spawn(len(starts))
+    if int(threads) == 1 or len(starts) == 1:
+        for r0, gen in zip(starts, gens):
+            run(r0, gen)
+    else:
+        with ThreadPoolExecutor(max_workers=int(threads)) as pool:
+            for f in [pool.submit(run, r0, gen) for r0, gen in zip(starts, gens)]:
+                f.result()
     depth = np.where(mask, position @ camera.R[2] + camera.t[2], np.inf).astype(np.float32)
     return RenderResult(radiance=rad.reshape(H, W, 3), mask=mask.reshape(H, W),
                         normal=normal.reshape(H, W, 3), position=position.reshape(H, W, 3),
