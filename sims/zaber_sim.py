@@ -6,9 +6,10 @@ Speaks the frames described in ``rig/zaber.py`` byte for byte (commands ``/1 1 0
 power-up the axis reports ``WR`` (no reference position) and rejects absolute moves with
 ``RJ IDLE WR BADCOMMAND`` until ``home`` has run.
 
-Simplifications, stated: one device with one axis; ``stop`` halts at the current position
-(deceleration is not modelled); replies carry a checksum exactly when the command did; a
-command whose checksum is wrong is dropped without a reply.
+``stop`` decelerates at ``accel`` from the current speed (flag ``NI``, command interrupted).
+
+Simplifications, stated: one device with one axis; replies carry a checksum exactly when the
+command did; a command whose checksum is wrong is dropped without a reply.
 
 Device faults for :meth:`inject` (besides the base ``no_reply``, ``garble``, ``disconnect``):
 
@@ -70,6 +71,14 @@ def trapezoid_distance(distance: float, vmax: float, amax: float, t: float) -> f
     return 0.5 * amax * t_acc * t_acc + v_peak * (t - t_acc)
 
 
+def trapezoid_speed(distance: float, vmax: float, amax: float, t: float) -> float:
+    """Speed (length unit per s) ``t`` seconds into a rest-to-rest trapezoidal move."""
+    total = trapezoid_duration(distance, vmax, amax)
+    if t <= 0.0 or t >= total:
+        return 0.0
+    return amax * min(t, vmax / amax, total - t)
+
+
 def _checksum(body: str) -> str:
     return f"{(-sum(body.encode('ascii'))) & 0xFF:02X}"
 
@@ -129,7 +138,8 @@ class ZaberSim(SerialSim):
         with self._lock:
             self._pos = 0.0                 # position counter, microsteps (unwrapped while moving)
             self._offset = 0.0 if self._start_homed else self._power_up_angle * self.cycle / 360.0
-            self._motion: tuple[float, float, float, list[str]] | None = None  # t0, p0, delta, flags
+            # t0, p0, delta, flags applied at the end, braking start speed (None: rest to rest)
+            self._motion: tuple[float, float, float, list[str], float | None] | None = None
             self.flags: set[str] = set() if self._start_homed else {"WR"}
 
     def on_disconnect(self) -> None:
@@ -151,8 +161,9 @@ class ZaberSim(SerialSim):
         """Advance the motion model to ``now``; finish the move when its time is up."""
         if self._motion is None:
             return
-        t0, p0, delta, flags = self._motion
-        if self.fast or now - t0 >= trapezoid_duration(delta, self.speed, self.accel):
+        t0, p0, delta, flags, v0 = self._motion
+        duration = trapezoid_duration(delta, self.speed, self.accel) if v0 is None else v0 / self.accel
+        if self.fast or now - t0 >= duration:
             self._pos = p0 + delta
             self._motion = None
             if "home" in flags:  # reached the home sensor: it defines counter 0
@@ -162,14 +173,26 @@ class ZaberSim(SerialSim):
                 self.flags |= set(flags)
                 if "WL" in flags:
                     self.flags.add("WR")
-        else:
+        elif v0 is None:
             self._pos = p0 + math.copysign(trapezoid_distance(delta, self.speed, self.accel, now - t0), delta)
+        else:  # braking after a stop
+            t = now - t0
+            self._pos = p0 + math.copysign(v0 * t - 0.5 * self.accel * t * t, delta)
+
+    def _speed(self, now: float) -> float:
+        """Current speed, microsteps/s (0 when idle)."""
+        if self._motion is None or self.fast:
+            return 0.0
+        t0, _, delta, _, v0 = self._motion
+        if v0 is None:
+            return trapezoid_speed(delta, self.speed, self.accel, now - t0)
+        return max(0.0, v0 - self.accel * (now - t0))
 
     def _start(self, delta: float, flags: list[str]) -> None:
         """Begin a move by ``delta`` microsteps; ``flags`` are applied when it ends."""
         if set(flags) & {"FS", "FQ", "WL"}:
             delta = delta / 2.0  # the fault stops it half way
-        self._motion = (time.monotonic(), self._pos, delta, flags)
+        self._motion = (time.monotonic(), self._pos, delta, flags, None)
 
     @property
     def busy(self) -> bool:
@@ -253,7 +276,12 @@ class ZaberSim(SerialSim):
             return "OK", "0"
         if verb == "stop" and len(words) == 1:
             if self._motion is not None:
-                self._motion = None
+                now = time.monotonic()
+                v = self._speed(now)
+                direction = self._motion[2]
+                # decelerate at `accel` from the current speed; the move's own flags are dropped
+                self._motion = (now, self._pos, math.copysign(v * v / (2 * self.accel), direction), [], v) \
+                    if v > 0 else None
                 self.flags.add("NI")
             return "OK", "0"
         if verb == "warnings":

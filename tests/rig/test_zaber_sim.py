@@ -7,7 +7,7 @@ import pytest
 
 from rig import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, NotHomed, ProtocolError
 from rig.zaber import ZaberRotaryStage, move_time_s
-from sims.zaber_sim import ZaberSim, trapezoid_distance, trapezoid_duration
+from sims.zaber_sim import ZaberSim, trapezoid_distance, trapezoid_duration, trapezoid_speed
 
 TIMEOUT = 0.5  # reply timeout used here, seconds: every fault must surface within it (+ margin)
 
@@ -25,6 +25,16 @@ def stage(sim):
     st.connect()
     yield st
     st.close()
+
+
+def test_trapezoid_speed_is_the_derivative_of_distance():
+    d, v, a = 100.0, 20.0, 50.0
+    total = trapezoid_duration(d, v, a)
+    for t in [0.1 * total, 0.3 * total, 0.5 * total, 0.95 * total]:
+        h = 1e-6
+        numeric = (trapezoid_distance(d, v, a, t + h) - trapezoid_distance(d, v, a, t - h)) / (2 * h)
+        assert trapezoid_speed(d, v, a, t) == pytest.approx(numeric, rel=1e-5)
+    assert trapezoid_speed(d, v, a, total + 1) == 0.0
 
 
 def test_trapezoid_profile_is_continuous_and_reaches_distance():
@@ -87,11 +97,15 @@ def test_stop_interrupts_move():
         st = ZaberRotaryStage("turntable", sim.port, timeout_s=TIMEOUT, poll_interval_s=0.005)
         st.connect()
         status = st.move_to(90.0)
-        time.sleep(0.2)
+        time.sleep(0.25)  # cruising at 30 deg/s
         st.stop()
+        at_stop = sim.angle_deg
         with pytest.raises(DeviceError, match="not at the target"):
             status.wait(2)
+        # it brakes at 300 deg/s^2: v^2 / 2a = 1.5 deg further (less what passed since the stop)
+        assert 1.0 < sim.angle_deg - at_stop <= 1.5 + 1e-6
         assert 0.0 < sim.angle_deg < 90.0
+        assert "NI" in st.warnings()
         st.close()
 
 
