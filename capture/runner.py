@@ -415,8 +415,7 @@ class Runner:
         tried = f" after {attempts} attempts" if attempts > 1 else ""
         self._emit(EventKind.FAULT, f"{what} failed{tried}: {exc}", step=step, device=device,
                    error=type(exc).__name__, retryable=exc.retryable, attempts=attempts)
-        msg = (f"paused: {exc}. Fix the cause, then continue with: gonio capture resume "
-               f"{self.name}")
+        msg = f"{exc}. Fix the cause, then continue with: gonio capture resume {self.name}"
         self._emit(EventKind.PAUSED, msg, step=step, device=device, **self._counters)
         raise _Stop("paused", msg)
 
