@@ -13,10 +13,12 @@ answers ``ok`` once the queue has drained and the dwell elapsed. With ``$22=1`` 
 enabled) the firmware starts in ``Alarm`` after power-up; a reset during motion raises
 ``ALARM:3`` and keeps the lock. Hard-limit switches sit at the edges of ``travel``: a move that
 reaches one stops there with ``ALARM:1`` (critical: only a soft reset is answered afterwards).
+A feed hold brakes along the path (``Hold:1``), then holds (``Hold:0``); ``~`` re-plans the rest
+of the move (and is ignored while still braking); a reset after the hold keeps the position.
 
 Simplifications, stated: work coordinates equal machine coordinates (no G92/G10 offsets; WCO is
-reported as zero); a feed hold stops at once (``Hold:0``) instead of decelerating; the planner
-never fills (``ok`` is immediate for every motion line).
+reported as zero); the planner never fills (``ok`` is immediate for every motion line); moves
+are planned one at a time (no junction speed carried between queued blocks).
 
 Faults for :meth:`inject` besides ``no_reply``, ``garble``, ``disconnect``:
 
@@ -38,7 +40,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .serial_sim import SerialSim
-from .zaber_sim import trapezoid_distance, trapezoid_duration
+from .zaber_sim import trapezoid_distance, trapezoid_duration, trapezoid_speed
 
 VERSION = "1.1h"
 BUILD = "1.1h.20190825"
@@ -139,7 +141,8 @@ class GrblSim(SerialSim):
             self._offset = self.power_up_position.copy()  # physical = reported + offset
             self.queue: deque[tuple[str, Any]] = deque()  # ("move", target) / ("dwell", seconds)
             self._active: tuple | None = None  # (kind, t0, start, end, duration, vmax, amax, trip)
-            self._held_at: float | None = None
+            self.hold: str | None = None  # None, "braking" (Hold:1) or "held" (Hold:0)
+            self._resume: tuple[np.ndarray, bool] | None = None  # (end, trip) of the held move
             self.state = "Alarm" if self.settings[22] else "Idle"
             self.critical = False
             self.hard_limit_next = False
@@ -179,9 +182,8 @@ class GrblSim(SerialSim):
         accel = np.array([self.settings[120 + i] for i in range(3)])
         return rate, accel
 
-    def _begin(self, kind: str, end: np.ndarray, now: float) -> None:
+    def _begin(self, kind: str, end: np.ndarray, now: float, trip: bool = False) -> None:
         start = self.mpos.copy()
-        trip = False
         phys_end = end + self._offset
         lo, hi = self.travel
         if kind == "move" and (np.any(phys_end < lo) or np.any(phys_end > hi) or self.hard_limit_next):
@@ -216,7 +218,7 @@ class GrblSim(SerialSim):
     def _advance(self, now: float) -> None:
         """Run the motion model up to ``now``: finish moves, start queued ones, push messages."""
         while True:
-            if self._held_at is not None or self.critical:
+            if self.hold == "held" or self.critical:
                 return
             if self._active is None:
                 if not self.queue:
@@ -230,10 +232,23 @@ class GrblSim(SerialSim):
                 elif kind == "sync":
                     self._pending += b"ok\r\n"
                     continue
+                elif kind == "resume":
+                    self._begin("move", arg[0], now, trip=arg[1])
+                    self.state = "Run"
                 else:
                     self._begin(kind, np.asarray(arg, dtype=float), now)
                     self.state = "Home" if kind == "home" else "Run"
             kind, t0, start, end, duration, vmax, amax, trip = self._active
+            if kind == "brake":
+                t = min(now - t0, duration)
+                length = float(np.linalg.norm(end - start))
+                s = vmax * t - 0.5 * amax * t * t  # vmax holds the speed when the hold began
+                self.mpos = start + (end - start) * (s / length if length else 0.0)
+                if now - t0 >= duration:
+                    self.mpos = end.copy()
+                    self._active = None
+                    self.hold = "held"
+                return
             if now - t0 < duration:
                 if vmax is not None:
                     length = float(np.linalg.norm(end - start))
@@ -298,12 +313,17 @@ class GrblSim(SerialSim):
         self._reports += 1
         state = self.state
         if state == "Hold":
-            state = "Hold:0"
+            state = "Hold:1" if self.hold == "braking" else "Hold:0"
         pos = self.mpos  # WCO is zero, so WPos == MPos
         label = "MPos" if int(self.settings[10]) & 1 else "WPos"
         feed = 0.0
-        if self._active is not None and self._active[5] is not None and self._held_at is None:
-            feed = self._active[5] * 60.0
+        if self._active is not None and self._active[5] is not None and not self.fast:
+            kind, t0, start, end, duration, vmax, amax, _ = self._active
+            t = time.monotonic() - t0
+            if kind == "brake":
+                feed = max(0.0, vmax - amax * t) * 60.0
+            else:
+                feed = trapezoid_speed(float(np.linalg.norm(end - start)), vmax, amax, t) * 60.0
         text = f"<{state}|{label}:{pos[0]:.3f},{pos[1]:.3f},{pos[2]:.3f}|FS:{feed:.0f},0"
         if self._reports % 10 == 1:
             text += "|WCO:0.000,0.000,0.000"
@@ -313,26 +333,26 @@ class GrblSim(SerialSim):
         if byte == b"?":
             return self._status_report()
         if byte == b"!":
-            if self.state in ("Run",) and self._held_at is None:
-                self._advance(now)
-                self._held_at = now  # the active move freezes here until '~'
-                self.state = "Hold"
+            if self.state == "Run" and self._active is not None and self._active[0] == "move" \
+                    and self._active[5] is not None:
+                self._hold(now)
             return None
         if byte == b"~":
-            if self.state == "Hold" and self._held_at is not None:
-                self._held_at = None
-                if self._active is not None:  # resume: re-plan the rest of the move from here
-                    kind, _, _, end, *_ = self._active
-                    self._active = None
-                    self.queue.appendleft((kind, end))
+            if self.state == "Hold" and self.hold == "held":  # ignored while still braking
+                self.hold = None
+                if self._resume is not None:  # re-plan the rest of the held move from here
+                    self.queue.appendleft(("resume", self._resume))
+                    self._resume = None
                 self.state = "Run"
+                self._advance(now)
             return None
         # soft reset
-        moving = self.state in ("Run", "Home", "Jog") and self._held_at is None
+        moving = self.state in ("Run", "Home", "Jog") or self.hold == "braking"
         self._advance(now)
         self._active = None
         self.queue.clear()
-        self._held_at = None
+        self.hold = None
+        self._resume = None
         out = b""
         if moving:
             out += b"ALARM:3\r\n" if self.state != "Home" else b"ALARM:6\r\n"
@@ -344,6 +364,22 @@ class GrblSim(SerialSim):
         if self.state == "Alarm":
             out += b"[MSG:'$H'|'$X' to unlock]\r\n"
         return out
+
+    def _hold(self, now: float) -> None:
+        """Feed hold: brake along the path at the move's acceleration (``Hold:1``), then stay
+        (``Hold:0``) until ``~``; queued moves wait."""
+        _, t0, start, end, duration, vmax, amax, trip = self._active
+        length = float(np.linalg.norm(end - start))
+        t = now - t0
+        v = 0.0 if self.fast else trapezoid_speed(length, vmax, amax, t)
+        here = start + (end - start) * (trapezoid_distance(length, vmax, amax, t) / length)
+        stop = here + (end - start) / length * min(v * v / (2 * amax), length - float(np.linalg.norm(here - start)))
+        self.mpos = here
+        self._resume = (end.copy(), trip)
+        self._active = ("brake", now, here, stop, v / amax, v, amax, False)
+        self.hold = "braking"
+        self.state = "Hold"
+        self._advance(now)
 
     def _system(self, line: str) -> str | None:
         if line == "$":

@@ -93,21 +93,24 @@ def test_wpos_reports_with_wco():
         p.close()
 
 
-def test_feed_hold_and_resume():
+def test_feed_hold_brakes_then_holds_and_resume_finishes():
     with GrblSim(fast=False, settings={22: 0}) as sim:
         p = make(sim)
-        status = p.move_to(LightTarget(azimuth_deg=60, elevation_deg=0))
-        time.sleep(0.15)
+        status = p.move_to(LightTarget(azimuth_deg=80, elevation_deg=0))
+        time.sleep(0.4)  # cruising at 90 deg/s (5400 deg/min)
         p.feed_hold()
-        time.sleep(0.05)
+        braking = p.status()
+        assert (braking.state, braking.substate) == ("Hold", 1) and braking.feed > 0
+        time.sleep(0.35)  # 90 / 360 = 0.25 s of braking
         held = p.status()
-        assert held.state == "Hold" and held.substate == 0
-        x_held = held.mpos[0]
+        assert (held.state, held.substate) == ("Hold", 0) and held.feed == 0
+        # braking distance v^2 / 2a = 90^2 / 720 = 11.25 deg beyond the hold point
+        assert held.mpos[0] - braking.mpos[0] == pytest.approx(11.25, abs=1.0)
         time.sleep(0.1)
-        assert p.status().mpos[0] == pytest.approx(x_held)  # not moving
+        assert p.status().mpos[0] == held.mpos[0]  # not moving
         p.resume()
-        status.wait(3)
-        assert p.machine_position()["X"] == pytest.approx(60.0)
+        assert status.wait(3) == pytest.approx(sim.light_position_mm, abs=0.01)
+        assert p.machine_position()["X"] == pytest.approx(80.0)
         p.close()
 
 
