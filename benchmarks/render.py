@@ -92,7 +92,10 @@ def bench_env_sphere(size, samples, repeat):
 
 
 def _instantiate(cls):
-    """A model with its defaults; required BRDF-typed fields get simple models."""
+    """A model with its defaults; required BRDF-typed fields get simple models; tabulated
+    models are tabulated from a Cook-Torrance model with their ``from_brdf`` defaults."""
+    if hasattr(cls, "from_brdf"):
+        return cls.from_brdf(CookTorrance(kd=0.3, f0=0.5, alpha=0.25))
     kw = {}
     for f in dataclasses.fields(cls):
         if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
