@@ -18,7 +18,7 @@ import typer
 app = typer.Typer(name="sim", help="Render the simulated lab: scenes, targets and the camera's raw frames.",
                   no_args_is_help=True)
 
-SCENES = ("object", "checkerboard", "charuco", "chrome", "spheres", "graycard", "probe", "dark", "flat")
+SCENES = ("object", "checkerboard", "charuco", "chrome", "spheres", "graycard", "probe", "passive", "dark", "flat")
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:

@@ -44,7 +44,7 @@ ARM_RADIUS_MM = 500.0
 ARM_CENTER_MM = (0.0, 0.0, 0.0)
 #: Scene kinds :meth:`SimWorld.for_capture` knows.
 CAPTURE_KINDS = ("object", "checkerboard", "charuco", "chrome", "spheres", "graycard", "probe",
-                 "dark", "flat")
+                 "passive", "dark", "flat")
 
 
 def light_position(azimuth_deg: float, elevation_deg: float, *, radius_mm: float = ARM_RADIUS_MM,
@@ -182,7 +182,8 @@ class Target:
     """A calibration target placed on the turntable (it turns with it) or fixed in the world.
 
     ``scene_objects(angle_deg)`` gives its surfaces for a turntable angle; ``points_world``
-    (angle_deg) its known feature points (board corners, sphere centres) in the world frame."""
+    (angle_deg) its known feature points (board corners, sphere centres) in the world frame;
+    ``spec`` is the target's description (a board, a sphere row ...)."""
 
     name: str
     objects_at: Any
@@ -197,22 +198,25 @@ class Target:
         return self.points_at(angle_deg if self.on_turntable else 0.0)
 
 
-def board_on_turntable(board: PrintedBoard, *, tilt_deg: float = 25.0, height_mm: float | None = None,
-                       facing_deg: float = 0.0, name: str | None = None) -> Target:
-    """A printed board standing on the turntable: centre above the axis at ``height_mm`` (default:
-    half its height plus 10 mm), printed face towards azimuth ``facing_deg`` at turntable angle 0
-    (0: towards the default camera), leaning back by ``tilt_deg`` (its face turned up)."""
-    w, h = board.size_mm
-    zc = h / 2 + 10.0 if height_mm is None else height_mm
+def standing_pose(center_height_mm: float, *, tilt_deg: float = 25.0, facing_deg: float = 0.0) -> np.ndarray:
+    """4x4 pose (board axes, see :mod:`sims.targets`) of a sheet's centre standing on the
+    turntable at angle 0: above the axis at ``center_height_mm``, printed face towards azimuth
+    ``facing_deg`` (0: the default camera), leaning back by ``tilt_deg`` (face turned up)."""
     a, t = np.radians(facing_deg), np.radians(tilt_deg)
-    out = np.array([np.cos(a) * np.cos(t), np.sin(a) * np.cos(t), np.sin(t)])  # face normal
-    z = -out
+    z = -np.array([np.cos(a) * np.cos(t), np.sin(a) * np.cos(t), np.sin(t)])  # into the sheet
     x = np.cross([0.0, 0.0, 1.0], z)
     x /= np.linalg.norm(x)
-    center = np.eye(4)
-    center[:3, 0], center[:3, 1], center[:3, 2] = x, np.cross(z, x), z
-    center[:3, 3] = (0.0, 0.0, zc)
-    pose0 = board.centered_pose(center)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, (0.0, 0.0, center_height_mm)
+    return T
+
+
+def board_on_turntable(board: PrintedBoard, *, tilt_deg: float = 25.0, height_mm: float | None = None,
+                       facing_deg: float = 0.0, name: str | None = None) -> Target:
+    """A printed board standing on the turntable (it turns with it), centred at ``height_mm``
+    (default: half its height plus 10 mm); see :func:`standing_pose`."""
+    zc = board.size_mm[1] / 2 + 10.0 if height_mm is None else height_mm
+    pose0 = board.centered_pose(standing_pose(zc, tilt_deg=tilt_deg, facing_deg=facing_deg))
     name = name or type(board).__name__.lower()
     return Target(name, lambda ang: [board.scene_object(turntable_pose(ang) @ pose0, name)],
                   lambda ang: board.corners_world(turntable_pose(ang) @ pose0), True, board)
@@ -240,19 +244,17 @@ def sphere_target(kind: str = "chrome", *, radius_mm: float = 25.4,
 
 
 def gray_card_target(*, tilt_deg: float = 25.0) -> Target:
-    """The 18 % gray card standing on the turntable like a board."""
+    """The 18 % gray card standing on the turntable like a board; its points are its corners."""
     card = GrayCard()
     w, h = card.size_mm
-    t = np.radians(tilt_deg)
-    z = -np.array([np.cos(t), 0.0, np.sin(t)])
-    x = np.cross([0.0, 0.0, 1.0], z)
-    x /= np.linalg.norm(x)
-    pose0 = np.eye(4)
-    pose0[:3, 0], pose0[:3, 1], pose0[:3, 2], pose0[:3, 3] = x, np.cross(z, x), z, (0, 0, h / 2 + 10)
+    pose0 = standing_pose(h / 2 + 10.0, tilt_deg=tilt_deg)
     corners = np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]])
-    return Target("gray_card", lambda ang: [card.scene_object(turntable_pose(ang) @ pose0)],
-                  lambda ang: corners @ (turntable_pose(ang) @ pose0)[:3, :3].T +
-                  (turntable_pose(ang) @ pose0)[:3, 3], True, card)
+
+    def points(ang):
+        T = turntable_pose(ang) @ pose0
+        return corners @ T[:3, :3].T + T[:3, 3]
+
+    return Target("gray_card", lambda ang: [card.scene_object(turntable_pose(ang) @ pose0)], points, True, card)
 
 
 class SimWorld:
@@ -328,7 +330,8 @@ class SimWorld:
         """The scene of one kind of capture: ``"object"`` (the object alone), ``"checkerboard"``
         / ``"charuco"`` (a board standing on the turntable), ``"chrome"`` (one chrome sphere),
         ``"spheres"`` (Lensch's row of six steel spheres, beside the object), ``"graycard"``,
-        ``"probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"dark"`` (lens
+        ``"probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"passive"``
+        (the object under that probe, no lamp: passive reflectometry), ``"dark"`` (lens
         cap on: sensor dark frame), ``"flat"`` (a uniform white field)."""
         if kind not in CAPTURE_KINDS:
             raise ValueError(f"capture kind must be one of {CAPTURE_KINDS}, got {kind!r}")
@@ -344,11 +347,14 @@ class SimWorld:
             return cls(object, targets=[spheres_target("steel")], **kwargs)
         if kind == "graycard":
             return cls(None, targets=[gray_card_target()], **kwargs)
-        if kind == "probe":
-            from .targets import environment
-            kwargs.setdefault("environment", environment("grace"))
+        if kind in ("probe", "passive"):
+            if "environment" not in kwargs:
+                from .targets import environment
+                kwargs["environment"] = environment("grace")
             kwargs.setdefault("light_intensity", 0.0)
             kwargs.setdefault("platter", False)
+            if kind == "passive":
+                return cls(object, **kwargs)
             return cls(None, targets=[sphere_target("chrome")], **kwargs)
         world = cls(None, **kwargs)
         if kind == "dark":

@@ -163,3 +163,18 @@ def test_lab_frame_source_is_a_small_rendered_frame():
     with rawpy.imread(io.BytesIO(lab_frame_source(fast=True)({"exposure_s": 0.01, "iso": 100,
                                                                 "fnumber": 8.0}))) as r:
         assert r.raw_image_visible.shape == (240, 320)
+
+
+def test_passive_capture_lights_the_object_by_the_environment_only():
+    """Under a uniform environment of radiance L and no lamp, an unshadowed Lambertian surface of
+    albedo a has radiance a * L (irradiance pi L times a / pi), whatever its normal."""
+    from reconstruct.envmap import EnvironmentMap
+    obj = make_sphere(material=Lambertian(0.6), marker_dirs=())
+    world = SimWorld.for_capture("passive", obj, camera=_small_camera(), environment=EnvironmentMap.constant(0.5),
+                                 env_samples=64)
+    assert world.scene().lights == []
+    gt = world.ground_truth({})
+    up = gt.buffers.surface_index == 0  # no platter, and a convex sphere never shadows itself
+    assert up.sum() > 1000
+    # Monte-Carlo over 64 samples per pixel: the mean over >1000 pixels within 2 %
+    assert gt.radiance[up].mean() == pytest.approx(0.3, rel=0.02)
