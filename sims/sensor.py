@@ -24,6 +24,7 @@ Everything is vectorised numpy over the mosaic; randomness comes from an explici
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -40,6 +41,26 @@ _ADC_HEADROOM = 0.97
 _XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
                          [-0.9692660, 1.8760108, 0.0415560],
                          [0.0556434, -0.2040259, 1.0572252]])
+
+
+@functools.lru_cache(maxsize=8)
+def _vignetting(kind, strength, coeffs, height, width, focal_px, cx, cy) -> np.ndarray:
+    """Relative illumination map (cached: every frame of a camera shares it), read-only."""
+    if kind == "none":
+        v = np.ones((height, width))
+    else:
+        ys, xs = np.ogrid[0:height, 0:width]
+        r2 = (xs - cx) ** 2 + (ys - cy) ** 2
+        if kind == "cos4":
+            v = 1.0 - strength * (1.0 - (focal_px ** 2 / (focal_px ** 2 + r2)) ** 2)
+        else:
+            rn2 = r2 / (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2)
+            v = 1.0 + sum(a * rn2 ** k for k, a in enumerate(coeffs, start=1))
+            if np.any(v <= 0):
+                raise ValueError(f"vignetting_coeffs {coeffs} make the relative illumination <= 0 "
+                                 "inside the image")
+    v.flags.writeable = False
+    return v
 
 
 @dataclass(frozen=True)
@@ -221,24 +242,11 @@ class SensorModel:
         principal_point : (cx, cy), optional
             Pixel coordinates of the optical axis; default the image centre.
         """
-        if self.vignetting == "none":
-            return np.ones((height, width))
+        if self.vignetting == "cos4" and (focal_px is None or not focal_px > 0):
+            raise ValueError(f"vignetting='cos4' needs focal_px > 0 (the focal length in pixels), got {focal_px!r}")
         cx, cy = principal_point if principal_point is not None else ((width - 1) / 2, (height - 1) / 2)
-        ys, xs = np.ogrid[0:height, 0:width]
-        r2 = (xs - cx) ** 2 + (ys - cy) ** 2
-        if self.vignetting == "cos4":
-            if focal_px is None or not focal_px > 0:
-                raise ValueError(f"vignetting='cos4' needs focal_px > 0 (the focal length in pixels), got {focal_px!r}")
-            cos4 = (focal_px ** 2 / (focal_px ** 2 + r2)) ** 2
-            return 1.0 - self.vignetting_strength * (1.0 - cos4)
-        rn2 = r2 / (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2)
-        v = np.ones_like(rn2, dtype=float)
-        for k, a in enumerate(self.vignetting_coeffs, start=1):
-            v = v + a * rn2 ** k
-        if np.any(v <= 0):
-            raise ValueError(f"vignetting_coeffs {self.vignetting_coeffs} make the relative illumination <= 0 "
-                             "inside the image")
-        return v
+        return _vignetting(self.vignetting, self.vignetting_strength, self.vignetting_coeffs, int(height),
+                           int(width), None if focal_px is None else float(focal_px), float(cx), float(cy))
 
     # -- the forward model --------------------------------------------------------------------
     def _check_exposure(self, radiance, exposure_s, iso, fnumber) -> np.ndarray:
