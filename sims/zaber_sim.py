@@ -11,6 +11,8 @@ power-up the axis reports ``WR`` (no reference position) and rejects absolute mo
 Simplifications, stated: one device with one axis; replies carry a checksum exactly when the
 command did; a command whose checksum is wrong is dropped without a reply.
 
+With ``set comm.alert 1`` the device pushes an alert ``!01 1 IDLE <flag>`` when a move ends.
+
 Device faults for :meth:`inject` (besides the base ``no_reply``, ``garble``, ``disconnect``):
 
 - ``busy``    the next motion or ``set`` command is rejected ``RJ BUSY -- STATUSBUSY``;
@@ -141,6 +143,8 @@ class ZaberSim(SerialSim):
             # t0, p0, delta, flags applied at the end, braking start speed (None: rest to rest)
             self._motion: tuple[float, float, float, list[str], float | None] | None = None
             self.flags: set[str] = set() if self._start_homed else {"WR"}
+            self.alerts_on = False  # comm.alert: push "!01 1 IDLE --" when a move ends
+            self._outbox = bytearray()
 
     def on_disconnect(self) -> None:
         with self._lock:
@@ -173,6 +177,8 @@ class ZaberSim(SerialSim):
                 self.flags |= set(flags)
                 if "WL" in flags:
                     self.flags.add("WR")
+            if self.alerts_on:
+                self._outbox += f"!{self.device:02d} 1 IDLE {self._flag()}\r\n".encode()
         elif v0 is None:
             self._pos = p0 + math.copysign(trapezoid_distance(delta, self.speed, self.accel, now - t0), delta)
         else:  # braking after a stop
@@ -220,7 +226,8 @@ class ZaberSim(SerialSim):
     def tick(self) -> bytes | None:
         with self._lock:
             self._settle(time.monotonic())
-        return None
+            out, self._outbox = bytes(self._outbox), bytearray()
+        return out or None
 
     # -- protocol ---------------------------------------------------------------------------------
     def handle(self, request: bytes) -> bytes | None:
@@ -303,7 +310,7 @@ class ZaberSim(SerialSim):
             if axis != 0:
                 return "RJ", "DEVICEONLY"
             return "OK", str(device_settings[setting])
-        values = {"pos": self._counter(), "resolution": self.resolution,
+        values = {"pos": self._counter(), "resolution": self.resolution, "comm.alert": int(self.alerts_on),
                   "limit.cycle.dist": self.cycle, "limit.min": 0, "limit.max": self.cycle - 1,
                   **self.settings}
         if setting not in values:
@@ -311,6 +318,11 @@ class ZaberSim(SerialSim):
         return "OK", str(values[setting])
 
     def _set(self, setting: str, value: str) -> tuple[str, str]:
+        if setting == "comm.alert":
+            if value not in ("0", "1"):
+                return "RJ", "BADDATA"
+            self.alerts_on = value == "1"
+            return "OK", "0"
         if setting not in self.settings:
             return "RJ", "BADCOMMAND"
         try:

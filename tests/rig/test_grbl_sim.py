@@ -251,3 +251,20 @@ def test_homed_state_survives_a_new_connection(pos, sim):
     third = make(sim)
     assert not third.homed and third.status().state == "Alarm"
     third.close()
+
+
+def test_simulator_bytes_and_framing():
+    sim = GrblSim(fast=True)  # not started: split() frames, handle() is the firmware
+    buf = bytearray(b"G0 X1?0\r\n$X\n$I\nG0")
+    assert sim.split(buf) == [b"?", b"G0 X10", b"$X", b"$I"]  # '?' picked out of the line
+    assert buf == bytearray(b"G0")  # the unfinished line waits
+    assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n"
+    assert sim.handle(b"G0 X10") == b"error:9\r\n"  # locked after power-up (homing enabled)
+    assert sim.handle(b"$X") == b"[MSG:Caution: Unlocked]\r\nok\r\n"
+    assert sim.handle(b"$I") == b"[VER:1.1h.20190825:]\r\n[OPT:V,15,128]\r\nok\r\n"
+    for line, code in [(b"G0 X", 2), (b"#1", 1), (b"G2 X1", 20), (b"G1 X1", 22), (b"G0 X1 X2", 25),
+                       (b"G53 X1", 30), (b"G4", 28), (b"$Q", 3), (b"$999=1", 3)]:
+        assert sim.handle(line) == f"error:{code}\r\n".encode(), line
+    assert sim.handle(b"$110=6000") == b"ok\r\n" and sim.settings[110] == 6000
+    assert b"$110=6000.000\r\n" in sim.handle(b"$$")
+    assert sim.handle(b"\x18") == b"\r\nGrbl 1.1h ['$' for help]\r\n"  # idle reset: no lock

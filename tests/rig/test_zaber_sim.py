@@ -6,7 +6,7 @@ import time
 import pytest
 
 from rig import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, NotHomed, ProtocolError
-from rig.zaber import ZaberRotaryStage, move_time_s
+from rig.zaber import ZaberRotaryStage, checksum, move_time_s, parse_message
 from sims.zaber_sim import ZaberSim, trapezoid_distance, trapezoid_duration, trapezoid_speed
 
 TIMEOUT = 0.5  # reply timeout used here, seconds: every fault must surface within it (+ margin)
@@ -229,3 +229,38 @@ def test_speed_and_acceleration_settings_change_move_time():
         with pytest.raises(ValueError, match="speed"):
             st.set_speed(0)
         st.close()
+
+
+def _z(sim, text: str) -> bytes:
+    """One command through the simulator's firmware, bytes in, bytes out (no checksum)."""
+    return sim.handle(text.encode())
+
+
+def test_simulator_bytes_for_each_reply_form():
+    sim = ZaberSim(fast=True)  # not started: handle() is the firmware
+    assert _z(sim, "/1 0 get deviceid") == b"@01 0 OK IDLE WR 50419\r\n"
+    assert _z(sim, "/1 1 get deviceid") == b"@01 1 RJ IDLE WR DEVICEONLY\r\n"
+    assert _z(sim, "/1 5 get pos") == b"@01 5 RJ IDLE WR BADAXIS\r\n"
+    assert _z(sim, "/1 1 fly") == b"@01 1 RJ IDLE WR BADCOMMAND\r\n"
+    assert _z(sim, "/1 1 move abs 10") == b"@01 1 RJ IDLE WR BADCOMMAND\r\n"  # no reference yet
+    assert _z(sim, "/1 1 07 warnings") == b"@01 1 07 OK IDLE WR 01 WR\r\n"
+    assert _z(sim, "/1 1 home") == b"@01 1 OK BUSY WR 0\r\n"
+    assert _z(sim, "/1 1 ") == b"@01 1 OK IDLE -- 0\r\n"  # fast: homing done by the next request
+    assert _z(sim, "/1 1 move abs -1") == b"@01 1 RJ IDLE -- BADDATA\r\n"
+    assert _z(sim, "/2 1 get pos") is None  # another device's address
+    body = "1 1 12 get pos"
+    reply = sim.handle(f"/{body}:{checksum(body)}".encode())
+    assert reply.startswith(b"@01 1 12 OK IDLE -- 0:") and parse_message(reply).checksum_ok
+    assert sim.handle(f"/{body}:00".encode()) is None  # bad checksum: dropped
+    sim.inject("busy")
+    assert _z(sim, "/1 1 move abs 5") == b"@01 1 RJ IDLE -- STATUSBUSY\r\n"
+
+
+def test_alerts_are_pushed_and_skipped_by_the_driver(stage, sim):
+    stage.home().wait(2)
+    stage.command("set comm.alert 1")
+    assert stage.get("comm.alert") == 1
+    stage.move_to(30).wait(2)
+    time.sleep(0.05)
+    assert stage.position == pytest.approx(30.0, abs=1e-3)
+    assert any(a.kind == "!" and a.status == "IDLE" for a in stage.alerts)
