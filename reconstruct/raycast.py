@@ -118,7 +118,6 @@ class Surface:
         self._identity = bool(np.array_equal(self.transform, np.eye(4)))
         self._inv = np.linalg.inv(self.transform)
         self._normal_matrix = self._inv[:3, :3].T  # inverse-transpose takes normals to the world
-        self.scale = float(abs(np.linalg.det(self.transform[:3, :3])) ** (1 / 3))
 
     def with_transform(self, transform) -> "Surface":
         """The same surface placed with another 4x4 object -> world ``transform`` (shares caches:
@@ -168,7 +167,7 @@ class Surface:
     def intersect(self, origins, dirs, t_max=None):
         """Ray parameters of the first hits of world rays (N, 3): ``t`` (N,) with ``inf`` on
         misses and hits beyond ``t_max`` (N,) or scalar."""
-        o, d = self._to_local(origins, dirs)
+        o, d = self._to_local(*_check_rays(origins, dirs))
         t_max = np.broadcast_to(np.inf if t_max is None else t_max, (len(o),))
         return self._intersect(o, d, t_max)[0]
 

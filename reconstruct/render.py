@@ -351,6 +351,7 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     -------
     RenderResult
     """
+    _check_scene(scene)
     if not isinstance(camera, CameraModel):
         raise TypeError(f"camera must be a CameraModel, got {type(camera).__name__}")
     if int(chunk) < 1:
@@ -419,16 +420,37 @@ def render_rays(scene: Scene, origins, dirs, *, shadows: bool = True,
                 polarizer: float | None = None, env_samples: int = 64,
                 env_sampling: str = "mis", max_bounces: int = 2, rng=0,
                 background=None) -> tuple[np.ndarray, Hits]:
-    """Radiance arriving at ``origins`` (N, 3) mm from world directions ``-dirs`` (N, 3), i.e.
-    along rays ``origins + t dirs`` (any camera model, lumitexel validation, probes).
+    """Radiance seen along world rays ``origins + t dirs`` (origins (N, 3) mm, dirs (N, 3)):
+    what a sensor at ``origins`` looking along ``dirs`` measures (any camera model, lumitexel
+    validation, probes).
 
     Options as :func:`render`. Returns radiance (N, 3) float32 and the first :class:`Hits`.
     """
+    _check_scene(scene)
     o, d = _check_rays(origins, dirs)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    if np.any(norm == 0):
+        raise ValueError("dirs must be non-zero vectors")
+    d = d / norm
     opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
     bg = None if background is None else _rgb3("background", background)
     return _trace(scene, np.ascontiguousarray(o), d, opts, 0, bg)
+
+
+def _check_scene(scene) -> None:
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a render.Scene, got {type(scene).__name__}")
+    for i, light in enumerate(scene.lights):
+        if not isinstance(light, (PointLight, DirectionalLight)):
+            raise TypeError(f"scene.lights[{i}] must be a PointLight or DirectionalLight, got "
+                            f"{type(light).__name__}")
+    for i, obj in enumerate(scene.objects):
+        if not isinstance(obj, SceneObject):
+            raise TypeError(f"scene.objects[{i}] must be a SceneObject, got "
+                            f"{type(obj).__name__}")
+    if scene.environment is not None and not isinstance(scene.environment, EnvironmentMap):
+        raise TypeError(f"scene.environment must be an EnvironmentMap or None, got "
+                        f"{type(scene.environment).__name__}")
 
 
 def _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng) -> _Options:
@@ -505,9 +527,9 @@ def _light_spheres(scene, o, d, t_limit, opts):
         hit = (disc >= 0) & (t > 0) & (t < best)
         if np.any(hit):
             best[hit] = t[hit]
-            wd, ws = _weights(opts, light.polarizer)
             # a mirror keeps the light's polarization: the specular weight applies
-            L[hit] = ws * light.intensity / (np.pi * light.radius ** 2)
+            L[hit] = _weights(opts, light.polarizer)[1] * light.intensity / (np.pi * light.radius
+                                                                             ** 2)
     return L
 
 

@@ -438,6 +438,12 @@ def test_bad_inputs_name_the_argument(sphere_cam):
     with pytest.raises(ValueError, match="Mirror.reflectance"):
         Mirror(-0.5)
 
+    bad = Scene(lights=["lamp"])
+    with pytest.raises(TypeError, match=r"scene.lights\[0\]"):
+        render(bad, sphere_cam)
+    with pytest.raises(ValueError, match="non-zero"):
+        render_rays(sc, np.zeros((1, 3)), np.zeros((1, 3)))
+
     sc2 = Scene()
     sc2.add(Sphere(40.0, center=(0, 0, 50)), lambda p, uv, f: "not a brdf", name="probe")
     sc2.add_light(PointLight((0, -100, 50), 1.0))
