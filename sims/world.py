@@ -323,6 +323,38 @@ class SimWorld:
         self._lock = threading.Lock()  # the camera sim may call frame_source from its own thread
         self.dark = False
         self.flat_radiance: float | None = None
+        # what set_scene("object") puts back
+        self._home = dict(object=self.object, environment=environment, light_intensity=light_intensity,
+                          platter=self.platter)
+
+    _SCENE_FIELDS = ("object", "targets", "environment", "light_intensity", "platter", "dark", "flat_radiance")
+    #: the runner's target names (capture/plan.py) -> capture kinds
+    TARGET_KINDS = {"object": "object", "lens_cap": "dark", "checkerboard": "checkerboard",
+                    "charuco": "charuco", "spheres": "spheres", "gray_card": "graycard",
+                    "mirror_probe": "probe", "chrome": "chrome", "passive": "passive", "flat": "flat"}
+
+    def set_scene(self, kind: str) -> None:
+        """Change what stands in front of the camera to the scene of capture ``kind`` (see
+        :meth:`for_capture`; the runner's target names ``lens_cap``, ``gray_card``,
+        ``mirror_probe`` ... are accepted too), keeping the camera, sensor, lamp polarizer and
+        noise stream. ``"object"`` puts this world's own object back."""
+        kind = self.TARGET_KINDS.get(kind, kind)
+        keep = dict(camera=self.camera, sensor=self.sensor, light_radius_mm=self.light_radius_mm,
+                    light_polarizer_deg=self.light_polarizer_deg, supersample=self.supersample,
+                    env_samples=self.env_samples)
+        home = dict(self._home)
+        obj = home.pop("object")
+        if kind in ("probe", "passive"):  # the probe kinds bring their own lighting and no cloth
+            home = {"environment": home["environment"]} if home["environment"] is not None else {}
+        other = SimWorld.for_capture(kind, obj, **keep, **home)
+        with self._lock:
+            for name in self._SCENE_FIELDS:
+                setattr(self, name, getattr(other, name))
+
+    def prepare_target(self, target: str, step=None) -> None:
+        """``capture.runner.Runner(prepare_target=world.prepare_target)``: the simulated operator
+        sets up ``target`` before the steps that need it (see :meth:`set_scene`)."""
+        self.set_scene(target)
 
     # -- preset scenes ------------------------------------------------------------------------
     @classmethod
@@ -414,8 +446,8 @@ class SimWorld:
         """DNG bytes of the frame the camera takes in rig ``state`` (see
         :meth:`RigState.from_state` for the keys). Thread-safe; each call draws fresh noise."""
         st = RigState.from_state(state)
-        rad = self.radiance(st)
-        with self._lock:
+        with self._lock:  # one frame at a time: a scene change (set_scene) waits for it
+            rad = self.radiance(st)
             raw = self.sensor.expose(rad, st.exposure_s, st.iso, self._rng, **self._optics(st))
         stamp = datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S")
         return self.sensor.to_dng(raw, exposure_s=st.exposure_s, iso=st.iso, fnumber=st.fnumber,

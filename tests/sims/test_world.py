@@ -178,3 +178,20 @@ def test_passive_capture_lights_the_object_by_the_environment_only():
     assert up.sum() > 1000
     # Monte-Carlo over 64 samples per pixel: the mean over >1000 pixels within 2 %
     assert gt.radiance[up].mean() == pytest.approx(0.3, rel=0.02)
+
+
+def test_set_scene_follows_the_runner_targets_and_comes_back():
+    world = SimWorld("sphere", camera=_small_camera(), sensor=SensorModel.compact(), seed=2)
+    names = lambda: [o.name for o in world.scene().objects]  # noqa: E731
+    home = names()
+    world.prepare_target("checkerboard")
+    assert names()[0] == "checkerboard" and not any(n.startswith("sphere:") for n in names())
+    world.prepare_target("mirror_probe")
+    assert world.environment is not None and world.scene().lights == []
+    world.prepare_target("lens_cap")
+    with rawpy.imread(io.BytesIO(world.frame_source({"exposure_s": 0.01}))) as r:
+        assert r.raw_image_visible.mean() < SensorModel.compact().black_level + 2
+    world.set_scene("object")
+    assert names() == home and world.environment is None and len(world.scene().lights) == 1
+    with pytest.raises(ValueError, match="capture kind"):
+        world.set_scene("tripod")
