@@ -27,9 +27,9 @@ from rig import RigError
 
 from .cli_session import STORE_OPTION, fail, human_bytes, human_time, open_store
 from .events import Event, EventKind
-from .plan import Plan, PlanError, Step, plan_diff
+from .plan import Plan, PlanError, Step
 from .rigs import OpenedRig, home_all, open_rig
-from .runner import Runner, RunnerError, create_session
+from .runner import Runner, RunnerError, check_plan_unchanged, create_session
 from .store import StoreError
 
 app = typer.Typer(name="capture", help="Plan, run and resume capture sessions.", no_args_is_help=True)
@@ -217,14 +217,12 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Record a new session from a plan."""
     p = _load_plan(plan_file)
-    if operator is not None:
-        p = Plan.from_dict({**p.to_dict(), "operator": operator})
     st = open_store(store, create=True)
     with st:
         opened = _open_rig(rig, fast, home)
         with opened:
             try:
-                info = create_session(st, p, opened.rig, name=session,
+                info = create_session(st, p, opened.rig, name=session, operator=operator,
                                       plan_path=str(plan_file.resolve()))
             except (PlanError, RunnerError, StoreError) as exc:
                 raise fail(str(exc)) from None
@@ -257,12 +255,10 @@ def resume(name: str = typer.Argument(..., help="Session name."),
             return
         path = plan_file or (Path(info.plan_path) if info.plan_path else None)
         if path is not None and path.is_file():
-            on_disk = _load_plan(path)
-            if on_disk.hash != info.plan_hash:
-                diff = plan_diff(info.plan, on_disk.to_dict())
-                raise fail(f"refusing to resume {name}: the plan {path} changed since the session "
-                           "was planned:\n  " + "\n  ".join(diff) + "\nrestore it, or start a new "
-                           "session with 'gonio capture run'")
+            try:
+                check_plan_unchanged(info, _load_plan(path), f"the plan {path}")
+            except RunnerError as exc:
+                raise fail(str(exc)) from None
         elif path is not None:
             typer.secho(f"note: plan file {path} is gone; resuming from the plan stored with "
                         "the session", fg=typer.colors.YELLOW)

@@ -26,7 +26,7 @@ from rig import LightTarget, RigError, wait_all
 from rig.errors import Disconnected
 
 from .events import Event, EventBus, EventKind
-from .plan import MotionModel, Plan, Step
+from .plan import MotionModel, Plan, Step, plan_diff
 from .store import SessionInfo, Store, StoreFull
 
 #: free space kept in reserve on the store's disk, bytes
@@ -61,8 +61,8 @@ class _Stop(Exception):
 
 
 def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | None = None,
-                   plan_path: str | None = None, reserve_bytes: int = DEFAULT_RESERVE_BYTES
-                   ) -> SessionInfo:
+                   plan_path: str | None = None, operator: str | None = None,
+                   reserve_bytes: int = DEFAULT_RESERVE_BYTES) -> SessionInfo:
     """Validate ``plan`` against ``rig``, expand it and record a new ``planned`` session.
 
     Parameters
@@ -71,6 +71,8 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
         Session name; default ``<plan name or 'session'>-YYYYmmdd-HHMMSS``.
     plan_path : str, optional
         The plan file, remembered so ``resume`` can check it is unchanged.
+    operator : str, optional
+        Who runs it, if not the plan's ``operator`` (the plan and its hash stay as given).
     reserve_bytes : int
         Space to keep free beyond the plan's estimated bytes.
 
@@ -93,7 +95,23 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
     name = name or f"{plan.name or 'session'}-{time.strftime('%Y%m%d-%H%M%S')}"
     return store.create_session(name, plan=plan.to_dict(), plan_hash=plan.hash,
                                 steps=[s.to_dict() for s in steps], plan_path=plan_path,
-                                operator=plan.operator, object=plan.object, notes=plan.notes)
+                                operator=plan.operator if operator is None else operator,
+                                object=plan.object, notes=plan.notes)
+
+
+def check_plan_unchanged(session: SessionInfo, plan: Plan, source: str = "the plan") -> None:
+    """Refuse to resume ``session`` with a plan that differs from the one it was planned with.
+
+    Raises
+    ------
+    RunnerError
+        Listing each differing field as ``path: old -> new``.
+    """
+    if plan.hash != session.plan_hash:
+        diff = plan_diff(session.plan, plan.to_dict())
+        raise RunnerError(f"refusing to resume {session.name}: {source} changed since the session "
+                          "was planned:\n  " + "\n  ".join(diff) + "\nrestore it, or start a new "
+                          "session with 'gonio capture run'")
 
 
 class Runner:
@@ -431,4 +449,5 @@ def _where(pos: dict[str, Any]) -> str:
     return ", ".join(parts) or "no axes"
 
 
-__all__ = ["DEFAULT_RESERVE_BYTES", "RetryPolicy", "Runner", "RunnerError", "create_session"]
+__all__ = ["DEFAULT_RESERVE_BYTES", "RetryPolicy", "Runner", "RunnerError", "check_plan_unchanged",
+           "create_session"]

@@ -7,7 +7,7 @@ import pytest
 
 from capture.events import EventKind
 from capture.plan import Plan
-from capture.runner import RetryPolicy, Runner, RunnerError, create_session
+from capture.runner import RetryPolicy, Runner, RunnerError, check_plan_unchanged, create_session
 from capture.store import Store
 from capture_fakes import SMALL_PLAN, make_rig
 
@@ -226,3 +226,18 @@ def test_unexpected_error_leaves_session_paused(setup, monkeypatch):
         _runner(store, rig).run()
     assert store.session("s").state == "paused"
     assert [e["kind"] for e in store.events(info.id)][-2:] == ["fault", "paused"]
+
+
+def test_check_plan_unchanged_lists_differences(setup):
+    store, rig, info = setup
+    check_plan_unchanged(info, Plan.from_dict(SMALL_PLAN))  # the same plan: no complaint
+    changed = Plan.from_dict({**SMALL_PLAN, "polarizer": {"angles_deg": [0, 45]}})
+    with pytest.raises(RunnerError, match=r"polarizer.angles_deg: \[0.0, 90.0\] -> \[0.0, 45.0\]"):
+        check_plan_unchanged(info, changed)
+
+
+def test_operator_override_keeps_plan_hash(tmp_path):
+    store = Store(tmp_path)
+    plan = Plan.from_dict(SMALL_PLAN)
+    info = create_session(store, plan, make_rig(), name="s", operator="bo", reserve_bytes=0)
+    assert info.operator == "bo" and info.plan_hash == plan.hash

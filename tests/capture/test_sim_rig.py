@@ -69,11 +69,11 @@ def test_timeout_mid_session_is_retried(lab):
 
     def swallow(e):
         if e.kind == EventKind.FRAME_STORED and e.data["frames_done"] == 5:
-            opened.lab.sims["polarizer"].inject("no_reply")
+            opened.lab.sims["turntable"].inject("no_reply")
     r.bus.subscribe(swallow)
     assert r.run() == "done"
     retries = [e for e in events if e.kind == EventKind.RETRY]
-    assert retries and retries[0].device == "polarizer"
+    assert retries and retries[0].device == "turntable"
     assert retries[0].data["error"] == "DeviceTimeout"
     assert not [e for e in events if e.kind == EventKind.FAULT]
     _complete(store)
