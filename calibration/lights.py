@@ -1,0 +1,486 @@
+"""Light localisation from chrome / steel spheres.
+
+Frames: pixels x right, y down (pixel centres at integers); camera frame OpenCV (x right,
+y down, z forward), millimetres. Light *directions* point from the object towards the light
+(unit vectors, camera frame). Positioner kinematics live in the world (turntable) frame:
+azimuth from +x towards +y, elevation above the platter plane, degrees.
+
+References: Lensch et al. 2003, Sec. 4.1 (collinear steel spheres, Eqs. 1-5; light at the
+least-squares intersection of the reflected rays).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from .errors import DegenerateFit, TargetNotFound, TooFewViews
+
+__all__ = [
+    "SphereImage", "Highlight", "PointLight", "PositionerModel",
+    "detect_sphere", "find_highlight", "light_direction_orthographic", "sphere_center_from_silhouette",
+    "reflect_highlight", "triangulate_point_light", "locate_collinear_spheres", "fit_positioner_model",
+]
+
+
+@dataclass(frozen=True)
+class SphereImage:
+    """A sphere's silhouette in an image.
+
+    Attributes
+    ----------
+    center_px : ndarray of shape (2,)
+        Centroid of the silhouette (x, y), pixels.
+    radius_px : float
+        Radius of the equal-area circle, pixels.
+    ellipse : tuple
+        ``cv2.fitEllipse`` result ``((cx, cy), (major, minor), angle_deg)`` of the outline.
+    edge_px : ndarray of shape (N, 2)
+        Outline points (boundary-pixel centres pushed half a pixel outward), pixels.
+    """
+
+    center_px: np.ndarray
+    radius_px: float
+    ellipse: tuple
+    edge_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class Highlight:
+    """A specular highlight: sub-pixel position, saturated-pixel count, peak value."""
+
+    xy_px: np.ndarray
+    n_saturated: int
+    peak: float
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """Triangulated point light (camera frame, mm).
+
+    Attributes
+    ----------
+    position_mm : ndarray of shape (3,)
+    covariance_mm2 : ndarray of shape (3, 3)
+        From the Jacobian of the position w.r.t. the highlight pixels, times the stated
+        highlight noise ``sigma_px**2``.
+    std_mm : ndarray of shape (3,)
+    residuals_mm : ndarray of shape (M,)
+        Distance of each reflected ray from the solution, mm.
+    surface_points_mm, directions : ndarray of shape (M, 3)
+        Where each ray reflects, and the reflected unit direction.
+    """
+
+    position_mm: np.ndarray
+    covariance_mm2: np.ndarray
+    std_mm: np.ndarray
+    residuals_mm: np.ndarray
+    surface_points_mm: np.ndarray
+    directions: np.ndarray
+
+
+def _image_2d(image, arg_name: str) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        img = img[..., :3].astype(np.float64).mean(axis=2)
+    if img.ndim != 2:
+        raise ValueError(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
+    img = img.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(img)):
+        raise ValueError(f"{arg_name} contains NaN or infinite values")
+    return img
+
+
+def detect_sphere(mask, *, threshold: float | None = None, frame: str | None = None) -> SphereImage:
+    """Find a sphere's silhouette (the largest blob) in a mask or an image.
+
+    Parameters
+    ----------
+    mask : ndarray of shape (H, W) or (H, W, 3)
+        Boolean mask, or an image where the sphere is brighter than the background.
+    threshold : float, optional
+        Level separating sphere from background (default: half the maximum).
+    frame : str, optional
+        Frame name for the error message.
+
+    Returns
+    -------
+    SphereImage
+        Centre from the blob's moments and radius from its area (both unbiased for a
+        digitised disc), plus an ellipse fit of the outline.
+
+    Raises
+    ------
+    TargetNotFound
+        No blob of at least 50 pixels.
+    """
+    img = _image_2d(mask, "mask")
+    level = 0.5 * img.max() if threshold is None else float(threshold)
+    binary = (img > level).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    if n < 2 or stats[1:, cv2.CC_STAT_AREA].max() < 50:
+        raise TargetNotFound("no sphere silhouette (blob of >= 50 px above the threshold)", frame=frame)
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    blob = (labels == k).astype(np.uint8)
+    m = cv2.moments(blob, binaryImage=True)
+    centre = np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
+    contours, _ = cv2.findContours(blob, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    pts = max(contours, key=len).reshape(-1, 2).astype(np.float64)
+    outward = pts - centre
+    pts = pts + 0.5 * outward / np.maximum(np.linalg.norm(outward, axis=1, keepdims=True), 1e-9)
+    ellipse = cv2.fitEllipse(pts.astype(np.float32))
+    return SphereImage(centre, float(np.sqrt(m["m00"] / np.pi)), ellipse, pts)
+
+
+def find_highlight(image, sphere: SphereImage | None = None, *, saturation: float | None = None,
+                   rel_threshold: float = 0.5, frame: str | None = None) -> Highlight:
+    """Sub-pixel position of the brightest highlight (on the sphere, if given).
+
+    The blob is the connected region above ``rel_threshold * reference`` that holds the peak
+    (reference: the saturation level when the peak reaches it, else the peak). Its centroid is
+    weighted by ``min(I, reference) - threshold``, so a clipped (saturated) core counts as a flat
+    top and the unclipped rim refines it.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W) or (H, W, 3)
+        Linear (or monotonic) intensities.
+    sphere : SphereImage, optional
+        Restrict the search to the sphere's disc (shrunk by 1 px).
+    saturation : float, optional
+        Clipping level of the sensor (default: treat the peak value as the level if at least
+        two pixels share it).
+    rel_threshold : float
+        Fraction of the reference level that bounds the blob.
+    frame : str, optional
+        Frame name for error messages.
+
+    Returns
+    -------
+    Highlight
+
+    Raises
+    ------
+    TargetNotFound
+        No pixel above the background inside the search region.
+    """
+    img = _image_2d(image, "image")
+    if not 0 < rel_threshold < 1:
+        raise ValueError(f"rel_threshold must be in (0, 1), got {rel_threshold}")
+    region = np.ones(img.shape, bool)
+    if sphere is not None:
+        yy, xx = np.indices(img.shape)
+        region = (xx - sphere.center_px[0]) ** 2 + (yy - sphere.center_px[1]) ** 2 < (sphere.radius_px - 1) ** 2
+    vals = np.where(region, img, -np.inf)
+    peak_idx = np.unravel_index(np.argmax(vals), img.shape)
+    peak = float(img[peak_idx])
+    if not peak > 0:
+        raise TargetNotFound("no highlight (nothing brighter than zero in the search region)", frame=frame)
+    sat = saturation
+    if sat is None and np.count_nonzero(vals >= peak) >= 2:
+        sat = peak
+    ref = min(peak, sat) if sat is not None else peak
+    thr = rel_threshold * ref
+    n, labels = cv2.connectedComponents((vals > thr).astype(np.uint8), connectivity=8)
+    blob = labels == labels[peak_idx]
+    w = np.where(blob, np.minimum(img, ref) - thr, 0.0)
+    ys, xs = np.nonzero(w)
+    ww = w[ys, xs]
+    xy = np.array([np.sum(ww * xs), np.sum(ww * ys)]) / np.sum(ww)
+    n_sat = int(np.count_nonzero(blob & (img >= sat))) if sat is not None else 0
+    return Highlight(xy, n_sat, peak)
+
+
+def light_direction_orthographic(highlight_xy, sphere: SphereImage) -> np.ndarray:
+    """Distant-light direction from a highlight on a mirror sphere seen by a distant camera.
+
+    Parameters
+    ----------
+    highlight_xy : array_like of shape (2,) or (M, 2)
+        Highlight pixels (x, y).
+    sphere : SphereImage
+        The sphere's image centre and radius.
+
+    Returns
+    -------
+    ndarray of shape (3,) or (M, 3)
+        Unit directions towards the light in the camera frame (x right, y down, z forward;
+        the viewer is at -z).
+    """
+    h = np.asarray(highlight_xy, float)
+    nx, ny = ((h[..., 0] - sphere.center_px[0]) / sphere.radius_px,
+              (h[..., 1] - sphere.center_px[1]) / sphere.radius_px)
+    rho2 = nx ** 2 + ny ** 2
+    if np.any(rho2 >= 1):
+        raise ValueError("highlight_xy lies outside the sphere's disc")
+    n = np.stack([nx, ny, -np.sqrt(1 - rho2)], axis=-1)
+    v = np.array([0.0, 0.0, -1.0])  # towards the viewer
+    return 2 * np.sum(n * v, axis=-1, keepdims=True) * n - v
+
+
+def _rays(pixels, K, dist) -> np.ndarray:
+    px = np.asarray(pixels, float).reshape(-1, 1, 2)
+    dist = np.zeros(5) if dist is None else np.asarray(dist, float)
+    xy = cv2.undistortPoints(px, np.asarray(K, float), dist).reshape(-1, 2)
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def sphere_center_from_silhouette(sphere: SphereImage, K, dist=None, radius_mm: float = 1.0) -> np.ndarray:
+    """Camera-frame centre of a sphere of known radius from its outline (perspective).
+
+    The outline's viewing rays form a cone tangent to the sphere: unit rays ``u`` satisfy
+    ``u . c = cos(beta)`` for the cone axis ``c``; ``w = c / cos(beta)`` solves the linear system
+    ``U w = 1``; the distance is ``radius_mm / sin(beta)``.
+
+    Returns
+    -------
+    ndarray of shape (3,)
+        Centre, mm (scale set by ``radius_mm``).
+    """
+    if not radius_mm > 0:
+        raise ValueError(f"radius_mm must be positive, got {radius_mm}")
+    U = _rays(sphere.edge_px, K, dist)
+    w = np.linalg.lstsq(U, np.ones(len(U)), rcond=None)[0]
+    cos_b = 1.0 / np.linalg.norm(w)
+    if not 0 < cos_b < 1:
+        raise DegenerateFit("sphere outline does not form a cone (check K and the mask)")
+    return (w * cos_b) * radius_mm / np.sqrt(1 - cos_b ** 2)
+
+
+def reflect_highlight(highlight_xy, center_mm, radius_mm, K, dist=None) -> tuple[np.ndarray, np.ndarray]:
+    """Reflect the viewing rays through highlights off spheres.
+
+    Parameters
+    ----------
+    highlight_xy : array_like of shape (M, 2)
+        Highlight pixels.
+    center_mm : array_like of shape (M, 3)
+        Sphere centres, camera frame, mm.
+    radius_mm : float or array_like of shape (M,)
+        Sphere radii, mm.
+    K, dist : camera matrix (3, 3) and OpenCV distortion.
+
+    Returns
+    -------
+    points_mm : ndarray of shape (M, 3)
+        Reflection points on the spheres (camera frame, mm).
+    directions : ndarray of shape (M, 3)
+        Unit reflected directions (towards the light).
+
+    Raises
+    ------
+    ValueError
+        A ray misses its sphere (names the index).
+    """
+    C = np.asarray(center_mm, float).reshape(-1, 3)
+    R = np.broadcast_to(np.asarray(radius_mm, float), (len(C),))
+    d = _rays(highlight_xy, K, dist)
+    if len(d) != len(C):
+        raise ValueError(f"highlight_xy has {len(d)} points for {len(C)} sphere centres")
+    b = np.sum(d * C, axis=1)
+    disc = b ** 2 - (np.sum(C * C, axis=1) - R ** 2)
+    if np.any(disc < 0):
+        raise ValueError(f"highlight_xy[{int(np.argmin(disc))}]: the viewing ray misses its sphere")
+    X = d * (b - np.sqrt(disc))[:, None]
+    n = (X - C) / R[:, None]
+    v = -d
+    return X, 2 * np.sum(n * v, axis=1, keepdims=True) * n - v
+
+
+def _closest_point(P, L):
+    """Least-squares point nearest to lines P + s L (unit L); returns point and the 3x3 system."""
+    proj = np.eye(3) - L[:, :, None] * L[:, None, :]
+    A = proj.sum(axis=0)
+    return np.linalg.solve(A, np.einsum("mij,mj->i", proj, P)), A
+
+
+def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, *,
+                            sigma_px: float = 0.25) -> PointLight:
+    """Point-light position from its highlights on several spheres of known position/radius.
+
+    Reflected rays are intersected in the least-squares sense (Lensch 2003 Sec. 4.1). The
+    covariance propagates an isotropic highlight noise ``sigma_px`` through the numerical
+    Jacobian d(position)/d(highlight pixels).
+
+    Parameters
+    ----------
+    highlights_xy : array_like of shape (M, 2)
+        Highlight pixel of each sphere, M >= 2.
+    centers_mm : array_like of shape (M, 3)
+        Sphere centres, camera frame, mm.
+    radius_mm : float or array_like of shape (M,)
+    K, dist : camera matrix and OpenCV distortion.
+    sigma_px : float
+        1-sigma highlight localisation noise, pixels.
+
+    Returns
+    -------
+    PointLight
+
+    Raises
+    ------
+    TooFewViews
+        Fewer than 2 spheres.
+    DegenerateFit
+        The reflected rays are (nearly) parallel: the light is at infinity for this layout.
+    """
+    h = np.asarray(highlights_xy, float).reshape(-1, 2)
+    if len(h) < 2:
+        raise TooFewViews("point-light triangulation (spheres)", have=len(h), need=2)
+    P, L = reflect_highlight(h, centers_mm, radius_mm, K, dist)
+    A = np.sum(np.eye(3) - L[:, :, None] * L[:, None, :], axis=0)
+    if np.linalg.eigvalsh(A)[0] < 1e-6 * len(h):
+        raise DegenerateFit("the reflected rays are nearly parallel: spread the spheres further apart "
+                            "or move the light closer")
+    pos = _closest_point(P, L)[0]
+    J = np.empty((3, h.size))
+    eps = 1e-3
+    for k in range(h.size):  # 2M tiny solves; each re-reflects all rays
+        hp = h.copy().ravel()
+        hp[k] += eps
+        Pk, Lk = reflect_highlight(hp.reshape(-1, 2), centers_mm, radius_mm, K, dist)
+        J[:, k] = (_closest_point(Pk, Lk)[0] - pos) / eps
+    cov = sigma_px ** 2 * J @ J.T
+    diff = pos - P
+    resid = np.linalg.norm(diff - np.sum(diff * L, axis=1, keepdims=True) * L, axis=1)
+    return PointLight(pos, cov, np.sqrt(np.diag(cov)), resid, P, L)
+
+
+def locate_collinear_spheres(flash_highlights_xy, spacing_mm: float, K, dist=None) -> np.ndarray:
+    """Centres of equally spaced collinear spheres from on-axis (ring-flash) highlights.
+
+    Lensch 2003 Eqs. 1-5: sphere ``i`` lies on the ray ``f_i`` through its flash highlight,
+    ``p_i = p_0 + i d``, so ``f_i x p_0 + i (f_i x d) = 0``; the 6-vector ``(p_0, d)`` is the
+    null vector of the stacked system (SVD), scaled so ``|d| = spacing_mm`` and ``p_0`` lies in
+    front of the camera.
+
+    Parameters
+    ----------
+    flash_highlights_xy : array_like of shape (M, 2)
+        Flash highlight of sphere ``i`` (in order along the fixture), pixels; M >= 3.
+    spacing_mm : float
+        Centre-to-centre distance of neighbouring spheres, mm.
+    K, dist : camera matrix and OpenCV distortion.
+
+    Returns
+    -------
+    ndarray of shape (M, 3)
+        Sphere centres, camera frame, mm.
+    """
+    f = _rays(flash_highlights_xy, K, dist)
+    if len(f) < 3:
+        raise TooFewViews("collinear sphere location (spheres)", have=len(f), need=3)
+    if not spacing_mm > 0:
+        raise ValueError(f"spacing_mm must be positive, got {spacing_mm}")
+    skew = np.zeros((len(f), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -f[:, 2], f[:, 1], -f[:, 0]
+    skew -= skew.transpose(0, 2, 1)
+    i = np.arange(len(f), dtype=float)[:, None, None]
+    A = np.concatenate([skew, i * skew], axis=2).reshape(-1, 6)
+    s = np.linalg.svd(A)
+    if s[1][-2] < 1e-9 * s[1][0]:
+        raise DegenerateFit("the flash highlights do not determine the sphere line (all on one ray?)")
+    x = s[2][-1]
+    p0, d = x[:3], x[3:]
+    scale = spacing_mm / np.linalg.norm(d)
+    if p0 @ f[0] < 0:
+        scale = -scale
+    return (p0 + i[:, :, 0] * d) * scale
+
+
+@dataclass(frozen=True)
+class PositionerModel:
+    """Light-positioner kinematics fitted to measured light positions (world frame, mm, deg).
+
+    ``position(az, el) = centre + radius * (cos e cos a, cos e sin a, sin e)`` with
+    ``a = az + azimuth_offset_deg``, ``e = el + elevation_offset_deg``.
+
+    Attributes
+    ----------
+    centre_mm : ndarray of shape (3,)
+    radius_mm, azimuth_offset_deg, elevation_offset_deg : float
+    param_std : ndarray of shape (6,)
+        1-sigma of (cx, cy, cz, radius, az offset, el offset), mm / deg.
+    residuals_mm : ndarray of shape (N,)
+        Distance of each measured position from the model, mm.
+    """
+
+    centre_mm: np.ndarray
+    radius_mm: float
+    azimuth_offset_deg: float
+    elevation_offset_deg: float
+    param_std: np.ndarray
+    residuals_mm: np.ndarray
+
+    @property
+    def rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(self.residuals_mm ** 2)))
+
+    def position(self, azimuth_deg, elevation_deg) -> np.ndarray:
+        """Light position(s), world frame mm, shape (..., 3), for commanded angles (deg)."""
+        return _arm(np.r_[self.centre_mm, self.radius_mm, self.azimuth_offset_deg, self.elevation_offset_deg],
+                    np.asarray(azimuth_deg, float), np.asarray(elevation_deg, float))
+
+
+def _arm(p, az, el):
+    a, e = np.radians(az + p[4]), np.radians(el + p[5])
+    return p[:3] + p[3] * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1)
+
+
+def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> PositionerModel:
+    """Fit arm kinematics (centre, radius, azimuth/elevation offsets) to measured positions.
+
+    Parameters
+    ----------
+    azimuth_deg, elevation_deg : array_like of shape (N,)
+        Commanded positioner angles, deg (azimuth from world +x towards +y, elevation above
+        the platter plane).
+    positions_mm : array_like of shape (N, 3)
+        Light positions measured for those poses (e.g. :func:`triangulate_point_light`,
+        mapped to the world frame), mm.
+
+    Returns
+    -------
+    PositionerModel
+        Gives every commanded pose a position, including poses with no sphere measurement.
+
+    Raises
+    ------
+    TooFewViews
+        Fewer than 3 poses (6 parameters, 3 coordinates each).
+    DegenerateFit
+        The poses do not span both angles (the offsets are then undetermined).
+    """
+    az = np.asarray(azimuth_deg, float).ravel()
+    el = np.asarray(elevation_deg, float).ravel()
+    X = np.asarray(positions_mm, float)
+    if az.shape != el.shape or X.shape != (len(az), 3):
+        raise ValueError(f"azimuth_deg {az.shape}, elevation_deg {el.shape} and positions_mm {X.shape} "
+                         "must be (N,), (N,), (N, 3)")
+    if len(az) < 3:
+        raise TooFewViews("positioner model (poses)", have=len(az), need=3)
+    if np.ptp(az) < 5 and np.ptp(el) < 5:
+        raise DegenerateFit("positioner poses span less than 5° in both azimuth and elevation")
+    # Initial guess: algebraic sphere fit |X - c|^2 = r^2 (linear in c and r^2 - |c|^2); poses
+    # on one circle leave it rank-deficient, and the mean of the positions is used instead.
+    A = np.c_[2 * X, np.ones(len(X))]
+    sol_c, _, rank, _ = np.linalg.lstsq(A, np.sum(X * X, axis=1), rcond=None)
+    c0 = sol_c[:3] if rank == 4 else X.mean(axis=0)
+    d0 = X - c0
+    r0 = float(np.mean(np.linalg.norm(d0, axis=1)))
+    a_off = np.degrees(np.angle(np.mean(np.exp(1j * (np.arctan2(d0[:, 1], d0[:, 0]) - np.radians(az))))))
+    e_off = float(np.mean(np.degrees(np.arcsin(np.clip(d0[:, 2] / max(r0, 1e-9), -1, 1))) - el))
+    sol = least_squares(lambda p: (_arm(p, az, el) - X).ravel(), np.r_[c0, r0, a_off, e_off], method="lm")
+    J = sol.jac
+    dof = max(sol.fun.size - 6, 1)
+    try:
+        cov = np.linalg.inv(J.T @ J) * (sol.fun @ sol.fun) / dof
+    except np.linalg.LinAlgError:
+        raise DegenerateFit("positioner model is undetermined by these poses") from None
+    p = sol.x
+    res = np.linalg.norm((_arm(p, az, el) - X), axis=1)
+    return PositionerModel(p[:3], float(p[3]), float((p[4] + 180) % 360 - 180), float(p[5]),
+                           np.sqrt(np.diag(cov)), res)

@@ -1,0 +1,192 @@
+"""Light localisation: analytic chrome-sphere images, point-light triangulation, positioner
+kinematics, Lensch's collinear spheres, and the real UW chrome-sphere photos."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.errors import DegenerateFit, TargetNotFound, TooFewViews
+from calibration.lights import (detect_sphere, find_highlight, fit_positioner_model,
+                                light_direction_orthographic, locate_collinear_spheres,
+                                reflect_highlight, sphere_center_from_silhouette,
+                                triangulate_point_light)
+
+K = np.array([[3000.0, 0, 959.5], [0, 3000.0, 719.5], [0, 0, 1]])
+SIZE = (1920, 1440)
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _angle_deg(u, v):
+    return np.degrees(np.arccos(np.clip(np.sum(_unit(u) * _unit(v), -1), -1, 1)))
+
+
+def render_spheres(centres, radius, *, light_dir=None, light_pos=None, K=K, size=SIZE, lobe_deg=0.6,
+                   peak=8.0, noise=0.002, rng=None, flash=False):
+    """Chrome spheres seen by a pinhole camera (4x4 supersampled inside each sphere's bounding
+    box), lit by a distant light, a point light, or a flash at the camera; returns
+    (image clipped at 1, sphere mask)."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    w, h = size
+    s = 4
+    img = np.zeros((h, w))
+    cover = np.zeros((h, w))
+    for C in np.atleast_2d(centres):
+        uv = (K @ C)[:2] / C[2]
+        rad = 1.3 * K[0, 0] * radius / (C[2] - radius)
+        x0, y0 = np.maximum(np.floor(uv - rad).astype(int), 0)
+        x1, y1 = np.minimum(np.ceil(uv + rad).astype(int), [w - 1, h - 1])
+        ys, xs = np.mgrid[y0 * s:(y1 + 1) * s, x0 * s:(x1 + 1) * s]
+        px = np.stack([(xs + 0.5) / s - 0.5, (ys + 0.5) / s - 0.5, np.ones(xs.shape)], -1).reshape(-1, 3)
+        d = _unit(px @ np.linalg.inv(K).T)
+        b = d @ C
+        disc = b ** 2 - (C @ C - radius ** 2)
+        hit = disc > 0
+        X = d[hit] * (b[hit] - np.sqrt(disc[hit]))[:, None]
+        n = (X - C) / radius
+        v = -d[hit]
+        r = 2 * np.sum(n * v, 1, keepdims=True) * n - v
+        if flash:
+            L = v
+        elif light_pos is not None:
+            L = _unit(light_pos - X)
+        else:
+            L = np.broadcast_to(_unit(light_dir), r.shape)
+        val = np.zeros(len(d))
+        val[hit] = peak * np.exp(-(np.arccos(np.clip(np.sum(r * L, 1), -1, 1)) / np.radians(lobe_deg)) ** 2) + 0.05
+        shape = ((y1 + 1 - y0), s, (x1 + 1 - x0), s)
+        img[y0:y1 + 1, x0:x1 + 1] += val.reshape(shape).mean(axis=(1, 3))
+        cover[y0:y1 + 1, x0:x1 + 1] += hit.astype(float).reshape(shape).mean(axis=(1, 3))
+    img = np.clip(img + rng.normal(0, noise, img.shape), 0, 1)
+    return img, cover > 0.5
+
+
+@pytest.mark.parametrize("light", [[0.3, -0.4, -0.8], [-0.1, 0.2, -1.0], [0.6, 0.5, -0.5]])
+def test_distant_light_direction_within_0p25_deg(light):
+    # one large sphere nearly on the optical axis and far away: orthographic is accurate to
+    # the angle the sphere subtends; the perspective path is exact.
+    C = np.array([0.0, 0.0, 600.0])
+    R = 40.0
+    img, mask = render_spheres(C, R, light_dir=light)
+    sph = detect_sphere(mask)
+    hl = find_highlight(img, sph, saturation=1.0)
+    assert hl.n_saturated > 3
+    P, L = reflect_highlight(hl.xy_px[None], C[None], R, K)
+    assert _angle_deg(L[0], light) < 0.25
+    # the centre recovered from the silhouette alone (known radius) is as good
+    C_fit = sphere_center_from_silhouette(sph, K, radius_mm=R)
+    assert np.linalg.norm(C_fit - C) < 0.005 * 600
+    _, L2 = reflect_highlight(hl.xy_px[None], C_fit[None], R, K)
+    assert _angle_deg(L2[0], light) < 0.25
+
+
+def test_orthographic_direction_formula():
+    from calibration.lights import SphereImage
+    sph = SphereImage(np.array([100.0, 50.0]), 40.0, None, np.zeros((0, 2)))
+    # highlight at the centre: light straight back at the viewer (-z in the camera frame)
+    np.testing.assert_allclose(light_direction_orthographic([100.0, 50.0], sph), [0, 0, -1], atol=1e-12)
+    # at 45° of normal tilt the light is perpendicular to the view
+    off = 40.0 * np.sin(np.radians(45))
+    np.testing.assert_allclose(light_direction_orthographic([100.0 + off, 50.0], sph), [1, 0, 0], atol=1e-12)
+    with pytest.raises(ValueError, match="outside"):
+        light_direction_orthographic([200.0, 50.0], sph)
+
+
+def test_point_light_within_half_percent_of_distance():
+    R = 25.0
+    centres = np.array([[-150.0, -80, 700], [150, -90, 720], [-140, 100, 690], [160, 90, 710], [0, 0, 650]])
+    light = np.array([120.0, -600.0, 250.0])
+    img, mask = render_spheres(centres, R, light_pos=light, lobe_deg=3.0)  # a bulb of finite size
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8))
+    hls = []
+    for C in centres:  # sphere order: the blob under each centre's projection
+        uv = (K @ C)[:2] / C[2]
+        blob = labels == labels[int(round(uv[1])), int(round(uv[0]))]
+        sph = detect_sphere(blob)
+        hls.append(find_highlight(np.where(blob, img, 0), sph, saturation=1.0).xy_px)
+    pl = triangulate_point_light(np.array(hls), centres, R, K, sigma_px=0.1)
+    dist = np.linalg.norm(light - centres.mean(0))
+    err = np.linalg.norm(pl.position_mm - light)
+    assert err < 0.005 * dist, (err, dist)
+    # the stated uncertainty is of the right size (error within 4 sigma of the worst axis)
+    assert err < 4 * np.sqrt(np.trace(pl.covariance_mm2))
+    assert pl.residuals_mm.max() < 2.0
+
+
+def test_point_light_degenerate_and_too_few():
+    with pytest.raises(TooFewViews):
+        triangulate_point_light([[960, 720]], [[0, 0, 600]], 25.0, K)
+    # highlights at each sphere's image centre: rays reflect straight back to the camera,
+    # all meeting at the camera centre -> fine; two identical spheres -> parallel rays
+    with pytest.raises(DegenerateFit):
+        triangulate_point_light([[959.5, 719.5], [959.5, 719.5]], [[0, 0, 600], [0, 0, 600]], 25.0, K)
+
+
+def test_collinear_spheres_lensch_eq5():
+    rng = np.random.default_rng(4)
+    p0, d = np.array([-120.0, 30.0, 650.0]), np.array([48.0, -5.0, 12.0])
+    d = d / np.linalg.norm(d) * 50.0
+    centres = p0 + np.arange(6)[:, None] * d
+    img, mask = render_spheres(centres, 12.0, flash=True, rng=rng)
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8))
+    hls = []
+    for C in centres:
+        uv = (K @ C)[:2] / C[2]
+        blob = labels == labels[int(round(uv[1])), int(round(uv[0]))]
+        hls.append(find_highlight(np.where(blob, img, 0), detect_sphere(blob), saturation=1.0).xy_px)
+    est = locate_collinear_spheres(np.array(hls), 50.0, K)
+    assert np.abs(est - centres).max() < 0.01 * 650
+
+
+def test_positioner_model_recovers_kinematics():
+    rng = np.random.default_rng(2)
+    truth = dict(c=np.array([3.0, -2.0, 40.0]), r=800.0, ao=2.5, eo=-1.2)
+    az = np.repeat(np.arange(0, 360, 30.0), 3)
+    el = np.tile([10.0, 35.0, 60.0], 12)
+    a, e = np.radians(az + truth["ao"]), np.radians(el + truth["eo"])
+    X = truth["c"] + truth["r"] * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)
+    X_meas = X + rng.normal(0, 1.0, X.shape)
+    m = fit_positioner_model(az, el, X_meas)
+    assert abs(m.radius_mm - truth["r"]) < 1.0
+    assert abs(m.azimuth_offset_deg - truth["ao"]) < 0.1 and abs(m.elevation_offset_deg - truth["eo"]) < 0.1
+    assert np.linalg.norm(m.centre_mm - truth["c"]) < 2.0
+    assert 0.7 < m.rms_mm / np.sqrt(3) < 1.3  # residual matches the 1 mm per-axis noise
+    # a pose never measured gets its position from the model
+    assert np.linalg.norm(m.position(45.0, 20.0) - (truth["c"] + truth["r"] * np.array(
+        [np.cos(np.radians(18.8)) * np.cos(np.radians(47.5)), np.cos(np.radians(18.8)) * np.sin(np.radians(47.5)),
+         np.sin(np.radians(18.8))]))) < 3.0
+    with pytest.raises(TooFewViews):
+        fit_positioner_model(az[:2], el[:2], X[:2])
+    with pytest.raises(ValueError, match="positions_mm"):
+        fit_positioner_model(az, el, X[:5])
+
+
+def test_no_sphere_no_highlight_errors_name_frame():
+    with pytest.raises(TargetNotFound, match="img7"):
+        detect_sphere(np.zeros((50, 50)), frame="img7")
+    with pytest.raises(TargetNotFound, match="img8"):
+        find_highlight(np.zeros((50, 50)), frame="img8")
+
+
+@pytest.mark.realdata
+def test_uw_chrome_sphere_light_directions(shared_data):
+    root = shared_data / "uw-photometric-stereo"
+    from PIL import Image  # OpenCV 5 wheels do not read TGA
+    mask = np.asarray(Image.open(root / "chrome" / "chrome.mask.tga"))
+    sph = detect_sphere(mask)
+    ref = np.loadtxt(root / "lights.txt", skiprows=1)
+    dirs = []
+    for i in range(12):
+        img = np.asarray(Image.open(root / "chrome" / f"chrome.{i}.tga"))
+        dirs.append(light_direction_orthographic(find_highlight(img, sph, frame=f"chrome.{i}").xy_px, sph))
+    dirs = np.array(dirs)
+    # lights.txt uses x right, y up, z towards the viewer; ours is OpenCV (y down, z forward)
+    ours = dirs * np.array([1, -1, -1])
+    ang = _angle_deg(ours, ref)
+    print(f"UW chrome: angular difference to lights.txt mean {ang.mean():.2f}°, max {ang.max():.2f}°")
+    # the course reference itself differs from an independent re-derivation by 3° mean, 8° worst
+    assert ang.mean() < 4.0 and ang.max() < 10.0
