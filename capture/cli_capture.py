@@ -140,9 +140,14 @@ class _ProgressView:
             self.progress.console.print(f"{e.kind.value}: {e.message}", highlight=False)
 
 
-def _prompt_target(interactive: bool):
-    """Ask the operator to set up each calibration target (real rigs, interactive terminals)."""
-    if not interactive:
+def _target_handler(opened: OpenedRig, yes: bool):
+    """Who sets up each calibration target: the simulated scene (``--rig sim``), the operator
+    (real rig, interactive terminal, no ``--yes``), or nobody (a ``target`` line is printed)."""
+    if opened.lab is not None:
+        # the lab's default frame source is a bound SimWorld.frame_source; its world swaps scenes
+        world = getattr(opened.lab.frame_source, "__self__", None)
+        return getattr(world, "prepare_target", None)
+    if yes or not sys.stdin.isatty():
         return None
 
     def ask(target: str, step: Step) -> None:
@@ -228,8 +233,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
                 raise fail(str(exc)) from None
             typer.echo(f"session {info.name}: {len(st.steps(info.id))} steps, "
                        f"{st.progress(info.id).frames_total} frames -> {store}")
-            interactive = opened.lab is None and not yes and sys.stdin.isatty()
-            runner = Runner(opened.rig, st, info, prepare_target=_prompt_target(interactive))
+            runner = Runner(opened.rig, st, info, prepare_target=_target_handler(opened, yes))
             _execute(runner, store, quiet)
 
 
@@ -268,7 +272,6 @@ def resume(name: str = typer.Argument(..., help="Session name."),
                 Plan.from_dict(info.plan).check_rig(opened.rig)
             except PlanError as exc:
                 raise fail(f"the session's plan does not fit this rig: {exc}") from None
-            interactive = opened.lab is None and not yes and sys.stdin.isatty()
-            runner = Runner(opened.rig, st, info, prepare_target=_prompt_target(interactive))
+            runner = Runner(opened.rig, st, info, prepare_target=_target_handler(opened, yes))
             _execute(runner, store, quiet)
 
