@@ -834,14 +834,30 @@ class Store:
                 if sub.is_dir():
                     yield from sorted(sub.iterdir())
 
-    def orphans(self) -> list[Path]:
-        """Object files no row references, and temporary files of interrupted writes.
-
-        While another process writes, its just-renamed, not-yet-committed frame shows here too.
+    def orphans(self, *, min_age_s: float = 0.0) -> list[Path]:
+        """Object files no row references, and temporary files of interrupted writes, last
+        modified at least ``min_age_s`` seconds ago (a running writer's file in flight is young).
         """
         refs = self._referenced()
-        return [p for p in self._object_files()
-                if p.name.startswith(_TMP_PREFIX) or p.parent.name + p.name not in refs]
+        cutoff = time.time() - min_age_s
+        out = []
+        for p in self._object_files():
+            if p.name.startswith(_TMP_PREFIX) or p.parent.name + p.name not in refs:
+                with contextlib.suppress(FileNotFoundError):
+                    if p.stat().st_mtime <= cutoff:
+                        out.append(p)
+        return out
+
+    def writer_active(self) -> bool:
+        """True while some runner (this process or another) holds the store's writer lock."""
+        fd = self._lock_file("writers.lock")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)  # closing releases the probe's lock
+        return False
 
     def collect_garbage(self) -> list[str]:
         """Delete orphans (see :meth:`orphans`). Only safe with no writer running: use
@@ -856,7 +872,8 @@ class Store:
     def verify(self, session: str, *, progress: Callable[[int, int], None] | None = None
                ) -> VerifyReport:
         """Re-hash every file of a session; list missing and corrupt files, store-wide orphans
-        and done steps whose stored frame count differs from the plan.
+        and done steps whose stored frame count differs from the plan. While a runner writes,
+        orphans younger than a minute are not reported (they may be frames in flight).
 
         ``progress(i, n)`` is called after each file (for a progress bar).
         """
@@ -880,7 +897,10 @@ class Store:
             report.checked += 1
             if progress is not None:
                 progress(i + 1, len(shas))
-        report.orphans = [str(p.relative_to(self.root)) for p in self.orphans()]
+        # with a writer running, an unreferenced file younger than a minute may be a frame between
+        # its rename and its commit: not reported
+        min_age = 60.0 if self.writer_active() else 0.0
+        report.orphans = [str(p.relative_to(self.root)) for p in self.orphans(min_age_s=min_age)]
         return report
 
     def free_bytes(self) -> int:

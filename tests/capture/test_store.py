@@ -208,3 +208,14 @@ def test_export_is_self_contained_and_opens(tmp_path, dest):
         assert ex.verify("s1").ok  # the other session's object was not copied
     with pytest.raises(StoreError, match="already exists"):
         Store(tmp_path / "st").export("s1", out)
+
+
+def test_verify_ignores_young_unreferenced_files_while_a_writer_runs(tmp_path):
+    with Store(tmp_path) as st, Store(tmp_path) as reader:
+        _session(st)
+        with st.writer("s1"):
+            in_flight = st.put_object(b"renamed, not yet committed")
+            assert reader.writer_active()
+            assert reader.verify("s1").orphans == []
+        assert not reader.writer_active()
+        assert reader.verify("s1").orphans == [f"objects/{in_flight[:2]}/{in_flight[2:]}"]
