@@ -369,10 +369,10 @@ class SimWorld:
             raise ValueError(f"capture kind must be one of {CAPTURE_KINDS}, got {kind!r}")
         if kind == "object":
             return cls(object, **kwargs)
-        if kind == "checkerboard":
-            return cls(None, targets=[board_on_turntable(Checkerboard())], **kwargs)
+        if kind == "checkerboard":  # sized to fit the default camera's view at any angle
+            return cls(None, targets=[board_on_turntable(Checkerboard(square_mm=15.0, margin_mm=10.0))], **kwargs)
         if kind == "charuco":
-            return cls(None, targets=[board_on_turntable(CharucoTarget())], **kwargs)
+            return cls(None, targets=[board_on_turntable(CharucoTarget(square_mm=22.0, marker_mm=16.0))], **kwargs)
         if kind == "chrome":
             return cls(None, targets=[sphere_target("chrome")], **kwargs)
         if kind == "spheres":
