@@ -1,0 +1,147 @@
+"""Diffuse/specular separation with linear polarizers on the light and the lens.
+
+Angles are the analyser (lens polarizer) angle relative to the light's polarizer, degrees:
+0 = parallel, 90 = crossed. Single-scattered specular reflection keeps the light's
+polarization; subsurface (diffuse) light is depolarized, so half of it passes any analyser.
+Images are linear radiance (any units), shape (H, W) or (H, W, C); outputs keep that shape.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import DegenerateFit, TooFewViews
+
+__all__ = ["Separation", "PolarizationFit", "separate_parallel_crossed", "fit_polarization"]
+
+
+@dataclass(frozen=True)
+class Separation:
+    """Diffuse and specular components (float32, input shape) and where specular is significant."""
+
+    diffuse: np.ndarray
+    specular: np.ndarray
+    specular_mask: np.ndarray
+
+
+@dataclass(frozen=True)
+class PolarizationFit:
+    """Per-pixel fit of ``I(theta) = a + b cos 2 theta + c sin 2 theta`` (float32, input shape).
+
+    Attributes
+    ----------
+    imax, imin : ndarray
+        ``a ± sqrt(b² + c²)``: transmitted radiance at the best and worst analyser angle.
+    phase_deg : ndarray
+        Analyser angle of ``imax``, degrees in [-90, 90).
+    dop : ndarray
+        Degree of linear polarization ``(imax - imin) / (imax + imin)`` in [0, 1] (0 where
+        ``imax + imin <= 0``).
+    diffuse, specular : ndarray
+        ``2 imin`` and ``imax - imin`` (both clamped at 0).
+    residual_rms : ndarray
+        RMS misfit over the angles, same units as the input.
+    """
+
+    imax: np.ndarray
+    imin: np.ndarray
+    phase_deg: np.ndarray
+    dop: np.ndarray
+    diffuse: np.ndarray
+    specular: np.ndarray
+    residual_rms: np.ndarray
+
+
+def _as_float_image(a, name: str) -> np.ndarray:
+    arr = np.asarray(a)
+    if arr.ndim not in (2, 3):
+        raise ValueError(f"{name} must be (H, W) or (H, W, C), got shape {arr.shape}")
+    arr = arr.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return arr
+
+
+def separate_parallel_crossed(parallel, crossed, *, read_sigma: float = 0.0, shot_gain: float = 0.0,
+                              k_sigma: float = 3.0) -> Separation:
+    """Two-image separation: diffuse = 2 crossed, specular = parallel - crossed (clamped at 0).
+
+    Parameters
+    ----------
+    parallel, crossed : ndarray of shape (H, W) or (H, W, C)
+        Linear radiance with the analyser parallel / crossed to the light's polarizer.
+    read_sigma, shot_gain : float
+        Noise model of one image in its own units: ``var(I) = read_sigma² + shot_gain * I``
+        (``shot_gain`` = 1 / (electrons per unit)).
+    k_sigma : float
+        ``specular_mask`` marks pixels where ``parallel - crossed`` exceeds ``k_sigma`` times
+        its noise: the specular estimate there is a detection, elsewhere it is noise.
+
+    Returns
+    -------
+    Separation
+    """
+    p = _as_float_image(parallel, "parallel")
+    c = _as_float_image(crossed, "crossed")
+    if p.shape != c.shape:
+        raise ValueError(f"parallel {p.shape} and crossed {c.shape} must have the same shape")
+    if read_sigma < 0 or shot_gain < 0:
+        raise ValueError("read_sigma and shot_gain must be >= 0")
+    diff = p - c
+    sigma = np.sqrt(2 * read_sigma ** 2 + shot_gain * (np.maximum(p, 0) + np.maximum(c, 0)))
+    return Separation(np.maximum(2 * c, 0), np.maximum(diff, 0), diff > k_sigma * sigma)
+
+
+def fit_polarization(stack, angles_deg) -> PolarizationFit:
+    """Fit ``I(theta) = a + b cos 2θ + c sin 2θ`` per pixel from N analyser angles.
+
+    One pseudo-inverse of the (N, 3) design matrix is applied to the whole stack at once.
+
+    Parameters
+    ----------
+    stack : ndarray of shape (N, H, W) or (N, H, W, C)
+        Linear radiance at each analyser angle.
+    angles_deg : array_like of shape (N,)
+        Analyser angles, degrees (relative to the light's polarizer).
+
+    Returns
+    -------
+    PolarizationFit
+
+    Raises
+    ------
+    TooFewViews
+        Fewer than 3 images.
+    DegenerateFit
+        The angles do not span 3 distinct values modulo 180° (the fit is underdetermined).
+    """
+    s = np.asarray(stack)
+    th = np.radians(np.asarray(angles_deg, float).ravel())
+    if s.ndim not in (3, 4):
+        raise ValueError(f"stack must be (N, H, W) or (N, H, W, C), got shape {s.shape}")
+    if th.shape != (s.shape[0],):
+        raise ValueError(f"angles_deg must have one angle per image ({s.shape[0]}), got {th.shape}")
+    if len(th) < 3:
+        raise TooFewViews("polarization fit (analyser angles)", have=len(th), need=3)
+    A = np.column_stack([np.ones_like(th), np.cos(2 * th), np.sin(2 * th)])
+    sv = np.linalg.svd(A, compute_uv=False)
+    if sv[-1] < 1e-6 * sv[0]:
+        raise DegenerateFit("analyser angles must include 3 distinct values modulo 180°, "
+                            f"got {np.degrees(th) % 180}")
+    flat = s.reshape(len(th), -1).astype(np.float64)
+    if not np.all(np.isfinite(flat)):
+        raise ValueError("stack contains NaN or infinite values")
+    coef = np.linalg.pinv(A) @ flat
+    resid = flat - A @ coef
+    a, b, c = coef
+    amp = np.hypot(b, c)
+    imax, imin = a + amp, a - amp
+    tot = imax + imin
+    dop = np.divide(amp * 2, tot, out=np.zeros_like(tot), where=tot > 0)
+    shape = s.shape[1:]
+    out = lambda x: np.asarray(x, np.float32).reshape(shape)  # noqa: E731
+    return PolarizationFit(out(imax), out(imin), out(np.degrees(0.5 * np.arctan2(c, b))),
+                           out(np.clip(dop, 0, 1)), out(np.maximum(2 * imin, 0)),
+                           out(np.maximum(imax - imin, 0)),
+                           out(np.sqrt(np.mean(resid ** 2, axis=0))))
