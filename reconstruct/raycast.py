@@ -105,7 +105,8 @@ class Surface:
     """Base of the intersectable surfaces.
 
     Subclasses implement, in their object frame, ``_intersect`` (ray parameter and a primitive
-    index with two surface parameters) and ``_attributes`` (position, normals, uv).
+    index with two surface parameters) and ``_attributes`` (position, normals, uv), or
+    ``_hit_world`` directly in the world frame (meshes: per-pose face tables).
     """
 
     transform: np.ndarray
@@ -151,7 +152,7 @@ class Surface:
         if self._identity:
             return origins, dirs
         A, b = self._inv[:3, :3], self._inv[:3, 3]
-        if origins.strides[0] == 0:  # one shared origin (camera rays): transform it once
+        if len(origins) and origins.strides[0] == 0:  # one shared origin: transform it once
             o = np.broadcast_to(A @ origins[0] + b, origins.shape)
         else:
             o = _linear(A, origins) + b
@@ -163,6 +164,13 @@ class Surface:
             return p, _unit(ng), _unit(ns)
         return (_linear(self.transform[:3, :3], p) + self.transform[:3, 3],
                 _unit(_linear(self._normal_matrix, ng)), _unit(_linear(self._normal_matrix, ns)))
+
+    def _hit_world(self, o, d, t, prim, b1, b2):
+        """World rays (M, 3) and their hits -> float64 ``t`` (M,), position, unit geometric and
+        shading normals (M, 3), uv (M, 2), all in the world frame."""
+        p, ng, ns, uv = self._attributes(*self._to_local(o, d), t, prim, b1, b2)
+        pw, ngw, nsw = self._to_world(p, ng, ns)
+        return np.einsum("ij,ij->i", pw - o, d) / np.einsum("ij,ij->i", d, d), pw, ngw, nsw, uv
 
     def intersect(self, origins, dirs, t_max=None):
         """Ray parameters of the first hits of world rays (N, 3): ``t`` (N,) with ``inf`` on
@@ -229,7 +237,7 @@ class Mesh(Surface):
     def _embree_rays(self, o, d, t_max):
         """float32 origins (relative to the mesh centre), directions and far limits."""
         scene, centre = self._embree()
-        if o.strides[0] == 0:  # a shared origin (camera rays): subtract once
+        if len(o) and o.strides[0] == 0:  # a shared origin (camera rays): subtract once
             o32 = np.ascontiguousarray(np.broadcast_to((o[0] - centre).astype(np.float32),
                                                        o.shape))
         else:
@@ -245,7 +253,7 @@ class Mesh(Surface):
         out = scene.run(o32, d32, dists=dists, output=1)
         prim = out["primID"]
         t = np.where(prim >= 0, out["tfar"], np.float32(np.inf))
-        # u, v stay float32: _attributes recomputes the barycentrics in float64
+        # u, v stay float32: _hit_world recomputes the barycentrics in float64
         return t, prim.astype(np.int64), out["u"], out["v"]
 
     def _occluded(self, o, d, t_max):
@@ -274,32 +282,51 @@ class Mesh(Surface):
             t[iray], prim[iray], b1[iray], b2[iray] = tt, itri, bary[:, 1], bary[:, 2]
         return t, prim, b1, b2
 
-    def _attributes(self, o, d, t, prim, b1, b2):
-        g = self._geom
-        faces = g["faces"][prim]
-        tri = g["vertices"][faces]
-        ng = g["face_normals"][prim]
+    def _set_transform(self, transform) -> None:
+        super()._set_transform(transform)
+        self._world = None  # per-pose face tables (see _world_tables)
+
+    def _world_tables(self) -> dict:
+        """Per-face world-frame data for this pose: first vertex, unit face normal, and the dual
+        edge vectors g1, g2 with barycentrics b1 = (p - v0) . g1, b2 = (p - v0) . g2 (O(F),
+        computed once per pose)."""
+        if self._world is None:
+            g = self._geom
+            A, b = self.transform[:3, :3], self.transform[:3, 3]
+            tri = (g["vertices"] @ A.T + b)[g["faces"]]
+            e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+            d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
+            den = d11 * d22 - d12 * d12
+            inv = np.divide(1.0, den, out=np.zeros_like(den), where=np.abs(den) > 0)
+            self._world = {
+                "v0": tri[:, 0], "normal": _unit(g["face_normals"] @ self._normal_matrix.T),
+                "g1": (d22[:, None] * e1 - d12[:, None] * e2) * inv[:, None],
+                "g2": (d11[:, None] * e2 - d12[:, None] * e1) * inv[:, None],
+                "ok": inv != 0,
+                "vertex_normals": _unit(g["vertex_normals"] @ self._normal_matrix.T),
+            }
+        return self._world
+
+    def _hit_world(self, o, d, t, prim, b1, b2):
+        wt = self._world_tables()
+        v0, ng = wt["v0"][prim], wt["normal"][prim]
         # Embree's t and barycentrics are float32: redo the ray-plane hit and the barycentrics
         # in float64 so positions lie on the ray and on the face to ~1e-12 relative
         dn = np.einsum("ij,ij->i", d, ng)
-        ok = np.abs(dn) > 1e-12 * np.linalg.norm(d, axis=1)
-        t64 = np.einsum("ij,ij->i", tri[:, 0] - o, ng) / np.where(ok, dn, 1.0)
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        q = o + t64[:, None] * d - tri[:, 0]
-        d11, d12, d22 = (np.einsum("ij,ij->i", a, c) for a, c in ((e1, e1), (e1, e2), (e2, e2)))
-        q1, q2 = np.einsum("ij,ij->i", q, e1), np.einsum("ij,ij->i", q, e2)
-        den = d11 * d22 - d12 * d12
-        ok &= np.abs(den) > 0
-        den = np.where(ok, den, 1.0)
-        b1 = np.where(ok, (d22 * q1 - d12 * q2) / den, b1)
-        b2 = np.where(ok, (d11 * q2 - d12 * q1) / den, b2)
+        ok = np.abs(dn) > 1e-12 * np.sqrt(np.einsum("ij,ij->i", d, d))
+        t = np.where(ok, np.einsum("ij,ij->i", v0 - o, ng) / np.where(ok, dn, 1.0), t)
+        p = o + t[:, None] * d
+        q = p - v0
+        ok &= wt["ok"][prim]
+        b1 = np.where(ok, np.einsum("ij,ij->i", q, wt["g1"][prim]), b1)
+        b2 = np.where(ok, np.einsum("ij,ij->i", q, wt["g2"][prim]), b2)
+        faces = self._geom["faces"][prim]
         w = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
-        p = np.einsum("nk,nkj->nj", w, tri)
-        ns = np.einsum("nk,nkj->nj", w, g["vertex_normals"][faces]) if self.smooth else ng
-        uv = g["uv"]
+        ns = _unit(np.einsum("nk,nkj->nj", w, wt["vertex_normals"][faces])) if self.smooth else ng
+        uv = self._geom["uv"]
         uv = np.einsum("nk,nkj->nj", w, uv[faces]) if uv is not None else np.full((len(prim), 2),
                                                                                    np.nan)
-        return p, ng, ns, uv
+        return t, p, ng, ns, uv
 
 
 def _quadric_roots(o, d, center, radius):
@@ -535,16 +562,12 @@ def _first_hits(surfaces: list[Surface], o, d, t_max=None) -> Hits:
         idx = np.flatnonzero(owner == k)
         if len(idx) == 0:
             continue
-        oi, di = o[idx], d[idx]
         prim, b1, b2 = (a[idx] for a in found[k])
-        p, ng, ns, uv = s._attributes(*s._to_local(oi, di), best[idx], prim, b1, b2)
-        pw, ngw, nsw = s._to_world(p, ng, ns)
-        hits.position[idx] = pw
         # float64 t from the exact hit point (Embree's tfar is float32)
-        hits.t[idx] = np.einsum("ij,ij->i", pw - oi, di) / np.einsum("ij,ij->i", di, di)
+        hits.t[idx], hits.position[idx], ngw, nsw, hits.uv[idx] = s._hit_world(
+            o[idx], d[idx], best[idx], prim, b1, b2)
         hits.geometric_normal[idx] = ngw
         hits.normal[idx] = nsw
-        hits.uv[idx] = uv
         hits.face_index[idx] = prim
     return hits
 

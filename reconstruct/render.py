@@ -626,7 +626,7 @@ def _light_geometry(scene, light, p, ng, scale, shadows):
         g = np.ones(len(p))
     if shadows:
         cand = np.flatnonzero(np.einsum("ij,ij->i", wi, ng) > 0)  # facing away: no ray needed
-        o = offset_origins(p[cand], ng[cand], wi[cand], scale)
+        o = p[cand] + (OFFSET_EPS * scale) * ng[cand]  # the light is on the normal's side
         blocked = _occluded(scene.surfaces, o, wi[cand], dist[cand] - 2 * OFFSET_EPS * scale)
         g[cand[blocked]] = 0.0
     return wi, g
