@@ -24,6 +24,7 @@ class EventKind(str, enum.Enum):
     RESUMED = "resumed"
     STEP_STARTED = "step_started"
     MOVED = "moved"
+    METERED = "metered"            # auto-exposure decided from metering shots
     TARGET = "target"              # the scene must change (checkerboard in, lens cap on ...)
     FRAME_STORED = "frame_stored"
     STEP_DONE = "step_done"

@@ -22,6 +22,8 @@ A plan is a TOML file (or :class:`Plan` built in Python)::
     base_s = 0.02
     stops = [-2, 0, 2]              # bracket: base * 2**stop
     iso = 100
+    # auto = true                   # meter first (raw histogram); bracket = metered * 2**stop
+    # highlight = 0.8               # where the 99.5th percentile of the raw values should land
 
     [[calibration]]                 # named calibration captures
     kind = "dark"                   # dark | checkerboard | spheres | gray_card | mirror_probe
@@ -116,13 +118,17 @@ def _light_dir(az: float, el: float, dist: float | None) -> dict[str, Any]:
 class Exposure:
     """Exposure bracket: ``base_s * 2**stop`` for each stop, seconds; ``iso`` optional.
 
-    Auto-bracketing from a metering shot is not implemented yet: ``auto = true`` in a plan file
-    is rejected with a PlanError saying so.
+    With ``auto=True`` the runner meters the scene first (:mod:`capture.metering`: the raw
+    histogram of shots starting at ``base_s``) so that the highlights reach ``highlight`` of the
+    raw range, and the bracket becomes ``metered * 2**stop``; the metering is stored with the
+    session and reused on resume.
     """
 
     base_s: float = 0.01
     stops: tuple[float, ...] = (0.0,)
     iso: float | None = None
+    auto: bool = False
+    highlight: float = 0.8
 
     @property
     def exposures_s(self) -> tuple[float, ...]:
@@ -211,6 +217,8 @@ class Plan:
                              "notes": self.notes, "repeats": self.repeats,
                              "exposure": {"base_s": self.exposure.base_s, "stops": list(self.exposure.stops),
                                           "iso": self.exposure.iso}}
+        if self.exposure.auto:
+            d["exposure"].update(auto=True, highlight=self.exposure.highlight)
         if self.turntable_deg:
             d["turntable"] = {"angles_deg": list(self.turntable_deg)}
         if self.polarizer_deg:
@@ -258,7 +266,7 @@ class Plan:
         if self.light is not None and rig.positioner is not None:
             _check_reach(self.light, desc.get("positioner", {}))
         cd = desc.get("camera", {})
-        lim = _limit_from(cd, "exposure")
+        lim = limit_from_describe(cd, "exposure")
         if lim is not None:
             for i, (stop, t) in enumerate(zip(self.exposure.stops, self.exposure.exposures_s)):
                 if not lim[0] * (1 - 1e-9) <= t <= lim[1] * (1 + 1e-9):
@@ -269,7 +277,7 @@ class Plan:
                     _check_limits(f"calibration[{i}].exposure_s", [c.exposure_s], lim,
                                   "the camera's range", " s", indexed=False)
         if self.exposure.iso is not None:
-            _check_limits("exposure.iso", [self.exposure.iso], _limit_from(cd, "iso"),
+            _check_limits("exposure.iso", [self.exposure.iso], limit_from_describe(cd, "iso"),
                           "the camera's range", "", indexed=False)
 
     # -- expansion ----------------------------------------------------------------------------
@@ -304,7 +312,7 @@ class Plan:
                               turntable_deg=v.get("turntable"), light=self._light_of(v),
                               polarizer_deg=v.get("polarizer"),
                               exposures_s=self.exposure.exposures_s, repeats=self.repeats,
-                              iso=self.exposure.iso))
+                              iso=self.exposure.iso, auto_exposure=self.exposure.auto))
         return steps
 
     def _light_of(self, v: dict[str, Any]) -> dict[str, Any] | None:
@@ -338,7 +346,8 @@ class Plan:
             out.append(Step(index=0, kind=c.kind, target=target,
                             turntable_deg=None if c.kind == "dark" else a,
                             light=None if c.kind == "dark" else lt, polarizer_deg=pol,
-                            exposures_s=exposures, repeats=frames, iso=self.exposure.iso))
+                            exposures_s=exposures, repeats=frames, iso=self.exposure.iso,
+                            auto_exposure=self.exposure.auto and c.exposure_s is None))
         return out
 
     def estimate(self, rig: Any = None, steps: Sequence["Step"] | None = None) -> "Estimate":
@@ -366,10 +375,13 @@ class Step:
         ``{"azimuth_deg", "elevation_deg"[, "distance_mm"]}`` or ``{"xyz_mm": [x, y, z]}``,
         world (turntable) frame; None: leave the light where it is.
     exposures_s : tuple of float
-        The bracket, seconds, captured in this order.
+        The bracket, seconds, captured in this order (with ``auto_exposure``: nominal values,
+        scaled at run time by metered / ``base_s``).
     repeats : int
         Captures of the whole bracket.
     iso : float or None
+    auto_exposure : bool
+        The bracket follows the session's metered exposure.
     """
 
     index: int
@@ -381,6 +393,7 @@ class Step:
     exposures_s: tuple[float, ...]
     repeats: int = 1
     iso: float | None = None
+    auto_exposure: bool = False
 
     @property
     def frames(self) -> int:
@@ -390,14 +403,15 @@ class Step:
         return {"index": self.index, "kind": self.kind, "target": self.target,
                 "turntable_deg": self.turntable_deg, "light": self.light,
                 "polarizer_deg": self.polarizer_deg, "exposures_s": list(self.exposures_s),
-                "repeats": self.repeats, "iso": self.iso, "frames": self.frames}
+                "repeats": self.repeats, "iso": self.iso, "frames": self.frames,
+                "auto_exposure": self.auto_exposure}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Step":
         return cls(index=d["index"], kind=d["kind"], target=d["target"],
                    turntable_deg=d["turntable_deg"], light=d["light"],
                    polarizer_deg=d["polarizer_deg"], exposures_s=tuple(d["exposures_s"]),
-                   repeats=d["repeats"], iso=d.get("iso"))
+                   repeats=d["repeats"], iso=d.get("iso"), auto_exposure=d.get("auto_exposure", False))
 
 
 @dataclass(frozen=True)
@@ -545,7 +559,7 @@ def _parse(data: Any) -> Plan:
     tt = _table(data, "turntable", {"angles_deg"})
     lt = _table(data, "light", {"azimuth_deg", "elevation_deg", "distance_mm", "xyz_mm"})
     po = _table(data, "polarizer", {"angles_deg", "count"})
-    ex = _table(data, "exposure", {"base_s", "stops", "iso", "auto"})
+    ex = _table(data, "exposure", {"base_s", "stops", "iso", "auto", "highlight"})
     light = None
     if lt is not None:
         if "xyz_mm" in lt:
@@ -590,11 +604,15 @@ def _parse(data: Any) -> Plan:
         auto = ex.get("auto", False)
         if not isinstance(auto, bool):
             raise PlanError(f"exposure.auto must be true or false, got {_tname(auto)}")
-        if auto:
-            raise PlanError("exposure.auto = true: auto-bracketing from a metering shot is not "
-                            "implemented yet; give exposure.base_s and exposure.stops")
+        highlight = ex.get("highlight", 0.8)
+        if not _is_num(highlight):
+            raise PlanError(f"exposure.highlight must be a number (fraction of the raw range), "
+                            f"got {_tname(highlight)}")
+        if "highlight" in ex and not auto:
+            raise PlanError("exposure.highlight is only used with exposure.auto = true")
         stops = _numbers(ex["stops"], "exposure.stops") if "stops" in ex else (0.0,)
-        exposure = Exposure(base_s=float(base), stops=stops, iso=None if iso is None else float(iso))
+        exposure = Exposure(base_s=float(base), stops=stops, iso=None if iso is None else float(iso),
+                            auto=auto, highlight=float(highlight))
     cals = data.get("calibration", [])
     if not isinstance(cals, list):
         raise PlanError(f"calibration must be an array of tables ([[calibration]]), got {_tname(cals)}")
@@ -646,6 +664,9 @@ def _validate(p: Plan) -> None:
         raise PlanError(f"exposure.stops {list(e.stops)} has duplicates")
     if e.iso is not None and not e.iso > 0:
         raise PlanError(f"exposure.iso = {_fmt(e.iso)} must be positive")
+    if not 0.05 <= e.highlight <= 0.9:
+        raise PlanError(f"exposure.highlight = {_fmt(e.highlight)} must lie in 0.05..0.9 "
+                        "(fraction of the raw range; above 0.9 the highlights risk clipping)")
     _finite(p.turntable_deg, "turntable.angles_deg")
     _finite(p.polarizer_deg, "polarizer.angles_deg")
     if p.light is not None:
@@ -815,9 +836,10 @@ def _check_reach(light: LightGrid, desc: dict[str, Any]) -> None:
                                 f"{lo:g}..{hi:g}") from None
 
 
-def _limit_from(desc: dict[str, Any], name: str) -> tuple[float, float] | None:
+def limit_from_describe(desc: dict[str, Any], name: str) -> tuple[float, float] | None:
     """Find ``name``'s (low, high) in a describe() dict: ``<name>_limits[_deg|_mm|_s]``,
-    ``<name>_range[...]`` or ``limits: {<name>: [lo, hi]}``."""
+    ``<name>_range[...]``, ``limits: {<name>: [lo, hi]}``, or the extremes of a list of allowed
+    values ``<name>_values[_s]`` (a camera's exposure steps)."""
     candidates = [desc.get(f"{name}{mid}{suffix}") for mid in ("_limits", "_range")
                   for suffix in ("", "_deg", "_mm", "_s")]
     lims = desc.get("limits")
@@ -826,6 +848,10 @@ def _limit_from(desc: dict[str, Any], name: str) -> tuple[float, float] | None:
     for c in candidates:
         if isinstance(c, (list, tuple)) and len(c) == 2 and all(_is_num(x) for x in c):
             return float(c[0]), float(c[1])
+    for key in (f"{name}_values", f"{name}_values_s"):
+        values = desc.get(key)
+        if isinstance(values, (list, tuple)) and values and all(_is_num(x) for x in values):
+            return float(min(values)), float(max(values))
     return None
 
 

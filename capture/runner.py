@@ -26,7 +26,8 @@ from rig import LightTarget, RigError, wait_all
 from rig.errors import Disconnected
 
 from .events import Event, EventBus, EventKind
-from .plan import MotionModel, Plan, Step, plan_diff
+from .metering import MeteringError, meter
+from .plan import MotionModel, Plan, Step, limit_from_describe, plan_diff
 from .store import SessionInfo, Store, StoreFull
 
 #: free space kept in reserve on the store's disk, bytes
@@ -162,6 +163,7 @@ class Runner:
         self._drop: set[str] = set()  # roles whose link dropped: reconnect on the next run
         self._session: SessionInfo | None = None
         self._counters: dict[str, Any] = {}
+        self._exposure_scale = 1.0  # metered / plan base exposure, for auto-exposure steps
 
     # -- control (any thread) -----------------------------------------------------------------
     def request_pause(self, *, now: bool = False) -> None:
@@ -258,6 +260,8 @@ class Runner:
                    **self._counters)
         self._set_state("running")
         target = None if resumed or not done_steps else done_steps[-1].target
+        if any(s.auto_exposure for s in pending):
+            target = self._meter([Step.from_dict(d) for _, d, _ in all_steps], target)
         started = time.monotonic()
         for n, step in enumerate(pending):
             self._check_requests()
@@ -331,6 +335,47 @@ class Runner:
         if self.prepare_target is not None:
             self.prepare_target(step.target, step)
 
+    def _meter(self, steps: list[Step], target: str | None) -> str | None:
+        """Set the auto-exposure scale: from the session's stored metering, or by metering now
+        at the first measurement pose (the metering shots are kept as a calibration result)."""
+        sid, plan_exposure = self._session.id, self._session.plan["exposure"]
+        base = plan_exposure["base_s"]
+        stored = [r for r in self.store.results(sid, "calibration") if r["kind"] == "metering"]
+        if stored:
+            metered = stored[-1]["result"]["exposure_s"]
+        else:
+            step = next((s for s in steps if s.kind == "measure"),
+                        next(s for s in steps if s.auto_exposure))
+            if step.target != target:
+                self._change_target(step)
+                target = step.target
+            self._attempt(lambda: self._move(step), "moving to the metering pose", step)
+            shots: list[Any] = []
+
+            def shoot(t: float) -> bytes:
+                _, frame = self._attempt(lambda: self._capture(t), "metering", step, device="camera")
+                shots.append(frame)
+                return frame.data
+
+            limits = limit_from_describe(self.rig.camera.describe(), "exposure") or (1e-5, 3600.0)
+            try:
+                m = meter(shoot, base, limits_s=limits, highlight=plan_exposure.get("highlight", 0.8))
+            except MeteringError as exc:
+                self._emit(EventKind.FAULT, f"metering failed: {exc}", step=step.index, device="camera",
+                           error="MeteringError")
+                self._emit(EventKind.PAUSED, f"paused: {exc}", step=step.index, **self._counters)
+                raise _Stop("paused", str(exc)) from None
+            metered = m.exposure_s
+            self.store.add_calibration(
+                sid, "metering", result={"exposure_s": metered, "base_s": base, "shots": m.shots},
+                params={"highlight": plan_exposure.get("highlight", 0.8), "start_s": base},
+                artifacts={f"metering_{i}.{f.format}": f.data for i, f in enumerate(shots)})
+        self._exposure_scale = metered / base
+        self._emit(EventKind.METERED, f"auto-exposure: {metered:g} s (bracket x{metered / base:.3g} of "
+                   f"the plan's {base:g} s){' from the stored metering' if stored else ''}",
+                   exposure_s=metered, scale=self._exposure_scale)
+        return target
+
     # -- one step -----------------------------------------------------------------------------
     def _run_step(self, step: Step) -> None:
         sid = self._session.id
@@ -343,9 +388,11 @@ class Runner:
         if step.iso is not None and camera.iso != step.iso:
             self._attempt(lambda: camera.set_iso(step.iso), "setting ISO", step, device="camera")
         total = step.frames
+        exposures = ([t * self._exposure_scale for t in step.exposures_s] if step.auto_exposure
+                     else step.exposures_s)
         k = 0
         for repeat in range(step.repeats):
-            for b, exposure in enumerate(step.exposures_s):
+            for b, exposure in enumerate(exposures):
                 self._check_requests(hard_only=True)
                 taken, frame = self._attempt(lambda: self._capture(exposure), "capturing", step,
                                              device="camera")
