@@ -30,7 +30,8 @@ A plan is a TOML file (or :class:`Plan` built in Python)::
     frames = 5
 
 Any list of numbers may be written as ``{ start, stop, step }`` (``stop`` included when the grid
-lands on it). Units: degrees, millimetres, seconds. Validation errors are :class:`PlanError`
+lands on it). With ``exposure.auto = true`` the runner meters the scene first and the bracket
+becomes ``metered * 2**stop`` (see :class:`Exposure`). Units: degrees, millimetres, seconds. Validation errors are :class:`PlanError`
 and name the field, e.g. ``light.elevation_deg[3] = 95 is outside the positioner's limit 0..85``.
 
 Expansion orders the measurement grid so motion time is smallest: each loop level is one axis
