@@ -1,35 +1,710 @@
-"""Session calibration pipeline: store frames -> calibration/ functions -> stored results.
+"""Session calibration pipeline: stored frames -> ``calibration`` functions -> stored results.
 
-Work in progress (skeleton): ``calibrate_session`` runs every calibration stage that a
-session's captures allow and records each result with provenance.
+:func:`calibrate_session` runs every calibration a session's captures allow, in dependency
+order, and records each result in the store with its provenance (input frame ids, parameters,
+code version)::
+
+    dark        mean dark frame per exposure time (lens-cap steps)
+    hdr         raw brackets of every step -> linear radiance (dark-subtracted, exposure-normalised)
+    intrinsics  K and distortion from the checkerboard / ChArUco steps
+    turntable   axis, angle model and world frame from the same target at several turntable
+                readings (the frames' read-backs)
+    lights      one point light per spheres step (mirror spheres of known radius)
+    positioner  arm kinematics fitted to those lights: a light position for every step
+    polarization  diffuse / specular separation check (parallel/crossed or N analyser angles)
+    gray_card   absolute scale from the 18 % card
+    mirror_probe  environment map from a mirror sphere (not implemented yet: always skipped)
+
+A stage whose inputs are missing is *skipped* with the reason; a stage that fails records the
+error (naming the frame) and the others continue. Nothing here raises for bad data except
+:class:`SessionNotFound` (unknown session).
+
+Images: raw DNG bytes -> rawpy mosaic -> black level, per-exposure dark frame, white level ->
+HDR merge in the mosaic domain (unsaturated samples weighted by exposure time, the
+shot-noise-optimal weight) -> bilinear demosaic. Radiance unit: normalised DN per second
+(``(raw - black - dark) / (white - black) / exposure_s``), camera RGB, float32 H x W x 3.
+
+Frames: pixels x right, y down; camera frame OpenCV, mm. The *lab frame* is the turntable
+(world) frame of :mod:`calibration.turntable` at platter angle 0 (the first target view):
+origin on the axis, +z up the axis. Fixed things (lights) are reported in the lab and camera
+frames; the object frame at turntable reading r is the lab frame turned by the platter angle.
 """
-
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import io
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
 
-__all__ = ["StageResult", "CalibrationReport", "calibrate_session"]
+import cv2
+import numpy as np
+import rawpy
+
+from calibration.errors import CalibrationError, TargetNotFound
+from calibration.intrinsics import calibrate_intrinsics
+from calibration.lights import (detect_sphere, find_highlight, fit_positioner_model,
+                                sphere_center_from_silhouette, triangulate_point_light)
+from calibration.targets import detect_charuco, detect_chessboard, make_charuco_board
+from calibration.turntable import fit_turntable
+
+from .store import FrameRecord, SessionNotFound, Store, StoreError
+
+__all__ = ["STAGES", "LabTargets", "StageResult", "CalibrationReport", "calibrate_session",
+           "decode_raw", "merge_bracket", "demosaic_bilinear", "SessionNotFound"]
+
+#: stage names, in the order they run
+STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "polarization",
+          "gray_card", "mirror_probe")
+#: a raw sample at or above this fraction of (white - black) counts as saturated
+SATURATION_FRACTION = 0.98
+
+
+@dataclass(frozen=True)
+class LabTargets:
+    """The lab's physical calibration targets (what the pipeline looks for), millimetres.
+
+    Defaults are the printed targets of ``sims.targets`` (a 9 x 6 inner-corner chessboard of
+    20 mm squares; a 7 x 5 ChArUco of 30 mm squares, 22 mm DICT_5X5_100 markers) and 1-inch
+    bearing balls.
+    """
+
+    chessboard_inner: tuple[int, int] = (9, 6)
+    chessboard_square_mm: float = 20.0
+    charuco_squares: tuple[int, int] = (7, 5)
+    charuco_square_mm: float = 30.0
+    charuco_marker_mm: float = 22.0
+    charuco_dictionary: str = "DICT_5X5_100"
+    sphere_radius_mm: float = 12.7
+    gray_card_albedo: float = 0.18
+    #: cv2.CALIB_* flags for the intrinsics fit (k3 fixed: a turntable-only board sweep
+    #: covers the image centre, where k3 is not observable)
+    intrinsics_flags: int = cv2.CALIB_FIX_K3
+
+    def __post_init__(self) -> None:
+        for name in ("chessboard_square_mm", "charuco_square_mm", "charuco_marker_mm", "sphere_radius_mm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"LabTargets.{name} must be > 0 mm, got {getattr(self, name)!r}")
+        if not 0 < self.gray_card_albedo <= 1:
+            raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
 
 
 @dataclass
 class StageResult:
-    """Outcome of one calibration stage (status is 'ok', 'skipped' or 'failed')."""
+    """Outcome of one stage.
+
+    Attributes
+    ----------
+    stage : str
+        One of :data:`STAGES`.
+    status : {'ok', 'skipped', 'failed'}
+    reason : str
+        Why it was skipped or what failed (names the frame where one is to blame).
+    figures : dict
+        Key numbers for the summary table (JSON-able).
+    calibration_id : int or None
+        The stored result's id (``Store.results``).
+    """
 
     stage: str
     status: str
     reason: str = ""
-    figures: dict = field(default_factory=dict)
+    figures: dict[str, Any] = field(default_factory=dict)
     calibration_id: int | None = None
 
 
 @dataclass
 class CalibrationReport:
-    """All stage outcomes of one ``calibrate_session`` run."""
+    """Everything one :func:`calibrate_session` run produced.
+
+    ``plots`` holds in-memory arrays for :func:`capture.report.write_report` (per-view errors,
+    coverage grid, example images); they are not persisted beyond what the stages store.
+    """
 
     session: str
     stages: list[StageResult] = field(default_factory=list)
+    plots: dict[str, Any] = field(default_factory=dict)
+
+    def stage(self, name: str) -> StageResult:
+        for s in self.stages:
+            if s.stage == name:
+                return s
+        raise KeyError(f"no stage {name!r}; stages: {', '.join(STAGES)}")
+
+    @property
+    def ran(self) -> list[StageResult]:
+        return [s for s in self.stages if s.status != "skipped"]
+
+    @property
+    def failed(self) -> list[StageResult]:
+        return [s for s in self.stages if s.status == "failed"]
 
 
-def calibrate_session(store, session_name, *, progress=None) -> CalibrationReport:
-    """Run every calibration the session's captures allow (skeleton)."""
-    raise NotImplementedError("calibrate_session is being written")
+class _Skip(Exception):
+    """Internal: the stage lacks its inputs (the message says which)."""
+
+
+# -- raw decoding, dark frames, HDR --------------------------------------------------------------
+@dataclass(frozen=True)
+class RawFrame:
+    """A decoded raw mosaic: ``data`` (H, W) float32 DN minus the black level, ``colors`` (H, W)
+    uint8 channel index 0 = R, 1 = G, 2 = B, ``white`` = white level minus black (DN)."""
+
+    data: np.ndarray
+    colors: np.ndarray
+    white: float
+
+
+def decode_raw(data: bytes, *, frame: str = "frame") -> RawFrame:
+    """Decode a camera raw file (DNG or any LibRaw format) to a black-subtracted mosaic.
+
+    Raises
+    ------
+    ValueError
+        LibRaw cannot read the bytes (names ``frame``), or the file is not a Bayer raw.
+    """
+    try:
+        with rawpy.imread(io.BytesIO(data)) as raw:
+            mosaic = raw.raw_image_visible.astype(np.float32)
+            colors = raw.raw_colors_visible.astype(np.uint8)
+            desc = raw.color_desc.decode()
+            black = np.asarray(raw.black_level_per_channel, np.float32)
+            white = float(raw.white_level)
+    except (rawpy.LibRawError, OSError) as exc:
+        raise ValueError(f"{frame}: not a readable raw file ({type(exc).__name__}: {exc})") from None
+    if len(desc) != 4 or set(desc) - set("RGB"):
+        raise ValueError(f"{frame}: colour filter {desc!r} is not an RGB Bayer pattern")
+    # per-position black level (the four CFA positions), then map LibRaw's channels to R, G, B
+    mosaic -= black[colors]
+    rgb = np.array(["RGB".index(c) for c in desc], np.uint8)
+    return RawFrame(mosaic, rgb[colors], white - float(black.mean()))
+
+
+def merge_bracket(raws: list[RawFrame], exposures_s: list[float], darks: list[np.ndarray | None],
+                  *, saturation: float = SATURATION_FRACTION) -> tuple[np.ndarray, np.ndarray]:
+    """Merge a raw bracket into one linear mosaic (normalised DN per second).
+
+    Each sample below ``saturation * white`` contributes its dark-subtracted value; the merge
+    is ``sum(v) / sum(t)`` over the unsaturated samples (weights proportional to exposure time:
+    optimal under shot noise). Pixels saturated in every frame take the shortest exposure's
+    value (a lower bound) and are flagged.
+
+    Parameters
+    ----------
+    raws : list of RawFrame
+        Same sensor, same size.
+    exposures_s : list of float
+        Exposure time of each frame, seconds.
+    darks : list of (H, W) arrays or None
+        Mean dark frame (DN above black) for each frame's exposure, or None.
+
+    Returns
+    -------
+    merged : ndarray of shape (H, W), float32
+        Normalised DN per second.
+    saturated : ndarray of shape (H, W), bool
+        Saturated in every frame.
+    """
+    if not raws or len(raws) != len(exposures_s) or len(darks) != len(raws):
+        raise ValueError(f"merge_bracket: {len(raws)} raws, {len(exposures_s)} exposures and "
+                         f"{len(darks)} darks must be equal and non-zero")
+    num = np.zeros(raws[0].data.shape, np.float64)
+    den = np.zeros_like(num)
+    shortest = int(np.argmin(exposures_s))
+    for raw, t, dark in zip(raws, exposures_s, darks):
+        if raw.data.shape != num.shape:
+            raise ValueError(f"merge_bracket: frame sizes differ ({raw.data.shape} vs {num.shape})")
+        ok = raw.data < saturation * raw.white
+        v = (raw.data if dark is None else raw.data - dark) / raw.white
+        num += np.where(ok, v, 0.0)
+        den += np.where(ok, t, 0.0)
+    saturated = den == 0
+    low = raws[shortest]
+    fallback = low.data / low.white / exposures_s[shortest]
+    merged = np.where(saturated, fallback, num / np.where(saturated, 1.0, den))
+    return merged.astype(np.float32), saturated
+
+
+_BILINEAR = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32)
+
+
+def demosaic_bilinear(mosaic: np.ndarray, colors: np.ndarray) -> np.ndarray:
+    """Bilinear demosaic for any 2x2 Bayer layout: each channel keeps its own samples and
+    averages its nearest neighbours elsewhere (normalised convolution). -> (H, W, 3) float32."""
+    out = np.empty(mosaic.shape + (3,), np.float32)
+    for c in range(3):
+        m = (colors == c).astype(np.float32)
+        num = cv2.filter2D(mosaic * m, -1, _BILINEAR, borderType=cv2.BORDER_REFLECT)
+        den = cv2.filter2D(m, -1, _BILINEAR, borderType=cv2.BORDER_REFLECT)
+        out[..., c] = np.where(m > 0, mosaic, num / np.maximum(den, 1e-6))
+    return out
+
+
+def _display(img: np.ndarray) -> np.ndarray:
+    """Grey view of a linear image scaled so its 99.5th percentile is 1 (for target detection:
+    hot pixels and highlights do not crush the contrast)."""
+    g = img.mean(axis=2) if img.ndim == 3 else img
+    top = float(np.percentile(g, 99.5))
+    return np.clip(g / top, 0.0, 1.0) if top > 0 else np.zeros_like(g)
+
+
+# -- the session as the stages see it ----------------------------------------------------------
+class _Context:
+    def __init__(self, store: Store, name: str, targets: LabTargets) -> None:
+        self.store = store
+        self.info = store.session(name)
+        self.targets = targets
+        self.steps = {idx: d for idx, d, _ in store.steps(self.info.id)}
+        self.frames: dict[int, list[FrameRecord]] = {}
+        for f in store.frames(self.info.id):
+            self.frames.setdefault(f.step, []).append(f)
+        self.darks: dict[float, np.ndarray] = {}       # exposure s -> mean dark mosaic (DN)
+        self.hdr: dict[int, np.ndarray] = {}           # step -> (H, W, 3) radiance
+        self.hdr_meta: dict[int, dict[str, Any]] = {}
+        self.results: dict[str, Any] = {}              # stage -> the calibration object it made
+
+    def steps_of(self, kind: str) -> list[int]:
+        """Indices of steps of ``kind`` that have frames, in order."""
+        return [i for i, d in sorted(self.steps.items()) if d["kind"] == kind and self.frames.get(i)]
+
+    def frame_ids(self, steps) -> list[int]:
+        return [f.id for s in steps for f in self.frames[s]]
+
+    def raw(self, f: FrameRecord) -> RawFrame:
+        if f.format.lower() != "dng":
+            raise ValueError(f"frame {f.id} (step {f.step}) is {f.format!r}; the pipeline reads raw DNG")
+        return decode_raw(self.store.read_object(f.sha256), frame=f"frame {f.id} (step {f.step})")
+
+    def dark_for(self, exposure_s: float) -> np.ndarray | None:
+        for t, dark in self.darks.items():
+            if abs(t - exposure_s) <= 0.01 * exposure_s:
+                return dark
+        return None
+
+    def image(self, step: int) -> np.ndarray:
+        if step not in self.hdr:
+            raise _Skip(f"step {step} has no HDR image (the hdr stage did not merge it)")
+        return self.hdr[step]
+
+    def reading(self, step: int, key: str) -> float:
+        vals = [f.positions.get(key) for f in self.frames[step]]
+        vals = [v for v in vals if v is not None]
+        if not vals:
+            planned = self.steps[step].get(key)
+            if planned is None:
+                raise ValueError(f"step {step}: frames have no {key!r} read-back and the plan names none")
+            return float(planned)
+        return float(np.mean(vals))
+
+
+def _exposure(f: FrameRecord) -> float:
+    t = f.exposure_s if f.exposure_s else f.exposure_requested_s
+    if not t or t <= 0:
+        raise ValueError(f"frame {f.id} (step {f.step}) has no exposure time")
+    return float(t)
+
+
+# -- stages -------------------------------------------------------------------------------------
+def _stage_dark(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[int], dict]:
+    steps = ctx.steps_of("dark")
+    if not steps:
+        raise _Skip("no dark (lens-cap) captures in this session")
+    by_t: dict[float, list[FrameRecord]] = {}
+    for s in steps:
+        for f in ctx.frames[s]:
+            by_t.setdefault(round(_exposure(f), 9), []).append(f)
+    out, artifacts = [], {}
+    for t, frames in sorted(by_t.items()):
+        total = None
+        for f in frames:
+            d = ctx.raw(f).data.astype(np.float64)
+            total = d if total is None else total + d
+        mean = (total / len(frames)).astype(np.float32)
+        ctx.darks[t] = mean
+        buf = io.BytesIO()
+        np.save(buf, mean)
+        artifacts[f"dark_{t:g}s.npy"] = buf.getvalue()
+        out.append({"exposure_s": t, "frames": len(frames), "mean_dn": float(mean.mean()),
+                    "std_dn": float(mean.std()), "hot_pixels": int(np.count_nonzero(
+                        mean > mean.mean() + 8 * max(float(mean.std()), 1e-6)))})
+    figures = {"exposures": len(out), "mean_dn": round(float(np.mean([o["mean_dn"] for o in out])), 3)}
+    return {"darks": out}, figures, ctx.frame_ids(steps), artifacts
+
+
+def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[int], dict]:
+    steps = [s for s in sorted(ctx.frames) if ctx.steps.get(s, {}).get("kind") != "dark"]
+    if not steps:
+        raise _Skip("no frames besides dark frames in this session")
+    per_step, example = [], None
+    for s in steps:
+        frames = ctx.frames[s]
+        raws = [ctx.raw(f) for f in frames]
+        ts = [_exposure(f) for f in frames]
+        darks = [ctx.dark_for(t) for t in ts]
+        merged, sat = merge_bracket(raws, ts, darks)
+        ctx.hdr[s] = demosaic_bilinear(merged, raws[0].colors)
+        pos = merged[~sat & (merged > 0)]
+        dr = float(np.log2(pos.max() / max(np.percentile(pos, 1), 1e-12))) if pos.size else 0.0
+        meta = {"step": s, "kind": ctx.steps[s]["kind"], "frames": len(frames),
+                "exposures_s": sorted(set(ts)), "dark_subtracted": sum(d is not None for d in darks),
+                "saturated_fraction": float(sat.mean()), "dynamic_range_stops": round(dr, 2)}
+        ctx.hdr_meta[s] = meta
+        per_step.append(meta)
+        if example is None or len(set(ts)) > len(example[1]["exposures_s"]):
+            example = (s, meta)
+    if example is not None:
+        rep.plots["hdr_example"] = {"step": example[0], "image": ctx.hdr[example[0]],
+                                    "exposures_s": example[1]["exposures_s"]}
+    figures = {"steps": len(per_step), "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
+               "dark_subtracted_frames": sum(m["dark_subtracted"] for m in per_step)}
+    return ({"unit": "normalised DN per second (camera RGB)", "steps": per_step},
+            figures, ctx.frame_ids(steps), {})
+
+
+def _detector(ctx: _Context):
+    t = ctx.targets
+    board = make_charuco_board(t.charuco_squares, t.charuco_square_mm, t.charuco_marker_mm, t.charuco_dictionary)
+
+    def detect(img, frame):
+        # ChArUco first: its corner ids stay consistent as the board turns (the turntable fit
+        # needs that); a plain chessboard otherwise
+        try:
+            return detect_charuco(img, board, frame=frame), "charuco"
+        except TargetNotFound:
+            return detect_chessboard(img, t.chessboard_inner, t.chessboard_square_mm, frame=frame), "chessboard"
+    return detect
+
+
+def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
+    steps = ctx.steps_of("checkerboard")
+    if not steps:
+        raise _Skip("no checkerboard captures in this session")
+    detect = _detector(ctx)
+    dets, kinds, det_steps, missing = [], [], [], []
+    for s in steps:
+        name = f"frame {ctx.frames[s][0].id} (step {s})"
+        try:
+            d, kind = detect(_display(ctx.image(s)), name)
+        except TargetNotFound as exc:
+            missing.append(str(exc))
+            continue
+        dets.append(d)
+        kinds.append(kind)
+        det_steps.append(s)
+    if len({*kinds}) > 1:  # two target types in one session: keep the majority
+        major = max(set(kinds), key=kinds.count)
+        keep = [i for i, k in enumerate(kinds) if k == major]
+        dets, kinds, det_steps = [dets[i] for i in keep], [kinds[i] for i in keep], [det_steps[i] for i in keep]
+    if len(dets) < 3:
+        raise CalibrationError(f"a board was found in {len(dets)} of {len(steps)} checkerboard steps "
+                               f"(need 3): {'; '.join(missing) or 'no views'}")
+    res = calibrate_intrinsics(dets, flags=ctx.targets.intrinsics_flags)
+    ctx.results["intrinsics"] = res
+    ctx.results["detections"] = dict(zip(det_steps, dets))
+    ctx.results["target_kind"] = kinds[0]
+    kept = {d.frame for d in dets} - {r.frame for r in res.rejected}
+    rep.plots["intrinsics"] = {"frames": res.frames, "per_view_rms_px": res.per_view_rms_px,
+                               "coverage": res.coverage, "image_size": res.image_size,
+                               "points": [d.image_points for d in dets if d.frame in kept]}
+    result = {"K": res.K, "dist": res.dist, "image_size": res.image_size, "rms_px": res.rms_px,
+              "K_std": res.K_std, "dist_std": res.dist_std, "per_view_rms_px": res.per_view_rms_px,
+              "views": res.frames, "rejected": [asdict(r) for r in res.rejected],
+              "not_found": missing, "target": kinds[0], "coverage": res.coverage,
+              "coverage_fraction": res.coverage_fraction}
+    figures = {"rms_px": round(res.rms_px, 3), "fx_px": round(float(res.K[0, 0]), 2),
+               "fy_px": round(float(res.K[1, 1]), 2), "cx_px": round(float(res.K[0, 2]), 2),
+               "cy_px": round(float(res.K[1, 2]), 2), "views": len(res.frames),
+               "coverage_pct": round(100 * res.coverage_fraction)}
+    params = {"targets": asdict(ctx.targets), "detector": kinds[0]}
+    return result, figures, ctx.frame_ids(det_steps), {}, params
+
+
+def _need(ctx: _Context, stage: str, why: str):
+    if stage not in ctx.results:
+        raise _Skip(f"needs the {stage} stage ({why}), which did not succeed")
+    return ctx.results[stage]
+
+
+def _stage_turntable(ctx: _Context, rep: CalibrationReport):
+    if not ctx.steps_of("checkerboard"):
+        raise _Skip("no checkerboard captures in this session")
+    intr = _need(ctx, "intrinsics", "camera matrix")
+    dets_by_step = ctx.results["detections"]
+    kept = set(intr.frames)
+    steps = [s for s, d in dets_by_step.items() if d.frame in kept]
+    readings = [ctx.reading(s, "turntable_deg") for s in steps]
+    if len(set(np.round(readings, 3))) < 2:
+        raise _Skip(f"the target was seen at {len(set(np.round(readings, 3)))} turntable angle(s); "
+                    "the axis needs captures at several angles")
+    fit = fit_turntable([dets_by_step[s] for s in steps], intr.K, intr.dist, angles_deg=readings)
+    ctx.results["turntable"] = fit
+    rep.plots["turntable"] = {"readings_deg": np.array(readings), "per_view_rms_px": fit.per_view_rms_px,
+                              "view_angles_deg": fit.view_angles_deg}
+    tilt = float(np.degrees(np.arccos(abs(fit.axis_camera[1]))))
+    result = {"axis_camera": fit.axis_camera, "origin_camera_mm": fit.origin_camera, "R_ref": fit.R_ref,
+              "angle_scale": fit.angle_scale, "angle_offset_deg": fit.angle_offset_deg,
+              "readings_deg": readings, "view_angles_deg": fit.view_angles_deg,
+              "per_view_rms_px": fit.per_view_rms_px, "rms_px": fit.rms_px,
+              "axis_std_deg": fit.axis_std_deg,
+              "target_in_world": {"R": fit.target_in_world[0], "t_mm": fit.target_in_world[1]}}
+    figures = {"rms_px": round(fit.rms_px, 3), "axis": [round(float(v), 4) for v in fit.axis_camera],
+               "axis_std_deg": round(fit.axis_std_deg, 3), "axis_from_image_y_deg": round(tilt, 2),
+               "views": len(steps)}
+    return result, figures, ctx.frame_ids(steps), {}, {"angles_from": "frame read-backs turntable_deg"}
+
+
+def _sphere_blobs(images: list[np.ndarray], min_area: int = 30) -> list[np.ndarray]:
+    """Silhouettes of mirror spheres in front of a lit backdrop: dark, round holes in the
+    per-pixel median over the spheres frames (the median removes each frame's moving
+    highlight and moving shadows). Returns boolean masks, left to right."""
+    med = np.median(np.stack([im.mean(axis=2) for im in images]), axis=0)
+    level = 0.3 * float(np.percentile(med, 95))
+    dark = (med < level).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=4)
+    h, w = dark.shape
+    blobs = []
+    for k in range(1, n):
+        x, y, bw, bh, area = stats[k]
+        if area < min_area or x == 0 or y == 0 or x + bw >= w or y + bh >= h:
+            continue  # too small, or open to the border: background, not a sphere
+        if not 0.7 < bw / bh < 1.4 or area < 0.6 * np.pi * (max(bw, bh) / 2) ** 2:
+            continue  # not round
+        blobs.append((x, labels == k))
+    return [b for _, b in sorted(blobs, key=lambda t: t[0])]
+
+
+def _stage_lights(ctx: _Context, rep: CalibrationReport):
+    steps = ctx.steps_of("spheres")
+    if not steps:
+        raise _Skip("no spheres captures in this session")
+    intr = _need(ctx, "intrinsics", "camera matrix")
+    K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
+    images = [ctx.image(s) for s in steps]
+    blobs = _sphere_blobs(images)
+    first = f"frame {ctx.frames[steps[0]][0].id} (step {steps[0]})"
+    if len(blobs) < 2:
+        raise TargetNotFound(f"{len(blobs)} mirror sphere silhouette(s) found in the spheres steps "
+                             "(need 2 against a lit backdrop)", frame=first)
+    spheres = [detect_sphere(b, frame=first) for b in blobs]
+    centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
+    tt = ctx.results.get("turntable")
+    lights, rows = [], []
+    for s, img in zip(steps, images):
+        name = f"frame {ctx.frames[s][0].id} (step {s})"
+        lum = img.mean(axis=2)
+        hl = np.array([find_highlight(np.where(b, lum, 0.0), sp, frame=name).xy_px
+                       for b, sp in zip(blobs, spheres)])
+        pl = triangulate_point_light(hl, centres, radius, K, dist)
+        row = {"step": s, "frame": ctx.frames[s][0].id, "position_camera_mm": pl.position_mm,
+               "std_mm": pl.std_mm, "residuals_mm": pl.residuals_mm, "highlights_px": hl,
+               "commanded": ctx.steps[s].get("light"), "readback_mm": _readback_light(ctx, s)}
+        if tt is not None:
+            row["position_lab_mm"] = tt.R_ref.T @ (pl.position_mm - tt.origin_camera)
+        rows.append(row)
+        lights.append(pl)
+    ctx.results["lights"] = rows
+    res = np.concatenate([pl.residuals_mm for pl in lights])
+    result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres,
+              "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows,
+              "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (turntable at angle 0)"}
+    figures = {"lights": len(rows), "spheres": len(spheres),
+               "ray_residual_rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 3),
+               "max_std_mm": round(float(max(pl.std_mm.max() for pl in lights)), 2)}
+    return result, figures, ctx.frame_ids(steps), {}, {"sphere_radius_mm": radius}
+
+
+def _readback_light(ctx: _Context, step: int) -> list[float] | None:
+    vals = [f.positions.get("light_mm") for f in ctx.frames[step] if f.positions.get("light_mm")]
+    return np.mean(np.array(vals, float), axis=0).tolist() if vals else None
+
+
+def _stage_positioner(ctx: _Context, rep: CalibrationReport):
+    rows = _need(ctx, "lights", "measured light positions")
+    _need(ctx, "turntable", "the lab frame: azimuth and elevation are about the turntable axis")
+    use = [r for r in rows if r["commanded"] and "azimuth_deg" in r["commanded"]]
+    if len(use) < 3:
+        raise _Skip(f"{len(use)} spheres steps with commanded azimuth/elevation (need 3; "
+                    "xyz_mm light targets have no arm model)")
+    az = np.array([r["commanded"]["azimuth_deg"] for r in use])
+    el = np.array([r["commanded"]["elevation_deg"] for r in use])
+    X = np.array([r["position_lab_mm"] for r in use])
+    model = fit_positioner_model(az, el, X)
+    tt = ctx.results["turntable"]
+    d = X - model.centre_mm
+    rep.plots["lights"] = {"commanded_az": az, "commanded_el": el,
+                           "measured_az": np.degrees(np.arctan2(d[:, 1], d[:, 0])) - model.azimuth_offset_deg,
+                           "measured_el": np.degrees(np.arcsin(np.clip(d[:, 2] / np.linalg.norm(d, axis=1), -1, 1))),
+                           "residuals_mm": model.residuals_mm}
+    per_step = []
+    for idx, st in sorted(ctx.steps.items()):
+        light = st.get("light")
+        if not light or "azimuth_deg" not in light:
+            continue
+        p_lab = model.position(light["azimuth_deg"], light["elevation_deg"])
+        per_step.append({"step": idx, "position_lab_mm": p_lab,
+                         "position_camera_mm": tt.R_ref @ p_lab + tt.origin_camera})
+    ctx.results["positioner"] = model
+    result = {"centre_lab_mm": model.centre_mm, "radius_mm": model.radius_mm,
+              "azimuth_offset_deg": model.azimuth_offset_deg,
+              "elevation_offset_deg": model.elevation_offset_deg, "param_std": model.param_std,
+              "residuals_mm": model.residuals_mm, "rms_mm": model.rms_mm, "step_lights": per_step}
+    figures = {"rms_mm": round(model.rms_mm, 2), "radius_mm": round(model.radius_mm, 1),
+               "el_offset_deg": round(model.elevation_offset_deg, 2), "steps_with_light": len(per_step)}
+    return result, figures, ctx.frame_ids([r["step"] for r in use]), {}, {"model": "arm (centre, radius, offsets)"}
+
+
+def _stage_polarization(ctx: _Context, rep: CalibrationReport):
+    groups: dict[tuple, list[int]] = {}
+    for s in sorted(ctx.hdr):
+        st = ctx.steps[s]
+        if st.get("polarizer_deg") is None or st["kind"] == "dark":
+            continue
+        key = (st["kind"], st.get("turntable_deg"), repr(st.get("light")))
+        groups.setdefault(key, []).append(s)
+    groups = {k: v for k, v in groups.items() if len({round(ctx.reading(s, "polarizer_deg"), 1) % 180 for s in v}) >= 2}
+    if not groups:
+        raise _Skip("no poses captured at two or more polarizer angles")
+    out, example = [], None
+    for key, steps in groups.items():
+        theta = np.radians([ctx.reading(s, "polarizer_deg") for s in steps])
+        stack = np.stack([ctx.hdr[s] for s in steps])                 # (N, H, W, 3)
+        if len(steps) == 2 and abs(np.cos(theta[1] - theta[0])) < 0.05:
+            # parallel / crossed: the crossed image is half the (unpolarised) diffuse part
+            par, cro = (0, 1) if np.cos(2 * theta[0]) > np.cos(2 * theta[1]) else (1, 0)
+            diffuse, specular = 2 * stack[cro], stack[par] - stack[cro]
+            method, resid = "parallel/crossed", 0.0
+        elif len(steps) >= 3:
+            # Malus: I(theta) = a + b cos 2 theta + c sin 2 theta, per pixel (one lstsq for all)
+            A = np.stack([np.ones_like(theta), np.cos(2 * theta), np.sin(2 * theta)], 1)
+            coef, *_ = np.linalg.lstsq(A, stack.reshape(len(steps), -1), rcond=None)
+            amp = np.hypot(coef[1], coef[2])
+            specular = (2 * amp).reshape(stack.shape[1:])
+            diffuse = (2 * (coef[0] - amp)).reshape(stack.shape[1:])
+            fit = A @ coef
+            resid = float(np.sqrt(np.mean((fit - stack.reshape(len(steps), -1)) ** 2)) /
+                          max(float(stack.mean()), 1e-12))
+            method = f"{len(steps)}-angle sinusoid"
+        else:
+            continue  # two angles that are not 90 deg apart do not separate
+        total = float(stack.mean(axis=0).sum())
+        neg = float(np.mean(specular < -0.05 * max(float(np.abs(specular).max()), 1e-12)))
+        row = {"steps": steps, "method": method, "specular_fraction": float(specular.sum() / max(2 * total, 1e-12)),
+               "negative_specular_fraction": neg, "relative_fit_residual": resid}
+        out.append(row)
+        if example is None:
+            example = {"diffuse": diffuse, "specular": specular, "steps": steps, "method": method}
+    if not out:
+        raise _Skip("polarizer angles do not separate (need 0/90 deg or 3+ angles)")
+    rep.plots["polarization"] = example
+    figures = {"poses": len(out), "method": out[0]["method"],
+               "specular_pct": round(100 * float(np.mean([r["specular_fraction"] for r in out])), 2),
+               "negative_pct": round(100 * max(r["negative_specular_fraction"] for r in out), 2)}
+    return {"poses": out}, figures, ctx.frame_ids([s for r in out for s in r["steps"]]), {}, {}
+
+
+def _stage_gray_card(ctx: _Context, rep: CalibrationReport):
+    steps = ctx.steps_of("gray_card")
+    if not steps:
+        raise _Skip("no gray_card captures in this session")
+    rows = []
+    for s in steps:
+        img = ctx.image(s)
+        lum = img.mean(axis=2)
+        mask = (lum > 0.5 * np.percentile(lum, 99)).astype(np.uint8)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=4)
+        if n < 2:
+            raise TargetNotFound("no gray card (bright uniform region)", frame=f"frame {ctx.frames[s][0].id} (step {s})")
+        k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        card = cv2.erode((labels == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        if card.sum() < 50:
+            raise TargetNotFound(f"gray card region has {int(card.sum())} px after erosion (need 50)",
+                                 frame=f"frame {ctx.frames[s][0].id} (step {s})")
+        rgb = np.median(img[card], axis=0)
+        rows.append({"step": s, "pixels": int(card.sum()), "radiance_rgb": rgb,
+                     "scale_rgb": ctx.targets.gray_card_albedo / rgb,
+                     "relative_spread": float(np.std(img[card].mean(axis=1)) / max(float(rgb.mean()), 1e-12))})
+    scale = np.median(np.array([r["scale_rgb"] for r in rows]), axis=0)
+    result = {"albedo": ctx.targets.gray_card_albedo, "scale_rgb": scale, "cards": rows,
+              "meaning": "albedo per HDR unit for the card's lighting geometry, per camera channel"}
+    figures = {"cards": len(rows), "scale_rgb": [float(f"{v:.4g}") for v in scale],
+               "spread_pct": round(100 * max(r["relative_spread"] for r in rows), 2)}
+    return result, figures, ctx.frame_ids(steps), {}, {"albedo": ctx.targets.gray_card_albedo}
+
+
+def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport):
+    steps = ctx.steps_of("mirror_probe")
+    if not steps:
+        raise _Skip("no mirror_probe captures in this session")
+    raise _Skip(f"{len(steps)} mirror_probe step(s) captured, but environment maps from a mirror "
+                "sphere are not implemented yet (calibration has no probe module)")
+
+
+_RUNNERS: dict[str, Callable] = {
+    "dark": _stage_dark, "hdr": _stage_hdr, "intrinsics": _stage_intrinsics,
+    "turntable": _stage_turntable, "lights": _stage_lights, "positioner": _stage_positioner,
+    "polarization": _stage_polarization, "gray_card": _stage_gray_card,
+    "mirror_probe": _stage_mirror_probe,
+}
+#: what each stored calibration is called in ``Store.results`` (``kind``)
+RESULT_KIND = {"dark": "dark", "hdr": "hdr", "intrinsics": "intrinsics", "turntable": "turntable",
+               "lights": "light_positions", "positioner": "positioner_model",
+               "polarization": "polarization_check", "gray_card": "gray_card", "mirror_probe": "environment_map"}
+
+
+def calibrate_session(store: Store, session_name: str, *, progress: Callable[[str, int, int], None] | None = None,
+                      targets: LabTargets | None = None, stages: tuple[str, ...] = STAGES) -> CalibrationReport:
+    """Run every calibration the session's captures allow and store the results.
+
+    Parameters
+    ----------
+    store : Store
+        The session store (results are added with :meth:`Store.add_calibration`).
+    session_name : str
+    progress : callable(stage, index, total), optional
+        Called before each stage (``index`` 0-based) and once with ``('done', total, total)``.
+    targets : LabTargets, optional
+        Physical targets (board geometry, sphere radius, card albedo); default :class:`LabTargets`.
+    stages : tuple of str
+        Subset of :data:`STAGES` to run (later stages skip when an earlier one they need is
+        left out).
+
+    Returns
+    -------
+    CalibrationReport
+        One :class:`StageResult` per stage: ``ok`` (stored), ``skipped`` (reason) or ``failed``
+        (error naming the frame).
+
+    Raises
+    ------
+    SessionNotFound
+        No session of that name in the store.
+    ValueError
+        ``stages`` names an unknown stage.
+    """
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        raise ValueError(f"stages: unknown {unknown}; known: {', '.join(STAGES)}")
+    ctx = _Context(store, session_name, targets or LabTargets())
+    rep = CalibrationReport(session=session_name)
+    total = len(STAGES)
+    for i, name in enumerate(STAGES):
+        if progress is not None:
+            progress(name, i, total)
+        if name not in stages:
+            rep.stages.append(StageResult(name, "skipped", "not requested"))
+            continue
+        try:
+            out = _RUNNERS[name](ctx, rep)
+        except _Skip as skip:
+            rep.stages.append(StageResult(name, "skipped", str(skip)))
+            continue
+        except (CalibrationError, ValueError, np.linalg.LinAlgError, cv2.error, StoreError) as exc:
+            rep.stages.append(StageResult(name, "failed", f"{type(exc).__name__}: {exc}"))
+            continue
+        result, figures, inputs, artifacts, *rest = out
+        params = rest[0] if rest else {}
+        cid = store.add_calibration(ctx.info.id, RESULT_KIND[name], result=result, params=params,
+                                    input_frames=inputs, artifacts=artifacts)
+        rep.stages.append(StageResult(name, "ok", "", figures, cid))
+        ctx.results.setdefault(name, True)
+    if progress is not None:
+        progress("done", total, total)
+    return rep
