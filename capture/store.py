@@ -342,13 +342,17 @@ class Store:
         self._db = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False,
                                    timeout=30.0)
         self._db.row_factory = sqlite3.Row
-        self._db.execute("PRAGMA busy_timeout = 30000")
-        self._db.execute("PRAGMA journal_mode = WAL")
-        # FULL: a committed frame survives power loss; NORMAL (in WAL): survives a killed process
-        self._db.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
-        self._db.execute("PRAGMA foreign_keys = ON")
-        self._migrate()
         self._cleanup: Callable[[], None] | None = None
+        try:
+            self._db.execute("PRAGMA busy_timeout = 30000")
+            self._db.execute("PRAGMA journal_mode = WAL")
+            # FULL: a committed frame survives power loss; NORMAL (in WAL): a killed process
+            self._db.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
+            self._db.execute("PRAGMA foreign_keys = ON")
+            self._migrate()
+        except BaseException:
+            self._db.close()
+            raise
 
     # -- lifecycle ----------------------------------------------------------------------------
     @classmethod
@@ -922,7 +926,9 @@ class Store:
         if dest.exists() and (archive or any(dest.iterdir())):
             raise StoreError(f"export destination {dest} already exists; choose a new path")
         info = self.session(session)
+        dest.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix="gonio-export-", dir=dest.parent)) if archive else dest
+        created = not dest.exists()
         folder = work / info.name if archive else dest
         try:
             folder.mkdir(parents=True, exist_ok=True)
@@ -960,9 +966,11 @@ class Store:
                 with tarfile.open(dest, mode) as t:
                     t.add(folder, arcname=info.name)
             return dest
-        except BaseException:
+        except BaseException:  # leave nothing half-exported behind
             if archive and dest.exists():
                 dest.unlink()
+            elif not archive and created:
+                shutil.rmtree(dest, ignore_errors=True)
             raise
         finally:
             if archive:

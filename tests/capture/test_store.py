@@ -219,3 +219,16 @@ def test_verify_ignores_young_unreferenced_files_while_a_writer_runs(tmp_path):
             assert reader.verify("s1").orphans == []
         assert not reader.writer_active()
         assert reader.verify("s1").orphans == [f"objects/{in_flight[:2]}/{in_flight[2:]}"]
+
+
+@pytest.mark.parametrize("dest", ["bad", "bad.zip"])
+def test_export_refuses_corrupt_data_and_leaves_nothing(tmp_path, dest):
+    with Store(tmp_path / "st") as st:
+        sid = _session(st).id
+        _, sha = _frame(st, sid, 0, 0, b"a" * 100)
+        os.chmod(st.object_path(sha), 0o644)
+        st.object_path(sha).write_bytes(b"b" * 100)
+        with pytest.raises(StoreError, match=f"object {sha} is corrupt"):
+            st.export("s1", tmp_path / dest)
+    assert not (tmp_path / dest).exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["st"]  # no temporary folder left either
