@@ -360,7 +360,8 @@ class SimWorld:
     @classmethod
     def for_capture(cls, kind: str, object: GroundTruthObject | str | None = "sphere", **kwargs) -> "SimWorld":
         """The scene of one kind of capture: ``"object"`` (the object alone), ``"checkerboard"``
-        / ``"charuco"`` (a board standing on the turntable), ``"chrome"`` (one chrome sphere),
+        / ``"charuco"`` (a board standing on the turntable; 2 x 2 supersampled by default, since
+        one ray per pixel aliases the print's edges by ~0.25 px), ``"chrome"`` (one chrome sphere),
         ``"spheres"`` (Lensch's row of six steel spheres, beside the object), ``"graycard"``,
         ``"probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"passive"``
         (the object under that probe, no lamp: passive reflectometry), ``"dark"`` (lens
@@ -369,6 +370,8 @@ class SimWorld:
             raise ValueError(f"capture kind must be one of {CAPTURE_KINDS}, got {kind!r}")
         if kind == "object":
             return cls(object, **kwargs)
+        if kind in ("checkerboard", "charuco"):  # pixel-area integration: sharp print edges alias
+            kwargs.setdefault("supersample", 2)
         if kind == "checkerboard":  # sized to fit the default camera's view at any angle
             return cls(None, targets=[board_on_turntable(Checkerboard(square_mm=15.0, margin_mm=10.0))], **kwargs)
         if kind == "charuco":

@@ -153,3 +153,16 @@ def test_steel_sphere_row_highlights_lamp_and_ring_flash():
         # (with the lamp, a ball also mirrors its neighbour's highlight: extra, fainter blobs)
         err = np.linalg.norm(found[:, None] - pred[None], axis=2).min(axis=0)
         assert err.max() < 0.3, (flash, err)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("angle", [-45.0, 0.0, 45.0])
+def test_default_checkerboard_capture_is_detectable_at_full_resolution(angle):
+    world = SimWorld.for_capture("checkerboard")
+    assert (world.camera.width, world.camera.height) == (1200, 800)
+    lum = world.radiance({"turntable_deg": angle, "light_position_mm": light_position(20, 45)}).mean(axis=2)
+    img = np.clip(lum / lum.max() * 255, 0, 255).astype(np.uint8)
+    ok, corners = cv2.findChessboardCornersSB(img, (9, 6), flags=cv2.CALIB_CB_ACCURACY)
+    assert ok
+    err = _match_either_order(corners.reshape(-1, 2), world.camera.project(world.targets[0].points_world(angle)))
+    assert np.sqrt(np.mean(err ** 2)) < 0.2
