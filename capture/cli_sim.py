@@ -56,7 +56,8 @@ def render(
     fnumber: float = typer.Option(8.0, "--fnumber", help="Aperture f-number."),
     width: int = typer.Option(1200, "--width", help="Image width, pixels."),
     height: int = typer.Option(800, "--height", help="Image height, pixels."),
-    supersample: int = typer.Option(1, "--supersample", help="Rays per pixel side (anti-aliasing)."),
+    supersample: Optional[int] = typer.Option(None, "--supersample",
+                                              help="Rays per pixel side (default: 2 for boards, else 1)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the sensor noise."),
     truth: bool = typer.Option(False, "--truth", help="Also write NAME_truth.npz (radiance, buffers) and NAME.json."),
     name: Optional[str] = typer.Option(None, "--name", help="File stem (default: from the scene and state)."),
@@ -75,8 +76,9 @@ def render(
     if width < 16 or height < 16 or width % 2 or height % 2:
         raise _fail(f"--width and --height must be even and >= 16 (a Bayer mosaic), got {width} x {height}")
     try:
+        extra = {} if supersample is None else {"supersample": supersample}
         world = SimWorld.for_capture(scene, None if obj == "none" else obj,
-                                     camera=default_camera(width, height), supersample=supersample, seed=seed)
+                                     camera=default_camera(width, height), seed=seed, **extra)
         state = {"turntable_angle_deg": turntable, "exposure_s": exposure, "iso": iso, "fnumber": fnumber,
                  "light_position_mm": tuple(light_position(light_az, light_el, radius_mm=light_radius)),
                  "polarizer_angle_deg": polarizer}
