@@ -28,7 +28,7 @@ from rig import RigError
 from .cli_session import STORE_OPTION, fail, human_bytes, human_time, open_store
 from .events import Event, EventKind
 from .plan import Plan, PlanError, Step
-from .rigs import OpenedRig, home_all, open_rig
+from .rigs import OpenedRig, open_rig
 from .runner import Runner, RunnerError, check_plan_unchanged, create_session
 from .store import StoreError
 
@@ -45,21 +45,11 @@ def _load_plan(path: Path) -> Plan:
         raise fail(str(exc)) from None
 
 
-def _open_rig(spec: str, fast: bool, home: bool) -> OpenedRig:
+def _open_rig(spec: str, fast: bool) -> OpenedRig:
     try:
-        opened = open_rig(spec, fast=fast)
+        return open_rig(spec, fast=fast)
     except (RigError, ValueError, OSError) as exc:
         raise fail(f"cannot open rig {spec!r}: {exc}") from None
-    if home:
-        roles = [r for r, d in opened.rig.devices.items() if getattr(d, "homed", True) is False]
-        if roles:
-            typer.echo(f"homing {', '.join(roles)} ...")
-            try:
-                home_all(opened.rig, roles=roles)
-            except RigError as exc:
-                opened.close()
-                raise fail(f"homing failed: {exc}") from None
-    return opened
 
 
 def _light_text(light: dict[str, Any] | None) -> str:
@@ -78,7 +68,7 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
          fast: bool = typer.Option(True, help="Simulated devices move instantly.")) -> None:
     """Validate a plan and print its steps, frames, bytes and estimated time."""
     p = _load_plan(plan_file)
-    opened = _open_rig(rig, fast, home=False) if rig else None
+    opened = _open_rig(rig, fast) if rig else None
     try:
         if opened is not None:
             try:
@@ -224,7 +214,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
     p = _load_plan(plan_file)
     st = open_store(store, create=True)
     with st:
-        opened = _open_rig(rig, fast, home)
+        opened = _open_rig(rig, fast)
         with opened:
             try:
                 info = create_session(st, p, opened.rig, name=session, operator=operator,
@@ -233,7 +223,8 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
                 raise fail(str(exc)) from None
             typer.echo(f"session {info.name}: {len(st.steps(info.id))} steps, "
                        f"{st.progress(info.id).frames_total} frames -> {store}")
-            runner = Runner(opened.rig, st, info, prepare_target=_target_handler(opened, yes))
+            runner = Runner(opened.rig, st, info, home=home,
+                            prepare_target=_target_handler(opened, yes))
             _execute(runner, store, quiet)
 
 
@@ -266,12 +257,13 @@ def resume(name: str = typer.Argument(..., help="Session name."),
         elif path is not None:
             typer.secho(f"note: plan file {path} is gone; resuming from the plan stored with "
                         "the session", fg=typer.colors.YELLOW)
-        opened = _open_rig(rig, fast, home)
+        opened = _open_rig(rig, fast)
         with opened:
             try:
                 Plan.from_dict(info.plan).check_rig(opened.rig)
             except PlanError as exc:
                 raise fail(f"the session's plan does not fit this rig: {exc}") from None
-            runner = Runner(opened.rig, st, info, prepare_target=_target_handler(opened, yes))
+            runner = Runner(opened.rig, st, info, home=home,
+                            prepare_target=_target_handler(opened, yes))
             _execute(runner, store, quiet)
 

@@ -31,8 +31,8 @@ A plan is a TOML file (or :class:`Plan` built in Python)::
 
 Any list of numbers may be written as ``{ start, stop, step }`` (``stop`` included when the grid
 lands on it). With ``exposure.auto = true`` the runner meters the scene first and the bracket
-becomes ``metered * 2**stop`` (see :class:`Exposure`). Units: degrees, millimetres, seconds. Validation errors are :class:`PlanError`
-and name the field, e.g. ``light.elevation_deg[3] = 95 is outside the positioner's limit 0..85``.
+becomes ``metered * 2**stop`` (see :class:`Exposure`). Units: degrees, millimetres, seconds.
+Validation errors are :class:`PlanError` and name the field, e.g. ``light.elevation_deg[3] = 95 is outside the positioner's limit 0..85``.
 
 Expansion orders the measurement grid so motion time is smallest: each loop level is one axis
 (turntable, light elevation, light azimuth, polarizer), inner loops run serpentine (reversed on
@@ -99,7 +99,9 @@ class LightGrid:
 
     @property
     def count(self) -> int:
-        return len(self.xyz_mm) if self.xyz_mm is not None else len(self.azimuth_deg) * len(self.elevation_deg)
+        if self.xyz_mm is not None:
+            return len(self.xyz_mm)
+        return len(self.azimuth_deg) * len(self.elevation_deg)
 
     def targets(self) -> list[dict[str, Any]]:
         """Every light position as a step's ``light`` dict (grid order: elevation, azimuth)."""
@@ -627,7 +629,8 @@ def _parse(data: Any) -> Plan:
     repeats = data.get("repeats", 1)
     if not _is_int(repeats):
         raise PlanError(f"repeats must be a whole number, got {_tname(repeats)}")
-    return Plan(turntable_deg=_numbers(tt["angles_deg"], "turntable.angles_deg") if tt and "angles_deg" in tt else (),
+    turntable = _numbers(tt["angles_deg"], "turntable.angles_deg") if tt and "angles_deg" in tt else ()
+    return Plan(turntable_deg=turntable,
                 light=light, polarizer_deg=pol, exposure=exposure, repeats=repeats,
                 calibration=calibration, **meta)
 
@@ -647,7 +650,8 @@ def _parse_calibration(c: Any, i: int) -> Calibration:
         raise PlanError(f"{where}.exposure_s must be a number (seconds), got {_tname(exp)}")
     angles = c.get("turntable_angles_deg")
     return Calibration(kind=c["kind"], frames=frames, exposure_s=None if exp is None else float(exp),
-                       turntable_angles_deg=None if angles is None else _numbers(angles, f"{where}.turntable_angles_deg"),
+                       turntable_angles_deg=(None if angles is None else
+                                             _numbers(angles, f"{where}.turntable_angles_deg")),
                        lights=c.get("lights"), when=c.get("when", "before"))
 
 
