@@ -11,8 +11,8 @@ light position and camera so the whole pipeline can be checked against truth.
 Frames and units: world = turntable frame (origin on the axis at the platter surface, +z up,
 mm); everything on the turntable turns by ``Rz(angle)`` (see :func:`sims.objects.turntable_pose`).
 Radiance is in the renderer's units: the point light's radiant intensity over mm^2
-(:data:`LIGHT_INTENSITY` puts a white Lambertian surface facing the light at 500 mm near 40 % of
-the default sensor's full well at 1/100 s, f/8, ISO 100).
+(:data:`LIGHT_INTENSITY` gives a white Lambertian surface facing the lamp at 500 mm a radiance of
+~0.95, about 40 % of the default sensor's full well at 1/100 s, f/8, ISO 100).
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, 
                       SphereRow)
 
 #: Radiant intensity of the rig's lamp (renderer units per sr), RGB (a slightly warm white).
-LIGHT_INTENSITY = (3.2e5, 3.0e5, 2.7e5)
+LIGHT_INTENSITY = (8.0e5, 7.5e5, 6.8e5)
 #: The ring flash around the lens: intensity (renderer units / sr) and radius of its emitter, mm.
 RING_FLASH_INTENSITY = 2.0e5
 RING_FLASH_RADIUS_MM = 40.0

@@ -27,7 +27,7 @@ def test_rendered_frame_round_trips_through_dng_and_rawpy():
     radiance; saturated pixels at the white level; rawpy reads the levels, CFA and white balance."""
     sensor = SensorModel.full_frame()
     world = SimWorld("sphere", camera=_small_camera(), sensor=sensor, seed=4)
-    state = {"exposure_s": 0.15, "iso": 100, "fnumber": 8.0, "turntable_angle_deg": 15.0,
+    state = {"exposure_s": 0.06, "iso": 100, "fnumber": 8.0, "turntable_angle_deg": 15.0,
              "light_position_mm": tuple(light_position(20.0, 35.0)), "polarizer_angle_deg": 0.0}
     with rawpy.imread(io.BytesIO(world.frame_source(state))) as r:
         raw = r.raw_image_visible.astype(np.float64)
@@ -39,12 +39,12 @@ def test_rendered_frame_round_trips_through_dng_and_rawpy():
         wb = np.array(r.camera_whitebalance[:3])
         assert np.allclose(wb / wb[1], 1 / np.array(sensor.as_shot_neutral), rtol=1e-3)
     gt = world.ground_truth(state)
-    assert gt.state.turntable_deg == 15.0 and gt.state.exposure_s == 0.15
+    assert gt.state.turntable_deg == 15.0 and gt.state.exposure_s == 0.06
     # the linear image: black-subtracted, white-normalised, then exposure-normalised
     linear = (raw - black) / (white - black)
     optics = dict(fnumber=8.0, focal_px=gt.camera.K[0, 0], principal_point=tuple(gt.camera.K[:2, 2]))
-    per_radiance = sensor.mean_electrons(np.ones_like(gt.radiance), 0.15, **optics)
-    est = (linear * (white - black) * sensor.e_per_dn(100) - sensor.dark_current_e_s * 0.15) / per_radiance
+    per_radiance = sensor.mean_electrons(np.ones_like(gt.radiance), 0.06, **optics)
+    est = (linear * (white - black) * sensor.e_per_dn(100) - sensor.dark_current_e_s * 0.06) / per_radiance
     truth = sensor.mosaic(gt.radiance)
     # noise bound from the sensor model (shot + dark + read + quantisation), per pixel
     sigma = gt.expected.sigma_dn * sensor.e_per_dn(100) / per_radiance
