@@ -1,0 +1,328 @@
+"""High-dynamic-range radiance from exposure brackets.
+
+Raw path: decoded Bayer mosaics (``rawpy``; :func:`read_raw` for files) are black-subtracted,
+saturation-masked, normalised by exposure time and merged with noise-optimal weights
+(inverse variance under a shot + read noise model, Granados et al. 2010). Output: float32
+linear radiance in DN per second on the mosaic grid (demosaic afterwards if needed).
+
+8-bit path: the camera response is recovered with OpenCV's Debevec calibration, and the merge
+is our own weighted average in log space (OpenCV's ``MergeDebevec`` weights 0 and 255 non-zero
+and shares one weight across channels, which biases it for measurement).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from .errors import TooFewViews
+
+__all__ = ["RawMosaic", "HDRImage", "read_raw", "merge_raw_brackets", "master_frame",
+           "recover_response", "merge_ldr", "write_hdr"]
+
+
+@dataclass(frozen=True)
+class RawMosaic:
+    """A decoded raw frame.
+
+    Attributes
+    ----------
+    data : ndarray of shape (H, W), uint16
+        Visible sensor values, DN.
+    black_level : ndarray of shape (H, W), float32
+        Black level of every photosite (from the per-channel levels), DN.
+    white_level : float
+        Clipping level, DN.
+    cfa : str
+        The 2x2 colour pattern, row-major, e.g. ``'RGGB'``.
+    """
+
+    data: np.ndarray
+    black_level: np.ndarray
+    white_level: float
+    cfa: str
+
+
+@dataclass(frozen=True)
+class HDRImage:
+    """Merged radiance.
+
+    Attributes
+    ----------
+    radiance : ndarray, float32
+        Linear radiance, DN/s (raw) or relative units (8-bit), input shape.
+    sigma : ndarray, float32
+        1-sigma noise of ``radiance`` from the noise model (raw path; zeros for 8-bit).
+    saturated : ndarray, bool
+        Clipped in every exposure: ``radiance`` is then only a lower bound.
+    n_used : ndarray, uint8
+        How many exposures contributed to each pixel.
+    """
+
+    radiance: np.ndarray
+    sigma: np.ndarray
+    saturated: np.ndarray
+    n_used: np.ndarray
+
+
+def read_raw(path: str | os.PathLike) -> RawMosaic:
+    """Decode a raw file (DNG, CR2, NEF, KDC, ...) with rawpy into a :class:`RawMosaic`.
+
+    Raises
+    ------
+    ValueError
+        The file cannot be decoded (names the path and LibRaw's reason).
+    """
+    import rawpy
+
+    try:
+        with rawpy.imread(os.fspath(path)) as raw:
+            data = raw.raw_image_visible.copy()
+            colors = raw.raw_colors_visible
+            black = np.asarray(raw.black_level_per_channel, np.float32)[colors]
+            white = float(raw.white_level)
+            desc = raw.color_desc.decode()
+            cfa = "".join(desc[c] for c in raw.raw_pattern.ravel()[:4])
+    except (rawpy.LibRawError, OSError) as err:
+        raise ValueError(f"{path}: cannot decode raw file ({err})") from None
+    return RawMosaic(data, black, white, cfa)
+
+
+def master_frame(frames, method: str = "median") -> np.ndarray:
+    """Combine dark (or flat) frames (N, H, W[, C]) into one float32 master, pixel by pixel.
+
+    ``'median'`` rejects cosmic rays and hot single events; ``'mean'`` has lower noise.
+    """
+    f = np.asarray(frames, dtype=np.float32)
+    if f.ndim < 3 or f.shape[0] < 1:
+        raise ValueError(f"frames must be a stack (N, H, W[, C]), got shape {f.shape}")
+    if method == "median":
+        return np.median(f, axis=0).astype(np.float32)
+    if method == "mean":
+        return f.mean(axis=0, dtype=np.float64).astype(np.float32)
+    raise ValueError(f"method must be 'median' or 'mean', got {method!r}")
+
+
+def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=0.0, white_level: float,
+                       gain_e_per_dn: float = 1.0, read_noise_dn: float = 1.0,
+                       linear_fraction: float = 0.97, darks=None) -> HDRImage:
+    """Merge raw exposures of a static scene into linear radiance (noise-optimal weights).
+
+    For exposure ``k`` the estimate is ``X_k = (D_k - dark_k) / t_k`` with variance
+    ``(X t_k / g + s_r²) / t_k²`` (``g`` electrons per DN, ``s_r`` read noise in DN); samples at
+    or above ``black + linear_fraction * (white - black)`` are excluded as clipped. The weights
+    use a pooled first estimate of ``X`` (not each frame's own noisy value, which would bias
+    the merge low), then one re-weighting pass.
+
+    Parameters
+    ----------
+    frames : sequence of ndarray of shape (H, W)
+        Raw mosaics (or any linear single-channel frames), DN, same shape.
+    exposure_s : array_like of shape (N,)
+        Exposure times, seconds (> 0).
+    black_level : float or ndarray of shape (H, W)
+        Black level, DN (scalar or per photosite, e.g. ``RawMosaic.black_level``). Ignored for
+        frames that have a dark frame.
+    white_level : float
+        Sensor clipping level, DN.
+    gain_e_per_dn : float
+        Conversion gain, electrons per DN (> 0).
+    read_noise_dn : float
+        Read noise, DN rms (>= 0).
+    linear_fraction : float
+        Fraction of the black-to-white range regarded as linear.
+    darks : ndarray of shape (H, W) or (N, H, W), optional
+        Dark frame(s) at the same exposure time(s) (include the black level): subtracted
+        instead of ``black_level``.
+
+    Returns
+    -------
+    HDRImage
+        ``radiance`` in DN/s, float32, shape (H, W).
+
+    Raises
+    ------
+    TooFewViews
+        No frames.
+    """
+    if len(frames) == 0:
+        raise TooFewViews("HDR merge (exposures)", have=0, need=1)
+    D = np.stack([np.asarray(f) for f in frames]).astype(np.float32)
+    if D.ndim != 3:
+        raise ValueError(f"frames must be 2-D mosaics of one shape, got stack shape {D.shape}")
+    t = np.asarray(exposure_s, np.float64).ravel()
+    if t.shape != (len(D),):
+        raise ValueError(f"exposure_s must have one time per frame ({len(D)}), got shape {t.shape}")
+    if np.any(~(t > 0)):
+        raise ValueError(f"exposure_s must be positive, got {t}")
+    if not gain_e_per_dn > 0 or read_noise_dn < 0:
+        raise ValueError("gain_e_per_dn must be > 0 and read_noise_dn >= 0")
+    if not 0 < linear_fraction <= 1:
+        raise ValueError(f"linear_fraction must be in (0, 1], got {linear_fraction}")
+    black = np.broadcast_to(np.asarray(black_level, np.float32), D.shape[1:])
+    if np.any(black >= white_level):
+        raise ValueError(f"black_level must be below white_level ({white_level})")
+    clip_at = black + linear_fraction * (white_level - black)
+    valid = D < clip_at
+    if darks is not None:
+        dk = np.broadcast_to(np.asarray(darks, np.float32), D.shape)
+        D = D - dk
+    else:
+        D = D - black
+    tt = t[:, None, None].astype(np.float32)
+    X = D / tt
+    rn2 = np.float32(read_noise_dn ** 2)
+    g = np.float32(gain_e_per_dn)
+
+    def pooled(estimate):
+        var = (np.maximum(estimate, 0)[None] * tt / g + rn2) / tt ** 2
+        w = np.where(valid, 1.0 / np.maximum(var, 1e-30), 0.0).astype(np.float32)
+        sw = w.sum(axis=0)
+        return np.sum(w * X, axis=0) / np.maximum(sw, 1e-30), sw
+
+    # First estimate: each pixel's longest unclipped exposure (its best single SNR).
+    longest = np.where(valid, tt, 0).argmax(axis=0)
+    first = np.take_along_axis(X, longest[None], axis=0)[0]
+    est, sw = pooled(first)
+    est, sw = pooled(est)
+    n_used = valid.sum(axis=0).astype(np.uint8)
+    saturated = n_used == 0
+    shortest = int(np.argmin(t))
+    # All exposures clipped: the clip level of the shortest exposure is a lower bound.
+    est = np.where(saturated, (clip_at - black) / t[shortest], est)
+    sigma = np.where(saturated, 0.0, 1.0 / np.sqrt(np.maximum(sw, 1e-30)))
+    return HDRImage(est.astype(np.float32), sigma.astype(np.float32), saturated, n_used)
+
+
+def _ldr_stack(images, exposure_s):
+    imgs = np.stack([np.asarray(i) for i in images])
+    if imgs.dtype != np.uint8:
+        raise ValueError(f"images must be 8-bit (uint8), got {imgs.dtype}")
+    if imgs.ndim == 3:
+        imgs = imgs[..., None]
+    if imgs.ndim != 4:
+        raise ValueError(f"images must be (H, W) or (H, W, C) each, got stack shape {imgs.shape}")
+    t = np.asarray(exposure_s, np.float64).ravel()
+    if t.shape != (len(imgs),) or np.any(~(t > 0)):
+        raise ValueError(f"exposure_s must hold {len(imgs)} positive times, got {t}")
+    if len(imgs) < 2:
+        raise TooFewViews("response recovery / LDR merge (exposures)", have=len(imgs), need=2)
+    return imgs, t
+
+
+def recover_response(images, exposure_s, *, samples: int = 70, smoothness: float = 10.0) -> np.ndarray:
+    """Camera response of 8-bit images (Debevec & Malik, via ``cv2.createCalibrateDebevec``).
+
+    Parameters
+    ----------
+    images : sequence of ndarray of shape (H, W, 3), uint8
+        A bracket of a static scene.
+    exposure_s : array_like of shape (N,)
+        Exposure times, seconds.
+    samples, smoothness : OpenCV's sample count and smoothness lambda.
+
+    Returns
+    -------
+    ndarray of shape (256, 3), float32
+        Relative exposure (radiance x time) that produces each code value, per channel.
+    """
+    imgs, t = _ldr_stack(images, exposure_s)
+    if imgs.shape[-1] != 3:
+        raise ValueError("recover_response needs 3-channel images (OpenCV's calibration is RGB)")
+    cal = cv2.createCalibrateDebevec(samples, smoothness, False)
+    resp = cal.process([np.ascontiguousarray(i) for i in imgs], t.astype(np.float32))
+    return resp.reshape(256, 3).astype(np.float32)
+
+
+def merge_ldr(images, exposure_s, response, *, clip_margin: int = 3) -> HDRImage:
+    """Weighted merge of 8-bit exposures with a known response (numpy; per channel).
+
+    ``ln E = sum_k w(z_k) (ln f(z_k) - ln t_k) / sum_k w(z_k)`` with the hat weight
+    ``w(z) = min(z, 255 - z)``, zero at 0 and 255. Pixels clipped high in every exposure take
+    the shortest exposure's value at code 254 (flagged ``saturated``); pixels at 0 in every
+    exposure take the longest exposure's value at code 1.
+
+    Parameters
+    ----------
+    images : sequence of ndarray of shape (H, W) or (H, W, C), uint8
+    exposure_s : array_like of shape (N,)
+        Exposure times, seconds.
+    response : ndarray of shape (256,) or (256, C)
+        Exposure that produces each code (e.g. :func:`recover_response`), positive.
+    clip_margin : int
+        Codes within this of 0 or 255 count as clipped: they and every longer (resp. shorter)
+        exposure of the pixel get zero weight.
+
+    Returns
+    -------
+    HDRImage
+        ``radiance`` float32 (H, W, C) (or (H, W)), in the response's units per second.
+    """
+    imgs, t = _ldr_stack(images, exposure_s)
+    C = imgs.shape[-1]
+    resp = np.asarray(response, np.float64).reshape(256, -1)
+    if resp.shape[1] not in (1, C):
+        raise ValueError(f"response must be (256,) or (256, {C}), got {np.shape(response)}")
+    if np.any(~(resp[1:255] > 0)):
+        raise ValueError("response must be positive for codes 1..254")
+    resp = np.broadcast_to(resp, (256, C))
+    log_f = np.log(np.maximum(resp, 1e-30))
+    z = imgs.astype(np.intp)
+    w = np.minimum(z, 255 - z).astype(np.float32)
+    # A pixel clipped in a shorter exposure is clipped in every longer one, whatever noise says
+    # (a noisy 254 there would carry a wildly low value); likewise for black in longer ones.
+    order = np.argsort(t)
+    hi = np.maximum.accumulate(z[order] >= 255 - clip_margin, axis=0)
+    lo = np.maximum.accumulate(z[order[::-1]] <= clip_margin, axis=0)[::-1]
+    w[order] = np.where(hi | lo, 0.0, w[order])
+    ch = np.arange(C)
+    logs = log_f[z, ch] - np.log(t)[:, None, None, None]
+    sw = w.sum(axis=0)
+    merged = np.sum(w * logs, axis=0) / np.maximum(sw, 1e-30)
+    none = sw == 0
+    high = none & (z.max(axis=0) == 255)
+    fallback = np.where(high, log_f[254, ch] - np.log(t.min()), log_f[1, ch] - np.log(t.max()))
+    out = np.exp(np.where(none, fallback, merged)).astype(np.float32)
+    squeeze = np.asarray(images[0]).ndim == 2
+    pick = (lambda a: a[..., 0]) if squeeze else (lambda a: a)  # noqa: E731
+    return HDRImage(pick(out), np.zeros_like(pick(out)), pick(high), pick((w > 0).sum(axis=0).astype(np.uint8)))
+
+
+def write_hdr(path: str | os.PathLike, image) -> None:
+    """Write linear radiance as float32: ``.tif``/``.tiff`` (tifffile, exact round trip) or
+    ``.exr`` (needs the ``OpenEXR`` package; OpenCV 5 wheels cannot write EXR).
+
+    Parameters
+    ----------
+    path : path
+        Output file; the suffix picks the format.
+    image : ndarray of shape (H, W) or (H, W, 3)
+        Finite values.
+    """
+    img = np.asarray(image, np.float32)
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
+        raise ValueError(f"image must be (H, W) or (H, W, 1|3|4), got shape {img.shape}")
+    if not np.all(np.isfinite(img)):
+        raise ValueError("image contains NaN or infinite values")
+    suffix = os.fspath(path).lower().rsplit(".", 1)[-1]
+    if suffix in ("tif", "tiff"):
+        import tifffile
+
+        tifffile.imwrite(path, img, photometric="rgb" if img.ndim == 3 and img.shape[2] >= 3 else "minisblack")
+    elif suffix == "exr":
+        try:
+            import OpenEXR
+        except ImportError:
+            raise ValueError(f"{path}: writing EXR needs the 'OpenEXR' package (pip install OpenEXR); "
+                             "use .tif for float32 TIFF") from None
+        chans = img if img.ndim == 3 else img[..., None]
+        names = "RGBA"[:chans.shape[2]] if chans.shape[2] > 1 else "Y"
+        channels = {n: np.ascontiguousarray(chans[..., i]) for i, n in enumerate(names)}
+        with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                          channels) as f:
+            f.write(os.fspath(path))
+    else:
+        raise ValueError(f"{path}: unsupported HDR format '.{suffix}' (use .tif, .tiff or .exr)")
