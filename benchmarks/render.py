@@ -67,6 +67,9 @@ def bench_bunny(size, repeat):
           f"shadows, Cook-Torrance + Lambertian floor ({res.mask.mean():.0%} of pixels hit):")
     print(f"  cold {wall_c:.3f} s wall / {cpu_c:.3f} s CPU;  warm {wall:.3f} s wall / "
           f"{cpu:.3f} s CPU  (target < 1 s)")
+    for threads in (1, 2):
+        w, c, _ = timed(lambda: render(sc, cam, shadows=True, threads=threads), repeat)
+        print(f"  threads={threads}: {w:.3f} s wall / {c:.3f} s CPU")
     wall_ns, cpu_ns, _ = timed(lambda: render(sc, cam, shadows=False), repeat)
     print(f"  without shadows: {wall_ns:.3f} s wall / {cpu_ns:.3f} s CPU")
 

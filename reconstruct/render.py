@@ -625,7 +625,9 @@ def _light_geometry(scene, light, p, ng, scale, shadows):
         wi = np.broadcast_to(light.direction, p.shape)
         g = np.ones(len(p))
     if shadows:
-        cand = np.flatnonzero(np.einsum("ij,ij->i", wi, ng) > 0)  # facing away: no ray needed
+        front = np.einsum("ij,ij->i", wi, ng) > 0
+        g[~front] = 0.0  # the light is behind the face itself (even if the shading normal is not)
+        cand = np.flatnonzero(front)
         o = p[cand] + (OFFSET_EPS * scale) * ng[cand]  # the light is on the normal's side
         blocked = _occluded(scene.surfaces, o, wi[cand], dist[cand] - 2 * OFFSET_EPS * scale)
         g[cand[blocked]] = 0.0
