@@ -1,0 +1,135 @@
+"""Light probes: mirror-sphere photographs to latitude-longitude environment maps.
+
+Lat-long convention (world frame, +z up the turntable axis): an ``(H, 2H)`` map; row ``i``
+holds polar angle ``theta = (i + 0.5) * pi / H`` from +z (row 0 looks straight up), column
+``j`` holds azimuth ``phi = (j + 0.5) * 2 pi / (2H)`` measured from +x towards +y. A map pixel
+stores the radiance arriving *from* that direction.
+
+The sphere is imaged by a distant (orthographic) camera: a sphere small in the field of view.
+Directions within ``blind_cone_deg`` of straight behind the sphere are not seen (they map to the
+silhouette, where the image is also most compressed); their weight fades to 0 and a second view
+from another side fills them (:func:`merge_probes`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .errors import TooFewViews
+
+__all__ = ["Probe", "latlong_directions", "mirror_sphere_to_latlong", "merge_probes"]
+
+
+@dataclass(frozen=True)
+class Probe:
+    """An environment map with a per-direction confidence.
+
+    Attributes
+    ----------
+    env : ndarray of shape (H, 2H) or (H, 2H, C), float32
+        Radiance from each direction (0 where ``weight`` is 0).
+    weight : ndarray of shape (H, 2H), float32
+        0 (not observed: the blind spot) to 1 (well observed).
+    """
+
+    env: np.ndarray
+    weight: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Directions with any data, (H, 2H) bool."""
+        return self.weight > 0
+
+
+def latlong_directions(height: int) -> np.ndarray:
+    """Unit world directions of every lat-long pixel centre, shape (height, 2*height, 3)."""
+    if int(height) < 2:
+        raise ValueError(f"height must be >= 2, got {height}")
+    h = int(height)
+    theta = (np.arange(h) + 0.5) * np.pi / h
+    phi = (np.arange(2 * h) + 0.5) * np.pi / h
+    st = np.sin(theta)[:, None]
+    return np.stack([st * np.cos(phi)[None], st * np.sin(phi)[None],
+                     np.broadcast_to(np.cos(theta)[:, None], (h, 2 * h))], axis=-1)
+
+
+def mirror_sphere_to_latlong(image, center_px, radius_px: float, R_world_to_camera, *, height: int = 128,
+                             blind_cone_deg: float = 15.0, fade_deg: float = 20.0) -> Probe:
+    """Resample a mirror-sphere photo into a world-frame lat-long map.
+
+    For a world direction ``w`` the camera sees it reflected at the sphere normal
+    ``n = normalize(R w + v)`` (``v = (0, 0, -1)``: towards the camera in the OpenCV camera frame),
+    i.e. at pixel ``center + radius * (n_x, n_y)``; the image is sampled there bilinearly.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H_img, W_img) or (H_img, W_img, C)
+        Linear radiance (HDR) of the sphere.
+    center_px : array_like of shape (2,)
+        Sphere centre in the image (x, y), pixels (e.g. ``lights.detect_sphere``).
+    radius_px : float
+        Sphere radius in the image, pixels.
+    R_world_to_camera : array_like of shape (3, 3)
+        Rotation world -> camera of this view (``X_cam = R @ X_world + t``).
+    height : int
+        Lat-long map height (width is ``2 * height``).
+    blind_cone_deg : float
+        Half-angle of the unseen cone straight behind the sphere, deg (weight 0).
+    fade_deg : float
+        Width of the smooth weight ramp beyond the blind cone, deg.
+
+    Returns
+    -------
+    Probe
+    """
+    img = np.asarray(image, np.float32)
+    if img.ndim not in (2, 3):
+        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {img.shape}")
+    R = np.asarray(R_world_to_camera, float)
+    if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+        raise ValueError("R_world_to_camera must be a 3x3 rotation matrix")
+    c = np.asarray(center_px, float).reshape(2)
+    if not radius_px > 0:
+        raise ValueError(f"radius_px must be positive, got {radius_px}")
+    if not 0 <= blind_cone_deg < 90 or fade_deg < 0:
+        raise ValueError("blind_cone_deg must be in [0, 90) and fade_deg >= 0")
+    w_cam = latlong_directions(height) @ R.T
+    n = w_cam + np.array([0.0, 0.0, -1.0])
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = n / np.maximum(norm, 1e-12)
+    mapx = (c[0] + radius_px * n[..., 0]).astype(np.float32)
+    mapy = (c[1] + radius_px * n[..., 1]).astype(np.float32)
+    env = cv2.remap(img, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    # angle from "straight behind the sphere" (camera +z)
+    behind = np.degrees(np.arccos(np.clip(w_cam[..., 2], -1, 1)))
+    ramp = np.clip((behind - blind_cone_deg) / max(fade_deg, 1e-9), 0, 1)
+    weight = (ramp * ramp * (3 - 2 * ramp)).astype(np.float32)  # smoothstep
+    inside = (mapx >= 0) & (mapy >= 0) & (mapx <= img.shape[1] - 1) & (mapy <= img.shape[0] - 1)
+    weight = np.where(inside, weight, 0.0).astype(np.float32)
+    env = env * (weight > 0)[..., None] if env.ndim == 3 else env * (weight > 0)
+    return Probe(env.astype(np.float32), weight)
+
+
+def merge_probes(probes) -> Probe:
+    """Weighted average of lat-long probes of one size (fills each view's blind spot).
+
+    Returns
+    -------
+    Probe
+        ``env`` is 0 and ``weight`` 0 where no view saw the direction.
+    """
+    probes = list(probes)
+    if not probes:
+        raise TooFewViews("probe merge", have=0, need=1)
+    shapes = {p.env.shape for p in probes}
+    if len(shapes) != 1:
+        raise ValueError(f"probes must share one lat-long shape, got {sorted(shapes)}")
+    W = np.stack([p.weight for p in probes])
+    E = np.stack([p.env for p in probes])
+    Wb = W[..., None] if E.ndim == 4 else W
+    sw = W.sum(axis=0)
+    swb = sw[..., None] if E.ndim == 4 else sw
+    env = np.sum(Wb * E, axis=0) / np.maximum(swb, 1e-12)
+    return Probe(np.where(swb > 0, env, 0).astype(np.float32), np.minimum(sw, 1).astype(np.float32))
