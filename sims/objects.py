@@ -131,9 +131,11 @@ def make_sphere(radius_mm: float = 40.0, material: BRDF = GLAZE, *,
 # ----------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class RoughnessRamp:
-    """Cook-Torrance material whose roughness ``alpha`` varies linearly with object-frame x over
-    a hemisphere of ``radius_mm``: ``alpha = alpha_left`` at x = -r to ``alpha_right`` at x = +r
-    (the reflectance-sharing paper's synthetic test: the highlight sharpens across the surface)."""
+    """Cook-Torrance material whose roughness ``alpha`` varies linearly with object-frame y over
+    a hemisphere of ``radius_mm``: ``alpha = alpha_left`` at y = -r to ``alpha_right`` at y = +r,
+    i.e. left to right as the default camera (on the +x side) sees it at turntable angle 0 (the
+    reflectance-sharing paper's synthetic test, Fig. 5: the highlight sharpens from left to
+    right across the surface)."""
 
     radius_mm: float = 40.0
     alpha_left: float = 0.40
@@ -147,8 +149,8 @@ class RoughnessRamp:
 
     def alpha_at(self, points_obj: np.ndarray) -> np.ndarray:
         """Ground-truth roughness at object-frame points (N, 3) mm -> (N,)."""
-        x = np.clip(np.asarray(points_obj, float).reshape(-1, 3)[:, 0] / self.radius_mm, -1, 1)
-        return self.alpha_left + (self.alpha_right - self.alpha_left) * (x + 1) / 2
+        y = np.clip(np.asarray(points_obj, float).reshape(-1, 3)[:, 1] / self.radius_mm, -1, 1)
+        return self.alpha_left + (self.alpha_right - self.alpha_left) * (y + 1) / 2
 
     def brdf_at(self, points_obj: np.ndarray) -> CookTorrance:
         """The ground-truth BRDF at object-frame points (per-sample parameters)."""
