@@ -284,6 +284,10 @@ class RenderResult:
         Mesh triangle hit, -1 elsewhere.
     surface_index : ndarray of shape (H, W), int32
         Index into ``scene.objects``, -1 off the mask.
+    diffuse, specular : ndarray of shape (H, W, 3), float32, or None
+        With ``render(..., components=True)``: the body (depolarised) reflection and the rest
+        (interface reflection, mirrors and what they show), after the analyser; zero off the
+        mask, so ``radiance = diffuse + specular`` there and the background elsewhere.
     """
 
     radiance: np.ndarray
@@ -294,6 +298,8 @@ class RenderResult:
     uv: np.ndarray
     face_index: np.ndarray
     surface_index: np.ndarray
+    diffuse: np.ndarray | None = None
+    specular: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -304,6 +310,7 @@ class _Options:
     env_sampling: str
     max_bounces: int
     rng: np.random.Generator
+    components: bool = False
 
 
 # ----------------------------------------------------------------------------------------------
@@ -313,7 +320,7 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
            polarizer: float | None = None, env_samples: int = 64,
            env_sampling: str = "mis", max_bounces: int = 2, rng=0,
            background=None, chunk: int = DEFAULT_CHUNK,
-           threads: int | None = None) -> RenderResult:
+           threads: int | None = None, components: bool = False) -> RenderResult:
     """Render ``scene`` as seen by ``camera``.
 
     Parameters
@@ -346,6 +353,9 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     threads : int or None
         Chunks rendered concurrently (numpy releases the GIL in its array loops); None: the
         CPUs available to this process, at most 4.
+    components : bool
+        Also return ``diffuse`` and ``specular`` radiance buffers (ground truth for
+        diffuse/specular separation); costs a second BRDF evaluation per light.
 
     Returns
     -------
@@ -369,8 +379,11 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     uv = np.full((n, 2), np.nan, np.float32)
     face = np.full(n, -1, np.int32)
     surf = np.full(n, -1, np.int32)
-    opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
+    opts = replace(_options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng),
+                   components=bool(components))
     bg = None if background is None else _rgb3("background", background)
+    diffuse = np.zeros((n, 3), np.float32) if components else None
+    specular = np.zeros((n, 3), np.float32) if components else None
     rows = max(1, int(chunk) // W)
     starts = list(range(0, H, rows))
 
@@ -378,8 +391,11 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
         r1 = min(H, r0 + rows)
         sl = slice(r0 * W, r1 * W)
         o, d = _camera_rays(camera, r0, r1)
-        L, hits = _trace(scene, o, d, replace(opts, rng=gen), 0, bg)
+        L, Ld, hits = _trace(scene, o, d, replace(opts, rng=gen), 0, bg)
         rad[sl] = L  # chunks write disjoint slices: safe from threads
+        if components:
+            diffuse[sl] = Ld
+            specular[sl] = np.where(hits.mask[:, None], L - Ld, 0.0)
         mask[sl] = hits.mask
         normal[sl] = hits.normal
         position[sl] = hits.position
@@ -399,7 +415,9 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     return RenderResult(radiance=rad.reshape(H, W, 3), mask=mask.reshape(H, W),
                         normal=normal.reshape(H, W, 3), position=position.reshape(H, W, 3),
                         depth=depth.reshape(H, W), uv=uv.reshape(H, W, 2),
-                        face_index=face.reshape(H, W), surface_index=surf.reshape(H, W))
+                        face_index=face.reshape(H, W), surface_index=surf.reshape(H, W),
+                        diffuse=None if diffuse is None else diffuse.reshape(H, W, 3),
+                        specular=None if specular is None else specular.reshape(H, W, 3))
 
 
 def _camera_rays(camera: CameraModel, r0: int, r1: int):
@@ -434,7 +452,8 @@ def render_rays(scene: Scene, origins, dirs, *, shadows: bool = True,
     d = d / norm
     opts = _options(shadows, polarizer, env_samples, env_sampling, max_bounces, rng)
     bg = None if background is None else _rgb3("background", background)
-    return _trace(scene, np.ascontiguousarray(o), d, opts, 0, bg)
+    L, _, hits = _trace(scene, np.ascontiguousarray(o), d, opts, 0, bg)
+    return L, hits
 
 
 def _check_scene(scene) -> None:
@@ -485,10 +504,12 @@ def _env_weight(opts: _Options) -> float:
 
 
 def _trace(scene: Scene, o, d, opts: _Options, depth: int, background):
-    """Radiance along rays (unit ``d``) and their first hits."""
+    """Radiance along rays (unit ``d``), its diffuse part (None unless ``opts.components``)
+    and the rays' first hits."""
     surfaces = scene.surfaces
     n = len(d)
     L = np.zeros((n, 3))
+    Ld = np.zeros((n, 3)) if opts.components else None
     hits = _first_hits(surfaces, o, d) if surfaces else _no_hits(n)
     miss = ~hits.mask
     if np.any(miss):
@@ -500,10 +521,12 @@ def _trace(scene: Scene, o, d, opts: _Options, depth: int, background):
             L[miss] += _light_spheres(scene, o[miss], d[miss], np.inf, opts)
     idx = np.flatnonzero(hits.mask)
     if len(idx):
-        L[idx] = _shade(scene, hits, idx, d[idx], opts, depth)
+        L[idx], dif = _shade(scene, hits, idx, d[idx], opts, depth)
+        if Ld is not None:
+            Ld[idx] = dif
     if depth > 0 and len(idx):
         L[idx] += _light_spheres(scene, o[idx], d[idx], hits.t[idx], opts)
-    return L.astype(np.float32), hits
+    return L.astype(np.float32), Ld, hits
 
 
 def _no_hits(n) -> Hits:
@@ -534,7 +557,8 @@ def _light_spheres(scene, o, d, t_limit, opts):
 
 
 def _shade(scene: Scene, hits: Hits, idx, d, opts: _Options, depth: int):
-    """Radiance leaving hit points ``idx`` towards ``-d`` (unit, (M, 3))."""
+    """Radiance leaving hit points ``idx`` towards ``-d`` (unit, (M, 3)) and its diffuse part
+    (None unless ``opts.components``)."""
     M = len(idx)
     p = hits.position[idx]
     ng = hits.geometric_normal[idx]
@@ -555,6 +579,7 @@ def _shade(scene: Scene, hits: Hits, idx, d, opts: _Options, depth: int):
         groups.extend(_resolve(scene.objects[k], sel, p[sel], uv[sel], face[sel]))
 
     out = np.zeros((M, 3))
+    out_d = np.zeros((M, 3)) if opts.components else None
     brdf_groups = [(s, m) for s, m in groups if isinstance(m, BRDF)]
     scale = scene_scale(scene.surfaces, p)
     if brdf_groups:
@@ -567,19 +592,26 @@ def _shade(scene: Scene, hits: Hits, idx, d, opts: _Options, depth: int):
             gain = light.intensity if isinstance(light, PointLight) else light.irradiance
             w = _weights(opts, light.polarizer)
             for sel, brdf in brdf_groups:
-                out[sel] += _split_eval(brdf, wi_l[sel], wo_l[sel], w) * g[sel, None] * gain
+                f, fd = _split_eval(brdf, wi_l[sel], wo_l[sel], w, opts.components)
+                scale_sel = g[sel, None] * gain
+                out[sel] += f * scale_sel
+                if fd is not None:
+                    out_d[sel] += fd * scale_sel
         if scene.environment is not None and opts.env_samples > 0:
             for sel, brdf in brdf_groups:
-                out[sel] += _env_lighting(scene, brdf, p[sel], ng[sel], frames[sel], wo_l[sel],
-                                          opts, scale)
+                Le, Led = _env_lighting(scene, brdf, p[sel], ng[sel], frames[sel], wo_l[sel],
+                                        opts, scale)
+                out[sel] += Le
+                if Led is not None:
+                    out_d[sel] += Led
     for sel, mirror in groups:
         if not isinstance(mirror, Mirror) or depth >= opts.max_bounces:
             continue
         r = reflect(d[sel], ns[sel])
-        Lr, _ = _trace(scene, offset_origins(p[sel], ng[sel], r, scale), r, opts, depth + 1,
-                       None)
-        out[sel] += np.asarray(mirror.reflectance, float) * Lr
-    return out
+        Lr = _trace(scene, offset_origins(p[sel], ng[sel], r, scale), r, opts, depth + 1,
+                    None)[0]
+        out[sel] += np.asarray(mirror.reflectance, float) * Lr  # all specular
+    return out, out_d
 
 
 def _resolve(obj: SceneObject, sel, p, uv, face):
@@ -603,13 +635,14 @@ def _resolve(obj: SceneObject, sel, p, uv, face):
     return [(sel, brdf)]
 
 
-def _split_eval(brdf: BRDF, wi_l, wo_l, weights):
-    """f_r weighted by the analyser: w_d * diffuse part + w_s * specular part."""
+def _split_eval(brdf: BRDF, wi_l, wo_l, weights, want_diffuse: bool):
+    """f_r weighted by the analyser, w_d * diffuse part + w_s * specular part, and the weighted
+    diffuse part alone (None unless ``want_diffuse``)."""
     wd, ws = weights
-    if wd == ws:
-        return wd * brdf.evaluate(wi_l, wo_l)
-    return wd * brdf.diffuse_part().evaluate(wi_l, wo_l) + \
-        ws * brdf.specular_part().evaluate(wi_l, wo_l)
+    if wd == ws and not want_diffuse:
+        return wd * brdf.evaluate(wi_l, wo_l), None
+    fd = wd * brdf.diffuse_part().evaluate(wi_l, wo_l)
+    return fd + ws * brdf.specular_part().evaluate(wi_l, wo_l), fd if want_diffuse else None
 
 
 def _light_geometry(scene, light, p, ng, scale, shadows):
@@ -635,13 +668,16 @@ def _light_geometry(scene, light, p, ng, scale, shadows):
 
 
 def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale):
-    """Monte-Carlo estimate of the environment's reflected radiance at points (K, 3): one
-    direction per point per pass, ``env_samples`` passes (memory O(K); the BRDF's per-point
-    parameters stay aligned with the points)."""
+    """Monte-Carlo estimate of the environment's reflected radiance at points (K, 3) and its
+    diffuse part (None unless ``opts.components``): one direction per point per pass,
+    ``env_samples`` passes (memory O(K); the BRDF's per-point parameters stay aligned with the
+    points). The environment is unpolarized: the analyser passes half of both parts."""
     env = scene.environment
     K = len(p)
     S = opts.env_samples
     acc = np.zeros((K, 3))
+    acc_d = np.zeros((K, 3)) if opts.components else None
+    diffuse = brdf.diffuse_part() if opts.components else None
     for j in range(S):
         if opts.env_sampling == "mis" and j % 2 == 1:
             wi_l = _cosine_hemisphere(K, opts.rng)
@@ -658,13 +694,19 @@ def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale)
             pdf = np.full(K, 1 / (4 * np.pi))
         with np.errstate(divide="ignore", invalid="ignore"):
             weight = np.where(cos_i > 0, cos_i / pdf, 0.0)
-        contrib = brdf.evaluate(wi_l, wo_l) * (L_env * weight[:, None])
+        incident = L_env * weight[:, None]
+        contrib = brdf.evaluate(wi_l, wo_l) * incident
         if opts.shadows:
             live = np.flatnonzero(np.any(contrib > 0, axis=1))
             o = offset_origins(p[live], ng[live], wi[live], scale)
-            contrib[live[_occluded(scene.surfaces, o, wi[live], np.full(len(live), np.inf))]] = 0.0
+            blocked = live[_occluded(scene.surfaces, o, wi[live], np.full(len(live), np.inf))]
+            contrib[blocked] = 0.0
+            incident[blocked] = 0.0
         acc += contrib
-    return _env_weight(opts) * acc / S
+        if acc_d is not None:
+            acc_d += diffuse.evaluate(wi_l, wo_l) * incident
+    w = _env_weight(opts) / S
+    return w * acc, None if acc_d is None else w * acc_d
 
 
 def _cosine_hemisphere(n: int, rng: np.random.Generator) -> np.ndarray:

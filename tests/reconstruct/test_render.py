@@ -495,3 +495,28 @@ def test_threads_and_seeds_reproducible(small_cam):
     np.testing.assert_array_equal(one, gen)
     other = render(sc, small_cam, threads=2, rng=6, **kw).radiance
     assert np.any(other != one)
+
+
+def test_components_split_diffuse_and_specular(small_cam):
+    """``components=True``: diffuse = the render of the diffuse part alone, specular = the
+    rest, under a polarized point light through an analyser and an environment map."""
+    model = CookTorrance(kd=(0.5, 0.3, 0.2), f0=0.8, alpha=0.2)
+    env = EnvironmentMap.from_function(_sky, 16)
+
+    def scene(material):
+        sc = Scene(environment=env)
+        sc.add(Sphere(40.0, center=(0, 0, 50)), material)
+        sc.add_light(PointLight((80.0, -250.0, 120.0), 1e5, polarizer=20.0))
+        return sc
+
+    kw = dict(polarizer=50.0, env_samples=8, rng=2)
+    res = render(scene(model), small_cam, components=True, **kw)
+    diffuse_only = render(scene(model.diffuse_part()), small_cam, **kw).radiance
+    m = res.mask
+    np.testing.assert_allclose(res.diffuse[m], diffuse_only[m], rtol=1e-5, atol=1e-9)
+    assert np.all(res.diffuse[~m] == 0) and np.all(res.specular[~m] == 0)
+    np.testing.assert_allclose(res.diffuse + res.specular, np.where(m[..., None],
+                                                                    res.radiance, 0),
+                               rtol=1e-5, atol=1e-7)
+    assert res.specular[m].max() > 0.1 * res.diffuse[m].max()
+    assert render(scene(model), small_cam, **kw).diffuse is None
