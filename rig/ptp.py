@@ -148,9 +148,10 @@ class DataType(IntEnum):
     STR = 0xFFFF
 
 
-#: object format codes (ISO 15740 table 20, DNG from PTP 1.1)
+#: object format codes (ISO 15740 table 20, DNG from PTP 1.1; Canon vendor codes as in
+#: libgphoto2's ptp.h: 0xB101 CRW (Sony bodies reuse it for ARW), 0xB103 "CRW3" = CR2, 0xB108 CR3)
 OBJECT_FORMATS = {0x3000: "undefined", 0x3801: "jpeg", 0x3802: "tiff-ep", 0x380D: "tiff",
-                  0x3811: "dng", 0xB101: "cr2", 0xB103: "cr3"}
+                  0x3811: "dng", 0xB101: "crw/arw", 0xB103: "cr2", 0xB108: "cr3"}
 
 _INT_FORMATS = {DataType.INT8: "b", DataType.UINT8: "B", DataType.INT16: "h",
                 DataType.UINT16: "H", DataType.INT32: "i", DataType.UINT32: "I",

@@ -165,6 +165,9 @@ def test_object_info_parsed():
     assert info.compressed_size == 48_000_000 and info.filename == "DSC_0042.DNG"
     assert (info.image_width, info.image_height, info.image_bit_depth) == (6000, 4000, 16)
     assert info.format_name == "dng" and info.capture_date == "20261121T101500"
+    # vendor raw formats as libgphoto2's ptp.h numbers them (CRW 0xB101, CRW3 = CR2 0xB103, CR3 0xB108)
+    for code, name in ((0xB103, "cr2"), (0xB108, "cr3"), (0x3801, "jpeg"), (0xB999, "0xB999")):
+        assert parse_object_info(raw[:4] + struct.pack("<H", code) + raw[6:]).format_name == name
 
 
 # -- session: scripted exchanges --------------------------------------------------------------

@@ -55,6 +55,20 @@ def test_checksum_is_twos_complement_of_byte_sum():
     assert checksum("1 1 move abs 1000") == ck("1 1 move abs 1000")
 
 
+def test_checksum_matches_published_worked_examples():
+    # Worked examples from public Zaber ASCII implementations (not derived from our code):
+    # zproto (Rust) pins "/01 tools echo:8F" and "/1 tools echo:BF" (command side);
+    # Zaber's own Python library (zaber.serial) pins the replies "@01 0 OK IDLE -- 0:8D" and
+    # "@01 0 OK IDLE -- 7z:0C" (a checksum below 0x10 keeps its leading zero).
+    assert checksum("01 tools echo") == "8F"
+    assert checksum(b"1 tools echo") == "BF"
+    for line, data in ((b"@01 0 OK IDLE -- 0:8D\r\n", "0"), (b"@01 0 OK IDLE -- 7z:0C\r\n", "7z")):
+        msg = parse_message(line)
+        assert msg.checksum_ok is True and msg.data == data and not msg.busy
+    with pytest.raises(ProtocolError, match="checksum"):
+        parse_message(b"@01 0 OK IDLE -- 0:8E\r\n")
+
+
 def test_encode_command_forms():
     assert encode_command("move abs 1000", device=1, axis=1, with_checksum=False) == b"/1 1 move abs 1000\n"
     assert encode_command("", device=2, axis=0, message_id=7, with_checksum=False) == b"/2 0 07\n"
