@@ -258,7 +258,7 @@ class Histogram:
         Percent of each channel's pixels at or below the black level / at or above the white
         level.
     black, white : float
-        The levels used, same units as ``edges``.
+        The crushed-black level and the clipped-white threshold used, same units as ``edges``.
     """
 
     counts: np.ndarray
@@ -297,7 +297,8 @@ class Histogram:
         return ["".join(SPARK[row[cols]]) for row in level]
 
 
-def raw_histogram(mosaic: RawMosaic, bins: int = 64) -> Histogram:
+def raw_histogram(mosaic: RawMosaic, bins: int = 64, *, white_fraction: float = 0.95
+                  ) -> Histogram:
     """Histogram of the raw CFA values per colour channel, with clipping at black and white.
 
     Parameters
@@ -305,15 +306,22 @@ def raw_histogram(mosaic: RawMosaic, bins: int = 64) -> Histogram:
     mosaic : RawMosaic
     bins : int
         Number of equal bins between the lowest black level and the white level, DN.
+    white_fraction : float
+        A pixel counts as clipped white at ``black + white_fraction * (white_level - black)``
+        or above, in (0, 1]. Below 1 because sensors often saturate under the file's nominal
+        WhiteLevel (full well before the ADC's top code), and HDR merges drop near-white pixels
+        anyway; 1 counts only pixels at the white level.
 
     Returns
     -------
     Histogram
-        Edges in DN. A pixel counts as clipped white at ``>= white_level`` and as crushed at
+        Edges in DN; ``white`` is the clipping threshold used. A pixel counts as crushed at
         ``<= black_level`` of its own CFA position.
     """
     if bins < 1:
         raise PreviewError(f"bins must be >= 1, got {bins}")
+    if not 0 < white_fraction <= 1:
+        raise PreviewError(f"white_fraction must be in (0, 1], got {white_fraction}")
     cfa = mosaic.cfa
     h, w = cfa.shape
     channel = mosaic.channel_mask()
@@ -325,12 +333,13 @@ def raw_histogram(mosaic: RawMosaic, bins: int = 64) -> Histogram:
                          minlength=3 * bins).reshape(3, bins)
     per_channel = np.bincount(channel.ravel(), minlength=3).astype(float)
     crushed = np.bincount(channel.ravel(), weights=(cfa <= black).ravel(), minlength=3)
-    clipped = np.bincount(channel.ravel(), weights=(cfa >= hi).ravel(), minlength=3)
+    white = black + white_fraction * (hi - black)
+    clipped = np.bincount(channel.ravel(), weights=(cfa >= white).ravel(), minlength=3)
     with np.errstate(invalid="ignore", divide="ignore"):
         return Histogram(counts=counts, edges=edges,
                          clipped_black_pct=np.nan_to_num(100 * crushed / per_channel),
                          clipped_white_pct=np.nan_to_num(100 * clipped / per_channel),
-                         black=lo, white=hi)
+                         black=lo, white=float(lo + white_fraction * (hi - lo)))
 
 
 def image_histogram(image: np.ndarray, bins: int = 64) -> Histogram:

@@ -48,10 +48,10 @@ def test_bin_averages_the_two_greens():
 
 def test_histogram_clipping_fractions_are_exact():
     rng = np.random.default_rng(2)
-    rgb = rng.integers(BLACK + 1, WHITE, size=(50, 50, 3)).astype(np.uint16)
+    # everything else stays below 95 % of the range (the default clipping threshold)
+    rgb = rng.integers(BLACK + 1, 3800, size=(50, 50, 3)).astype(np.uint16)
     rgb[:10, :, 0] = WHITE          # 20 % of R saturated
     rgb[:, :5, 2] = BLACK           # 10 % of B at black
-    rgb[:, :, 1][rgb[:, :, 1] > 4000] = 4000  # G never clipped
     mosaic = decode_dng(write_dng(_mosaic_from_rgb(rgb, "RGGB"), black_level=BLACK,
                                   white_level=WHITE))
     hist = raw_histogram(mosaic, bins=32)
@@ -64,6 +64,21 @@ def test_histogram_clipping_fractions_are_exact():
     assert hist.counts[0, -1] >= 500
     warn = hist.warnings(threshold_pct=1.0)
     assert warn == ["R 20.0% clipped white", "B 10.0% crushed black"]
+
+
+def test_histogram_counts_saturation_below_the_white_level():
+    # full well reached near 15400 DN although the file says WhiteLevel 15871 (as in SimCam)
+    rng = np.random.default_rng(4)
+    cfa = rng.integers(1000, 14000, size=(40, 40)).astype(np.uint16)
+    cfa[:8] = rng.integers(15150, 15650, size=(8, 40))   # 20 % saturated, noisy
+    mosaic = decode_dng(write_dng(cfa, black_level=512, white_level=15871))
+    hist = raw_histogram(mosaic)
+    np.testing.assert_allclose(hist.clipped_white_pct, 20.0)
+    assert hist.white == pytest.approx(512 + 0.95 * (15871 - 512))
+    strict = raw_histogram(mosaic, white_fraction=1.0)
+    np.testing.assert_allclose(strict.clipped_white_pct, 0.0)
+    with pytest.raises(PreviewError, match="white_fraction"):
+        raw_histogram(mosaic, white_fraction=0)
 
 
 def test_histogram_counts_match_numpy():

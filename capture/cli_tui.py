@@ -1,0 +1,28 @@
+"""``gonio tui``: the operator console (a Textual terminal UI) over the rig, store and runner."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(name="tui", help="Open the operator console (terminal UI).",
+                  invoke_without_command=True)
+
+
+@app.callback()
+def tui(rig: str = typer.Option("sim", "--rig",
+                                help="'sim' for the built-in simulated lab, or a rig TOML file."),
+        store: Path = typer.Option(Path("gonio-store"), "--store",
+                                   help="Session store directory (created if missing)."),
+        plan: Optional[Path] = typer.Option(None, "--plan", help="Open this plan file at start."),
+        fast: bool = typer.Option(False, help="Simulated devices move instantly."),
+        poll: float = typer.Option(0.25, help="Device table refresh period, seconds.")) -> None:
+    """Devices (jog, home, stop, camera test shot), sessions (plan, start, pause, resume, abort,
+    progress), preview with histograms, and the event log. Press F1 inside for the keys."""
+    if poll <= 0:
+        raise typer.BadParameter(f"must be > 0 seconds, got {poll}", param_hint="--poll")
+    if plan is not None and not plan.is_file():
+        raise typer.BadParameter(f"plan file {plan} does not exist", param_hint="--plan")
+    from .tui import GonioApp  # Textual loads only for this command
+    GonioApp(rig, store, fast=fast, poll_s=poll, plan=plan).run()

@@ -1,0 +1,150 @@
+"""Preview widgets: the last frame in half blocks, and one histogram per exposure of a bracket."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rich.segment import Segment
+from rich.text import Text
+from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual.app import ComposeResult
+from textual.reactive import reactive
+from textual.strip import Strip
+from textual.widget import Widget
+from textual.widgets import Label, Static
+
+from ..preview import Preview
+
+_CHANNEL_STYLE = ("bold red", "bold green", "bold dodger_blue1")
+
+
+@dataclass(frozen=True)
+class PreviewFrame:
+    """A decoded frame with what the operator needs to know about it.
+
+    ``label`` names it (``test shot``, ``step 12``); ``exposure_s`` / ``iso`` as the camera
+    reported them; ``filename`` the camera's name.
+    """
+
+    preview: Preview
+    label: str
+    exposure_s: float | None = None
+    iso: float | None = None
+    filename: str = ""
+
+    @property
+    def exposure_text(self) -> str:
+        if self.exposure_s is None:
+            return "?"
+        t = self.exposure_s
+        shutter = f"1/{1 / t:.0f} s" if 0 < t < 0.5 else f"{t:g} s"
+        return shutter + (f" ISO {self.iso:g}" if self.iso else "")
+
+
+class HalfBlockImage(Widget):
+    """Draws a :class:`~capture.preview.Preview` with '▀' cells, re-rendered on resize."""
+
+    DEFAULT_CSS = """
+    HalfBlockImage { width: 1fr; height: 1fr; min-height: 4; }
+    """
+
+    gain: reactive[float] = reactive(1.0)
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self._preview: Preview | None = None
+        self._lines: list[list[Segment]] = []
+        self._key: tuple | None = None
+
+    @property
+    def preview(self) -> Preview | None:
+        return self._preview
+
+    def show(self, preview: Preview | None) -> None:
+        """Display ``preview`` (None clears the widget)."""
+        self._preview = preview
+        self._key = None
+        self.refresh()
+
+    def watch_gain(self) -> None:
+        self._key = None
+        self.refresh()
+
+    def _ensure_lines(self) -> None:
+        w, h = self.size.width, self.size.height
+        key = (w, h, self.gain)
+        if self._preview is None or w < 1 or h < 1:
+            self._lines = []
+        elif key != self._key:
+            self._lines = self._preview.render(w, h, gain=self.gain)
+        self._key = key
+
+    def render_line(self, y: int) -> Strip:
+        self._ensure_lines()
+        width = self.size.width
+        if y >= len(self._lines):
+            return Strip.blank(width, self.rich_style)
+        line = Strip(self._lines[y])
+        pad = (width - line.cell_length) // 2  # centre horizontally
+        if pad > 0:
+            line = Strip([Segment(" " * pad, self.rich_style), *self._lines[y]])
+        return line.extend_cell_length(width, self.rich_style).crop(0, width)
+
+
+class HistogramView(Static):
+    """Histogram of one frame: a coloured sparkline per channel and clipping warnings."""
+
+    DEFAULT_CSS = """
+    HistogramView { height: auto; padding: 0 1; }
+    """
+
+    def __init__(self, frame: PreviewFrame, *, threshold_pct: float = 0.1, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.frame = frame
+        self.threshold_pct = threshold_pct
+
+    @property
+    def warnings(self) -> list[str]:
+        return self.frame.preview.histogram.warnings(self.threshold_pct)
+
+    def render(self) -> Text:
+        hist = self.frame.preview.histogram
+        width = max(8, self.size.width - 4)
+        text = Text(f"{self.frame.exposure_text}  {self.frame.label}\n", style="bold")
+        for name, style, row in zip("RGB", _CHANNEL_STYLE, hist.sparklines(width)):
+            text.append(f"{name} ", style=style)
+            text.append(row + "\n", style=style.replace("bold ", ""))
+        warnings = self.warnings
+        if warnings:
+            text.append("⚠ " + ", ".join(warnings), style="bold yellow on dark_red")
+        else:
+            text.append("no clipping", style="green")
+        return text
+
+
+class PreviewPane(Vertical):
+    """The Preview tab: the image on the left, the bracket's histograms on the right."""
+
+    def compose(self) -> ComposeResult:
+        yield Label("no frame yet: take a test shot (Devices, t) or start a session",
+                    id="preview-info")
+        with Horizontal(id="preview-body"):
+            yield HalfBlockImage(id="preview-image")
+            yield VerticalScroll(id="histograms")
+
+    async def show_bracket(self, frames: list[PreviewFrame]) -> None:
+        """Show the last of ``frames`` as the image and one histogram per frame."""
+        if not frames:
+            return
+        last = frames[-1]
+        self.query_one(HalfBlockImage).show(last.preview)
+        h, w = last.preview.linear.shape[:2]
+        name = f" {last.filename}" if last.filename else ""
+        self.query_one("#preview-info", Label).update(
+            f"{last.label}{name}: {last.exposure_text}, quick look {w}x{h} (2x2 binned)")
+        box = self.query_one("#histograms", VerticalScroll)
+        await box.remove_children()
+        await box.mount_all([HistogramView(f, classes="histogram") for f in frames])
+
+    @property
+    def histogram_views(self) -> list[HistogramView]:
+        return list(self.query(HistogramView))

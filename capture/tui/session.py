@@ -1,0 +1,288 @@
+"""The Session tab: plan, progress, current step, faults, and the sessions in the store.
+
+Everything shown here comes from the runner's :class:`~capture.events.Event` stream (pushed down
+by the app) and from read-only store queries; the pane posts :class:`SessionRequest` messages for
+the app to act on.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from rich.text import Text
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical
+from textual.message import Message
+from textual.reactive import reactive
+from textual.widgets import DataTable, Input, Label, ProgressBar, Static
+
+from ..events import Event, EventKind
+
+#: store states a session can be resumed from ("running" in the store but not here: a crash)
+RESUMABLE = ("running", "paused", "planned")
+
+
+def fmt_duration(seconds: float | None) -> str:
+    """``95`` -> ``1m35s``; ``None`` -> ``?``."""
+    if seconds is None:
+        return "?"
+    s = int(round(max(seconds, 0.0)))
+    h, rem = divmod(s, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h}h{m:02d}m" if h else (f"{m}m{s:02d}s" if m else f"{s}s")
+
+
+def fmt_bytes(n: float | None) -> str:
+    if n is None:
+        return "?"
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return ""
+
+
+def fmt_exposures(exposures: Any) -> str:
+    if not exposures:
+        return "-"
+    vals = exposures if isinstance(exposures, (list, tuple)) else [exposures]
+    return ", ".join(f"1/{1 / t:.0f}" if 0 < t < 0.5 else f"{t:g}" for t in vals) + " s"
+
+
+def describe_step(step: dict[str, Any]) -> dict[str, str]:
+    """Display columns of one plan step: turntable (deg), light (az/el deg or xyz mm),
+    polarizer (deg), exposures (s)."""
+    def deg(v: Any) -> str:
+        return "-" if v is None else f"{v:g}°"
+
+    light = step.get("light")
+    if isinstance(light, dict):
+        if light.get("xyz_mm") is not None:
+            light_s = "({:g}, {:g}, {:g})".format(*light["xyz_mm"])
+        else:
+            light_s = f"{light.get('azimuth_deg', 0):g}/{light.get('elevation_deg', 0):g}°"
+    else:
+        light_s = "-" if light is None else str(light)
+    kind = step.get("kind") or step.get("target") or ""
+    return {"turntable": deg(step.get("turntable_deg")), "light": light_s,
+            "polarizer": deg(step.get("polarizer_deg")),
+            "exposures": fmt_exposures(step.get("exposures_s")),
+            "kind": "" if kind in ("object", "measure") else str(kind)}
+
+
+class SessionRequest(Message):
+    """The operator asked for a session action: ``open`` (``path``), ``new``, ``pause``,
+    ``resume``, ``abort``, ``resume_interrupted`` (``name``: the selected session or None)."""
+
+    def __init__(self, op: str, *, path: str | None = None, name: str | None = None) -> None:
+        super().__init__()
+        self.op, self.path, self.name = op, path, name
+
+
+class SessionPane(Vertical):
+    """Plan summary, progress bar with ETA, current step, steps, sessions and faults."""
+
+    BINDINGS = [
+        Binding("o", "open_plan", "Open plan"),
+        Binding("n", "request('new')", "New+start"),
+        Binding("p", "toggle_pause", "Pause/resume"),
+        Binding("a", "request('abort')", "Abort"),
+        Binding("r", "resume_interrupted", "Resume interrupted"),
+    ]
+
+    #: "idle", "running", "paused", "done", "aborted"
+    state: reactive[str] = reactive("idle")
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.frames_stored = 0
+        self.faults: list[tuple[Event, str]] = []
+        self.session_name: str | None = None
+        self._started = 0.0
+        self._steps_at_start = 0
+
+    def compose(self) -> ComposeResult:
+        with Horizontal(id="plan-bar"):
+            yield Input(placeholder="plan file (o to open)", id="plan-path")
+            yield Label("idle", id="session-state")
+        yield Static("no plan open", id="plan-summary")
+        with Horizontal(id="progress-row"):
+            yield ProgressBar(total=None, show_eta=False, id="progress")
+            yield Label("", id="progress-text")
+        yield Static("", id="current-step")
+        yield Static("", id="alert")
+        with Horizontal(id="session-body"):
+            steps = DataTable(id="steps", cursor_type="row", zebra_stripes=True)
+            for key in ("#", "turntable", "light", "polarizer", "exposures", "kind", "status"):
+                steps.add_column(key, key=key)
+            yield steps
+            with Vertical(id="session-side"):
+                sessions = DataTable(id="sessions", cursor_type="row")
+                for key in ("session", "state", "progress"):
+                    sessions.add_column(key, key=key)
+                yield sessions
+                faults = DataTable(id="faults", cursor_type="row")
+                for key in ("time", "device", "fault", "action"):
+                    faults.add_column(key, key=key)
+                yield faults
+
+    def on_mount(self) -> None:
+        self.query_one("#alert").display = False
+
+    # -- state in -----------------------------------------------------------------------------
+    def show_plan(self, steps: list[tuple[int, dict, bool]], summary: str) -> None:
+        """Fill the steps table; ``steps`` as ``(index, step dict, done)``."""
+        self.query_one("#plan-summary", Static).update(summary)
+        table = self.query_one("#steps", DataTable)
+        table.clear()
+        for idx, step, done in steps:
+            cols = describe_step(step)
+            table.add_row(str(idx), cols["turntable"], cols["light"], cols["polarizer"],
+                          cols["exposures"], cols["kind"], "done" if done else "", key=str(idx))
+        bar = self.query_one(ProgressBar)
+        bar.update(total=max(len(steps), 1), progress=sum(done for _, _, done in steps))
+
+    def show_sessions(self, rows: list[tuple[str, str, str]]) -> None:
+        """``(name, state, "done/total")`` per session in the store, newest first."""
+        table = self.query_one("#sessions", DataTable)
+        table.clear()
+        for name, state, progress in rows:
+            style = "yellow" if state in ("running", "paused") else ""
+            table.add_row(name, Text(state, style=style), progress, key=name)
+
+    @property
+    def selected_session(self) -> str | None:
+        table = self.query_one("#sessions", DataTable)
+        if table.row_count == 0:
+            return None
+        return str(table.coordinate_to_cell_key((table.cursor_row, 0)).row_key.value)
+
+    def watch_state(self, state: str) -> None:
+        styles = {"running": "bold green", "paused": "bold yellow", "aborted": "bold red",
+                  "done": "bold cyan"}
+        name = f"{self.session_name}: " if self.session_name else ""
+        self.query_one("#session-state", Label).update(Text(name + state,
+                                                            style=styles.get(state, "")))
+
+    def apply_event(self, event: Event) -> None:  # noqa: C901 - one branch per event kind
+        """Apply one runner event (called by the app on the UI thread)."""
+        d = event.data
+        kind = event.kind
+        steps = self.query_one("#steps", DataTable)
+        if kind in (EventKind.SESSION_STARTED, EventKind.RESUMED):
+            self.session_name = event.session
+            self.frames_stored = int(d.get("frames_done", 0))
+            self._started = time.monotonic()
+            self._steps_at_start = int(d.get("steps_done", 0))
+            self.clear_alert()
+            self.state = "running"
+        elif kind == EventKind.STEP_STARTED and event.step is not None:
+            self._set_step_status(steps, event.step, Text("▶ running", style="bold green"))
+            self.query_one("#current-step", Static).update(self._current_step_text(event))
+        elif kind == EventKind.MOVED:
+            self.query_one("#current-step", Static).update(self._current_step_text(event))
+        elif kind == EventKind.FRAME_STORED:
+            self.frames_stored += 1
+        elif kind == EventKind.STEP_DONE and event.step is not None:
+            self._set_step_status(steps, event.step, "done")
+        elif kind in (EventKind.FAULT, EventKind.RETRY):
+            action = (f"retry {d.get('attempt', '?')} in {d.get('delay_s', 0):g} s"
+                      if kind == EventKind.RETRY else str(d.get("action", "paused")))
+            self.add_fault(event, action)
+        elif kind == EventKind.PAUSED:
+            self.state = "paused"
+            if d.get("reason") == "fault" or event.device:
+                self.show_alert(f"⚠ session paused: {event.message}  (p to resume, a to abort)")
+        elif kind == EventKind.DONE:
+            self.state = "done"
+        elif kind == EventKind.ABORTED:
+            self.state = "aborted"
+        self._update_progress(d)
+
+    def _set_step_status(self, table: DataTable, step: int, value: Any) -> None:
+        if str(step) in table.rows:
+            table.update_cell(str(step), "status", value)
+            table.move_cursor(row=table.get_row_index(str(step)))
+
+    def _current_step_text(self, event: Event) -> Text:
+        d = event.data
+        parts = [f"step {event.step}"]
+        pos = d.get("positions", d)
+        if "turntable_deg" in pos:
+            parts.append(f"turntable {pos['turntable_deg']:.2f}°")
+        light = pos.get("light")
+        if isinstance(light, dict) and "azimuth_deg" in light:
+            parts.append(f"light az {light['azimuth_deg']:.1f}° el {light['elevation_deg']:.1f}°")
+        elif light is not None:
+            parts.append(f"light {light}")
+        if "polarizer_deg" in pos:
+            parts.append(f"polarizer {pos['polarizer_deg']:.1f}°")
+        if "exposures_s" in d:
+            parts.append(f"exposures {fmt_exposures(d['exposures_s'])}")
+        return Text(" · ".join(parts), style="bold")
+
+    def _update_progress(self, d: dict[str, Any]) -> None:
+        if "steps_total" not in d:
+            return
+        total, done = int(d["steps_total"]), int(d.get("steps_done", 0))
+        bar = self.query_one(ProgressBar)
+        bar.update(total=max(total, 1), progress=done if total else 1)
+        eta = d.get("eta_s")
+        if eta is None and done > self._steps_at_start and self._started:
+            rate = (time.monotonic() - self._started) / (done - self._steps_at_start)
+            eta = rate * (total - done)
+        frames = f"{self.frames_stored}"
+        if "frames_total" in d:
+            frames += f"/{d['frames_total']}"
+        self.query_one("#progress-text", Label).update(
+            f"{done}/{total} steps · {frames} frames · ETA {fmt_duration(eta)}")
+
+    def add_fault(self, event: Event, action: str) -> None:
+        self.faults.append((event, action))
+        table = self.query_one("#faults", DataTable)
+        table.add_row(time.strftime("%H:%M:%S", time.localtime(event.time)), event.device or "",
+                      Text(event.message, style="red"), action)
+        table.move_cursor(row=table.row_count - 1)
+
+    def show_alert(self, message: str) -> None:
+        alert = self.query_one("#alert", Static)
+        alert.update(message)
+        alert.display = True
+
+    def clear_alert(self) -> None:
+        self.query_one("#alert", Static).display = False
+
+    @property
+    def alert_text(self) -> str | None:
+        alert = self.query_one("#alert", Static)
+        return str(alert.render()) if alert.display else None
+
+    @property
+    def progress(self) -> float:
+        """Fraction of steps done, 0..1."""
+        bar = self.query_one(ProgressBar)
+        return 0.0 if not bar.total else bar.progress / bar.total
+
+    # -- actions out --------------------------------------------------------------------------
+    def action_open_plan(self) -> None:
+        box = self.query_one("#plan-path", Input)
+        if box.value.strip():
+            self.post_message(SessionRequest("open", path=box.value.strip()))
+        else:
+            box.focus()
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        event.stop()
+        if event.value.strip():
+            self.post_message(SessionRequest("open", path=event.value.strip()))
+            self.query_one("#steps", DataTable).focus()
+
+    def action_request(self, op: str) -> None:
+        self.post_message(SessionRequest(op))
+
+    def action_toggle_pause(self) -> None:
+        self.post_message(SessionRequest("resume" if self.state == "paused" else "pause"))
+
+    def action_resume_interrupted(self) -> None:
+        self.post_message(SessionRequest("resume_interrupted", name=self.selected_session))
