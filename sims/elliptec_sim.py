@@ -55,6 +55,8 @@ class ElliptecSim(SerialSim):
         Time after which an incomplete request is dropped with ``GS01``.
     """
 
+    FAULTS = SerialSim.FAULTS | {"busy", "mechanical_timeout", "out_of_range"}
+
     terminator = None
 
     def __init__(self, name: str = "polarizer", *, fast: bool = False, address: str = "0",

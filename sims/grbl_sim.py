@@ -112,6 +112,8 @@ class GrblSim(SerialSim):
         Code returned by the ``error`` fault.
     """
 
+    FAULTS = SerialSim.FAULTS | {"alarm", "error"}
+
     terminator = None  # framing by split(): lines, plus real-time bytes anywhere
 
     def __init__(self, name: str = "positioner", *, fast: bool = False,

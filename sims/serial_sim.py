@@ -39,6 +39,8 @@ class SerialSim:
 
     #: bytes that end one request (None: the subclass frames requests in :meth:`split`)
     terminator: bytes | None = b"\n"
+    #: fault names :meth:`inject` accepts; subclasses add their device faults
+    FAULTS: frozenset[str] = frozenset({"no_reply", "garble", "disconnect"})
 
     def __init__(self, name: str, *, fast: bool = False) -> None:
         self.name = name
@@ -135,8 +137,21 @@ class SerialSim:
 
     # -- faults -------------------------------------------------------------------------------
     def inject(self, fault: str, count: int = 1) -> None:
-        """Arm ``fault`` for the next ``count`` requests it applies to."""
-        self.faults[fault] += count
+        """Arm ``fault`` for the next ``count`` requests it applies to.
+
+        Raises
+        ------
+        ValueError
+            If ``fault`` is not one this simulator models (a typo would otherwise arm nothing
+            and a fault test would pass without its fault), or ``count`` < 1.
+        """
+        if fault not in self.FAULTS:
+            raise ValueError(f"{type(self).__name__}: unknown fault {fault!r}; "
+                             f"known: {', '.join(sorted(self.FAULTS))}")
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count}")
+        with self._lock:
+            self.faults[fault] += count
 
     def take_fault(self, fault: str) -> bool:
         """Consume one armed ``fault``; True if it was armed."""

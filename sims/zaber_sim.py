@@ -112,6 +112,8 @@ class ZaberSim(SerialSim):
         the reported angle is wrong until the stage is homed (the home sensor is at 0 deg).
     """
 
+    FAULTS = SerialSim.FAULTS | {"busy", "stall", "encoder", "limit"}
+
     def __init__(self, name: str = "turntable", *, fast: bool = False, device: int = 1,
                  device_id: int = 50419, firmware: str = "7.38", serial: int = 123456,
                  cycle_microsteps: int = 1_536_000, resolution: int = 64,

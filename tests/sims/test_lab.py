@@ -62,3 +62,20 @@ def test_lab_options_reach_the_simulators():
         sim = lab.sims["turntable"]
         assert sim.speed * 360 / sim.cycle == pytest.approx(30.0, rel=1e-4)
         assert "WR" not in sim.flags
+
+
+def test_fault_names_are_checked_per_simulator():
+    with SimLab(fast=True, frame_source=lambda state: placeholder_frame(state, size=(64, 48))) as lab:
+        documented = {"turntable": {"no_reply", "garble", "disconnect", "busy", "stall", "encoder", "limit"},
+                      "positioner": {"no_reply", "garble", "disconnect", "alarm", "error"},
+                      "polarizer": {"no_reply", "garble", "disconnect", "busy", "mechanical_timeout",
+                                    "out_of_range"},
+                      "camera": {"no_reply", "stall", "short_read", "corrupt_object", "disconnect"}}
+        for role, names in documented.items():
+            sim = lab.sims[role]
+            for name in names - {"disconnect"}:
+                sim.inject(name)  # accepted
+            with pytest.raises(ValueError, match="unknown fault 'stal'"):
+                sim.inject("stal")  # a typo arms nothing silently no more
+        with pytest.raises(ValueError, match="count"):
+            lab.sims["turntable"].inject("busy", 0)
