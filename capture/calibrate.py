@@ -56,6 +56,12 @@ STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "pol
           "gray_card", "mirror_probe")
 #: a raw sample at or above this fraction of (white - black) counts as saturated
 SATURATION_FRACTION = 0.98
+#: below this fraction of coverage-grid cells holding corners, the intrinsics fit falls back to a
+#: constrained model (principal point at the image centre, no tangential terms, k1 only): a
+#: board seen only near the image centre (turntable sweeps) cannot separate those parameters
+MIN_COVERAGE_FULL_MODEL = 0.5
+_CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
+                      | cv2.CALIB_FIX_K3)
 
 
 @dataclass(frozen=True)
@@ -74,6 +80,9 @@ class LabTargets:
     charuco_marker_mm: float = 22.0
     charuco_dictionary: str = "DICT_5X5_100"
     sphere_radius_mm: float = 12.7
+    #: mirror reflectance of the spheres (chrome ~0.65, bearing steel ~0.55): their limb shows
+    #: the backdrop times this, which places the silhouette threshold
+    sphere_reflectance: float = 0.65
     gray_card_albedo: float = 0.18
     #: cv2.CALIB_* flags for the intrinsics fit (k3 fixed: a turntable-only board sweep
     #: covers the image centre, where k3 is not observable)
@@ -83,6 +92,8 @@ class LabTargets:
         for name in ("chessboard_square_mm", "charuco_square_mm", "charuco_marker_mm", "sphere_radius_mm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"LabTargets.{name} must be > 0 mm, got {getattr(self, name)!r}")
+        if not 0 < self.sphere_reflectance < 1:
+            raise ValueError(f"LabTargets.sphere_reflectance must be in (0, 1), got {self.sphere_reflectance!r}")
         if not 0 < self.gray_card_albedo <= 1:
             raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
 
@@ -396,7 +407,17 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
     if len(dets) < 3:
         raise CalibrationError(f"a board was found in {len(dets)} of {len(steps)} checkerboard steps "
                                f"(need 3): {'; '.join(missing) or 'no views'}")
-    res = calibrate_intrinsics(dets, flags=ctx.targets.intrinsics_flags)
+    flags = ctx.targets.intrinsics_flags
+    res = calibrate_intrinsics(dets, flags=flags)
+    model = "full"
+    if res.coverage_fraction < MIN_COVERAGE_FULL_MODEL:
+        # K starts at the image centre (calibrateCamera's own guess), so FIX_PRINCIPAL_POINT
+        # keeps it there
+        flags |= _CONSTRAINED_FLAGS
+        model = (f"constrained (principal point at the image centre, k1 only): corners cover "
+                 f"{100 * res.coverage_fraction:.0f}% of the image (< {100 * MIN_COVERAGE_FULL_MODEL:.0f}%); "
+                 "add board views across the whole frame for the full model")
+        res = calibrate_intrinsics(dets, flags=flags)
     ctx.results["intrinsics"] = res
     ctx.results["detections"] = dict(zip(det_steps, dets))
     ctx.results["target_kind"] = kinds[0]
@@ -408,12 +429,13 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
               "K_std": res.K_std, "dist_std": res.dist_std, "per_view_rms_px": res.per_view_rms_px,
               "views": res.frames, "rejected": [asdict(r) for r in res.rejected],
               "not_found": missing, "target": kinds[0], "coverage": res.coverage,
-              "coverage_fraction": res.coverage_fraction}
+              "coverage_fraction": res.coverage_fraction, "model": model, "flags": flags}
     figures = {"rms_px": round(res.rms_px, 3), "fx_px": round(float(res.K[0, 0]), 2),
                "fy_px": round(float(res.K[1, 1]), 2), "cx_px": round(float(res.K[0, 2]), 2),
                "cy_px": round(float(res.K[1, 2]), 2), "views": len(res.frames),
-               "coverage_pct": round(100 * res.coverage_fraction)}
-    params = {"targets": asdict(ctx.targets), "detector": kinds[0]}
+               "coverage_pct": round(100 * res.coverage_fraction),
+               "model": "full" if model == "full" else "constrained"}
+    params = {"targets": asdict(ctx.targets), "detector": kinds[0], "flags": flags}
     return result, figures, ctx.frame_ids(det_steps), {}, params
 
 
@@ -451,24 +473,46 @@ def _stage_turntable(ctx: _Context, rep: CalibrationReport):
     return result, figures, ctx.frame_ids(steps), {}, {"angles_from": "frame read-backs turntable_deg"}
 
 
-def _sphere_blobs(images: list[np.ndarray], min_area: int = 30) -> list[np.ndarray]:
-    """Silhouettes of mirror spheres in front of a lit backdrop: dark, round holes in the
-    per-pixel median over the spheres frames (the median removes each frame's moving
-    highlight and moving shadows). Returns boolean masks, left to right."""
-    med = np.median(np.stack([im.mean(axis=2) for im in images]), axis=0)
-    level = 0.3 * float(np.percentile(med, 95))
-    dark = (med < level).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=4)
-    h, w = dark.shape
-    blobs = []
+def _round_blobs(mask: np.ndarray, min_area: int) -> list[tuple[int, int, np.ndarray]]:
+    """Compact, round connected components of ``mask`` not touching the border, as
+    (x, diameter px, boolean mask)."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=4)
+    h, w = mask.shape
+    out = []
     for k in range(1, n):
         x, y, bw, bh, area = stats[k]
         if area < min_area or x == 0 or y == 0 or x + bw >= w or y + bh >= h:
             continue  # too small, or open to the border: background, not a sphere
         if not 0.7 < bw / bh < 1.4 or area < 0.6 * np.pi * (max(bw, bh) / 2) ** 2:
             continue  # not round
-        blobs.append((x, labels == k))
-    return [b for _, b in sorted(blobs, key=lambda t: t[0])]
+        out.append((int(x), int(max(bw, bh)), labels == k))
+    return out
+
+
+def _sphere_blobs(images: list[np.ndarray], reflectance: float, *, min_area: int = 30) -> list[np.ndarray]:
+    """Silhouettes of mirror spheres in front of a lit backdrop, left to right.
+
+    The per-pixel median over the spheres frames removes each frame's moving highlight and
+    shadows; dark round blobs in it are the candidate spheres. A mirror's limb reflects the
+    backdrop right behind it times the mirror's ``reflectance``, so each outline is then redrawn
+    halfway between the backdrop level *around that sphere* (median of an annulus) and that
+    limb level, not at a global dark threshold, which would shrink the silhouette by the bright
+    limb ring and bias the sphere's depth.
+    """
+    med = np.median(np.stack([im.mean(axis=2) for im in images]), axis=0).astype(np.float32)
+    yy, xx = np.indices(med.shape)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    out = []
+    for _, diam, coarse in _round_blobs(med < 0.3 * float(np.percentile(med, 95)), min_area):
+        cy, cx = (float(v.mean()) for v in np.nonzero(coarse))
+        r = np.hypot(yy - cy, xx - cx) / (diam / 2)
+        level = 0.5 * (1 + reflectance) * float(np.median(med[(r > 1.2) & (r < 1.6)]))
+        local = cv2.morphologyEx(((med < level) & (r < 1.3)).astype(np.uint8), cv2.MORPH_OPEN, disc)
+        n, labels = cv2.connectedComponents(local, connectivity=4)
+        k = labels[int(round(cy)), int(round(cx))]
+        if k:
+            out.append((cx, labels == k))
+    return [b for _, b in sorted(out, key=lambda t: t[0])]
 
 
 def _stage_lights(ctx: _Context, rep: CalibrationReport):
@@ -478,7 +522,7 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
     intr = _need(ctx, "intrinsics", "camera matrix")
     K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
     images = [ctx.image(s) for s in steps]
-    blobs = _sphere_blobs(images)
+    blobs = _sphere_blobs(images, ctx.targets.sphere_reflectance)
     first = f"frame {ctx.frames[steps[0]][0].id} (step {steps[0]})"
     if len(blobs) < 2:
         raise TargetNotFound(f"{len(blobs)} mirror sphere silhouette(s) found in the spheres steps "

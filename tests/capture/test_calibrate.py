@@ -27,6 +27,10 @@ from sims.world import SimWorld, Target, board_on_turntable, default_camera, sph
 
 W, H = 320, 240
 SPHERE_RADIUS_MM = 25.0
+#: a board that fills much of the frame (a turntable sweep only ever shows the board near the centre)
+BOARD = CharucoTarget(squares=(10, 7), square_mm=28.0, marker_mm=21.0)
+TARGETS = LabTargets(charuco_squares=BOARD.squares, charuco_square_mm=BOARD.square_mm,
+                     charuco_marker_mm=BOARD.marker_mm, sphere_radius_mm=SPHERE_RADIUS_MM)
 PLAN = {
     "name": "cal", "turntable": {"angles_deg": [0]},
     "light": {"azimuth_deg": [-40, 0, 40], "elevation_deg": [20, 50]},
@@ -34,7 +38,8 @@ PLAN = {
     "exposure": {"base_s": 0.02, "stops": [-2, 0]},
     "calibration": [
         {"kind": "dark", "frames": 2},
-        {"kind": "checkerboard", "turntable_angles_deg": [315, 330, 345, 0, 15, 30, 45], "lights": "first"},
+        {"kind": "checkerboard", "turntable_angles_deg": [300, 310, 320, 330, 340, 350, 0, 10, 20, 30, 40, 50, 60], "exposure_s": 0.02,
+         "lights": "first"},
         {"kind": "spheres", "lights": "grid"},
     ],
 }
@@ -59,7 +64,8 @@ class SceneSwitch:
         self.worlds = {
             "object": SimWorld("sphere", camera=self.camera, seed=1),
             "lens_cap": SimWorld.for_capture("dark", camera=self.camera, seed=2),
-            "checkerboard": SimWorld(None, camera=self.camera, targets=[board_on_turntable(CharucoTarget())], seed=3),
+            "checkerboard": SimWorld(None, camera=self.camera, targets=[board_on_turntable(BOARD)],
+                                     supersample=2, seed=3),
             "spheres": SimWorld(None, camera=self.camera, targets=[spheres, _backdrop()], light_radius_mm=60.0, seed=4),
         }
         self.current = self.worlds["object"]
@@ -79,7 +85,7 @@ def session(tmp_path_factory):
         store = Store(root / "store", durable=False)
         create_session(store, Plan.from_dict(PLAN), opened.rig, name="cal", reserve_bytes=0)
         assert Runner(opened.rig, store, "cal", reserve_bytes=0, prepare_target=scenes.prepare).run() == "done"
-        report = calibrate_session(store, "cal", targets=LabTargets(sphere_radius_mm=SPHERE_RADIUS_MM))
+        report = calibrate_session(store, "cal", targets=TARGETS)
         yield store, report, scenes, root
         store.close()
 
