@@ -120,7 +120,8 @@ class EnvironmentMap:
         if interpolation == "nearest":
             return self.image.reshape(-1, 3)[self._pixel_index(dirs)]
         if interpolation != "bilinear":
-            raise ValueError(f"interpolation must be 'bilinear' or 'nearest', got {interpolation!r}")
+            raise ValueError(f"interpolation must be 'bilinear' or 'nearest', got "
+                             f"{interpolation!r}")
         xy = self.to_pixel(dirs)
         x0 = np.floor(xy[:, 0])
         y = np.clip(xy[:, 1], 0, H - 1)

@@ -167,10 +167,10 @@ class Surface:
 
     def _hit_world(self, o, d, t, prim, b1, b2):
         """World rays (M, 3) and their hits -> float64 ``t`` (M,), position, unit geometric and
-        shading normals (M, 3), uv (M, 2), all in the world frame."""
+        shading normals (M, 3), uv (M, 2), all in the world frame. (Closed-form surfaces
+        already have a float64 ``t``.)"""
         p, ng, ns, uv = self._attributes(*self._to_local(o, d), t, prim, b1, b2)
-        pw, ngw, nsw = self._to_world(p, ng, ns)
-        return np.einsum("ij,ij->i", pw - o, d) / np.einsum("ij,ij->i", d, d), pw, ngw, nsw, uv
+        return (t, *self._to_world(p, ng, ns), uv)
 
     def intersect(self, origins, dirs, t_max=None):
         """Ray parameters of the first hits of world rays (N, 3): ``t`` (N,) with ``inf`` on
@@ -466,14 +466,13 @@ class Plane(Surface):
         z = np.zeros(len(t))
         return t, np.full(len(t), -1, dtype=np.int64), z, z
 
-    def _attributes(self, o, d, t, prim, b1, b2):
+    def _hit_world(self, o, d, t, prim, b1, b2):
+        # constant normal: no per-hit transform of normals
         p = o + t[:, None] * d
-        p[:, 2] = 0.0
-        n = np.broadcast_to([0.0, 0.0, 1.0], p.shape)
-        uv = p[:, :2].copy()
-        if self.size is not None:
-            uv = uv / np.asarray(self.size) + 0.5
-        return p, n, n, uv
+        n = np.broadcast_to(_unit(self._normal_matrix[:, 2:].T)[0], p.shape)
+        xy = (self._inv[:2, :3] @ p.T).T + self._inv[:2, 3]
+        uv = xy / np.asarray(self.size) + 0.5 if self.size is not None else xy
+        return t, p, n, n, uv
 
 
 # ----------------------------------------------------------------------------------------------
