@@ -1,20 +1,23 @@
-"""Rig benchmarks: serial round trip over a pty, and concurrent-move overlap.
+"""Rig benchmarks, every figure the rig issue asks for in one run.
 
-    python benchmarks/rig.py [--n 3000]
+    python benchmarks/rig.py [--n 3000] [--repeats 5]
 
 Prints
 - request/reply round trip (median, p99, microseconds) over a real pseudo-terminal for a Zaber
   status poll and a GRBL ``?`` status report, with the transport as built (chunked select +
   os.read) and, for comparison, with pyserial's own byte-at-a-time ``read_until``;
+- PTP GetObject throughput for a 24-megapixel 16-bit DNG through the simulated USB backend
+  (target >= 200 MB/s), a full ``capture()`` of it, and a bracket's per-frame overhead
+  (the functions of ``benchmarks/rig_camera.py``);
 - concurrent moves: turntable and positioner (non-fast simulators, ~0.7-0.9 s moves) each alone,
   then together; the ratio together / max(alone) should be close to 1 (not ~2 = sum).
 
-Camera (PTP over USB) throughput lives in ``benchmarks/rig_camera.py``; add its functions to
-:data:`BENCHMARKS` below to run everything from one place.
+Exits with status 1 if the throughput target is missed or the concurrent ratio exceeds 1.25.
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import statistics
 import sys
@@ -22,7 +25,9 @@ import time
 from typing import Callable
 
 # this file is named rig.py: drop its folder from the path so `import rig` finds the package
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != os.path.dirname(os.path.abspath(__file__))]
+# (the camera benchmarks beside it are then loaded by file path, see _camera_benchmarks)
+_HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
 
 import serial  # noqa: E402
 
@@ -88,7 +93,9 @@ def bench_round_trip(n: int = 3000) -> None:
             light.close()
 
 
-def bench_concurrent(repeats: int = 3) -> None:
+def bench_concurrent(repeats: int = 3) -> float:
+    """Time each move alone, then both together; print and return the median ratio
+    together / max(alone)."""
     print("concurrent moves (turntable 60 deg at 90 deg/s, 360 deg/s^2; arm 50x20 deg at 90 deg/s)")
     with ZaberSim(fast=False, homed=True, speed_deg_s=90, accel_deg_s2=360) as zsim, \
             GrblSim(fast=False, settings={22: 0}) as gsim:
@@ -97,37 +104,59 @@ def bench_concurrent(repeats: int = 3) -> None:
         table.connect()
         light.connect()
         ratios = []
-        for _ in range(repeats):
-            t0 = time.monotonic()
-            table.move_to(60).wait(5)
-            t_table = time.monotonic() - t0
-            t0 = time.monotonic()
-            light.move_to(LightTarget(azimuth_deg=50, elevation_deg=20)).wait(5)
-            t_light = time.monotonic() - t0
-            t0 = time.monotonic()
-            wait_all([table.move_to(0), light.move_to(LightTarget(azimuth_deg=0, elevation_deg=0))], timeout=5)
-            t_both = time.monotonic() - t0
-            ratios.append(t_both / max(t_table, t_light))
-            print(f"  alone: turntable {t_table:.3f} s, positioner {t_light:.3f} s; together {t_both:.3f} s "
-                  f"(sum would be {t_table + t_light:.3f} s)")
-        print(f"  ratio together / max(alone): median {statistics.median(ratios):.3f}")
-        table.close()
-        light.close()
+        try:
+            for _ in range(repeats):
+                t0 = time.monotonic()
+                table.move_to(60).wait(5)
+                t_table = time.monotonic() - t0
+                t0 = time.monotonic()
+                light.move_to(LightTarget(azimuth_deg=50, elevation_deg=20)).wait(5)
+                t_light = time.monotonic() - t0
+                t0 = time.monotonic()
+                wait_all([table.move_to(0), light.move_to(LightTarget(azimuth_deg=0, elevation_deg=0))],
+                         timeout=5)
+                t_both = time.monotonic() - t0
+                ratios.append(t_both / max(t_table, t_light))
+                print(f"  alone: turntable {t_table:.3f} s, positioner {t_light:.3f} s; together {t_both:.3f} s "
+                      f"(sum would be {t_table + t_light:.3f} s)")
+        finally:
+            table.close()
+            light.close()
+    ratio = statistics.median(ratios)
+    print(f"  ratio together / max(alone): median {ratio:.3f} (1.0 = fully concurrent, ~2 = serial)")
+    return ratio
 
 
-#: everything this script runs, in order. Camera: the PTP throughput functions of
-#: benchmarks/rig_camera.py belong here too.
-BENCHMARKS: list[Callable[..., None]] = [bench_round_trip, bench_concurrent]
+def _camera_benchmarks():
+    """``benchmarks/rig_camera.py`` as a module, loaded by path (its folder is off sys.path)."""
+    spec = importlib.util.spec_from_file_location("gonio_bench_rig_camera", os.path.join(_HERE, "rig_camera.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=3000, help="round trips to time per case")
+    ap.add_argument("--repeats", type=int, default=5, help="PTP downloads / brackets to time")
     args = ap.parse_args()
-    print(f"pyserial {serial.__version__}")
+    camera = _camera_benchmarks()
+    print(f"pyserial {serial.__version__}, Python {sys.version.split()[0]}, {os.cpu_count()} CPUs")
     bench_round_trip(args.n)
     print()
-    bench_concurrent()
+    print("PTP camera through the simulated USB backend (pyusb IBackend)")
+    mb_s = camera.bench_get_object(args.repeats)
+    camera.bench_bracket(args.repeats)
+    print()
+    ratio = bench_concurrent()
+    failed = []
+    if mb_s < camera.TARGET_MB_S:
+        failed.append(f"GetObject {mb_s:.0f} MB/s < {camera.TARGET_MB_S:.0f} MB/s")
+    if ratio > 1.25:
+        failed.append(f"concurrent ratio {ratio:.2f} > 1.25")
+    if failed:
+        print("FAILED: " + "; ".join(failed))
+        sys.exit(1)
 
 
 if __name__ == "__main__":
