@@ -268,27 +268,40 @@ def merge_ldr(images, exposure_s, response, *, clip_margin: int = 3) -> HDRImage
         raise ValueError(f"response must be (256,) or (256, {C}), got {np.shape(response)}")
     if np.any(~(resp[1:255] > 0)):
         raise ValueError("response must be positive for codes 1..254")
-    resp = np.broadcast_to(resp, (256, C))
-    log_f = np.log(np.maximum(resp, 1e-30))
-    z = imgs.astype(np.intp)
-    w = np.minimum(z, 255 - z).astype(np.float32)
+    log_f = np.log(np.maximum(np.broadcast_to(resp, (256, C)), 1e-30)).astype(np.float32)
+    codes = np.arange(256)
+    w_lut = np.minimum(codes, 255 - codes).astype(np.float32)
+    order = np.argsort(t)
     # A pixel clipped in a shorter exposure is clipped in every longer one, whatever noise says
     # (a noisy 254 there would carry a wildly low value); likewise for black in longer ones.
-    order = np.argsort(t)
-    hi = np.maximum.accumulate(z[order] >= 255 - clip_margin, axis=0)
-    lo = np.maximum.accumulate(z[order[::-1]] <= clip_margin, axis=0)[::-1]
-    w[order] = np.where(hi | lo, 0.0, w[order])
-    ch = np.arange(C)
-    logs = log_f[z, ch] - np.log(t)[:, None, None, None]
-    sw = w.sum(axis=0)
-    merged = np.sum(w * logs, axis=0) / np.maximum(sw, 1e-30)
+    clipped_hi = np.zeros(imgs.shape[1:], bool)
+    blocked = np.zeros(imgs.shape, bool)
+    for k in order:
+        clipped_hi |= imgs[k] >= 255 - clip_margin
+        blocked[k] = clipped_hi
+    clipped_lo = np.zeros(imgs.shape[1:], bool)
+    for k in order[::-1]:
+        clipped_lo |= imgs[k] <= clip_margin
+        blocked[k] |= clipped_lo
+    num = np.zeros(imgs.shape[1:], np.float32)
+    sw = np.zeros(imgs.shape[1:], np.float32)
+    n_used = np.zeros(imgs.shape[1:], np.uint8)
+    w_lut_c = np.repeat(w_lut[None, :, None], C, axis=2)
+    log_lut = log_f[None]  # (1, 256, C): cv2.LUT maps each channel through its own column
+    for k in range(len(imgs)):  # a few exposures; per-pixel work is table look-ups
+        img = np.ascontiguousarray(imgs[k])
+        wk = cv2.LUT(img, w_lut_c).reshape(img.shape)
+        wk[blocked[k]] = 0
+        num += wk * (cv2.LUT(img, log_lut).reshape(img.shape) - np.float32(np.log(t[k])))
+        sw += wk
+        n_used += wk > 0
     none = sw == 0
-    high = none & (z.max(axis=0) == 255)
-    fallback = np.where(high, log_f[254, ch] - np.log(t.min()), log_f[1, ch] - np.log(t.max()))
-    out = np.exp(np.where(none, fallback, merged)).astype(np.float32)
+    high = none & clipped_hi
+    fallback = np.where(high, log_f[254] - np.log(t.min()), log_f[1] - np.log(t.max()))
+    out = np.exp(np.where(none, fallback, num / np.maximum(sw, 1e-30))).astype(np.float32)
     squeeze = np.asarray(images[0]).ndim == 2
     pick = (lambda a: a[..., 0]) if squeeze else (lambda a: a)  # noqa: E731
-    return HDRImage(pick(out), np.zeros_like(pick(out)), pick(high), pick((w > 0).sum(axis=0).astype(np.uint8)))
+    return HDRImage(pick(out), np.zeros_like(pick(out)), pick(high), pick(n_used))
 
 
 def write_hdr(path: str | os.PathLike, image) -> None:
