@@ -151,6 +151,10 @@ class GroundTruth:
     state : RigState
     radiance : ndarray of shape (H, W, 3), float32
         The noise-free radiance the sensor integrated (supersampled, analyser applied).
+    diffuse, specular : ndarray of shape (H, W, 3), float32
+        Its body (depolarised) and interface (polarisation-preserving, incl. mirrors) parts, after
+        the analyser: ``radiance = diffuse + specular`` on surfaces (truth for polarisation
+        separation).
     buffers : RenderResult
         Geometry buffers at the pixel centres (mask, world normal, position mm, depth mm, uv,
         face and surface index into ``scene.objects``; its ``radiance`` is the pixel-centre
@@ -169,6 +173,8 @@ class GroundTruth:
 
     state: RigState
     radiance: np.ndarray
+    diffuse: np.ndarray
+    specular: np.ndarray
     buffers: RenderResult
     scene: Scene
     camera: CameraModel
@@ -416,33 +422,45 @@ class SimWorld:
                                     radius=self.light_radius_mm, polarizer=self.light_polarizer_deg))
         return sc
 
-    def _render(self, sc: Scene, st: RigState, camera: CameraModel, seed) -> RenderResult:
+    def _render(self, sc: Scene, st: RigState, camera: CameraModel, seed, components: bool = False) -> RenderResult:
         return render(sc, camera, shadows=True, polarizer=st.polarizer_deg,
-                      env_samples=self.env_samples, rng=seed)
+                      env_samples=self.env_samples, rng=seed, components=components)
 
     def radiance(self, state: RigState | Mapping | None = None, *, seed: int = 0) -> np.ndarray:
         """Noise-free radiance (H, W, 3) float32 the sensor integrates for ``state``."""
         st = state if isinstance(state, RigState) else RigState.from_state(state)
-        return self._radiance_and_buffers(st, seed, buffers=False)[0]
+        return self._frame(st, seed, truth=False)[0]
 
-    def _radiance_and_buffers(self, st: RigState, seed, *, buffers: bool):
+    def _frame(self, st: RigState, seed, *, truth: bool):
+        """(radiance, diffuse, specular, buffers) of a frame: the radiance box-filtered over the
+        supersample grid; with ``truth`` also its diffuse / specular parts (same filter) and the
+        geometry buffers at the pixel centres (None otherwise)."""
         H, W = self.camera.height, self.camera.width
-        special = self.dark or self.flat_radiance is not None
-        if special:
+        sc = self.scene(st)
+        if self.dark or self.flat_radiance is not None:  # lens cap / uniform field: no render
             rad = np.full((H, W, 3), 0.0 if self.dark else self.flat_radiance, np.float32)
-            return rad, (self._render(self.scene(st), st, self.camera, seed) if buffers else None)
+            if not truth:
+                return rad, None, None, None
+            return rad, rad, np.zeros_like(rad), self._render(sc, st, self.camera, seed)
         s = self.supersample
+        hi = self._render(sc, st, self.camera if s == 1 else supersampled_camera(self.camera, s), seed,
+                          components=truth)
+
+        def box(a):
+            return a if s == 1 else a.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+
+        rad = box(hi.radiance)
+        if not truth:
+            return rad, None, None, None
         if s == 1:
-            res = self._render(self.scene(st), st, self.camera, seed)
-            return res.radiance, res
-        hi = self._render(self.scene(st), st, supersampled_camera(self.camera, s), seed)
-        rad = hi.radiance.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
-        if not buffers:
-            return rad, None
-        if s % 2:  # the middle sub-pixel of an odd grid sits on the pixel centre
+            buffers = hi
+        elif s % 2:  # the middle sub-pixel of an odd grid sits on the pixel centre
             c = s // 2
-            return rad, RenderResult(**{f: getattr(hi, f)[c::s, c::s] for f in RenderResult.__dataclass_fields__})
-        return rad, self._render(self.scene(st), st, self.camera, seed)
+            buffers = RenderResult(**{f: None if getattr(hi, f) is None else getattr(hi, f)[c::s, c::s]
+                                      for f in RenderResult.__dataclass_fields__})
+        else:
+            buffers = self._render(sc, st, self.camera, seed)
+        return rad, box(hi.diffuse), box(hi.specular), buffers
 
     # -- the camera's frame source ------------------------------------------------------------
     def frame_source(self, state: Mapping[str, Any] | None = None) -> bytes:
@@ -466,9 +484,10 @@ class SimWorld:
     def ground_truth(self, state: Mapping[str, Any] | RigState | None = None) -> GroundTruth:
         """Truth of the frame :meth:`frame_source` makes for ``state`` (without its noise)."""
         st = state if isinstance(state, RigState) else RigState.from_state(state)
-        rad, buffers = self._radiance_and_buffers(st, 0, buffers=True)
+        rad, diffuse, specular, buffers = self._frame(st, 0, truth=True)
         expected = self.sensor.expected_raw(rad, st.exposure_s, st.iso, **self._optics(st))
-        return GroundTruth(state=st, radiance=rad, buffers=buffers, scene=self.scene(st), camera=self.camera,
+        return GroundTruth(state=st, radiance=rad, diffuse=diffuse, specular=specular, buffers=buffers,
+                           scene=self.scene(st), camera=self.camera,
                            light_position_mm=np.asarray(st.light_position_mm, float),
                            object_pose=turntable_pose(st.turntable_deg), expected=expected)
 

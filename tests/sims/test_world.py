@@ -105,6 +105,13 @@ def test_crossed_polarizers_leave_half_the_diffuse_part():
     assert np.allclose(crossed[mask], 0.5 * diffuse_only[mask], rtol=1e-5, atol=1e-7)
     spec = parallel[mask] - crossed[mask]
     assert spec.max() > 0.05 and spec.min() >= -1e-6
+    # the ground truth's split: crossed keeps no specular part, parallel all of it
+    for pol, frame in ((90.0, crossed), (0.0, parallel)):
+        gt = world.ground_truth({**state, "polarizer_angle_deg": pol})
+        assert np.allclose(gt.radiance, frame)
+        assert np.allclose(gt.diffuse[mask] + gt.specular[mask], frame[mask], rtol=1e-5, atol=1e-7)
+        assert np.allclose(gt.diffuse[mask], 0.5 * diffuse_only[mask], rtol=1e-5, atol=1e-7)
+    assert np.abs(world.ground_truth({**state, "polarizer_angle_deg": 90.0}).specular).max() < 1e-7
 
 
 def test_capture_kinds_build_their_scenes():
