@@ -136,10 +136,18 @@ def test_hemisphere_and_finite_plane():
 
 
 def test_plane_from_point_normal():
-    pl = Plane.from_point_normal((1.0, 2.0, 3.0), (0, -1.0, 1.0), size=(10, 10))
-    h = first_hits([pl], np.array([[1.0, 2.0 - 20, 3.0]]), np.array([[0, 1.0, 0]]))
-    np.testing.assert_allclose(h.position[0], [1, 2, 3], atol=1e-12)
-    np.testing.assert_allclose(h.normal[0], np.array([0, -1, 1]) / np.sqrt(2), atol=1e-12)
+    pl = Plane.from_point_normal((1.0, 2.0, 3.0), (0, -1.0, 1.0), size=(10, 20),
+                                 x_axis=(1.0, 0, 0))
+    o = np.array([[1.0, 2.0 - 20, 3.0], [3.0, 2.0 - 20, 3.0]])
+    h = first_hits([pl], o, np.array([[0, 1.0, 0], [0, 1.0, 0]]))
+    np.testing.assert_allclose(h.position, [[1, 2, 3], [3, 2, 3]], atol=1e-12)
+    np.testing.assert_allclose(h.normal, np.tile(np.array([0, -1, 1]) / np.sqrt(2), (2, 1)),
+                               atol=1e-12)
+    # u along x_axis (2 mm of a 10 mm width), v along normal x x_axis
+    np.testing.assert_allclose(h.uv, [[0.5, 0.5], [0.7, 0.5]], atol=1e-12)
+    # the same plane unbounded: uv are the in-plane coordinates in mm
+    h = first_hits([Plane(None, pl.transform)], o + [0, 0, 4.0], np.tile([0, 1.0, 0], (2, 1)))
+    np.testing.assert_allclose(h.uv, [[0, 4 * np.sqrt(2)], [2, 4 * np.sqrt(2)]], atol=1e-9)
 
 
 def test_occluded_respects_max_t_and_offsets_origins():
