@@ -101,7 +101,8 @@ def render(
     if truth:
         gt = world.ground_truth(state)
         b = gt.buffers
-        np.savez_compressed(out / f"{stem}_truth.npz", radiance=gt.radiance, mask=b.mask, normal=b.normal,
+        np.savez_compressed(out / f"{stem}_truth.npz", radiance=gt.radiance, diffuse=gt.diffuse,
+                            specular=gt.specular, mask=b.mask, normal=b.normal,
                             position=b.position, depth=b.depth, uv=b.uv, surface_index=b.surface_index,
                             face_index=b.face_index, expected_dn=gt.expected.mean_dn,
                             sigma_dn=gt.expected.sigma_dn, saturated=gt.expected.saturated)

@@ -28,6 +28,7 @@ def test_sim_render_writes_dng_png_and_truth(tmp_path):
     img = cv2.imread(str(png))
     assert img.shape == (120, 160, 3)
     truth = np.load(out / f"{stem}_truth.npz")
+    assert np.allclose((truth["diffuse"] + truth["specular"])[truth["mask"]], truth["radiance"][truth["mask"]], atol=1e-5)
     meta = json.loads((out / f"{stem}.json").read_text())
     assert meta["state"]["turntable_deg"] == 30.0 and meta["state"]["polarizer_deg"] == 0.0
     az, el = np.radians(45), np.radians(30)
