@@ -40,7 +40,9 @@ from .frames import tangent_frames, to_local
 from .raycast import (OFFSET_EPS, Hits, Surface, _check_rays, _first_hits, _occluded,
                       offset_origins, reflect, scene_scale)
 
-#: Rays processed together (bounds memory: ~1 kB per ray in flight).
+#: Rays processed together: bounds memory (~1 kB per ray in flight) and keeps arrays small
+#: enough (a few MB) for the allocator to reuse them instead of page-faulting fresh blocks,
+#: which made whole-frame passes ~3x slower.
 DEFAULT_CHUNK = 1 << 17
 
 
@@ -360,6 +362,18 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     Returns
     -------
     RenderResult
+
+    Examples
+    --------
+    >>> from reconstruct.brdf import Lambertian
+    >>> from reconstruct.raycast import Sphere
+    >>> sc = Scene()
+    >>> _ = sc.add(Sphere(40.0, center=(0, 0, 50)), Lambertian(0.5), "ball")
+    >>> sc.add_light(PointLight((100.0, -200.0, 150.0), intensity=1e5))
+    >>> cam = CameraModel.look_at((0, -300, 50), (0, 0, 50), width=64, height=48)
+    >>> res = render(sc, cam)
+    >>> res.radiance.shape, bool(res.mask[24, 32])
+    ((48, 64, 3), True)
     """
     _check_scene(scene)
     if not isinstance(camera, CameraModel):

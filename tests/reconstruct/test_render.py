@@ -520,3 +520,11 @@ def test_components_split_diffuse_and_specular(small_cam):
                                rtol=1e-5, atol=1e-7)
     assert res.specular[m].max() > 0.1 * res.diffuse[m].max()
     assert render(scene(model), small_cam, **kw).diffuse is None
+
+
+def test_docstring_examples_run():
+    import doctest
+
+    import reconstruct.render as module
+    result = doctest.testmod(module)
+    assert result.attempted > 0 and result.failed == 0
