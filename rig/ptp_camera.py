@@ -218,11 +218,13 @@ class PtpCamera(Camera):
             if bulk_out is None or bulk_in is None or event_in is None:
                 raise ProtocolError("still-image interface lacks bulk IN/OUT or interrupt IN "
                                     "endpoints", device=self.name)
-        except usb.core.USBError as exc:
-            usb.util.dispose_resources(dev)
+        except (usb.core.USBError, ValueError, NotImplementedError) as exc:
+            # pyusb raises ValueError / NotImplementedError for descriptors or backend calls it
+            # cannot serve; like USBError they must reach the caller typed
+            self._dispose(dev)
             raise self._usb_error(exc, "claiming the camera interface") from None
         except BaseException:
-            usb.util.dispose_resources(dev)
+            self._dispose(dev)
             raise
         self._dev = dev
         self.session = PtpSession(dev, ep_out=bulk_out.bEndpointAddress,
@@ -254,12 +256,17 @@ class PtpCamera(Camera):
             raise
         self._kept = []
 
+    @staticmethod
+    def _dispose(dev: Any) -> None:
+        """Release pyusb's handles on ``dev``; a device already gone has nothing to release."""
+        try:
+            usb.util.dispose_resources(dev)
+        except usb.core.USBError:
+            pass
+
     def _release(self) -> None:
         if self._dev is not None:
-            try:
-                usb.util.dispose_resources(self._dev)
-            except usb.core.USBError:
-                pass
+            self._dispose(self._dev)
         self._dev = self.session = None
 
     def close(self) -> None:

@@ -1,12 +1,14 @@
 """PtpCamera against the simulated camera (a pyusb IBackend): capture, bracket, every fault."""
 from __future__ import annotations
 
+import errno
 import io
 import time
 
 import numpy as np
 import pytest
 import rawpy
+import usb.core
 
 from rig.errors import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, LimitError, ProtocolError
 from rig.ptp_camera import PtpCamera, parse_port, snap
@@ -304,3 +306,36 @@ def test_setting_changed_on_the_body_is_reported_in_the_frame():
     frame = cam.capture()
     assert frame.exposure_s == 0.004 == cam.exposure_s
     assert dng_exposure(frame) == pytest.approx(0.004)
+
+
+class _ClaimedElsewhere(PtpCameraSim):
+    def claim_interface(self, dev_handle, intf) -> None:
+        raise usb.core.USBError("Resource busy", -6, errno.EBUSY)
+
+
+class _NoPermission(PtpCameraSim):
+    def is_kernel_driver_active(self, dev_handle, intf) -> bool:
+        raise usb.core.USBError("Access denied", -3, errno.EACCES)
+
+
+class _BackendWithoutGetConfiguration(PtpCameraSim):
+    def get_configuration(self, dev_handle) -> int:
+        raise NotImplementedError("get_configuration")
+
+
+class _EnumerationFails(PtpCameraSim):
+    def enumerate_devices(self):
+        raise usb.core.USBError("Input/output error", -1, errno.EIO)
+
+
+@pytest.mark.parametrize("sim_cls, error, match", [
+    (_ClaimedElsewhere, Disconnected, "claimed by another program"),
+    (_NoPermission, Disconnected, "udev rule"),
+    (_BackendWithoutGetConfiguration, ProtocolError, "get_configuration"),
+    (_EnumerationFails, ProtocolError, "enumeration")])
+def test_usb_faults_while_connecting_are_typed(sim_cls, error, match):
+    sim = sim_cls()
+    cam = PtpCamera("camera", VID, PID, backend=sim, timeout_s=0.3)
+    with pytest.raises(error, match=match):
+        cam.connect()
+    assert cam.session is None  # nothing half-open is left behind
