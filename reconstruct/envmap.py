@@ -26,7 +26,7 @@ import numpy as np
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class EnvironmentMap:
     """A lat-long environment map in the world frame (see module docstring for the convention).
 

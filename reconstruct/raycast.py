@@ -47,7 +47,7 @@ class SlowRaycastWarning(RuntimeWarning):
 # ----------------------------------------------------------------------------------------------
 # hits
 # ----------------------------------------------------------------------------------------------
-@dataclass
+@dataclass(eq=False)
 class Hits:
     """First intersections of N rays with a set of surfaces (world frame, mm).
 

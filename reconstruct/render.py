@@ -69,7 +69,7 @@ class Mirror:
                              f"{self.reflectance!r}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MaterialMap:
     """Several materials on one surface, chosen per hit point by an id.
 
@@ -150,7 +150,7 @@ def _angle(name, value):
     return float(value)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PointLight:
     """An isotropic point light (optionally a small sphere, for mirror highlights).
 
@@ -185,7 +185,7 @@ class PointLight:
         object.__setattr__(self, "polarizer", _angle("PointLight.polarizer", self.polarizer))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DirectionalLight:
     """A distant light.
 
@@ -215,7 +215,7 @@ class DirectionalLight:
                                                      self.polarizer))
 
 
-@dataclass
+@dataclass(eq=False)
 class SceneObject:
     """A placed surface and its material (see :data:`Material`)."""
 
@@ -233,7 +233,7 @@ class SceneObject:
                             f"Mirror, MaterialMap or callable, got {type(m).__name__}")
 
 
-@dataclass
+@dataclass(eq=False)
 class Scene:
     """What the renderer draws: objects, lights and an optional environment map.
 
@@ -264,7 +264,7 @@ class Scene:
 # ----------------------------------------------------------------------------------------------
 # results
 # ----------------------------------------------------------------------------------------------
-@dataclass
+@dataclass(eq=False)
 class RenderResult:
     """A rendered frame and its geometry buffers (H x W).
 
