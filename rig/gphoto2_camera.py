@@ -138,8 +138,11 @@ class Gphoto2Camera(Camera):
             return None if self.port == "auto" else self.port
         import usb.core
         from .ptp_camera import libusb_backend
-        dev = usb.core.find(idVendor=int(m.group(1), 16), idProduct=int(m.group(2), 16),
-                            backend=libusb_backend())
+        try:
+            dev = usb.core.find(idVendor=int(m.group(1), 16), idProduct=int(m.group(2), 16),
+                                backend=libusb_backend())
+        except usb.core.USBError as exc:
+            raise Disconnected(f"USB enumeration for {self.port} failed: {exc}", device=self.name) from None
         if dev is None:
             raise Disconnected(f"no USB device {self.port} found", device=self.name)
         return f"usb:{dev.bus:03d},{dev.address:03d}"
@@ -152,11 +155,11 @@ class Gphoto2Camera(Camera):
         port = self._gp_port()
         if port is not None:
             ports = gp.PortInfoList()
-            ports.load()
+            self._call("port list", ports.load)
             camera.set_port_info(ports[self._call("port lookup", ports.lookup_path, port)])
         if self.model:
             abilities = gp.CameraAbilitiesList()
-            abilities.load()
+            self._call("camera list", abilities.load)
             camera.set_abilities(abilities[self._call("model lookup", abilities.lookup_model,
                                                       self.model)])
         self._call("camera init", camera.init)
