@@ -21,7 +21,8 @@ from capture_fakes import make_rig  # noqa: E402
 def run_session(root: Path, n_angles: int) -> int:
     """Create (first time) and run the session ``crash``; 0 when it finished."""
     rig = make_rig(frame_bytes=20_000, capture_s=0.002)
-    plan = Plan.from_dict({"name": "crash", "turntable": {"angles_deg": list(range(0, 30 * n_angles, 30))},
+    angles = [k * 350 / n_angles for k in range(n_angles)]  # inside the fake turntable's limits
+    plan = Plan.from_dict({"name": "crash", "turntable": {"angles_deg": angles},
                            "exposure": {"base_s": 0.01, "stops": [-1, 1]}})
     with Store(root) as store:
         try:
