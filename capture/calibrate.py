@@ -13,7 +13,7 @@ code version)::
     positioner  arm kinematics fitted to those lights: a light position for every step
     polarization  diffuse / specular separation check (parallel/crossed or N analyser angles)
     gray_card   absolute scale from the 18 % card
-    mirror_probe  environment map from a mirror sphere (not implemented yet: always skipped)
+    mirror_probe  lat-long environment map from mirror-sphere captures (lab frame)
 
 A stage whose inputs are missing is *skipped* with the reason; a stage that fails records the
 error (naming the frame) and the others continue. Nothing here raises for bad data except
@@ -40,7 +40,11 @@ import numpy as np
 import rawpy
 
 from calibration.errors import CalibrationError, TargetNotFound
+from calibration.hdr import RawMosaic, master_frame, merge_raw_brackets
 from calibration.intrinsics import calibrate_intrinsics
+from calibration.probe import merge_probes, mirror_sphere_to_latlong
+from calibration.radiometry import gray_card_scale
+from calibration.polarization import fit_polarization, separate_parallel_crossed
 from calibration.lights import (detect_sphere, find_highlight, fit_positioner_model,
                                 sphere_center_from_silhouette, triangulate_point_light)
 from calibration.targets import detect_charuco, detect_chessboard, make_charuco_board
@@ -49,17 +53,17 @@ from calibration.turntable import fit_turntable
 from .store import FrameRecord, SessionNotFound, Store, StoreError
 
 __all__ = ["STAGES", "LabTargets", "StageResult", "CalibrationReport", "calibrate_session",
-           "decode_raw", "merge_bracket", "demosaic_bilinear", "SessionNotFound"]
+           "decode_raw", "cfa_channels", "demosaic_bilinear", "SessionNotFound"]
 
 #: stage names, in the order they run
 STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "polarization",
           "gray_card", "mirror_probe")
-#: a raw sample at or above this fraction of (white - black) counts as saturated
-SATURATION_FRACTION = 0.98
 #: below this fraction of coverage-grid cells holding corners, the intrinsics fit falls back to a
 #: constrained model (principal point at the image centre, no tangential terms, k1 only): a
 #: board seen only near the image centre (turntable sweeps) cannot separate those parameters
 MIN_COVERAGE_FULL_MODEL = 0.5
+#: lat-long environment map height (width is twice), pixels
+PROBE_HEIGHT = 64
 _CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
                       | cv2.CALIB_FIX_K3)
 
@@ -153,85 +157,36 @@ class _Skip(Exception):
     """Internal: the stage lacks its inputs (the message says which)."""
 
 
-# -- raw decoding, dark frames, HDR --------------------------------------------------------------
-@dataclass(frozen=True)
-class RawFrame:
-    """A decoded raw mosaic: ``data`` (H, W) float32 DN minus the black level, ``colors`` (H, W)
-    uint8 channel index 0 = R, 1 = G, 2 = B, ``white`` = white level minus black (DN)."""
-
-    data: np.ndarray
-    colors: np.ndarray
-    white: float
-
-
-def decode_raw(data: bytes, *, frame: str = "frame") -> RawFrame:
-    """Decode a camera raw file (DNG or any LibRaw format) to a black-subtracted mosaic.
+# -- raw decoding, demosaic ---------------------------------------------------------------------
+def decode_raw(data: bytes, *, frame: str = "frame") -> RawMosaic:
+    """Decode a camera raw file's bytes (DNG or any LibRaw format) into a
+    :class:`calibration.hdr.RawMosaic` (the in-memory twin of :func:`calibration.hdr.read_raw`).
 
     Raises
     ------
     ValueError
-        LibRaw cannot read the bytes (names ``frame``), or the file is not a Bayer raw.
+        LibRaw cannot read the bytes (names ``frame``), or the file is not an RGB Bayer raw.
     """
     try:
         with rawpy.imread(io.BytesIO(data)) as raw:
-            mosaic = raw.raw_image_visible.astype(np.float32)
-            colors = raw.raw_colors_visible.astype(np.uint8)
+            mosaic = raw.raw_image_visible.copy()
+            black = np.asarray(raw.black_level_per_channel, np.float32)[raw.raw_colors_visible]
             desc = raw.color_desc.decode()
-            black = np.asarray(raw.black_level_per_channel, np.float32)
+            pattern = raw.raw_pattern
+            cfa = "".join(desc[c] for c in pattern.ravel()) if pattern is not None and pattern.shape == (2, 2) else ""
             white = float(raw.white_level)
     except (rawpy.LibRawError, OSError) as exc:
         raise ValueError(f"{frame}: not a readable raw file ({type(exc).__name__}: {exc})") from None
-    if len(desc) != 4 or set(desc) - set("RGB"):
-        raise ValueError(f"{frame}: colour filter {desc!r} is not an RGB Bayer pattern")
-    # per-position black level (the four CFA positions), then map LibRaw's channels to R, G, B
-    mosaic -= black[colors]
-    rgb = np.array(["RGB".index(c) for c in desc], np.uint8)
-    return RawFrame(mosaic, rgb[colors], white - float(black.mean()))
+    if len(cfa) != 4 or set(cfa) - set("RGB"):
+        raise ValueError(f"{frame}: colour filter {cfa!r} is not a 2x2 RGB Bayer pattern")
+    return RawMosaic(mosaic, black, white, cfa)
 
 
-def merge_bracket(raws: list[RawFrame], exposures_s: list[float], darks: list[np.ndarray | None],
-                  *, saturation: float = SATURATION_FRACTION) -> tuple[np.ndarray, np.ndarray]:
-    """Merge a raw bracket into one linear mosaic (normalised DN per second).
-
-    Each sample below ``saturation * white`` contributes its dark-subtracted value; the merge
-    is ``sum(v) / sum(t)`` over the unsaturated samples (weights proportional to exposure time:
-    optimal under shot noise). Pixels saturated in every frame take the shortest exposure's
-    value (a lower bound) and are flagged.
-
-    Parameters
-    ----------
-    raws : list of RawFrame
-        Same sensor, same size.
-    exposures_s : list of float
-        Exposure time of each frame, seconds.
-    darks : list of (H, W) arrays or None
-        Mean dark frame (DN above black) for each frame's exposure, or None.
-
-    Returns
-    -------
-    merged : ndarray of shape (H, W), float32
-        Normalised DN per second.
-    saturated : ndarray of shape (H, W), bool
-        Saturated in every frame.
-    """
-    if not raws or len(raws) != len(exposures_s) or len(darks) != len(raws):
-        raise ValueError(f"merge_bracket: {len(raws)} raws, {len(exposures_s)} exposures and "
-                         f"{len(darks)} darks must be equal and non-zero")
-    num = np.zeros(raws[0].data.shape, np.float64)
-    den = np.zeros_like(num)
-    shortest = int(np.argmin(exposures_s))
-    for raw, t, dark in zip(raws, exposures_s, darks):
-        if raw.data.shape != num.shape:
-            raise ValueError(f"merge_bracket: frame sizes differ ({raw.data.shape} vs {num.shape})")
-        ok = raw.data < saturation * raw.white
-        v = (raw.data if dark is None else raw.data - dark) / raw.white
-        num += np.where(ok, v, 0.0)
-        den += np.where(ok, t, 0.0)
-    saturated = den == 0
-    low = raws[shortest]
-    fallback = low.data / low.white / exposures_s[shortest]
-    merged = np.where(saturated, fallback, num / np.where(saturated, 1.0, den))
-    return merged.astype(np.float32), saturated
+def cfa_channels(cfa: str, shape: tuple[int, int]) -> np.ndarray:
+    """Channel index (0 R, 1 G, 2 B) of every photosite for a row-major 2x2 ``cfa`` like 'RGGB'."""
+    tile = np.array(["RGB".index(c) for c in cfa], np.uint8).reshape(2, 2)
+    h, w = shape
+    return np.tile(tile, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
 
 
 _BILINEAR = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32)
@@ -267,7 +222,8 @@ class _Context:
         self.frames: dict[int, list[FrameRecord]] = {}
         for f in store.frames(self.info.id):
             self.frames.setdefault(f.step, []).append(f)
-        self.darks: dict[float, np.ndarray] = {}       # exposure s -> mean dark mosaic (DN)
+        self.darks: dict[float, np.ndarray] = {}       # exposure s -> master dark (DN, incl. black)
+        self.read_noise_dn: float | None = None        # from the dark frames' frame-to-frame scatter
         self.hdr: dict[int, np.ndarray] = {}           # step -> (H, W, 3) radiance
         self.hdr_meta: dict[int, dict[str, Any]] = {}
         self.results: dict[str, Any] = {}              # stage -> the calibration object it made
@@ -279,7 +235,7 @@ class _Context:
     def frame_ids(self, steps) -> list[int]:
         return [f.id for s in steps for f in self.frames[s]]
 
-    def raw(self, f: FrameRecord) -> RawFrame:
+    def raw(self, f: FrameRecord) -> RawMosaic:
         if f.format.lower() != "dng":
             raise ValueError(f"frame {f.id} (step {f.step}) is {f.format!r}; the pipeline reads raw DNG")
         return decode_raw(self.store.read_object(f.sha256), frame=f"frame {f.id} (step {f.step})")
@@ -322,52 +278,61 @@ def _stage_dark(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list
     for s in steps:
         for f in ctx.frames[s]:
             by_t.setdefault(round(_exposure(f), 9), []).append(f)
-    out, artifacts = [], {}
+    out, artifacts, scatter = [], {}, []
     for t, frames in sorted(by_t.items()):
-        total = None
-        for f in frames:
-            d = ctx.raw(f).data.astype(np.float64)
-            total = d if total is None else total + d
-        mean = (total / len(frames)).astype(np.float32)
-        ctx.darks[t] = mean
+        raws = [ctx.raw(f) for f in frames]
+        stack = np.stack([r.data for r in raws]).astype(np.float32)
+        master = master_frame(stack, "mean")
+        ctx.darks[t] = master
+        if len(frames) > 1:  # temporal scatter about the master: read noise (+ dark shot noise)
+            scatter.append(float(np.std(stack - master)) * np.sqrt(len(frames) / (len(frames) - 1)))
+        above = master - raws[0].black_level
         buf = io.BytesIO()
-        np.save(buf, mean)
+        np.save(buf, master)
         artifacts[f"dark_{t:g}s.npy"] = buf.getvalue()
-        out.append({"exposure_s": t, "frames": len(frames), "mean_dn": float(mean.mean()),
-                    "std_dn": float(mean.std()), "hot_pixels": int(np.count_nonzero(
-                        mean > mean.mean() + 8 * max(float(mean.std()), 1e-6)))})
-    figures = {"exposures": len(out), "mean_dn": round(float(np.mean([o["mean_dn"] for o in out])), 3)}
-    return {"darks": out}, figures, ctx.frame_ids(steps), artifacts
+        out.append({"exposure_s": t, "frames": len(frames), "mean_above_black_dn": float(above.mean()),
+                    "std_dn": float(above.std()), "hot_pixels": int(np.count_nonzero(
+                        above > above.mean() + 8 * max(float(above.std()), 1e-6)))})
+    ctx.read_noise_dn = float(np.median(scatter)) if scatter else None
+    figures = {"exposures": len(out),
+               "mean_above_black_dn": round(float(np.mean([o["mean_above_black_dn"] for o in out])), 3),
+               "read_noise_dn": None if ctx.read_noise_dn is None else round(ctx.read_noise_dn, 2)}
+    return ({"darks": out, "read_noise_dn": ctx.read_noise_dn, "artifacts": "master dark per exposure "
+             "(DN, black level included), .npy"}, figures, ctx.frame_ids(steps), artifacts)
 
 
 def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[int], dict]:
     steps = [s for s in sorted(ctx.frames) if ctx.steps.get(s, {}).get("kind") != "dark"]
     if not steps:
         raise _Skip("no frames besides dark frames in this session")
+    read_noise = ctx.read_noise_dn if ctx.read_noise_dn else 1.0
     per_step, example = [], None
     for s in steps:
         frames = ctx.frames[s]
         raws = [ctx.raw(f) for f in frames]
         ts = [_exposure(f) for f in frames]
-        darks = [ctx.dark_for(t) for t in ts]
-        merged, sat = merge_bracket(raws, ts, darks)
-        ctx.hdr[s] = demosaic_bilinear(merged, raws[0].colors)
-        pos = merged[~sat & (merged > 0)]
+        found = [ctx.dark_for(t) for t in ts]
+        # a frame without a dark at its exposure falls back to the black level alone
+        darks = np.stack([raws[0].black_level if d is None else d for d in found])
+        hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
+                                 white_level=raws[0].white_level, read_noise_dn=read_noise, darks=darks)
+        ctx.hdr[s] = demosaic_bilinear(hdr.radiance, cfa_channels(raws[0].cfa, hdr.radiance.shape))
+        pos = hdr.radiance[~hdr.saturated & (hdr.radiance > 0)]
         dr = float(np.log2(pos.max() / max(np.percentile(pos, 1), 1e-12))) if pos.size else 0.0
         meta = {"step": s, "kind": ctx.steps[s]["kind"], "frames": len(frames),
-                "exposures_s": sorted(set(ts)), "dark_subtracted": sum(d is not None for d in darks),
-                "saturated_fraction": float(sat.mean()), "dynamic_range_stops": round(dr, 2)}
+                "exposures_s": sorted(set(ts)), "dark_subtracted": sum(d is not None for d in found),
+                "saturated_fraction": float(hdr.saturated.mean()), "dynamic_range_stops": round(dr, 2)}
         ctx.hdr_meta[s] = meta
         per_step.append(meta)
-        if example is None or len(set(ts)) > len(example[1]["exposures_s"]):
+        if example is None or len(meta["exposures_s"]) > len(example[1]["exposures_s"]):
             example = (s, meta)
-    if example is not None:
-        rep.plots["hdr_example"] = {"step": example[0], "image": ctx.hdr[example[0]],
-                                    "exposures_s": example[1]["exposures_s"]}
-    figures = {"steps": len(per_step), "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
+    rep.plots["hdr_example"] = {"step": example[0], "image": ctx.hdr[example[0]],
+                                "exposures_s": example[1]["exposures_s"]}
+    figures = {"steps": len(per_step),
+               "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
                "dark_subtracted_frames": sum(m["dark_subtracted"] for m in per_step)}
-    return ({"unit": "normalised DN per second (camera RGB)", "steps": per_step},
-            figures, ctx.frame_ids(steps), {})
+    return ({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": read_noise,
+             "steps": per_step}, figures, ctx.frame_ids(steps), {})
 
 
 def _detector(ctx: _Context):
@@ -601,84 +566,127 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport):
         st = ctx.steps[s]
         if st.get("polarizer_deg") is None or st["kind"] == "dark":
             continue
-        key = (st["kind"], st.get("turntable_deg"), repr(st.get("light")))
-        groups.setdefault(key, []).append(s)
-    groups = {k: v for k, v in groups.items() if len({round(ctx.reading(s, "polarizer_deg"), 1) % 180 for s in v}) >= 2}
-    if not groups:
-        raise _Skip("no poses captured at two or more polarizer angles")
-    out, example = [], None
-    for key, steps in groups.items():
-        theta = np.radians([ctx.reading(s, "polarizer_deg") for s in steps])
-        stack = np.stack([ctx.hdr[s] for s in steps])                 # (N, H, W, 3)
-        if len(steps) == 2 and abs(np.cos(theta[1] - theta[0])) < 0.05:
-            # parallel / crossed: the crossed image is half the (unpolarised) diffuse part
-            par, cro = (0, 1) if np.cos(2 * theta[0]) > np.cos(2 * theta[1]) else (1, 0)
-            diffuse, specular = 2 * stack[cro], stack[par] - stack[cro]
-            method, resid = "parallel/crossed", 0.0
-        elif len(steps) >= 3:
-            # Malus: I(theta) = a + b cos 2 theta + c sin 2 theta, per pixel (one lstsq for all)
-            A = np.stack([np.ones_like(theta), np.cos(2 * theta), np.sin(2 * theta)], 1)
-            coef, *_ = np.linalg.lstsq(A, stack.reshape(len(steps), -1), rcond=None)
-            amp = np.hypot(coef[1], coef[2])
-            specular = (2 * amp).reshape(stack.shape[1:])
-            diffuse = (2 * (coef[0] - amp)).reshape(stack.shape[1:])
-            fit = A @ coef
-            resid = float(np.sqrt(np.mean((fit - stack.reshape(len(steps), -1)) ** 2)) /
-                          max(float(stack.mean()), 1e-12))
-            method = f"{len(steps)}-angle sinusoid"
+        groups.setdefault((st["kind"], st.get("turntable_deg"), repr(st.get("light"))), []).append(s)
+    out, example, used = [], None, []
+    for steps in groups.values():
+        # analyser angle relative to the light's polarizer (the lab mounts it at 0 deg)
+        angles = np.array([ctx.reading(s, "polarizer_deg") for s in steps])
+        distinct = np.unique(np.round(angles % 180, 1))
+        if len(distinct) < 2:
+            continue
+        stack = np.stack([ctx.hdr[s] for s in steps])
+        if len(distinct) == 2 and abs(abs(distinct[1] - distinct[0]) - 90) < 1:
+            par = int(np.argmin(np.abs(((angles + 90) % 180) - 90)))   # nearest 0 mod 180
+            cro = int(np.argmin(np.abs((angles % 180) - 90)))
+            sep = separate_parallel_crossed(stack[par], stack[cro], read_sigma=0.0)
+            diffuse, specular, method = sep.diffuse, sep.specular, "parallel/crossed"
+            misfit = float("nan")
+        elif len(distinct) >= 3:
+            fit = fit_polarization(stack, angles)
+            diffuse, specular, method = fit.diffuse, fit.specular, f"{len(distinct)}-angle sinusoid"
+            misfit = float(fit.residual_rms.mean() / max(float(stack.mean()), 1e-12))
         else:
             continue  # two angles that are not 90 deg apart do not separate
         total = float(stack.mean(axis=0).sum())
-        neg = float(np.mean(specular < -0.05 * max(float(np.abs(specular).max()), 1e-12)))
-        row = {"steps": steps, "method": method, "specular_fraction": float(specular.sum() / max(2 * total, 1e-12)),
-               "negative_specular_fraction": neg, "relative_fit_residual": resid}
-        out.append(row)
+        # parallel must carry at least as much light as crossed; below 1 the analyser (or the
+        # light's polarizer) is not where the read-backs say
+        ratio = float(stack[par].mean() / max(float(stack[cro].mean()), 1e-12)) \
+            if method == "parallel/crossed" else float("nan")
+        out.append({"steps": steps, "angles_deg": angles, "method": method,
+                    "specular_fraction": float(specular.sum() / max(2 * total, 1e-12)),
+                    "diffuse_mean": diffuse.mean(axis=(0, 1)), "specular_mean": specular.mean(axis=(0, 1)),
+                    "parallel_over_crossed": ratio, "relative_fit_residual": misfit})
+        used += steps
         if example is None:
             example = {"diffuse": diffuse, "specular": specular, "steps": steps, "method": method}
     if not out:
-        raise _Skip("polarizer angles do not separate (need 0/90 deg or 3+ angles)")
+        raise _Skip("no pose captured at analyser angles that separate (0/90 deg, or 3+ angles)")
     rep.plots["polarization"] = example
     figures = {"poses": len(out), "method": out[0]["method"],
-               "specular_pct": round(100 * float(np.mean([r["specular_fraction"] for r in out])), 2),
-               "negative_pct": round(100 * max(r["negative_specular_fraction"] for r in out), 2)}
-    return {"poses": out}, figures, ctx.frame_ids([s for r in out for s in r["steps"]]), {}, {}
+               "specular_pct": round(100 * float(np.mean([r["specular_fraction"] for r in out])), 2)}
+    return {"poses": out}, figures, ctx.frame_ids(used), {}, {"light_polarizer_deg": 0.0}
 
 
 def _stage_gray_card(ctx: _Context, rep: CalibrationReport):
     steps = ctx.steps_of("gray_card")
     if not steps:
         raise _Skip("no gray_card captures in this session")
+    albedo = ctx.targets.gray_card_albedo
+    model, tt = ctx.results.get("positioner"), ctx.results.get("turntable")
     rows = []
     for s in steps:
+        name = f"frame {ctx.frames[s][0].id} (step {s})"
         img = ctx.image(s)
         lum = img.mean(axis=2)
-        mask = (lum > 0.5 * np.percentile(lum, 99)).astype(np.uint8)
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=4)
+        # the card: the largest bright region, eroded away from its edges
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(
+            (lum > 0.5 * np.percentile(lum, 99)).astype(np.uint8), connectivity=4)
         if n < 2:
-            raise TargetNotFound("no gray card (bright uniform region)", frame=f"frame {ctx.frames[s][0].id} (step {s})")
+            raise TargetNotFound("no gray card (bright uniform region)", frame=name)
         k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         card = cv2.erode((labels == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         if card.sum() < 50:
-            raise TargetNotFound(f"gray card region has {int(card.sum())} px after erosion (need 50)",
-                                 frame=f"frame {ctx.frames[s][0].id} (step {s})")
+            raise TargetNotFound(f"gray card region has {int(card.sum())} px after erosion (need 50)", frame=name)
         rgb = np.median(img[card], axis=0)
-        rows.append({"step": s, "pixels": int(card.sum()), "radiance_rgb": rgb,
-                     "scale_rgb": ctx.targets.gray_card_albedo / rgb,
-                     "relative_spread": float(np.std(img[card].mean(axis=1)) / max(float(rgb.mean()), 1e-12))})
-    scale = np.median(np.array([r["scale_rgb"] for r in rows]), axis=0)
-    result = {"albedo": ctx.targets.gray_card_albedo, "scale_rgb": scale, "cards": rows,
-              "meaning": "albedo per HDR unit for the card's lighting geometry, per camera channel"}
-    figures = {"cards": len(rows), "scale_rgb": [float(f"{v:.4g}") for v in scale],
-               "spread_pct": round(100 * max(r["relative_spread"] for r in rows), 2)}
-    return result, figures, ctx.frame_ids(steps), {}, {"albedo": ctx.targets.gray_card_albedo}
+        row = {"step": s, "pixels": int(card.sum()), "value_rgb": rgb,
+               "relative_scale_rgb": albedo / rgb,
+               "relative_spread": float(np.std(img[card].mean(axis=1)) / max(float(rgb.mean()), 1e-12))}
+        light = ctx.steps[s].get("light")
+        if model is not None and tt is not None and light and "azimuth_deg" in light:
+            # absolute scale: the card stands at the lab origin facing the light (assumed)
+            d = float(np.linalg.norm(model.position(light["azimuth_deg"], light["elevation_deg"])))
+            row["light_distance_mm"] = d
+            row["brdf_scale_rgb"] = [gray_card_scale(img[card][:, c], reflectance=albedo,
+                                                     light_distance_mm=d).scale for c in range(3)]
+        rows.append(row)
+    scale = np.median(np.array([r["relative_scale_rgb"] for r in rows]), axis=0)
+    result = {"albedo": albedo, "relative_scale_rgb": scale, "cards": rows,
+              "meaning": "relative_scale_rgb: albedo per HDR unit (DN/s) for the card's lighting; "
+                         "brdf_scale_rgb: f_r = value * scale * d^2 / cos_i (calibration.radiometry), "
+                         "assuming the card at the lab origin facing the light"}
+    figures = {"cards": len(rows), "relative_scale_rgb": [float(f"{v:.4g}") for v in scale],
+               "spread_pct": round(100 * max(r["relative_spread"] for r in rows), 2),
+               "absolute": all("brdf_scale_rgb" in r for r in rows)}
+    return result, figures, ctx.frame_ids(steps), {}, {"albedo": albedo}
+
+
+def _find_mirror_sphere(img: np.ndarray, frame: str) -> tuple[np.ndarray, float]:
+    """Centre (x, y) and radius (px) of a mirror sphere under an environment: the strongest
+    circle of OpenCV's gradient Hough transform on the tone-mapped image (the sphere's
+    compressed reflection of the room differs from the background all round its limb)."""
+    g8 = (np.sqrt(_display(img)) * 255).astype(np.uint8)
+    h, w = g8.shape
+    circles = cv2.HoughCircles(g8, cv2.HOUGH_GRADIENT_ALT, dp=1.0, minDist=min(h, w) / 4, param1=100,
+                               param2=0.75, minRadius=5, maxRadius=min(h, w) // 2)
+    if circles is None:
+        raise TargetNotFound("no mirror sphere (no circle in the image)", frame=frame)
+    x, y, r = (float(v) for v in circles.reshape(-1, 3)[0])
+    return np.array([x, y]), r
 
 
 def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport):
     steps = ctx.steps_of("mirror_probe")
     if not steps:
         raise _Skip("no mirror_probe captures in this session")
-    raise _Skip(f"{len(steps)} mirror_probe step(s) captured, but environment maps from a mirror "
-                "sphere are not implemented yet (calibration has no probe module)")
+    tt = ctx.results.get("turntable")
+    # the room is fixed in the lab: map it in the lab frame when the turntable gave one
+    R, frame = (tt.R_ref, "lab") if tt is not None else (np.eye(3), "camera")
+    probes, rows = [], []
+    for s in steps:
+        name = f"frame {ctx.frames[s][0].id} (step {s})"
+        centre, radius = _find_mirror_sphere(ctx.image(s), name)
+        probes.append(mirror_sphere_to_latlong(ctx.image(s), centre, radius, R, height=PROBE_HEIGHT))
+        rows.append({"step": s, "centre_px": centre, "radius_px": radius})
+    probe = merge_probes(probes)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, env=probe.env, weight=probe.weight)
+    rep.plots["probe"] = {"env": probe.env, "weight": probe.weight}
+    result = {"frame": frame, "height": PROBE_HEIGHT, "views": rows,
+              "valid_fraction": float(probe.valid.mean()), "mean_rgb": probe.env[probe.valid].mean(axis=0),
+              "artifacts": "environment.npz: env (H, 2H, 3) DN/s lat-long, weight (H, 2H)"}
+    figures = {"views": len(rows), "frame": frame, "valid_pct": round(100 * float(probe.valid.mean()), 1),
+               "sphere_radius_px": round(rows[0]["radius_px"], 1)}
+    return result, figures, ctx.frame_ids(steps), {"environment.npz": buf.getvalue()}, {"height": PROBE_HEIGHT}
 
 
 _RUNNERS: dict[str, Callable] = {

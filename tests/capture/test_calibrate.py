@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from capture.calibrate import LabTargets, STAGES, calibrate_session, demosaic_bilinear, merge_bracket, RawFrame
+from capture.calibrate import LabTargets, STAGES, calibrate_session
 from capture.cli import app
 from capture.plan import Plan
 from capture.rigs import open_rig
@@ -41,6 +41,8 @@ PLAN = {
         {"kind": "checkerboard", "turntable_angles_deg": [300, 310, 320, 330, 340, 350, 0, 10, 20, 30, 40, 50, 60], "exposure_s": 0.02,
          "lights": "first"},
         {"kind": "spheres", "lights": "grid"},
+        {"kind": "gray_card", "lights": "first"},
+        {"kind": "mirror_probe", "when": "after"},
     ],
 }
 
@@ -67,6 +69,8 @@ class SceneSwitch:
             "checkerboard": SimWorld(None, camera=self.camera, targets=[board_on_turntable(BOARD)],
                                      supersample=2, seed=3),
             "spheres": SimWorld(None, camera=self.camera, targets=[spheres, _backdrop()], light_radius_mm=60.0, seed=4),
+            "gray_card": SimWorld.for_capture("graycard", camera=self.camera, seed=6),
+            "mirror_probe": SimWorld.for_capture("probe", None, camera=self.camera, seed=5),
         }
         self.current = self.worlds["object"]
 
