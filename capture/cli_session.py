@@ -43,6 +43,8 @@ def open_store(path: str, *, create: bool = False) -> Store:
         return Store.open(path, create=create)
     except StoreError as exc:
         raise fail(str(exc)) from None
+    except OSError as exc:  # e.g. --store names a file that is neither a store nor an archive
+        raise fail(f"cannot open store {path}: {exc}") from None
 
 
 def human_bytes(n: float) -> str:

@@ -301,6 +301,16 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _copy_hashed(src: Path, dst: Path, chunk: int = 1 << 22) -> str:
+    """Copy ``src`` to ``dst`` in one pass, returning the SHA-256 hex of the bytes copied."""
+    h = hashlib.sha256()
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        while block := fin.read(chunk):
+            h.update(block)
+            fout.write(block)
+    return h.hexdigest()
+
+
 def sha256_file(path: Path) -> str:
     with open(path, "rb") as f:
         return hashlib.file_digest(f, "sha256").hexdigest()
@@ -949,8 +959,7 @@ class Store:
                 if not src.is_file():
                     raise StoreError(f"cannot export {session!r}: object {sha} is missing; "
                                      f"run 'gonio session verify {session}'")
-                shutil.copyfile(src, dst)
-                if sha256_file(dst) != sha:
+                if _copy_hashed(src, dst) != sha:
                     raise StoreError(f"cannot export {session!r}: object {sha} is corrupt; "
                                      f"run 'gonio session verify {session}'")
                 os.chmod(dst, 0o444)
