@@ -22,6 +22,7 @@ import logging
 import math
 import re
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -298,7 +299,8 @@ class GrblPositioner(LightPositioner):
         self.version = ""
         self.build = ""
         self.options = ""
-        self.messages: list[str] = []  # [MSG:...] pushes, newest last
+        # [MSG:...] pushes, newest last; bounded so a long session does not grow it forever
+        self.messages: deque[str] = deque(maxlen=100)
         self.last_alarm: int | None = None
         self._homed = False
         self._wco: tuple[float, ...] = (0.0, 0.0, 0.0)

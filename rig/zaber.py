@@ -29,6 +29,7 @@ import math
 import re
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -363,7 +364,8 @@ class ZaberRotaryStage(Axis):
         self._ids = itertools.cycle(range(100))
         self._id_lock = threading.Lock()
         self._connected = False
-        self.alerts: list[ZaberMessage] = []  # unsolicited alerts seen (comm.alert = 1)
+        # unsolicited alerts seen (comm.alert = 1), newest last; bounded: one per move otherwise
+        self.alerts: deque[ZaberMessage] = deque(maxlen=100)
         self.info: dict[str, Any] = {}
 
     @classmethod

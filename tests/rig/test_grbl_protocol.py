@@ -92,7 +92,7 @@ def test_connect_reads_banner_build_settings_and_state():
     assert p.version == "1.1h" and p.build == "1.1h.20190825" and p.options == "V,15,128"
     assert p.homing_enabled and not p.homed
     assert p.settings[110] == 5400.0
-    assert p.messages == ["'$H'|'$X' to unlock"]
+    assert list(p.messages) == ["'$H'|'$X' to unlock"]
     d = p.describe()
     assert d["firmware"] == "Grbl 1.1h" and d["kinematics"]["type"] == "arm"
     t.assert_done()
