@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from .events import Event, EventKind
+from .events import Event
 
 DB_NAME = "gonio.sqlite"
 STATES = ("planned", "running", "paused", "done", "aborted")
