@@ -29,6 +29,7 @@ def _register() -> None:
     from .cli_session import app as session_app; app.add_typer(session_app, name="session")  # noqa: E702
     from .cli_capture import app as capture_app; app.add_typer(capture_app, name="capture")  # noqa: E702
     from .cli_sim import app as sim_app; app.add_typer(sim_app, name="sim")  # noqa: E702
+    from .cli_calibrate import calibrate; app.command("calibrate")(calibrate)  # noqa: E702
     pass
 
 

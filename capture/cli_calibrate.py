@@ -1,0 +1,89 @@
+"""``gonio calibrate SESSION``: run the calibration pipeline on a recorded session.
+
+Runs :func:`capture.calibrate.calibrate_session` with a progress bar, prints a summary table
+(stage, status, key figures or the reason a stage was skipped / failed), stores the results in
+the session (``gonio session show`` lists them) and writes the PNG report
+``<session>-calibration.png`` next to the store (or into ``--out``).
+
+Exit status: 0 every stage that ran succeeded; 1 a stage failed (the table names the frame);
+2 usage or store errors (unknown session, unreadable store, bad --targets file);
+3 nothing to calibrate (the session holds no captures any stage can use).
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import fields
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+from rich.table import Table
+
+from .calibrate import STAGES, LabTargets, calibrate_session
+from .cli_session import STORE_OPTION, fail, open_store
+from .store import SessionNotFound
+
+EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
+
+
+def _targets(path: Path | None) -> LabTargets:
+    """LabTargets from a TOML file of its field names (``sphere_radius_mm = 25.0`` ...)."""
+    if path is None:
+        return LabTargets()
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise fail(f"--targets {path}: cannot read it as TOML ({exc})") from None
+    known = {f.name for f in fields(LabTargets)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise fail(f"--targets {path}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    try:
+        return LabTargets(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+    except (TypeError, ValueError) as exc:
+        raise fail(f"--targets {path}: {exc}") from None
+
+
+def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
+              store: str = STORE_OPTION,
+              out: Path = typer.Option(None, "--out", help="Folder for the PNG report "
+                                       "(default: the folder holding the store)."),
+              targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
+                                           "targets (board size, sphere radius ...: LabTargets fields)."),
+              quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
+    """Calibrate a session from its own captures and write the PNG report."""
+    lab_targets = _targets(targets)
+    console = Console()
+    with open_store(store) as st:
+        try:
+            st.session(session)
+        except SessionNotFound as exc:
+            raise fail(str(exc)) from None
+        with Progress(TextColumn("calibrating {task.fields[stage]}"), BarColumn(), MofNCompleteColumn(),
+                      console=Console(stderr=True), transient=True, disable=quiet) as progress:
+            task = progress.add_task("calibrate", total=len(STAGES), stage="")
+
+            def advance(stage: str, index: int, total: int) -> None:
+                progress.update(task, completed=index, stage=stage)
+
+            report = calibrate_session(st, session, progress=advance, targets=lab_targets)
+        table = Table(title=f"calibration of session {session}")
+        for col in ("stage", "status", "key figures / reason"):
+            table.add_column(col, overflow="fold")
+        colour = {"ok": "green", "skipped": "yellow", "failed": "red"}
+        for s in report.stages:
+            text = ", ".join(f"{k} {v}" for k, v in s.figures.items()) if s.status == "ok" else s.reason
+            table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", text)
+        console.print(table)
+        if not report.ran:
+            typer.secho(f"nothing to calibrate: session {session!r} has no captures any stage can use "
+                        "(add [[calibration]] captures: dark, checkerboard, spheres, gray_card, "
+                        "mirror_probe)", err=True, fg=typer.colors.YELLOW)
+            raise typer.Exit(EXIT_NOTHING)
+        from .report import write_report  # matplotlib loads only when there is something to draw
+        folder = out if out is not None else Path(st.root).resolve().parent
+        png = write_report(report, folder / f"{session}-calibration.png")
+        console.print(f"stored {sum(s.status == 'ok' for s in report.stages)} calibration result(s) in "
+                      f"{st.root}; report: {png}", highlight=False)
+    raise typer.Exit(EXIT_FAILED if report.failed else EXIT_OK)
