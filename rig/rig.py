@@ -105,6 +105,7 @@ class Rig:
         camera, so a simulated or custom pyusb backend can be used).
         """
         cfg = load_config(source)
+        where = "rig config" if isinstance(source, dict) else str(source)
         devices: dict[str, Device] = {}
         for role, section in cfg.items():
             if role == "rig":
@@ -112,10 +113,15 @@ class Rig:
             if section["port"] == "sim":
                 raise ConfigError(f"[{role}] port = 'sim': start the simulators first "
                                   "(gonio --rig sim, or sims.lab.SimLab) and pass their ports")
-            device = driver_class(section["driver"]).from_config(role, section, **context)
+            try:
+                device = driver_class(section["driver"]).from_config(role, section, **context)
+            except (TypeError, ValueError) as exc:
+                # drivers validate their own keys and values; name the file and section for all
+                text = str(exc) if str(exc).startswith("[") else f"[{role}] {exc}"
+                raise ConfigError(f"{where}: {text}") from None
             if not isinstance(device, ROLES[role]):
-                raise ConfigError(f"[{role}] driver {section['driver']!r} does not provide a "
-                                  f"{ROLES[role].__name__}")
+                raise ConfigError(f"{where}: [{role}] driver {section['driver']!r} cannot serve as the "
+                                  f"{role} (it does not implement {ROLES[role].__name__})")
             devices[role] = device
         return cls(**devices, config=cfg)
 

@@ -45,6 +45,44 @@ def test_bad_turntable_sections_are_config_errors():
         Rig.from_config({"turntable": {"driver": "zaber", "port": "/dev/x", "device": 100}})
 
 
+@pytest.mark.parametrize("role,section,match", [
+    ("polarizer", {"driver": "elliptec", "port": "/dev/x", "address": "Z"}, r"\[polarizer\] address"),
+    ("polarizer", {"driver": "elliptec", "port": "/dev/x", "move_timeout_s": -1}, r"\[polarizer\] move_timeout_s"),
+    ("polarizer", {"driver": "elliptec", "port": "/dev/x", "timeout": 1}, r"\[polarizer\] unknown keys.*timeout"),
+    ("camera", {"driver": "ptp", "port": "usb:zz"}, r"\[camera\].*usb:VID:PID"),
+    ("camera", {"driver": "ptp", "port": "usb:04a9:32b4", "exposure": 1}, r"\[camera\] unknown keys.*exposure"),
+    ("turntable", {"driver": "zaber", "port": "/dev/x", "speed": 9}, r"\[turntable\].*speed"),
+])
+def test_every_driver_reports_bad_sections_as_config_errors_naming_the_file(tmp_path, role, section, match):
+    with pytest.raises(ConfigError, match=match):
+        Rig.from_config({role: section})
+    path = tmp_path / "bench.toml"
+    path.write_text(f"[{role}]\n" + "".join(f"{k} = {v!r}\n".replace("'", '"') for k, v in section.items()))
+    with pytest.raises(ConfigError, match=rf"{path}: .*{match}"):
+        Rig.from_config(path)
+
+
+@pytest.mark.parametrize("cfg,match", [
+    ({"turntable": {"driver": "thorlabs", "port": "/dev/x"}}, r"driver = 'thorlabs' is unknown; known drivers: elliptec"),
+    ({"turntable": {"driver": "zaber"}}, r"\[turntable\] needs a port"),
+    ({"laser": {"driver": "zaber", "port": "/dev/x"}}, r"unknown section \[laser\]"),
+    ({"turntable": {"driver": "zaber", "port": "sim"}}, r"start the simulators"),
+    ({"turntable": {"driver": "ptp", "port": "usb:04a9:32b4"}}, r"driver 'ptp' cannot serve as the turntable \(it does not implement Axis\)"),
+])
+def test_unknown_drivers_sections_and_missing_ports(cfg, match):
+    with pytest.raises(ConfigError, match=match):
+        Rig.from_config(cfg)
+
+
+def test_missing_and_malformed_rig_files(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        Rig.from_config(tmp_path / "none.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[turntable\ndriver = 1\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        Rig.from_config(bad)
+
+
 def test_rig_connects_to_simulators_and_moves():
     with ZaberSim(fast=True, homed=True) as zsim, GrblSim(fast=True, settings={22: 0}) as gsim:
         cfg = {"turntable": {"driver": "zaber", "port": zsim.port},
