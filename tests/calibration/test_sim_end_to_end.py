@@ -1,0 +1,99 @@
+"""End to end on the simulated lab's rendered frames (sims/world.py): the calibration functions
+against the renderer's own ground truth. Rendering costs seconds per frame, so the multi-frame
+cases are marked slow."""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+sims_world = pytest.importorskip("sims.world")
+
+from calibration.hdr import merge_raw_brackets, read_raw  # noqa: E402
+from calibration.intrinsics import detect_all  # noqa: E402
+from calibration.lights import SphereImage, find_highlight, reflect_highlight  # noqa: E402
+from calibration.polarization import separate_parallel_crossed  # noqa: E402
+from calibration.targets import detect_charuco, make_charuco_board  # noqa: E402
+from calibration.turntable import fit_turntable  # noqa: E402
+
+
+def _angle_deg(u, v):
+    return float(np.degrees(np.arccos(np.clip(np.dot(u, v) / np.linalg.norm(u) / np.linalg.norm(v), -1, 1))))
+
+
+def test_chrome_sphere_light_direction_on_rendered_frame():
+    world = sims_world.SimWorld.for_capture("chrome")
+    light = sims_world.light_position(40.0, 35.0)
+    rad = world.radiance({"light_position_mm": light})
+    cam = world.camera
+    centre_w = world.targets[0].points_world(0.0)[0]
+    radius = world.targets[0].spec.radius_mm
+    C = cam.R @ centre_w + cam.t  # sphere centre, camera frame (known position, per Lensch)
+    # the sphere's disc in the image, from its known position (the silhouette against a dark
+    # cloth is not a clean mask)
+    uv = cam.project(centre_w[None])[0]
+    r_px = cam.K[0, 0] * radius / np.sqrt(C @ C - radius ** 2)
+    sph = SphereImage(uv, float(r_px), None, np.zeros((0, 2)))
+    hl = find_highlight(rad.mean(axis=2), sph)
+    P, L = reflect_highlight(hl.xy_px[None], C[None], radius, cam.K, cam.dist)
+    truth = (cam.R @ light + cam.t) - P[0]
+    assert _angle_deg(L[0], truth) < 0.25
+
+
+@pytest.mark.slow
+def test_turntable_axis_on_rendered_charuco_views():
+    world = sims_world.SimWorld.for_capture("charuco")
+    spec = world.targets[0].spec
+    board = make_charuco_board(spec.squares, spec.square_mm, spec.marker_mm, spec.dictionary)
+    readings = np.arange(-60.0, 61.0, 20.0)
+    imgs = [world.radiance({"turntable_deg": r}) for r in readings]
+    dets, missing = detect_all(imgs, functools.partial(detect_charuco, board=board), on_missing="skip")
+    keep = [i for i, d in enumerate(imgs) if f"frame {i}" not in {m.frame for m in missing}]
+    fit = fit_turntable(dets, world.camera.K, world.camera.dist, angles_deg=readings[keep])
+    cam = world.camera
+    assert _angle_deg(fit.axis_camera, cam.R[:, 2]) < 0.1
+    # our origin lies on the true axis (through the world origin, along world +z)
+    d = fit.origin_camera - cam.t
+    assert np.linalg.norm(d - np.dot(d, cam.R[:, 2]) * cam.R[:, 2]) < 0.5
+    assert abs(fit.angle_scale - 1) < 1e-9 and fit.rms_px < 0.3
+
+
+@pytest.mark.slow
+def test_polarization_separation_on_rendered_object():
+    world = sims_world.SimWorld.for_capture("object", "sphere")
+    par = world.ground_truth({"polarizer_deg": 0.0})
+    cro = world.ground_truth({"polarizer_deg": 90.0})
+    sep = separate_parallel_crossed(par.radiance, cro.radiance)
+    surf = par.buffers.mask if par.buffers.mask.ndim == 2 else par.buffers.mask[..., 0]
+    d_true = (par.diffuse + cro.diffuse)[surf]
+    s_true = (par.specular - cro.specular)[surf]
+    rel = lambda e, t: np.sqrt(np.mean((e - t) ** 2)) / np.sqrt(np.mean(t ** 2))  # noqa: E731
+    assert rel(sep.diffuse[surf], d_true) < 0.02
+    assert rel(sep.specular[surf], s_true) < 0.02
+
+
+@pytest.mark.slow
+def test_raw_hdr_from_simulated_dngs(tmp_path):
+    world = sims_world.SimWorld.for_capture("object", "sphere")
+    iso = 100.0
+    times = [1 / 400, 1 / 100, 1 / 25]
+    mosaics, truth = [], None
+    for k, t in enumerate(times):
+        state = {"exposure_s": t, "iso": iso}
+        path = tmp_path / f"f{k}.dng"
+        path.write_bytes(world.frame_source(state))
+        raw = read_raw(path)
+        mosaics.append(raw.data)
+        if k == 0:
+            gt = world.ground_truth(state)
+            truth = (gt.expected.mean_dn - raw.black_level) / t  # DN/s
+            unsat = ~gt.expected.saturated
+    g = world.sensor.e_per_dn(iso)
+    hdr = merge_raw_brackets(mosaics, times, black_level=raw.black_level, white_level=raw.white_level,
+                             gain_e_per_dn=g, read_noise_dn=world.sensor.read_noise_e / g)
+    bright = unsat & (truth > 50 * (world.sensor.read_noise_e / g) / times[-1])
+    ratio = hdr.radiance[bright] / truth[bright]
+    assert abs(np.mean(ratio) - 1) < 0.01
+    z = (hdr.radiance - truth)[bright] / hdr.sigma[bright]
+    assert 0.8 < z.std() < 1.25
