@@ -58,7 +58,7 @@ def pose_facing(center_mm, toward_mm, *, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     if np.linalg.norm(face) == 0:
         raise ValueError("toward_mm must differ from center_mm")
     z = -face / np.linalg.norm(face)                  # board z points away from the viewer
-    x = np.cross(np.asarray(up, float), z)            # right as seen from the viewer
+    x = np.cross(z, np.asarray(up, float))            # right as seen from the viewer
     if np.linalg.norm(x) < 1e-9:
         raise ValueError("up is parallel to the board normal; give another 'up'")
     x /= np.linalg.norm(x)

@@ -210,7 +210,7 @@ def standing_pose(center_height_mm: float, *, tilt_deg: float = 25.0, facing_deg
     ``facing_deg`` (0: the default camera), leaning back by ``tilt_deg`` (face turned up)."""
     a, t = np.radians(facing_deg), np.radians(tilt_deg)
     z = -np.array([np.cos(a) * np.cos(t), np.sin(a) * np.cos(t), np.sin(t)])  # into the sheet
-    x = np.cross([0.0, 0.0, 1.0], z)
+    x = np.cross(z, [0.0, 0.0, 1.0])  # right as seen from the front, so y points down the sheet
     x /= np.linalg.norm(x)
     T = np.eye(4)
     T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, (0.0, 0.0, center_height_mm)

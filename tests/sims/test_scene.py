@@ -133,6 +133,10 @@ def test_charuco_corners_project_where_the_camera_model_says():
     truth = cam.project(world.targets[0].points_world(-20.0))[ids.ravel()]
     err = np.linalg.norm(corners.reshape(-1, 2) - truth, axis=1)
     assert np.sqrt(np.mean(err ** 2)) < 0.2 and err.max() < 0.5
+    # the board stands upright: its first corner (top-left as printed) is up-left in the image
+    c = corners.reshape(-1, 2)
+    first, last = c[np.argmin(ids.ravel())], c[np.argmax(ids.ravel())]
+    assert first[0] < last[0] and first[1] < last[1]
 
 
 def test_steel_sphere_row_highlights_lamp_and_ring_flash():

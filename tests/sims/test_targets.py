@@ -134,3 +134,13 @@ def test_procedural_sky_has_its_sun_where_asked():
     # ground below the horizon is dark and uniform
     below = env.directions()[..., 2] < -0.05
     assert np.ptp(env.image[below], axis=0).max() == 0 and env.image[below].max() < 0.2
+
+
+def test_pose_facing_reads_upright_from_the_viewer():
+    eye = np.array([600.0, 0.0, 100.0])
+    T = pose_facing((0.0, 0.0, 100.0), eye)
+    assert np.allclose(T[:3, 2], [-1, 0, 0])          # into the board, away from the viewer
+    assert np.allclose(T[:3, 1], [0, 0, -1])          # y down the sheet
+    # x to the viewer's right: the camera at +x looking at -x with z up has right = +y
+    assert np.allclose(T[:3, 0], [0, 1, 0])
+    assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
