@@ -126,7 +126,8 @@ class _ProgressView:
         if e.kind in (EventKind.RETRY, EventKind.FAULT, EventKind.LOW_DISK):
             self.progress.console.print(f"[yellow]{e.kind.value}[/] {e.device or ''} {e.message}",
                                         highlight=False)
-        elif e.kind in (EventKind.TARGET, EventKind.NOTE, EventKind.PAUSED, EventKind.ABORTED):
+        elif e.kind in (EventKind.TARGET, EventKind.NOTE, EventKind.METERED, EventKind.PAUSED,
+                        EventKind.ABORTED):
             self.progress.console.print(f"{e.kind.value}: {e.message}", highlight=False)
 
 
