@@ -20,6 +20,7 @@ geometric normal, on the side the ray leaves).
 from __future__ import annotations
 
 import copy
+import threading
 import warnings
 from dataclasses import dataclass
 from typing import Sequence
@@ -38,6 +39,8 @@ except ImportError:  # pragma: no cover - exercised only on machines without the
 OFFSET_EPS = 1e-5
 #: Rays per call of the pure-Python fallback (it needs ~0.4 MB per ray).
 _FALLBACK_CHUNK = 2000
+#: Serialises the lazy builds (BVH, per-pose tables) when a frame is rendered on threads.
+_BUILD_LOCK = threading.Lock()
 
 
 class SlowRaycastWarning(RuntimeWarning):
@@ -225,13 +228,17 @@ class Mesh(Surface):
         return float(np.linalg.norm(corners, axis=1).max())
 
     def _embree(self):
+        """The Embree scene of the object-frame mesh (built once, shared by all poses) and the
+        centre its float32 vertices are relative to."""
         g = self._geom
-        if "scene" not in g:
-            centre = g["corners"].mean(axis=0)
-            scene = _rtcs.EmbreeScene()
-            _EmbreeTriangles(scene=scene, vertices=(g["vertices"] - centre).astype(np.float32),
-                             indices=g["faces"].astype(np.int32))
-            g["scene"] = (scene, centre)
+        with _BUILD_LOCK:
+            if "scene" not in g:
+                centre = g["corners"].mean(axis=0)
+                scene = _rtcs.EmbreeScene()
+                _EmbreeTriangles(scene=scene,
+                                 vertices=(g["vertices"] - centre).astype(np.float32),
+                                 indices=g["faces"].astype(np.int32))
+                g["scene"] = (scene, centre)
         return g["scene"]
 
     def _embree_rays(self, o, d, t_max):
@@ -290,22 +297,26 @@ class Mesh(Surface):
         """Per-face world-frame data for this pose: first vertex, unit face normal, and the dual
         edge vectors g1, g2 with barycentrics b1 = (p - v0) . g1, b2 = (p - v0) . g2 (O(F),
         computed once per pose)."""
-        if self._world is None:
-            g = self._geom
-            A, b = self.transform[:3, :3], self.transform[:3, 3]
-            tri = (g["vertices"] @ A.T + b)[g["faces"]]
-            e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-            d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
-            den = d11 * d22 - d12 * d12
-            inv = np.divide(1.0, den, out=np.zeros_like(den), where=np.abs(den) > 0)
-            self._world = {
-                "v0": tri[:, 0], "normal": _unit(g["face_normals"] @ self._normal_matrix.T),
-                "g1": (d22[:, None] * e1 - d12[:, None] * e2) * inv[:, None],
-                "g2": (d11[:, None] * e2 - d12[:, None] * e1) * inv[:, None],
-                "ok": inv != 0,
-                "vertex_normals": _unit(g["vertex_normals"] @ self._normal_matrix.T),
-            }
+        with _BUILD_LOCK:
+            if self._world is None:
+                self._world = self._compute_world_tables()
         return self._world
+
+    def _compute_world_tables(self) -> dict:
+        g = self._geom
+        A, b = self.transform[:3, :3], self.transform[:3, 3]
+        tri = (g["vertices"] @ A.T + b)[g["faces"]]
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
+        den = d11 * d22 - d12 * d12
+        inv = np.divide(1.0, den, out=np.zeros_like(den), where=np.abs(den) > 0)
+        return {
+            "v0": tri[:, 0], "normal": _unit(g["face_normals"] @ self._normal_matrix.T),
+            "g1": (d22[:, None] * e1 - d12[:, None] * e2) * inv[:, None],
+            "g2": (d11[:, None] * e2 - d12[:, None] * e1) * inv[:, None],
+            "ok": inv != 0,  # degenerate faces keep Embree's barycentrics
+            "vertex_normals": _unit(g["vertex_normals"] @ self._normal_matrix.T),
+        }
 
     def _hit_world(self, o, d, t, prim, b1, b2):
         wt = self._world_tables()
