@@ -22,7 +22,7 @@ from textual.binding import Binding
 from textual.message import Message
 from textual.widgets import DataTable, Footer, Header, Static, TabbedContent, TabPane
 
-from rig.device import Axis, Camera, Frame, LightPositioner, LightTarget
+from rig.device import Axis, Frame, LightPositioner, LightTarget
 from rig.errors import Disconnected, RigError
 from rig.rig import Rig
 
@@ -199,9 +199,9 @@ class GonioApp(App[None]):
                 yield self.preview_pane
             with TabPane("4 Log", id="log"):
                 yield self.log_pane
-        yield Static(id="statusbar")
+        self.statusbar = Static(id="statusbar")
+        yield self.statusbar
         yield Footer()
-
 
     @property
     def lab(self) -> Any:
@@ -218,21 +218,21 @@ class GonioApp(App[None]):
 
     def _update_status(self, *_: Any) -> None:
         """The always-visible line: the E-STOP key, the rig, the session."""
-        if self.rig is not None:
-            rig = f"rig {self.rig_spec}: {', '.join(self.rig.devices)}"
-        else:
-            rig = f"rig {self.rig_spec}: not connected"
+        rig = (f"{len(self.rig.devices)} devices" if self.rig is not None else "not connected")
         pane = self.session_pane
         session = pane.state if pane.session_name is None else f"{pane.session_name} {pane.state}"
-        text = Text.assemble(("ctrl+e E-STOP", "bold white on red"), f"  {rig}  │  session: ",
-                             (session, "bold"))
-        self.query_one("#statusbar", Static).update(text)
+        text = Text.assemble(("ctrl+e E-STOP", "bold white on red"),
+                             f"  rig {self.rig_spec}: {rig}  │  session: ", (session, "bold"),
+                             no_wrap=True, overflow="ellipsis")
+        self.statusbar.update(text)
 
     def log_line(self, level: int, kind: str, message: str, device: str | None = None) -> None:
         self.log_pane.add(LogEntry(level, kind, message, device))
 
     # -- global actions -----------------------------------------------------------------------
     def action_show_tab(self, tab: str) -> None:
+        if isinstance(self.screen, HelpScreen):
+            self.pop_screen()
         self.query_one(TabbedContent).active = tab
         focus = {"devices": "#device-table", "session": "#steps", "preview": "#histograms",
                  "log": "#log-view"}[tab]

@@ -7,6 +7,7 @@ from rich.segment import Segment
 from rich.text import Text
 from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.app import ComposeResult
+from textual.binding import Binding
 from textual.reactive import reactive
 from textual.strip import Strip
 from textual.widget import Widget
@@ -124,9 +125,20 @@ class HistogramView(Static):
 class PreviewPane(Vertical):
     """The Preview tab: the image on the left, the bracket's histograms on the right."""
 
+    BINDINGS = [Binding("plus,equals_sign", "gain(2)", "Gain ×2", key_display="+"),
+                Binding("minus", "gain(0.5)", "Gain ÷2")]
+
+    def action_gain(self, factor: float) -> None:
+        """Display gain (a power of two, 1/64 .. 64); the histograms stay on the raw values."""
+        image = self.query_one(HalfBlockImage)
+        image.gain = min(max(image.gain * factor, 1 / 64), 64)
+        self.query_one("#preview-gain", Label).update(f"display gain ×{image.gain:g}")
+
     def compose(self) -> ComposeResult:
-        yield Label("no frame yet: take a test shot (Devices, t) or start a session",
-                    id="preview-info")
+        with Horizontal(id="preview-top"):
+            yield Label("no frame yet: take a test shot (Devices, t) or start a session",
+                        id="preview-info")
+            yield Label("display gain ×1", id="preview-gain")
         with Horizontal(id="preview-body"):
             yield HalfBlockImage(id="preview-image")
             yield VerticalScroll(id="histograms")

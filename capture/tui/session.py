@@ -18,6 +18,7 @@ from textual.reactive import reactive
 from textual.widgets import DataTable, Input, Label, ProgressBar, Static
 
 from ..events import Event, EventKind
+from .devices import light_direction
 
 #: store states a session can be resumed from ("running" in the store but not here: a crash)
 RESUMABLE = ("running", "paused", "planned")
@@ -101,6 +102,7 @@ class SessionPane(Vertical):
         self.session_name: str | None = None
         self._started = 0.0
         self._steps_at_start = 0
+        self._step_data: dict[str, Any] = {}
 
     def compose(self) -> ComposeResult:
         with Horizontal(id="plan-bar"):
@@ -178,22 +180,30 @@ class SessionPane(Vertical):
             self.clear_alert()
             self.state = "running"
         elif kind == EventKind.STEP_STARTED and event.step is not None:
+            self._step_data = dict(d)
             self._set_step_status(steps, event.step, Text("▶ running", style="bold green"))
-            self.query_one("#current-step", Static).update(self._current_step_text(event))
+            self.query_one("#current-step", Static).update(
+                self._current_step_text(event.step, d))
         elif kind == EventKind.MOVED:
-            self.query_one("#current-step", Static).update(self._current_step_text(event))
+            # the read-back positions, with the step's exposures
+            self.query_one("#current-step", Static).update(
+                self._current_step_text(event.step, {**self._step_data, **d}))
         elif kind == EventKind.FRAME_STORED:
             self.frames_stored += 1
         elif kind == EventKind.STEP_DONE and event.step is not None:
             self._set_step_status(steps, event.step, "done")
         elif kind in (EventKind.FAULT, EventKind.RETRY):
-            action = (f"retry {d.get('attempt', '?')} in {d.get('delay_s', 0):g} s"
-                      if kind == EventKind.RETRY else str(d.get("action", "paused")))
+            # what the runner did about it: a retry after a back-off, or a pause
+            action = (f"retried ({d.get('attempt', '?')}, {d.get('delay_s', 0):g} s)"
+                      if kind == EventKind.RETRY else "paused")
             self.add_fault(event, action)
         elif kind == EventKind.PAUSED:
             self.state = "paused"
-            if d.get("reason") == "fault" or event.device:
-                self.show_alert(f"⚠ session paused: {event.message}  (p to resume, a to abort)")
+            if event.device:  # paused by a device fault (an operator pause names no device)
+                fault = next((f.message for f, _ in reversed(self.faults)
+                              if f.kind == EventKind.FAULT), event.message)
+                self.show_alert(f"⚠ PAUSED by a {event.device} fault: {fault}. Fix it, then "
+                                "p to resume (Devices: c reconnects, h homes) or a to abort")
         elif kind == EventKind.DONE:
             self.state = "done"
         elif kind == EventKind.ABORTED:
@@ -205,18 +215,23 @@ class SessionPane(Vertical):
             table.update_cell(str(step), "status", value)
             table.move_cursor(row=table.get_row_index(str(step)))
 
-    def _current_step_text(self, event: Event) -> Text:
-        d = event.data
-        parts = [f"step {event.step}"]
+    @staticmethod
+    def _current_step_text(step: int | None, d: dict[str, Any]) -> Text:
+        """Step, turntable (deg), light (az/el deg or xyz mm), polarizer (deg), exposures (s)
+        from a step's plan dict and/or a ``positions`` read-back."""
+        parts = [f"step {step}"]
         pos = d.get("positions", d)
-        if "turntable_deg" in pos:
+        if pos.get("turntable_deg") is not None:
             parts.append(f"turntable {pos['turntable_deg']:.2f}°")
         light = pos.get("light")
-        if isinstance(light, dict) and "azimuth_deg" in light:
+        if "light_mm" in pos:  # a read-back: the light's position in the world frame, mm
+            az, el, r = light_direction(pos["light_mm"])
+            parts.append(f"light az {az:.1f}° el {el:.1f}° r {r:.0f} mm")
+        elif isinstance(light, dict) and "azimuth_deg" in light:
             parts.append(f"light az {light['azimuth_deg']:.1f}° el {light['elevation_deg']:.1f}°")
         elif light is not None:
             parts.append(f"light {light}")
-        if "polarizer_deg" in pos:
+        if pos.get("polarizer_deg") is not None:
             parts.append(f"polarizer {pos['polarizer_deg']:.1f}°")
         if "exposures_s" in d:
             parts.append(f"exposures {fmt_exposures(d['exposures_s'])}")
