@@ -169,10 +169,18 @@ def find_highlight(image, sphere: SphereImage | None = None, *, saturation: floa
     img = _image_2d(image, "image")
     if not 0 < rel_threshold < 1:
         raise ValueError(f"rel_threshold must be in (0, 1), got {rel_threshold}")
+    offset = np.zeros(2)
     region = np.ones(img.shape, bool)
-    if sphere is not None:
+    if sphere is not None:  # work in the sphere's bounding box only (frames may be 24 MP)
+        c, r = sphere.center_px, sphere.radius_px
+        x0, y0 = np.maximum(np.floor(c - r).astype(int), 0)
+        x1, y1 = np.minimum(np.ceil(c + r).astype(int) + 1, [img.shape[1], img.shape[0]])
+        if x1 <= x0 or y1 <= y0:
+            raise TargetNotFound("the sphere's disc lies outside the image", frame=frame)
+        img = img[y0:y1, x0:x1]
+        offset = np.array([x0, y0], float)
         yy, xx = np.indices(img.shape)
-        region = (xx - sphere.center_px[0]) ** 2 + (yy - sphere.center_px[1]) ** 2 < (sphere.radius_px - 1) ** 2
+        region = (xx + x0 - c[0]) ** 2 + (yy + y0 - c[1]) ** 2 < (r - 1) ** 2
     vals = np.where(region, img, -np.inf)
     peak_idx = np.unravel_index(np.argmax(vals), img.shape)
     peak = float(img[peak_idx])
@@ -188,7 +196,7 @@ def find_highlight(image, sphere: SphereImage | None = None, *, saturation: floa
     w = np.where(blob, np.minimum(img, ref) - thr, 0.0)
     ys, xs = np.nonzero(w)
     ww = w[ys, xs]
-    xy = np.array([np.sum(ww * xs), np.sum(ww * ys)]) / np.sum(ww)
+    xy = np.array([np.sum(ww * xs), np.sum(ww * ys)]) / np.sum(ww) + offset
     n_sat = int(np.count_nonzero(blob & (img >= sat))) if sat is not None else 0
     return Highlight(xy, n_sat, peak)
 

@@ -26,13 +26,13 @@ def _angle_deg(u, v):
 
 
 def render_spheres(centres, radius, *, light_dir=None, light_pos=None, K=K, size=SIZE, lobe_deg=0.6,
-                   peak=8.0, noise=0.002, rng=None, flash=False):
-    """Chrome spheres seen by a pinhole camera (4x4 supersampled inside each sphere's bounding
-    box), lit by a distant light, a point light, or a flash at the camera; returns
+                   peak=8.0, noise=0.002, rng=None, flash=False, ss=3):
+    """Chrome spheres seen by a pinhole camera (``ss`` x ``ss`` supersampled inside each sphere's
+    bounding box), lit by a distant light, a point light, or a flash at the camera; returns
     (image clipped at 1, sphere mask)."""
     rng = np.random.default_rng(0) if rng is None else rng
     w, h = size
-    s = 4
+    s = ss
     img = np.zeros((h, w))
     cover = np.zeros((h, w))
     for C in np.atleast_2d(centres):
