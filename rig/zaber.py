@@ -12,7 +12,10 @@ Frames (one line each; the host may end a command with ``\\n``, the device ends 
   requests so that a late or stale line can never be mistaken for the answer.
 - ``:CC`` is the optional checksum: the two's complement of the byte sum (mod 256) of every
   character after the leading ``/`` ``@`` ``#`` ``!`` and before the ``:``, as two upper-case hex
-  digits. A device checks a command's checksum when it is present.
+  digits (``/01 tools echo:8F``). A device checks a command's checksum when it is present; it
+  appends one to its own replies only when the device setting ``comm.checksum`` is 1 (the
+  factory default is 0), which the driver turns on at connect (``reply_checksums``) so that a
+  reply damaged on the wire -- a flipped digit in a position -- is detected, not believed.
 - ``RJ`` replies carry the rejection reason in the data field (:data:`REJECTION_REASONS`).
 - ``flag`` is the most urgent active warning (``--`` none); faults ``F*``, warnings ``W*``,
   notices ``N*`` (:data:`WARNING_FLAGS`). ``warnings`` lists all of them, ``warnings clear``
@@ -316,6 +319,11 @@ class ZaberRotaryStage(Axis):
         Reply timeout per request, seconds.
     use_checksum : bool
         Send checksums (the device then rejects a command corrupted on the wire).
+    reply_checksums : bool
+        Make the device checksum its replies: at :meth:`connect` the device setting
+        ``comm.checksum`` is set to 1 if it is not (a persistent device setting; Zaber's own
+        software reads such replies), and from then on a reply without a checksum is a
+        ``ProtocolError``. False leaves the setting alone and accepts replies without one.
     microstep_deg : float, optional
         Degrees per microstep for stages without ``limit.cycle.dist``.
     poll_interval_s : float
@@ -335,7 +343,8 @@ class ZaberRotaryStage(Axis):
 
     def __init__(self, name: str = "turntable", port: str | None = None, *, transport: Any = None,
                  device: int = 1, axis: int = 1, baudrate: int = 115200, timeout_s: float = 0.5,
-                 use_checksum: bool = True, microstep_deg: float | None = None,
+                 use_checksum: bool = True, reply_checksums: bool = True,
+                 microstep_deg: float | None = None,
                  poll_interval_s: float = 0.01, poll_retries: int = 2, busy_retries: int = 3,
                  busy_backoff_s: float = 0.02, speed_deg_s: float | None = None,
                  accel_deg_s2: float | None = None) -> None:
@@ -354,6 +363,8 @@ class ZaberRotaryStage(Axis):
         self.axis_number = axis
         self.timeout_s = timeout_s
         self.use_checksum = use_checksum
+        self.reply_checksums = reply_checksums
+        self._require_reply_checksum = False  # set once comm.checksum = 1 is confirmed
         self.poll_interval_s = poll_interval_s
         self.poll_retries = poll_retries
         self.busy_retries = busy_retries
@@ -371,11 +382,11 @@ class ZaberRotaryStage(Axis):
     @classmethod
     def from_config(cls, name: str, section: dict[str, Any], **context: Any) -> "ZaberRotaryStage":
         """Build from a rig-file section: ``port`` and optional ``device``, ``axis``,
-        ``baudrate``, ``timeout_s``, ``use_checksum``, ``microstep_deg``, ``speed_deg_s``,
+        ``baudrate``, ``timeout_s``, ``use_checksum``, ``reply_checksums``, ``microstep_deg``, ``speed_deg_s``,
         ``accel_deg_s2``, ``poll_interval_s``, ``poll_retries``, ``busy_retries``."""
         from .rig import ConfigError
         allowed = {"driver", "port", "device", "axis", "baudrate", "timeout_s", "use_checksum",
-                   "microstep_deg", "poll_interval_s", "poll_retries", "busy_retries", "speed_deg_s",
+                   "reply_checksums", "microstep_deg", "poll_interval_s", "poll_retries", "busy_retries", "speed_deg_s",
                    "accel_deg_s2"}
         unknown = set(section) - allowed
         if unknown:
@@ -427,6 +438,11 @@ class ZaberRotaryStage(Axis):
                     continue
                 if msg.kind == "@" and msg.message_id == mid and msg.device == self.address \
                         and msg.axis == axis:
+                    if msg.checksum_ok is None and self._require_reply_checksum:
+                        # comm.checksum is on: a reply without one lost its ':CC' on the wire
+                        t.reset_input()
+                        raise ProtocolError(f"reply to {command!r} carries no checksum although "
+                                            "comm.checksum = 1", device=self.name, raw=line)
                     return msg
                 log.debug("%s: skipped %r while waiting for id %d", self.name, line, mid)
 
@@ -456,6 +472,7 @@ class ZaberRotaryStage(Axis):
         """Open the port and read identity, resolution, travel and speed from the device."""
         self.close()
         self._transport.open()
+        self._require_reply_checksum = False
         try:
             self._transport.reset_input()
             info: dict[str, Any] = {
@@ -469,6 +486,8 @@ class ZaberRotaryStage(Axis):
                 "maxspeed": self.get("maxspeed"),
                 "accel": self.get("accel"),
             }
+            if self.reply_checksums:
+                self._enable_reply_checksums()
         except BaseException:
             self._transport.close()
             raise
@@ -491,6 +510,13 @@ class ZaberRotaryStage(Axis):
             self.set_speed(self._speed_deg_s)
         if self._accel_deg_s2 is not None:
             self.set_accel(self._accel_deg_s2)
+
+    def _enable_reply_checksums(self) -> None:
+        """Set the device's ``comm.checksum`` to 1 (if needed) and require checksummed replies."""
+        if int(self.get("comm.checksum", scope_device=True)) != 1:
+            self.command("set comm.checksum 1", scope_device=True)
+            log.info("%s: turned on reply checksums (device setting comm.checksum = 1)", self.name)
+        self._require_reply_checksum = True
 
     def close(self) -> None:
         self._connected = False
@@ -691,6 +717,6 @@ class ZaberRotaryStage(Axis):
                 "firmware": info["firmware"], "serial": info["serial"],
                 "limits": self.limits, "cyclic": self.cyclic, "resolution": info["resolution"],
                 "microstep_deg": self.microstep_deg, "max_speed_deg_s": self.speed_deg_s,
-                "accel_deg_s2": self.accel_deg_s2,
+                "accel_deg_s2": self.accel_deg_s2, "reply_checksums": self._require_reply_checksum,
             })
         return out

@@ -8,8 +8,12 @@ power-up the axis reports ``WR`` (no reference position) and rejects absolute mo
 
 ``stop`` decelerates at ``accel`` from the current speed (flag ``NI``, command interrupted).
 
-Simplifications, stated: one device with one axis; replies carry a checksum exactly when the
-command did; a command whose checksum is wrong is dropped without a reply.
+Checksums: a command's checksum is verified when present; replies, info lines and alerts carry
+one only while the device setting ``comm.checksum`` is 1 (factory default 0; the setting is kept
+over a power cycle, as the firmware keeps it in non-volatile memory).
+
+Simplifications, stated: one device with one axis; a command whose checksum is wrong is dropped
+without a reply (the manual's exact answer to it was not verified).
 
 With ``set comm.alert 1`` the device pushes an alert ``!01 1 IDLE <flag>`` when a move ends.
 
@@ -110,6 +114,8 @@ class ZaberSim(SerialSim):
     power_up_angle_deg : float
         Physical angle of the platter at power-up; the position counter starts at 0 there, so
         the reported angle is wrong until the stage is homed (the home sensor is at 0 deg).
+    reply_checksums : bool
+        Initial ``comm.checksum`` (False, the factory default: replies carry no checksum).
     """
 
     FAULTS = SerialSim.FAULTS | {"busy", "stall", "encoder", "limit"}
@@ -118,7 +124,7 @@ class ZaberSim(SerialSim):
                  device_id: int = 50419, firmware: str = "7.38", serial: int = 123456,
                  cycle_microsteps: int = 1_536_000, resolution: int = 64,
                  speed_deg_s: float = 90.0, accel_deg_s2: float = 360.0, homed: bool = False,
-                 power_up_angle_deg: float = 0.0) -> None:
+                 power_up_angle_deg: float = 0.0, reply_checksums: bool = False) -> None:
         super().__init__(name, fast=fast)
         if cycle_microsteps <= 0:
             raise ValueError(f"cycle_microsteps must be > 0, got {cycle_microsteps}")
@@ -133,6 +139,7 @@ class ZaberSim(SerialSim):
             "maxspeed": round(speed_deg_s * steps_per_deg * SPEED_UNITS),
             "accel": round(accel_deg_s2 * steps_per_deg * ACCEL_UNITS),
         }
+        self.reply_checksums = reply_checksums  # comm.checksum (non-volatile)
         self._start_homed = homed
         self._power_up_angle = power_up_angle_deg
         self.on_power_up()
@@ -180,7 +187,7 @@ class ZaberSim(SerialSim):
                 if "WL" in flags:
                     self.flags.add("WR")
             if self.alerts_on:
-                self._outbox += f"!{self.device:02d} 1 IDLE {self._flag()}\r\n".encode()
+                self._outbox += self._frame("!", f"{self.device:02d} 1 IDLE {self._flag()}")
         elif v0 is None:
             self._pos = p0 + math.copysign(trapezoid_distance(delta, self.speed, self.accel, now - t0), delta)
         else:  # braking after a stop
@@ -257,9 +264,13 @@ class ZaberSim(SerialSim):
             if mid is not None:
                 body += f" {int(mid):02d}"
             body += f" {flag} {status} {self._flag()} {data}"
-        if with_ck:
+            return self._frame("@", body)
+
+    def _frame(self, kind: str, body: str) -> bytes:
+        """One outgoing line, checksummed while ``comm.checksum`` is 1."""
+        if self.reply_checksums:
             body += ":" + _checksum(body)
-        return ("@" + body + "\r\n").encode("ascii")
+        return (kind + body + "\r\n").encode("ascii")
 
     def _execute(self, axis: int, command: str) -> tuple[str, str]:
         """Run one command; return (``OK``/``RJ``, data)."""
@@ -274,7 +285,7 @@ class ZaberSim(SerialSim):
         if verb == "get" and len(words) == 2:
             return self._get(axis, words[1])
         if verb == "set" and len(words) == 3:
-            return self._set(words[1], words[2])
+            return self._set(axis, words[1], words[2])
         if verb == "move" and len(words) == 3 and words[1] in ("abs", "rel"):
             return self._move(words[1], words[2])
         if verb == "home" and len(words) == 1:
@@ -307,7 +318,7 @@ class ZaberSim(SerialSim):
 
     def _get(self, axis: int, setting: str) -> tuple[str, str]:
         device_settings = {"deviceid": self.device_id, "version": self.firmware,
-                           "system.serial": self.serial}
+                           "system.serial": self.serial, "comm.checksum": int(self.reply_checksums)}
         if setting in device_settings:
             if axis != 0:
                 return "RJ", "DEVICEONLY"
@@ -319,7 +330,14 @@ class ZaberSim(SerialSim):
             return "RJ", "BADCOMMAND"
         return "OK", str(values[setting])
 
-    def _set(self, setting: str, value: str) -> tuple[str, str]:
+    def _set(self, axis: int, setting: str, value: str) -> tuple[str, str]:
+        if setting == "comm.checksum":
+            if axis != 0:
+                return "RJ", "DEVICEONLY"
+            if value not in ("0", "1"):
+                return "RJ", "BADDATA"
+            self.reply_checksums = value == "1"
+            return "OK", "0"
         if setting == "comm.alert":
             if value not in ("0", "1"):
                 return "RJ", "BADDATA"

@@ -35,7 +35,7 @@ def connect_script(start: int = 0) -> list[tuple[bytes, bytes]]:
     answers = [("get deviceid", "50419", 0), ("get version", "7.38", 0), ("get system.serial", "4242", 0),
                ("get resolution", "64", 1), ("get limit.cycle.dist", str(CYCLE), 1),
                ("get limit.min", "0", 1), ("get limit.max", str(CYCLE - 1), 1),
-               ("get maxspeed", "629146", 1), ("get accel", "1049", 1)]
+               ("get maxspeed", "629146", 1), ("get accel", "1049", 1), ("get comm.checksum", "1", 0)]
     return [(req(start + i, c, axis), rep(start + i, d, axis=axis)) for i, (c, d, axis) in enumerate(answers)]
 
 
@@ -169,9 +169,9 @@ def test_connect_reads_conversion_from_device():
 
 
 def test_position_and_homed():
-    s, t = stage([(req(9, "get pos"), rep(9, str(CYCLE // 4))),
-                  (req(10, "warnings"), rep(10, "01 WR", warn="WR")),
-                  (req(11, "warnings"), rep(11, "00"))])
+    s, t = stage([(req(10, "get pos"), rep(10, str(CYCLE // 4))),
+                  (req(11, "warnings"), rep(11, "01 WR", warn="WR")),
+                  (req(12, "warnings"), rep(12, "00"))])
     assert s.position == pytest.approx(90.0)
     assert s.homed is False
     assert s.homed is True
@@ -180,40 +180,40 @@ def test_position_and_homed():
 
 def test_move_polls_until_idle_and_returns_angle():
     target = CYCLE // 4
-    s, t = stage([(req(9, "get pos"), rep(9, "0")),
-                  (req(10, f"move abs {target}"), rep(10, status="BUSY")),
-                  (req(11, ""), rep(11, status="BUSY")),
+    s, t = stage([(req(10, "get pos"), rep(10, "0")),
+                  (req(11, f"move abs {target}"), rep(11, status="BUSY")),
                   (req(12, ""), rep(12, status="BUSY")),
-                  (req(13, ""), rep(13)),
-                  (req(14, "get pos"), rep(14, str(target)))])
+                  (req(13, ""), rep(13, status="BUSY")),
+                  (req(14, ""), rep(14)),
+                  (req(15, "get pos"), rep(15, str(target)))])
     assert s.move_to(90.0).wait(2) == pytest.approx(90.0)
     t.assert_done()
 
 
 def test_move_wraps_negative_angle_onto_the_circle():
     target = round(CYCLE * 350 / 360)
-    s, t = stage([(req(9, "get pos"), rep(9, "0")),
-                  (req(10, f"move abs {target}"), rep(10, status="BUSY")),
-                  (req(11, ""), rep(11)),
-                  (req(12, "get pos"), rep(12, str(target)))])
+    s, t = stage([(req(10, "get pos"), rep(10, "0")),
+                  (req(11, f"move abs {target}"), rep(11, status="BUSY")),
+                  (req(12, ""), rep(12)),
+                  (req(13, "get pos"), rep(13, str(target)))])
     assert s.move_to(-10.0).wait(2) == pytest.approx(350.0)
     t.assert_done()
 
 
 def test_busy_rejection_is_retried_then_succeeds():
-    s, t = stage([(req(9, "get pos"), rep(9, "0")),
-                  (req(10, "move abs 0"), rep(10, "STATUSBUSY", flag="RJ", status="BUSY")),
+    s, t = stage([(req(10, "get pos"), rep(10, "0")),
                   (req(11, "move abs 0"), rep(11, "STATUSBUSY", flag="RJ", status="BUSY")),
-                  (req(12, "move abs 0"), rep(12, status="BUSY")),
-                  (req(13, ""), rep(13)),
-                  (req(14, "get pos"), rep(14, "0"))], busy_backoff_s=0.001)
+                  (req(12, "move abs 0"), rep(12, "STATUSBUSY", flag="RJ", status="BUSY")),
+                  (req(13, "move abs 0"), rep(13, status="BUSY")),
+                  (req(14, ""), rep(14)),
+                  (req(15, "get pos"), rep(15, "0"))], busy_backoff_s=0.001)
     assert s.move_to(0.0).wait(2) == pytest.approx(0.0)
     t.assert_done()
 
 
 def test_busy_rejection_gives_device_busy_after_retries():
-    script = [(req(9, "get pos"), rep(9, "0"))]
-    script += [(req(10 + i, "move abs 0"), rep(10 + i, "STATUSBUSY", flag="RJ", status="BUSY")) for i in range(3)]
+    script = [(req(10, "get pos"), rep(10, "0"))]
+    script += [(req(11 + i, "move abs 0"), rep(11 + i, "STATUSBUSY", flag="RJ", status="BUSY")) for i in range(3)]
     s, t = stage(script, busy_retries=2, busy_backoff_s=0.001)
     with pytest.raises(DeviceBusy, match="STATUSBUSY"):
         s.move_to(0.0)
@@ -221,18 +221,18 @@ def test_busy_rejection_gives_device_busy_after_retries():
 
 
 def test_not_homed_rejection_raises_at_once():
-    s, t = stage([(req(9, "get pos"), rep(9, "0")),
-                  (req(10, f"move abs {CYCLE // 2}"), rep(10, "BADCOMMAND", flag="RJ", warn="WR"))])
+    s, t = stage([(req(10, "get pos"), rep(10, "0")),
+                  (req(11, f"move abs {CYCLE // 2}"), rep(11, "BADCOMMAND", flag="RJ", warn="WR"))])
     with pytest.raises(NotHomed):
         s.move_to(180.0)
     t.assert_done()
 
 
 def test_stall_fault_at_end_of_move_is_raised_and_cleared():
-    s, t = stage([(req(9, "get pos"), rep(9, "0")),
-                  (req(10, f"move abs {CYCLE // 4}"), rep(10, status="BUSY")),
-                  (req(11, ""), rep(11, warn="FS")),
-                  (req(12, "warnings clear"), rep(12, "01 FS", warn="FS"))])
+    s, t = stage([(req(10, "get pos"), rep(10, "0")),
+                  (req(11, f"move abs {CYCLE // 4}"), rep(11, status="BUSY")),
+                  (req(12, ""), rep(12, warn="FS")),
+                  (req(13, "warnings clear"), rep(13, "01 FS", warn="FS"))])
     status = s.move_to(90.0)
     with pytest.raises(DeviceError, match="stalled") as info:
         status.wait(2)
@@ -241,10 +241,10 @@ def test_stall_fault_at_end_of_move_is_raised_and_cleared():
 
 
 def test_interrupted_move_fails_with_position():
-    s, t = stage([(req(9, "get pos"), rep(9, "0")),
-                  (req(10, f"move abs {CYCLE // 4}"), rep(10, status="BUSY")),
-                  (req(11, ""), rep(11, warn="NI")),
-                  (req(12, "get pos"), rep(12, str(CYCLE // 8)))])
+    s, t = stage([(req(10, "get pos"), rep(10, "0")),
+                  (req(11, f"move abs {CYCLE // 4}"), rep(11, status="BUSY")),
+                  (req(12, ""), rep(12, warn="NI")),
+                  (req(13, "get pos"), rep(13, str(CYCLE // 8)))])
     with pytest.raises(DeviceError, match="45.0000 deg, not at the target 90.0000") as info:
         s.move_to(90.0).wait(2)
     assert info.value.code == "NI"
@@ -253,22 +253,22 @@ def test_interrupted_move_fails_with_position():
 
 def test_alerts_info_and_stale_replies_are_skipped():
     stale = rep(3, "777")  # a late answer to an earlier, timed-out request
-    s, t = stage([(req(9, "get pos"), b"!01 1 IDLE --\r\n" + stale + b"#01 1 09 note\r\n" + rep(9, "0"))])
+    s, t = stage([(req(10, "get pos"), b"!01 1 IDLE --\r\n" + stale + b"#01 1 10 note\r\n" + rep(10, "0"))])
     assert s.position == 0.0
     assert [a.kind for a in s.alerts] == ["!"]
     t.assert_done()
 
 
 def test_garbled_reply_is_protocol_error():
-    good = rep(9, "1000")
-    s, t = stage([(req(9, "get pos"), good[:5] + b"\x7f" + good[6:])])
+    good = rep(10, "1000")
+    s, t = stage([(req(10, "get pos"), good[:5] + b"\x7f" + good[6:])])
     with pytest.raises(ProtocolError, match="get pos"):
         _ = s.position
     t.assert_done()
 
 
 def test_missing_reply_is_timeout_not_hang():
-    s, t = stage([(req(9, "get pos"), None)])
+    s, t = stage([(req(10, "get pos"), None)])
     with pytest.raises(DeviceTimeout):
         _ = s.position
     t.assert_done()
@@ -278,7 +278,7 @@ def test_non_cyclic_stage_needs_microstep_size_and_checks_limits():
     answers = [("get deviceid", "1", 0), ("get version", "7.10", 0), ("get system.serial", "1", 0),
                ("get resolution", "64", 1), ("get limit.cycle.dist", "0", 1),
                ("get limit.min", "-1000", 1), ("get limit.max", "100000", 1),
-               ("get maxspeed", "1000", 1), ("get accel", "100", 1)]
+               ("get maxspeed", "1000", 1), ("get accel", "100", 1), ("get comm.checksum", "1", 0)]
     script = [(req(i, c, a), rep(i, d, axis=a)) for i, (c, d, a) in enumerate(answers)]
     t = ScriptedTransport(list(script))
     with pytest.raises(DeviceError, match="microstep_deg"):
@@ -298,3 +298,32 @@ def test_from_config_rejects_unknown_keys():
         ZaberRotaryStage.from_config("turntable", {"driver": "zaber", "port": "/dev/null", "speed": 3})
     s = ZaberRotaryStage.from_config("turntable", {"driver": "zaber", "port": "/dev/x", "device": 2})
     assert s.address == 2
+
+
+def _plain(mid: int, data: str = "0", axis: int = 0) -> bytes:
+    """A reply as a device with comm.checksum = 0 (the factory default) sends it: no ':CC'."""
+    return f"@01 {axis} {mid:02d} OK IDLE -- {data}\r\n".encode()
+
+
+def test_connect_turns_on_reply_checksums_then_requires_them():
+    script = connect_script()[:-1] + [(req(9, "get comm.checksum", 0), _plain(9, "0")),
+                                      (req(10, "set comm.checksum 1", 0), rep(10, axis=0)),
+                                      (req(11, "get pos"), rep(11, "0")),
+                                      (req(12, "get pos"), _plain(12, "1000", axis=1))]
+    t = ScriptedTransport(script, device="turntable")
+    s = ZaberRotaryStage("turntable", transport=t)
+    s.connect()
+    assert s.describe()["reply_checksums"] is True
+    assert s.position == 0.0
+    with pytest.raises(ProtocolError, match="no checksum"):
+        _ = s.position  # a reply that lost its ':CC' is not believed
+    t.assert_done()
+
+
+def test_reply_checksums_off_leaves_the_device_setting_alone():
+    script = connect_script()[:-1] + [(req(9, "get pos"), _plain(9, str(CYCLE // 2), axis=1))]
+    t = ScriptedTransport(script, device="turntable")
+    s = ZaberRotaryStage("turntable", transport=t, reply_checksums=False)
+    s.connect()
+    assert s.position == pytest.approx(180.0) and s.describe()["reply_checksums"] is False
+    t.assert_done()

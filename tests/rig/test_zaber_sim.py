@@ -118,6 +118,11 @@ def test_checksum_mismatch_on_the_wire_is_detected(stage, sim):
     assert stage.position == 0.0  # next request is fine
 
 
+def test_driver_turns_on_reply_checksums_on_a_factory_default_device(stage, sim):
+    assert sim.reply_checksums and stage.describe()["reply_checksums"]
+    assert stage.request("").checksum_ok is True  # every reply now carries a valid ':CC'
+
+
 def test_no_reply_times_out_then_recovers(stage, sim):
     sim.inject("no_reply")
     t0 = time.monotonic()
@@ -249,11 +254,20 @@ def test_simulator_bytes_for_each_reply_form():
     assert _z(sim, "/1 1 move abs -1") == b"@01 1 RJ IDLE -- BADDATA\r\n"
     assert _z(sim, "/2 1 get pos") is None  # another device's address
     body = "1 1 12 get pos"
-    reply = sim.handle(f"/{body}:{checksum(body)}".encode())
-    assert reply.startswith(b"@01 1 12 OK IDLE -- 0:") and parse_message(reply).checksum_ok
+    # comm.checksum = 0 (factory default): a checksummed command is verified, the reply has none
+    assert sim.handle(f"/{body}:{checksum(body)}".encode()) == b"@01 1 12 OK IDLE -- 0\r\n"
     assert sim.handle(f"/{body}:00".encode()) is None  # bad checksum: dropped
+    assert _z(sim, "/1 1 set comm.checksum 1") == b"@01 1 RJ IDLE -- DEVICEONLY\r\n"
+    assert _z(sim, "/1 0 set comm.checksum 2") == b"@01 0 RJ IDLE -- BADDATA\r\n"
+    reply = _z(sim, "/1 0 set comm.checksum 1")
+    assert reply.startswith(b"@01 0 OK IDLE -- 0:") and parse_message(reply).checksum_ok
+    reply = _z(sim, "/1 1 get pos")  # from now on every reply is checksummed, with or without one sent
+    assert reply.startswith(b"@01 1 OK IDLE -- 0:") and parse_message(reply).checksum_ok
+    sim.on_power_up()
+    assert parse_message(_z(sim, "/1 0 get comm.checksum")).data == "1"  # non-volatile
+    assert _z(sim, "/1 0 set comm.checksum 0") == b"@01 0 OK IDLE WR 0\r\n"
     sim.inject("busy")
-    assert _z(sim, "/1 1 move abs 5") == b"@01 1 RJ IDLE -- STATUSBUSY\r\n"
+    assert _z(sim, "/1 1 move abs 5") == b"@01 1 RJ IDLE WR STATUSBUSY\r\n"  # after the power cycle
 
 
 def test_alerts_are_pushed_and_skipped_by_the_driver(stage, sim):
