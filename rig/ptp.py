@@ -639,8 +639,10 @@ class PtpSession:
             return resp
 
     def _transaction_once(self, op: int, params: tuple[int, ...], data_out: bytes | None) -> Response:
-        if op == Op.OpenSession:
-            tid = 0  # ISO 15740: OpenSession is transaction 0, the next one is 1
+        if op == Op.OpenSession or (op == Op.GetDeviceInfo and not self.session_id):
+            # ISO 15740: outside a session (OpenSession itself, GetDeviceInfo before it) the
+            # TransactionID is 0; inside one the ids count from 1
+            tid = 0
         else:
             self._tid = 1 if self._tid >= 0xFFFFFFFE else self._tid + 1
             tid = self._tid

@@ -477,7 +477,9 @@ class PtpCameraSim(usb.backend.IBackend):
                 and now - self._last_activity > self.session_timeout_s):
             self.session_id = 0  # idle too long: the camera dropped the session
         self._last_activity = now
-        if op == OP["GetDeviceInfo"]:
+        if op == OP["GetDeviceInfo"] and not self.session_id:
+            if tid != 0:  # outside a session the TransactionID must be 0
+                return self._reply(op, tid, INVALID_TID)
             return self._reply(op, tid, OK, data=self._device_info())
         if op == OP["OpenSession"]:
             if not params or params[0] == 0:
@@ -494,6 +496,8 @@ class PtpCameraSim(usb.backend.IBackend):
         if op == OP["CloseSession"]:
             self.session_id = 0
             return self._reply(op, tid, OK)
+        if op == OP["GetDeviceInfo"]:
+            return self._reply(op, tid, OK, data=self._device_info())
         if op == OP["GetStorageIDs"]:
             return self._reply(op, tid, OK, data=struct.pack("<II", 1, STORAGE_ID))
         if op == OP["GetObjectHandles"]:

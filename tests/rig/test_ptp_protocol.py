@@ -180,6 +180,19 @@ def test_open_session_then_transaction_ids_count_from_one():
     assert not dev.script
 
 
+def test_device_info_outside_a_session_is_transaction_0_inside_it_counts_on():
+    info = (struct.pack("<HIH", 100, 0, 0) + ucs2("") + struct.pack("<H", 0)
+            + b"".join(struct.pack("<I", 0) for _ in range(5)) + ucs2("Acme") + ucs2("X1")
+            + ucs2("1.0") + ucs2("7"))
+    s, dev = session([("w", cmd(0x1001, 0)), ("r", data(0x1001, 0, info)), ("r", resp(0x2001, 0)),
+                      ("w", cmd(0x1002, 0, 1)), ("r", resp(0x2001, 0)),
+                      ("w", cmd(0x1001, 1)), ("r", data(0x1001, 1, info)), ("r", resp(0x2001, 1))])
+    assert s.get_device_info().model == "X1"
+    s.open(1)
+    assert s.get_device_info().serial_number == "7"
+    assert not dev.script
+
+
 def test_set_prop_value_sends_data_phase():
     s, dev = opened([("w", cmd(0x1016, 1, 0x500D)), ("w", data(0x1016, 1, struct.pack("<I", 80))),
                      ("r", resp(0x2001, 1))])

@@ -59,16 +59,20 @@ def test_enumerates_as_still_image_device():
 
 def test_session_rules_and_transaction_ids():
     r = Raw(PtpCameraSim())
+    assert r.run(0x1001, 3)[0] == 0x2004                  # outside a session the id must be 0
+    code, _, info = r.run(0x1001, 0)                      # GetDeviceInfo needs no session
+    assert code == 0x2001 and struct.unpack_from("<H", info)[0] == 100  # PTP 1.00
     assert r.run(0x1015, 1, 0x500D)[0] == 0x2003          # SessionNotOpen
     assert r.run(0x1002, 0, 0)[0] == 0x201D               # session id 0 is invalid
     assert r.run(0x1002, 0, 7)[0] == 0x2001
     assert r.run(0x1002, 0, 7)[:2] == (0x201E, (7,))      # SessionAlreadyOpen
     assert r.run(0x1015, 1, 0x500D)[0] == 0x2001
     assert r.run(0x1015, 1, 0x500D)[0] == 0x2004          # transaction id reused
-    assert r.run(0x9999, 2)[0] == 0x2005                  # OperationNotSupported
-    assert r.run(0x1015, 3, 0x5001)[0] == 0x200A          # DevicePropNotSupported
-    assert r.run(0x1003, 4)[0] == 0x2001
-    assert r.run(0x1015, 5, 0x500D)[0] == 0x2003
+    assert r.run(0x1001, 2)[0] == 0x2001                  # in a session: the next id
+    assert r.run(0x9999, 3)[0] == 0x2005                  # OperationNotSupported
+    assert r.run(0x1015, 4, 0x5001)[0] == 0x200A          # DevicePropNotSupported
+    assert r.run(0x1003, 5)[0] == 0x2001
+    assert r.run(0x1015, 6, 0x500D)[0] == 0x2003
 
 
 def test_property_values_enumerated_and_enforced():
