@@ -50,10 +50,12 @@ from calibration.lights import (detect_sphere, find_highlight, fit_positioner_mo
 from calibration.targets import detect_charuco, detect_chessboard, make_charuco_board
 from calibration.turntable import fit_turntable
 
+from .plan import CALIBRATION_KINDS
 from .store import FrameRecord, SessionNotFound, Store, StoreError
 
-__all__ = ["STAGES", "LabTargets", "StageResult", "CalibrationReport", "calibrate_session",
-           "decode_raw", "cfa_channels", "demosaic_bilinear", "SessionNotFound"]
+__all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
+           "NothingToCalibrate", "calibrate_session", "decode_raw", "cfa_channels", "demosaic_bilinear",
+           "SessionNotFound"]
 
 #: stage names, in the order they run
 STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "polarization",
@@ -153,6 +155,14 @@ class CalibrationReport:
         return [s for s in self.stages if s.status == "failed"]
 
 
+#: step kinds that hold calibration captures
+CALIBRATION_STEP_KINDS = tuple(CALIBRATION_KINDS)
+
+
+class NothingToCalibrate(ValueError):
+    """The session has no stored calibration captures (the message says what to add)."""
+
+
 class _Skip(Exception):
     """Internal: the stage lacks its inputs (the message says which)."""
 
@@ -246,10 +256,15 @@ class _Context:
                 return dark
         return None
 
-    def image(self, step: int) -> np.ndarray:
-        if step not in self.hdr:
-            raise _Skip(f"step {step} has no HDR image (the hdr stage did not merge it)")
-        return self.hdr[step]
+    def merged_steps(self, kind: str) -> list[int]:
+        """Steps of ``kind`` with an HDR image; skips the stage when there are none."""
+        steps = self.steps_of(kind)
+        if not steps:
+            raise _Skip(f"no {kind} captures in this session")
+        merged = [s for s in steps if s in self.hdr]
+        if not merged:
+            raise _Skip(f"none of the {len(steps)} {kind} steps has an HDR image (see the hdr stage)")
+        return merged
 
     def reading(self, step: int, key: str) -> float:
         vals = [f.positions.get(key) for f in self.frames[step]]
@@ -306,10 +321,14 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[
     if not steps:
         raise _Skip("no frames besides dark frames in this session")
     read_noise = ctx.read_noise_dn if ctx.read_noise_dn else 1.0
-    per_step, example = [], None
+    per_step, example, errors = [], None, []
     for s in steps:
         frames = ctx.frames[s]
-        raws = [ctx.raw(f) for f in frames]
+        try:
+            raws = [ctx.raw(f) for f in frames]
+        except ValueError as exc:  # one unreadable frame loses its step, not the session
+            errors.append(str(exc))
+            continue
         ts = [_exposure(f) for f in frames]
         found = [ctx.dark_for(t) for t in ts]
         # a frame without a dark at its exposure falls back to the black level alone
@@ -326,13 +345,15 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[
         per_step.append(meta)
         if example is None or len(meta["exposures_s"]) > len(example[1]["exposures_s"]):
             example = (s, meta)
+    if example is None:
+        raise CalibrationError("no step could be merged: " + "; ".join(errors))
     rep.plots["hdr_example"] = {"step": example[0], "image": ctx.hdr[example[0]],
                                 "exposures_s": example[1]["exposures_s"]}
-    figures = {"steps": len(per_step),
+    figures = {"steps": len(per_step), "failed_steps": len(errors),
                "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
                "dark_subtracted_frames": sum(m["dark_subtracted"] for m in per_step)}
     return ({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": read_noise,
-             "steps": per_step}, figures, ctx.frame_ids(steps), {})
+             "steps": per_step, "errors": errors}, figures, ctx.frame_ids([m["step"] for m in per_step]), {})
 
 
 def _detector(ctx: _Context):
@@ -350,15 +371,13 @@ def _detector(ctx: _Context):
 
 
 def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
-    steps = ctx.steps_of("checkerboard")
-    if not steps:
-        raise _Skip("no checkerboard captures in this session")
+    steps = ctx.merged_steps("checkerboard")
     detect = _detector(ctx)
     dets, kinds, det_steps, missing = [], [], [], []
     for s in steps:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         try:
-            d, kind = detect(_display(ctx.image(s)), name)
+            d, kind = detect(_display(ctx.hdr[s]), name)
         except TargetNotFound as exc:
             missing.append(str(exc))
             continue
@@ -481,12 +500,10 @@ def _sphere_blobs(images: list[np.ndarray], reflectance: float, *, min_area: int
 
 
 def _stage_lights(ctx: _Context, rep: CalibrationReport):
-    steps = ctx.steps_of("spheres")
-    if not steps:
-        raise _Skip("no spheres captures in this session")
+    steps = ctx.merged_steps("spheres")
     intr = _need(ctx, "intrinsics", "camera matrix")
     K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
-    images = [ctx.image(s) for s in steps]
+    images = [ctx.hdr[s] for s in steps]
     blobs = _sphere_blobs(images, ctx.targets.sphere_reflectance)
     first = f"frame {ctx.frames[steps[0]][0].id} (step {steps[0]})"
     if len(blobs) < 2:
@@ -608,15 +625,13 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport):
 
 
 def _stage_gray_card(ctx: _Context, rep: CalibrationReport):
-    steps = ctx.steps_of("gray_card")
-    if not steps:
-        raise _Skip("no gray_card captures in this session")
+    steps = ctx.merged_steps("gray_card")
     albedo = ctx.targets.gray_card_albedo
     model, tt = ctx.results.get("positioner"), ctx.results.get("turntable")
     rows = []
     for s in steps:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
-        img = ctx.image(s)
+        img = ctx.hdr[s]
         lum = img.mean(axis=2)
         # the card: the largest bright region, eroded away from its edges
         n, labels, stats, _ = cv2.connectedComponentsWithStats(
@@ -665,17 +680,15 @@ def _find_mirror_sphere(img: np.ndarray, frame: str) -> tuple[np.ndarray, float]
 
 
 def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport):
-    steps = ctx.steps_of("mirror_probe")
-    if not steps:
-        raise _Skip("no mirror_probe captures in this session")
+    steps = ctx.merged_steps("mirror_probe")
     tt = ctx.results.get("turntable")
     # the room is fixed in the lab: map it in the lab frame when the turntable gave one
     R, frame = (tt.R_ref, "lab") if tt is not None else (np.eye(3), "camera")
     probes, rows = [], []
     for s in steps:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
-        centre, radius = _find_mirror_sphere(ctx.image(s), name)
-        probes.append(mirror_sphere_to_latlong(ctx.image(s), centre, radius, R, height=PROBE_HEIGHT))
+        centre, radius = _find_mirror_sphere(ctx.hdr[s], name)
+        probes.append(mirror_sphere_to_latlong(ctx.hdr[s], centre, radius, R, height=PROBE_HEIGHT))
         rows.append({"step": s, "centre_px": centre, "radius_px": radius})
     probe = merge_probes(probes)
     buf = io.BytesIO()
@@ -728,6 +741,8 @@ def calibrate_session(store: Store, session_name: str, *, progress: Callable[[st
     ------
     SessionNotFound
         No session of that name in the store.
+    NothingToCalibrate
+        The session has no stored frames, or none of a calibration kind.
     ValueError
         ``stages`` names an unknown stage.
     """
@@ -735,6 +750,15 @@ def calibrate_session(store: Store, session_name: str, *, progress: Callable[[st
     if unknown:
         raise ValueError(f"stages: unknown {unknown}; known: {', '.join(STAGES)}")
     ctx = _Context(store, session_name, targets or LabTargets())
+    if not ctx.frames:
+        raise NothingToCalibrate(f"session {session_name!r} has no stored frames yet; capture it first "
+                                 f"(gonio capture run / resume)")
+    if not any(ctx.steps_of(kind) for kind in CALIBRATION_STEP_KINDS):
+        kinds = sorted({d["kind"] for i, d in ctx.steps.items() if ctx.frames.get(i)})
+        raise NothingToCalibrate(
+            f"session {session_name!r} has no calibration captures (its stored steps are "
+            f"{', '.join(kinds)}); add [[calibration]] captures of kind "
+            f"{', '.join(CALIBRATION_STEP_KINDS)} to the plan")
     rep = CalibrationReport(session=session_name)
     total = len(STAGES)
     for i, name in enumerate(STAGES):
@@ -755,7 +779,9 @@ def calibrate_session(store: Store, session_name: str, *, progress: Callable[[st
         params = rest[0] if rest else {}
         cid = store.add_calibration(ctx.info.id, RESULT_KIND[name], result=result, params=params,
                                     input_frames=inputs, artifacts=artifacts)
-        rep.stages.append(StageResult(name, "ok", "", figures, cid))
+        # a stage that lost some inputs (``errors``) is stored for the rest but reported failed
+        errors = result.get("errors") or []
+        rep.stages.append(StageResult(name, "failed" if errors else "ok", "; ".join(errors), figures, cid))
         ctx.results.setdefault(name, True)
     if progress is not None:
         progress("done", total, total)

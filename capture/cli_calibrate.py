@@ -7,7 +7,7 @@ the session (``gonio session show`` lists them) and writes the PNG report
 
 Exit status: 0 every stage that ran succeeded; 1 a stage failed (the table names the frame);
 2 usage or store errors (unknown session, unreadable store, bad --targets file);
-3 nothing to calibrate (the session holds no captures any stage can use).
+3 nothing to calibrate (no stored frames, or no calibration captures in the session).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from .calibrate import STAGES, LabTargets, calibrate_session
+from .calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
 from .cli_session import STORE_OPTION, fail, open_store
 from .store import SessionNotFound
 
@@ -67,7 +67,12 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             def advance(stage: str, index: int, total: int) -> None:
                 progress.update(task, completed=index, stage=stage)
 
-            report = calibrate_session(st, session, progress=advance, targets=lab_targets)
+            try:
+                report = calibrate_session(st, session, progress=advance, targets=lab_targets)
+            except NothingToCalibrate as exc:
+                progress.stop()
+                typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)
+                raise typer.Exit(EXIT_NOTHING) from None
         table = Table(title=f"calibration of session {session}")
         for col in ("stage", "status", "key figures / reason"):
             table.add_column(col, overflow="fold")
@@ -76,11 +81,6 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             text = ", ".join(f"{k} {v}" for k, v in s.figures.items()) if s.status == "ok" else s.reason
             table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", text)
         console.print(table)
-        if not report.ran:
-            typer.secho(f"nothing to calibrate: session {session!r} has no captures any stage can use "
-                        "(add [[calibration]] captures: dark, checkerboard, spheres, gray_card, "
-                        "mirror_probe)", err=True, fg=typer.colors.YELLOW)
-            raise typer.Exit(EXIT_NOTHING)
         from .report import write_report  # matplotlib loads only when there is something to draw
         folder = out if out is not None else Path(st.root).resolve().parent
         png = write_report(report, folder / f"{session}-calibration.png")
