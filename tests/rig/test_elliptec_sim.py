@@ -37,6 +37,12 @@ def test_connect_home_move_position(sim, rot):
     assert rot.read()["position"]["value"] == pytest.approx(137.25, abs=0.003)
 
 
+def test_port_is_opened_9600_8n1_without_flow_control(rot):
+    settings = rot.transport._serial.get_settings()  # what pyserial configured on the tty
+    assert {k: settings[k] for k in ("baudrate", "bytesize", "parity", "stopbits", "xonxoff", "rtscts")} == \
+        {"baudrate": 9600, "bytesize": 8, "parity": "N", "stopbits": 1, "xonxoff": False, "rtscts": False}
+
+
 def test_requests_on_the_wire_are_byte_exact(sim, rot):
     rot.home().wait(2)
     rot.move_to(90).wait(2)
