@@ -161,7 +161,7 @@ def corner_coverage(image_points: Sequence[np.ndarray], image_size: tuple[int, i
     return counts.astype(np.int64)
 
 
-def _calibrate(dets, image_size, flags, dist_coeffs):
+def _calibrate(dets, image_size, flags):
     obj = [d.object_points.astype(np.float32) for d in dets]
     img = [d.image_points.astype(np.float32) for d in dets]
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -170,8 +170,7 @@ def _calibrate(dets, image_size, flags, dist_coeffs):
     except cv2.error as err:
         raise DegenerateFit(f"calibrateCamera failed on {len(dets)} views: {err.msg or err}") from None
     rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = out
-    n_dist = dist.size
-    return dict(rms=float(rms), K=K, dist=dist.ravel()[:n_dist], rvecs=np.asarray(rvecs).reshape(-1, 3),
+    return dict(rms=float(rms), K=K, dist=dist.ravel(), rvecs=np.asarray(rvecs).reshape(-1, 3),
                 tvecs=np.asarray(tvecs).reshape(-1, 3), std=std_in.ravel(),
                 per_view=np.asarray(per_view).ravel())
 
@@ -237,7 +236,7 @@ def calibrate_intrinsics(detections: Sequence[TargetDetection], image_size: tupl
     names = [d.frame or f"view {i}" for i, d in enumerate(dets)]
 
     rejected: list[RejectedView] = []
-    sol = _calibrate(dets, image_size, flags, None)
+    sol = _calibrate(dets, image_size, flags)
     while reject_outliers and len(dets) > min_views:
         e = sol["per_view"]
         med = np.median(e)
@@ -248,7 +247,7 @@ def calibrate_intrinsics(detections: Sequence[TargetDetection], image_size: tupl
         rejected.append(RejectedView(names[worst], float(e[worst]),
                                      f"reprojection RMS {e[worst]:.3f} px > limit {limit:.3f} px"))
         del dets[worst], names[worst]
-        sol = _calibrate(dets, image_size, flags, None)
+        sol = _calibrate(dets, image_size, flags)
 
     # Board normals in the camera frame: third column of each rotation.
     normals = np.array([cv2.Rodrigues(r)[0][:, 2] for r in sol["rvecs"]])

@@ -220,10 +220,10 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
     res = sol.fun.reshape(-1, 2)
     counts = np.array([len(o) for o in obj])
     per_view = np.array([np.sqrt(np.mean(np.sum(r ** 2, 1))) for r in np.split(res, np.cumsum(counts)[:-1])])
-    dof = max(res.size - sol.x.size, 1)
-    sigma2 = 2 * np.sum(res ** 2) / dof
+    # residual variance per coordinate (pixels^2) scales the inverse normal matrix
+    sigma2 = np.sum(res ** 2) / max(res.size - sol.x.size, 1)
     try:
-        cov = np.linalg.inv(sol.jac.T @ sol.jac) * sigma2 / 2
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * sigma2
     except np.linalg.LinAlgError:
         raise DegenerateFit("the turntable fit's normal matrix is singular") from None
     axis_std = float(np.degrees(np.sqrt(max(cov[0, 0], cov[1, 1]))))

@@ -132,14 +132,11 @@ def test_charuco_synthetic_recovers_K():
 
 
 @pytest.mark.realdata
-@pytest.mark.parametrize("method,tol_rms,tol_f,tol_c", [
-    # 'classic' is OpenCV's own recipe: expect its numbers to < 0.01 px / 0.5 px.
-    ("classic", 0.01, 0.5, 0.5),
-    # the sector-based detector finds slightly different corners on these JPEGs (measured:
-    # RMS 0.256 px, fx 531.9, cx 342.0): same camera to within 0.3%.
-    ("sb", 0.08, 1.6, 1.5),
-])
-def test_opencv_chessboard_photos_reproduce_reference(shared_data, method, tol_rms, tol_f, tol_c):
+@pytest.mark.parametrize("method", ["classic", "sb"])
+def test_opencv_chessboard_photos_reproduce_reference(shared_data, method):
+    # OpenCV's own test allows 0.01 px of RMS; we hold K to 0.5 px (0.1 %). Measured: classic
+    # (OpenCV's recipe) RMS 0.1962, K within 0.03 px; SB + refinement RMS 0.1952, within 0.05 px.
+    tol_rms, tol_f, tol_c = 0.01, 0.5, 0.5
     files = sorted((shared_data / "chessboard-opencv").glob("left*.jpg"))
     assert len(files) == 13
     imgs = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
