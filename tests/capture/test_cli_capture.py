@@ -111,16 +111,16 @@ def test_resume_refuses_a_changed_plan(tmp_path):
 
 
 def test_ctrl_c_pauses_cleanly_and_resume_finishes(tmp_path):
-    """A real SIGINT to ``gonio capture run`` with motion taking real time."""
-    plan_file = _plan(tmp_path, TINY.replace("[0, 90]", "[0, 90, 180, 270]"))
+    """A real SIGINT to ``gonio capture run`` while it records (8 rendered frames)."""
+    plan_file = _plan(tmp_path, TINY.replace("[0, 90]", "{ start = 0, stop = 315, step = 45 }"))
     store = tmp_path / "store"
     gonio = [sys.executable, "-m", "capture.cli"]
-    p = subprocess.Popen([*gonio, "capture", "run", str(plan_file), "--rig", "sim", "--no-fast",
+    p = subprocess.Popen([*gonio, "capture", "run", str(plan_file), "--rig", "sim",
                           "--store", str(store), "--session", "slow", "--quiet"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:  # wait until the session is running
-        time.sleep(0.2)
+        time.sleep(0.05)
         if (store / "gonio.sqlite").exists():
             with Store(store) as st:
                 if st.sessions() and st.session("slow").state == "running":
@@ -132,11 +132,11 @@ def test_ctrl_c_pauses_cleanly_and_resume_finishes(tmp_path):
     with Store(store) as st:
         info = st.session("slow")
         assert info.state == "paused"
-        assert st.progress(info.id).steps_done < 4
+        assert st.progress(info.id).steps_done < 8
         assert st.events(info.id)[-1]["kind"] == "paused"
     r = subprocess.run([*gonio, "capture", "resume", "slow", "--rig", "sim", "--store", str(store),
                         "--quiet"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
     with Store(store) as st:
         assert st.session("slow").state == "done" and st.verify("slow").ok
-        assert len(st.frames(st.session("slow").id)) == 4
+        assert len(st.frames(st.session("slow").id)) == 8
