@@ -74,33 +74,49 @@ REJECTION_REASONS: dict[str, str] = {
 BUSY_REASONS = frozenset({"AGAIN", "FULL", "STATUSBUSY"})
 
 #: warning flags -> (severity, meaning). Severity: "fault" stops motion and must be cleared,
-#: "warning" means the result may be wrong, "notice" is informational.
+#: "warning" means the result may be wrong, "notice" is informational. The set and names are those
+#: of Zaber Motion Library's ``WarningFlags`` (firmware 6/7); the hints are ours.
 WARNING_FLAGS: dict[str, tuple[str, str]] = {
-    "FD": ("fault", "driver disabled: the motor driver shut down (over-temperature, over-current "
-                    "or supply fault); check the motor, then 'driver enable'"),
+    "FF": ("fault", "critical system error: power-cycle the device; contact Zaber if it persists"),
+    "FN": ("fault", "peripheral not supported by this controller or firmware"),
+    "FZ": ("fault", "peripheral inactive: the stage is disconnected or not configured; check the "
+                    "cable and the peripheral id"),
+    "FH": ("fault", "hardware emergency stop: the driver was disabled by the e-stop input; release "
+                    "it, then 'driver enable'"),
+    "FV": ("fault", "over- or under-voltage: the driver was disabled; check the power supply"),
+    "FO": ("fault", "driver disabled at start-up or by command; send 'driver enable'"),
+    "FC": ("fault", "current inrush error: the driver was disabled; check the motor and cable"),
+    "FM": ("fault", "motor temperature error: the motor overheated; let it cool, reduce the current "
+                    "or duty cycle"),
+    "FD": ("fault", "driver disabled (firmware <= 7.10): over-temperature, over-current or supply "
+                    "fault; check the motor, then 'driver enable'"),
     "FQ": ("fault", "encoder error: the encoder reading is invalid; check the encoder cable"),
+    "FI": ("fault", "index error: the encoder index was not where expected; home the axis again"),
+    "FA": ("fault", "analog encoder sync error; home the axis again"),
+    "FR": ("fault", "overdrive limit exceeded: the motor was driven beyond its rated load"),
     "FS": ("fault", "stalled and stopped: the axis hit an obstruction or was overloaded; "
                     "clear the load and repeat the move"),
-    "FT": ("fault", "excessive twist: lockstep axes are out of alignment"),
     "FB": ("fault", "stream bounds error: a streamed move ran outside the travel limits"),
     "FP": ("fault", "interpolated path deviation: a streamed path could not be followed"),
     "FE": ("fault", "limit error: a limit sensor did not behave as expected during homing"),
-    "FM": ("fault", "peripheral mismatch: the connected peripheral changed; check the setup"),
-    "FO": ("fault", "overdrive limit exceeded: the motor was driven beyond its rated load"),
-    "WH": ("warning", "device not homed: the axis has no reference position; home it"),
-    "WR": ("warning", "no reference position: the axis has not been homed since power-up; home it"),
+    "FT": ("fault", "excessive twist: lockstep axes are out of alignment"),
     "WL": ("warning", "unexpected limit trigger: a limit sensor fired during a move; the "
                       "position may be lost, home the axis"),
-    "WP": ("warning", "peripheral settings invalid: the saved settings do not fit the peripheral"),
     "WV": ("warning", "supply voltage out of range"),
     "WT": ("warning", "controller temperature high"),
-    "WS": ("warning", "displaced when stationary: the axis was pushed while idle"),
-    "WM": ("warning", "peripheral inactive: motion is disabled until it is reconnected"),
+    "WS": ("warning", "stalled with recovery: the axis stalled during the move and recovered"),
+    "WM": ("warning", "displaced when stationary: the axis was pushed out of position while idle"),
+    "WP": ("warning", "invalid calibration type: the stored calibration does not fit; recalibrate"),
+    "WR": ("warning", "no reference position: the axis has not been homed since power-up; home it"),
+    "WH": ("warning", "device not homed: the axis has a position but was not homed; home it"),
     "NC": ("notice", "manual control: the knob or joystick moved the axis"),
-    "NI": ("notice", "command interrupted: a move was interrupted by a stop or a new command"),
+    "NI": ("notice", "movement interrupted: a move was interrupted by a stop or a new command"),
     "ND": ("notice", "stream discontinuity: a streamed path was interrupted"),
+    "NR": ("notice", "value rounded: a setting or target was rounded to what the device supports"),
+    "NT": ("notice", "value truncated: a setting or target was truncated"),
     "NU": ("notice", "setting update pending: a setting changes after the current move"),
     "NJ": ("notice", "joystick calibrating"),
+    "NB": ("notice", "device in firmware update mode (firmware 6)"),
 }
 
 

@@ -144,6 +144,14 @@ def test_warning_flag_table():
     assert isinstance(flag_error("WR"), NotHomed)
     assert flag_error("--") is None and flag_error("NI") is None and flag_error("WV") is None
     assert all(sev in ("fault", "warning", "notice") for sev, _ in WARNING_FLAGS.values())
+    # the flag set of Zaber Motion Library's WarningFlags (firmware 6/7), names checked there
+    assert set(WARNING_FLAGS) == {"FF", "FN", "FZ", "FH", "FV", "FO", "FC", "FM", "FD", "FQ", "FI", "FA",
+                                  "FR", "FS", "FB", "FP", "FE", "FT", "WL", "WV", "WT", "WS", "WM", "WP",
+                                  "WR", "WH", "NC", "NI", "ND", "NR", "NT", "NU", "NJ", "NB"}
+    assert "motor temperature" in WARNING_FLAGS["FM"][1] and "overdrive" in WARNING_FLAGS["FR"][1]
+    assert "displaced when stationary" in WARNING_FLAGS["WM"][1]
+    assert isinstance(flag_error("FM"), DeviceError) and flag_error("WS") is None
+    assert isinstance(flag_error("FX"), DeviceError)  # an unknown fault flag is still a fault
     assert {"STATUSBUSY", "BADDATA", "BADCOMMAND", "PARKED", "DEVICEONLY"} <= set(REJECTION_REASONS)
 
 
