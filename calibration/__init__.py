@@ -20,7 +20,8 @@ from .lights import (Highlight, PointLight, PositionerModel, SphereImage, detect
                      fit_positioner_model, light_direction_orthographic, locate_collinear_spheres,
                      reflect_highlight, sphere_center_from_silhouette, triangulate_point_light)
 from .polarization import PolarizationFit, Separation, fit_polarization, separate_parallel_crossed
-from .probe import Probe, latlong_directions, merge_probes, mirror_sphere_to_latlong
+from .probe import (Probe, latlong_directions, merge_probes, mirror_sphere_to_latlong,
+                    mirror_sphere_to_latlong_perspective)
 from .radiometry import (GrayCard, VignettingModel, apply_flat, fit_vignetting, flat_field_gain,
                          gray_card_scale, normalize_irradiance)
 from .targets import (TargetDetection, as_points2d, chessboard_object_points, detect_charuco,
@@ -41,5 +42,6 @@ __all__ = [
     "write_hdr",
     "VignettingModel", "GrayCard", "flat_field_gain", "fit_vignetting", "apply_flat", "gray_card_scale",
     "normalize_irradiance",
-    "Probe", "latlong_directions", "mirror_sphere_to_latlong", "merge_probes",
+    "Probe", "latlong_directions", "mirror_sphere_to_latlong", "mirror_sphere_to_latlong_perspective",
+    "merge_probes",
 ]

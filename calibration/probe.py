@@ -5,8 +5,10 @@ holds polar angle ``theta = (i + 0.5) * pi / H`` from +z (row 0 looks straight u
 ``j`` holds azimuth ``phi = (j + 0.5) * 2 pi / (2H)`` measured from +x towards +y. A map pixel
 stores the radiance arriving *from* that direction.
 
-The sphere is imaged by a distant (orthographic) camera: a sphere small in the field of view.
-Directions within ``blind_cone_deg`` of straight behind the sphere are not seen (they map to the
+:func:`mirror_sphere_to_latlong` treats the camera as distant (orthographic: a sphere small in
+the field of view); :func:`mirror_sphere_to_latlong_perspective` solves each reflection point
+for a calibrated camera at a finite distance (a 25 mm ball at 500 mm subtends ±3°, which the
+orthographic model turns into up to ~6° of direction error near the rim). Directions within ``blind_cone_deg`` of straight behind the sphere are not seen (they map to the
 silhouette, where the image is also most compressed); their weight fades to 0 and a second view
 from another side fills them (:func:`merge_probes`).
 """
@@ -19,7 +21,8 @@ import numpy as np
 
 from .errors import TooFewViews
 
-__all__ = ["Probe", "latlong_directions", "mirror_sphere_to_latlong", "merge_probes"]
+__all__ = ["Probe", "latlong_directions", "mirror_sphere_to_latlong", "mirror_sphere_to_latlong_perspective",
+           "merge_probes"]
 
 
 @dataclass(frozen=True)
@@ -103,11 +106,81 @@ def mirror_sphere_to_latlong(image, center_px, radius_px: float, R_world_to_came
     mapy = (c[1] + radius_px * n[..., 1]).astype(np.float32)
     env = cv2.remap(img, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     # angle from "straight behind the sphere" (camera +z)
-    behind = np.degrees(np.arccos(np.clip(w_cam[..., 2], -1, 1)))
-    ramp = np.clip((behind - blind_cone_deg) / max(fade_deg, 1e-9), 0, 1)
-    weight = (ramp * ramp * (3 - 2 * ramp)).astype(np.float32)  # smoothstep
+    weight = _blind_weight(np.degrees(np.arccos(np.clip(w_cam[..., 2], -1, 1))), blind_cone_deg, fade_deg)
     inside = (mapx >= 0) & (mapy >= 0) & (mapx <= img.shape[1] - 1) & (mapy <= img.shape[0] - 1)
     weight = np.where(inside, weight, 0.0).astype(np.float32)
+    env = env * (weight > 0)[..., None] if env.ndim == 3 else env * (weight > 0)
+    return Probe(env.astype(np.float32), weight)
+
+
+def _blind_weight(behind_deg, blind_cone_deg, fade_deg):
+    ramp = np.clip((behind_deg - blind_cone_deg) / max(fade_deg, 1e-9), 0, 1)
+    return (ramp * ramp * (3 - 2 * ramp)).astype(np.float32)  # smoothstep
+
+
+def mirror_sphere_to_latlong_perspective(image, K, dist, center_mm, radius_mm: float, R_world_to_camera, *,
+                                         height: int = 128, blind_cone_deg: float = 15.0,
+                                         fade_deg: float = 20.0, iterations: int = 30) -> Probe:
+    """Resample a mirror-sphere photo from a calibrated pinhole camera into a lat-long map.
+
+    For a world direction ``w`` (``R w`` in the camera frame) the reflection point ``X`` on the
+    sphere has a normal bisecting ``R w`` and the direction back to the camera:
+    ``n = normalize(R w - X / |X|)``, ``X = C + r n``, solved by fixed-point iteration for all
+    directions at once, then projected with ``cv2.projectPoints`` (distortion included).
+
+    Parameters
+    ----------
+    image : ndarray of shape (H_img, W_img) or (H_img, W_img, C)
+        Linear radiance (HDR).
+    K : array_like of shape (3, 3)
+        Camera matrix, pixels.
+    dist : array_like or None
+        OpenCV distortion coefficients.
+    center_mm : array_like of shape (3,)
+        Sphere centre in the camera frame, mm (e.g. ``lights.sphere_center_from_silhouette``).
+    radius_mm : float
+        Sphere radius, mm.
+    R_world_to_camera : array_like of shape (3, 3)
+        Rotation world -> camera.
+    height, blind_cone_deg, fade_deg : see :func:`mirror_sphere_to_latlong`
+        The blind cone is centred on the direction from the camera through the sphere centre.
+    iterations : int
+        Fixed-point iterations (each halves the error or better away from the blind cone).
+
+    Returns
+    -------
+    Probe
+    """
+    img = np.asarray(image, np.float32)
+    if img.ndim not in (2, 3):
+        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {img.shape}")
+    R = np.asarray(R_world_to_camera, float)
+    if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+        raise ValueError("R_world_to_camera must be a 3x3 rotation matrix")
+    C = np.asarray(center_mm, float).reshape(3)
+    if not radius_mm > 0 or not np.linalg.norm(C) > radius_mm:
+        raise ValueError("radius_mm must be positive and the camera must lie outside the sphere "
+                         f"(|center_mm| = {np.linalg.norm(C):.1f}, radius_mm = {radius_mm})")
+    w_cam = (latlong_directions(height) @ R.T).reshape(-1, 3)
+    n = w_cam - C / np.linalg.norm(C)  # start: the orthographic solution
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    for _ in range(int(iterations)):
+        X = C + radius_mm * n
+        n = w_cam - X / np.linalg.norm(X, axis=1, keepdims=True)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    X = C + radius_mm * n
+    uv = cv2.projectPoints(X, np.zeros(3), np.zeros(3), np.asarray(K, float),
+                           np.zeros(5) if dist is None else np.asarray(dist, float))[0].reshape(-1, 2)
+    shape = (height, 2 * height)
+    mapx = uv[:, 0].reshape(shape).astype(np.float32)
+    mapy = uv[:, 1].reshape(shape).astype(np.float32)
+    env = cv2.remap(img, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    axis = C / np.linalg.norm(C)
+    behind = np.degrees(np.arccos(np.clip(w_cam @ axis, -1, 1))).reshape(shape)
+    # the reflection point must face the camera (a converged solution always does)
+    facing = (np.sum(n * -X, axis=1) > 0).reshape(shape)
+    inside = (mapx >= 0) & (mapy >= 0) & (mapx <= img.shape[1] - 1) & (mapy <= img.shape[0] - 1)
+    weight = np.where(inside & facing, _blind_weight(behind, blind_cone_deg, fade_deg), 0.0).astype(np.float32)
     env = env * (weight > 0)[..., None] if env.ndim == 3 else env * (weight > 0)
     return Probe(env.astype(np.float32), weight)
 
