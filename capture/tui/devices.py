@@ -252,7 +252,8 @@ class DevicesPane(Vertical):
     def _update(self, key: str, **cells: Any) -> None:
         table = self.query_one(DataTable)
         for column, value in cells.items():
-            table.update_cell(key, column, value, update_width=True)
+            if table.get_cell(key, column) != value:  # polling repeats values: skip the redraw
+                table.update_cell(key, column, value, update_width=True)
 
     def watch_step_index(self, index: int) -> None:
         if self.is_mounted:

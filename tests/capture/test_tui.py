@@ -20,6 +20,7 @@ from capture.store import Store
 from capture.tui import GonioApp
 from capture.tui.help import HelpScreen
 from capture.tui.imageview import HalfBlockImage, HistogramView
+from sims.ptp_sim import placeholder_frame
 
 PLAN = """
 name = "{name}"
@@ -36,7 +37,18 @@ stops = {stops}
 """
 
 #: real-time simulation with a turntable slow enough for multi-second moves
-SLOW_TURNTABLE = {"turntable": {"speed_deg_s": 30.0, "accel_deg_s2": 60.0}}
+#: the camera's stand-in frame (a noisy gradient, ~20 ms) instead of a scene render (~0.4 s):
+#: for tests about the session flow rather than the image
+QUICK_CAMERA = {"camera": {"frame_source": placeholder_frame}}
+#: real-time simulation with a turntable slow enough for multi-second moves
+SLOW_TURNTABLE = {"turntable": {"speed_deg_s": 30.0, "accel_deg_s2": 60.0}, **QUICK_CAMERA}
+
+
+def make_app(*args, **kwargs) -> GonioApp:
+    """The console with animations off (the pilot waits for each one to finish)."""
+    app = GonioApp(*args, **kwargs)
+    app.animation_level = "none"
+    return app
 
 
 def write_plan(tmp_path: Path, name: str = "t", angles=(0, 90), stops=(0,)) -> Path:
@@ -98,7 +110,7 @@ def store_state(store_dir: Path, name: str) -> tuple[str, int, int]:
 
 @pytest.mark.asyncio
 async def test_connect_jog_and_home_an_axis(tmp_path):
-    app = GonioApp("sim", tmp_path / "store", fast=True)
+    app = make_app("sim", tmp_path / "store", fast=True)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         for key in ("turntable", "positioner.az", "polarizer", "camera"):
@@ -139,7 +151,7 @@ async def test_connect_jog_and_home_an_axis(tmp_path):
 
 @pytest.mark.asyncio
 async def test_test_shot_updates_preview_and_histogram_warns(tmp_path):
-    app = GonioApp("sim", tmp_path / "store", fast=True)
+    app = make_app("sim", tmp_path / "store", fast=True)
     async with app.run_test(size=(100, 30)) as pilot:
         await connected(pilot, app)
         image = app.query_one(HalfBlockImage)
@@ -171,7 +183,7 @@ async def test_test_shot_updates_preview_and_histogram_warns(tmp_path):
 @pytest.mark.asyncio
 async def test_session_runs_to_100_percent_with_bracket_preview(tmp_path):
     plan = write_plan(tmp_path, angles=(0, 90, 180), stops=(-1, 0, 1))
-    app = GonioApp("sim", tmp_path / "store", fast=True)
+    app = make_app("sim", tmp_path / "store", fast=True, sim_options=QUICK_CAMERA)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await home_everything(pilot, app)
@@ -193,9 +205,9 @@ async def test_session_runs_to_100_percent_with_bracket_preview(tmp_path):
 
 @pytest.mark.asyncio
 async def test_pause_resume_and_abort_stops_motion(tmp_path):
-    # real motion time: step 1 turns the turntable by 170 deg at 30 deg/s (~6 s)
-    plan = write_plan(tmp_path, angles=(0, 170))
-    app = GonioApp("sim", tmp_path / "store", fast=False, sim_options=SLOW_TURNTABLE)
+    # real motion time: steps 1 and 2 turn the turntable by 170 deg at 30 deg/s (~6 s)
+    plan = write_plan(tmp_path, angles=(0, 170, 0))
+    app = make_app("sim", tmp_path / "store", fast=False, sim_options=SLOW_TURNTABLE)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await home_everything(pilot, app)
@@ -205,28 +217,29 @@ async def test_pause_resume_and_abort_stops_motion(tmp_path):
         await until(pilot, lambda: pane.state == "paused" and not app.runner_active,
                     timeout=20, what="the pause")
         name = app.runner.name
-        assert store_state(tmp_path / "store", name) == ("paused", 1, 1)
+        state, done_at_pause, frames = store_state(tmp_path / "store", name)
+        assert state == "paused" and done_at_pause in (1, 2) and frames == done_at_pause
         assert "paused" in str(app.query_one("#statusbar").render())
         await pilot.press("p")  # resume
         await until(pilot, lambda: pane.state == "running", what="resumed")
         assert any(e.kind == "resumed" for e in app.log_pane.entries)
-        # abort while the turntable is on its way to 170 deg
+        # abort while the turntable is on its way (to 170 deg, or back to 0)
         sim = app.lab.sims["turntable"]
-        await until(pilot, lambda: 20 < sim.angle_deg < 120, timeout=20, what="a move under way")
+        await until(pilot, lambda: 20 < sim.angle_deg < 150, timeout=20, what="a move under way")
         await pilot.press("a")
         await until(pilot, lambda: pane.state == "aborted", timeout=10, what="the abort")
         a1 = sim.angle_deg
         await asyncio.sleep(0.3)
         assert sim.angle_deg == pytest.approx(a1, abs=1e-6), "the turntable kept moving"
-        assert a1 < 169, "the move was not cut short"
-        assert store_state(tmp_path / "store", name) == ("aborted", 1, 1)
+        assert 1 < a1 < 169, "the move was not cut short"
+        assert store_state(tmp_path / "store", name) == ("aborted", done_at_pause, done_at_pause)
 
 
 @pytest.mark.asyncio
 async def test_device_fault_shows_alert_and_pauses_then_resumes(tmp_path):
     plan = write_plan(tmp_path, angles=(0, 90, 180, 270))
     bus = EventBus()  # the runner's own bus, so the fault lands at a known point
-    app = GonioApp("sim", tmp_path / "store", fast=True, bus=bus)
+    app = make_app("sim", tmp_path / "store", fast=True, bus=bus, sim_options=QUICK_CAMERA)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await home_everything(pilot, app)
@@ -266,7 +279,7 @@ async def test_resume_an_interrupted_session_is_one_key(tmp_path):
     store_dir = tmp_path / "store"
     plan = Plan.from_toml(write_plan(tmp_path, angles=(0, 60, 120, 180)))
     # a first process captured one step, then died (the store still says "running")
-    with open_rig("sim", fast=True) as opened, Store(store_dir) as store:
+    with open_rig("sim", fast=True, options=QUICK_CAMERA) as opened, Store(store_dir) as store:
         home_all(opened.rig)
         info = create_session(store, plan, opened.rig, name="crashed")
         runner = Runner(opened.rig, store, info)
@@ -275,7 +288,7 @@ async def test_resume_an_interrupted_session_is_one_key(tmp_path):
         store.set_state(info.id, "running")
     assert store_state(store_dir, "crashed") == ("running", 1, 1)
 
-    app = GonioApp("sim", store_dir, fast=True)
+    app = make_app("sim", store_dir, fast=True, sim_options=QUICK_CAMERA)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await home_everything(pilot, app)
@@ -295,7 +308,7 @@ async def test_resume_an_interrupted_session_is_one_key(tmp_path):
 
 @pytest.mark.asyncio
 async def test_keys_answer_within_100_ms_during_a_long_move_and_estop_stops_it(tmp_path):
-    app = GonioApp("sim", tmp_path / "store", fast=False, sim_options=SLOW_TURNTABLE)
+    app = make_app("sim", tmp_path / "store", fast=False, sim_options=SLOW_TURNTABLE)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await home_everything(pilot, app)
@@ -330,7 +343,7 @@ async def test_keys_answer_within_100_ms_during_a_long_move_and_estop_stops_it(t
 
 @pytest.mark.asyncio
 async def test_log_filters_and_help_screen(tmp_path):
-    app = GonioApp("sim", tmp_path / "store", fast=True)
+    app = make_app("sim", tmp_path / "store", fast=True)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await select_row(pilot, app, "turntable")
@@ -357,7 +370,7 @@ async def test_log_filters_and_help_screen(tmp_path):
 
 @pytest.mark.asyncio
 async def test_layout_fits_80x24_and_scales(tmp_path):
-    app = GonioApp("sim", tmp_path / "store", fast=True)
+    app = make_app("sim", tmp_path / "store", fast=True)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         table = app.query_one("#device-table", DataTable)
