@@ -109,7 +109,7 @@ class ArmKinematics(Kinematics):
         self.centre_mm = _vec3(centre_mm, "centre_mm")
         self.azimuth_limits_deg = _range(azimuth_limits_deg, "azimuth_limits_deg")
         self.elevation_limits_deg = _range(elevation_limits_deg, "elevation_limits_deg")
-        if not -90.0 <= self.elevation_limits_deg[0] and self.elevation_limits_deg[1] <= 90.0:
+        if not (-90.0 <= self.elevation_limits_deg[0] and self.elevation_limits_deg[1] <= 90.0):
             raise ValueError(f"elevation_limits_deg must lie in [-90, 90], got {self.elevation_limits_deg}")
         self.radius_tolerance_mm = float(radius_tolerance_mm)
 

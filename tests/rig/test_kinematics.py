@@ -64,6 +64,9 @@ def test_bad_parameters_are_named():
         ArmKinematics(centre_mm=(0, 0))
     with pytest.raises(ValueError, match="elevation_limits_deg"):
         ArmKinematics(elevation_limits_deg=(10, 5))
+    for beyond_the_pole in ((0, 95), (-100, 45), (-100, 95)):
+        with pytest.raises(ValueError, match=r"elevation_limits_deg must lie in \[-90, 90\]"):
+            ArmKinematics(elevation_limits_deg=beyond_the_pole)
     with pytest.raises(ValueError, match="orthonormal"):
         GantryKinematics(rotation=[[2, 0, 0], [0, 1, 0], [0, 0, 1]])
     with pytest.raises(ValueError, match="travel_mm"):
