@@ -32,6 +32,7 @@ frames; the object frame at turntable reading r is the lab frame turned by the p
 from __future__ import annotations
 
 import io
+import time
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
@@ -119,6 +120,8 @@ class StageResult:
         Key numbers for the summary table (JSON-able).
     calibration_id : int or None
         The stored result's id (``Store.results``).
+    seconds : float
+        Wall time the stage took, seconds.
     """
 
     stage: str
@@ -126,6 +129,7 @@ class StageResult:
     reason: str = ""
     figures: dict[str, Any] = field(default_factory=dict)
     calibration_id: int | None = None
+    seconds: float = 0.0
 
 
 @dataclass
@@ -231,11 +235,11 @@ class _Context:
         self.steps = {idx: d for idx, d, _ in store.steps(self.info.id)}
         self.frames: dict[int, list[FrameRecord]] = {}
         for f in store.frames(self.info.id):
-            self.frames.setdefault(f.step, []).append(f)
+            if f.step in self.steps:
+                self.frames.setdefault(f.step, []).append(f)
         self.darks: dict[float, np.ndarray] = {}       # exposure s -> master dark (DN, incl. black)
         self.read_noise_dn: float | None = None        # from the dark frames' frame-to-frame scatter
         self.hdr: dict[int, np.ndarray] = {}           # step -> (H, W, 3) radiance
-        self.hdr_meta: dict[int, dict[str, Any]] = {}
         self.results: dict[str, Any] = {}              # stage -> the calibration object it made
 
     def steps_of(self, kind: str) -> list[int]:
@@ -341,7 +345,6 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[
         meta = {"step": s, "kind": ctx.steps[s]["kind"], "frames": len(frames),
                 "exposures_s": sorted(set(ts)), "dark_subtracted": sum(d is not None for d in found),
                 "saturated_fraction": float(hdr.saturated.mean()), "dynamic_range_stops": round(dr, 2)}
-        ctx.hdr_meta[s] = meta
         per_step.append(meta)
         if example is None or len(meta["exposures_s"]) > len(example[1]["exposures_s"]):
             example = (s, meta)
@@ -584,6 +587,8 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport):
         if st.get("polarizer_deg") is None or st["kind"] == "dark":
             continue
         groups.setdefault((st["kind"], st.get("turntable_deg"), repr(st.get("light"))), []).append(s)
+    if not groups:
+        raise _Skip("no captures with a polarizer (analyser) angle in this session")
     out, example, used = [], None, []
     for steps in groups.values():
         # analyser angle relative to the light's polarizer (the lab mounts it at 0 deg)
@@ -714,6 +719,23 @@ RESULT_KIND = {"dark": "dark", "hdr": "hdr", "intrinsics": "intrinsics", "turnta
                "polarization": "polarization_check", "gray_card": "gray_card", "mirror_probe": "environment_map"}
 
 
+def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -> StageResult:
+    if not wanted:
+        return StageResult(name, "skipped", "not requested")
+    try:
+        result, figures, inputs, artifacts, *rest = _RUNNERS[name](ctx, rep)
+    except _Skip as skip:
+        return StageResult(name, "skipped", str(skip))
+    except (CalibrationError, ValueError, np.linalg.LinAlgError, cv2.error, StoreError) as exc:
+        return StageResult(name, "failed", f"{type(exc).__name__}: {exc}")
+    cid = ctx.store.add_calibration(ctx.info.id, RESULT_KIND[name], result=result,
+                                    params=rest[0] if rest else {}, input_frames=inputs, artifacts=artifacts)
+    ctx.results.setdefault(name, True)
+    # a stage that lost some inputs (``errors``) is stored for the rest but reported failed
+    errors = result.get("errors") or []
+    return StageResult(name, "failed" if errors else "ok", "; ".join(errors), figures, cid)
+
+
 def calibrate_session(store: Store, session_name: str, *, progress: Callable[[str, int, int], None] | None = None,
                       targets: LabTargets | None = None, stages: tuple[str, ...] = STAGES) -> CalibrationReport:
     """Run every calibration the session's captures allow and store the results.
@@ -764,25 +786,9 @@ def calibrate_session(store: Store, session_name: str, *, progress: Callable[[st
     for i, name in enumerate(STAGES):
         if progress is not None:
             progress(name, i, total)
-        if name not in stages:
-            rep.stages.append(StageResult(name, "skipped", "not requested"))
-            continue
-        try:
-            out = _RUNNERS[name](ctx, rep)
-        except _Skip as skip:
-            rep.stages.append(StageResult(name, "skipped", str(skip)))
-            continue
-        except (CalibrationError, ValueError, np.linalg.LinAlgError, cv2.error, StoreError) as exc:
-            rep.stages.append(StageResult(name, "failed", f"{type(exc).__name__}: {exc}"))
-            continue
-        result, figures, inputs, artifacts, *rest = out
-        params = rest[0] if rest else {}
-        cid = store.add_calibration(ctx.info.id, RESULT_KIND[name], result=result, params=params,
-                                    input_frames=inputs, artifacts=artifacts)
-        # a stage that lost some inputs (``errors``) is stored for the rest but reported failed
-        errors = result.get("errors") or []
-        rep.stages.append(StageResult(name, "failed" if errors else "ok", "; ".join(errors), figures, cid))
-        ctx.results.setdefault(name, True)
+        started = time.perf_counter()
+        rep.stages.append(_run_stage(ctx, rep, name, name in stages))
+        rep.stages[-1].seconds = round(time.perf_counter() - started, 3)
     if progress is not None:
         progress("done", total, total)
     return rep

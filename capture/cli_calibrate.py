@@ -74,12 +74,12 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NOTHING) from None
         table = Table(title=f"calibration of session {session}")
-        for col in ("stage", "status", "key figures / reason"):
-            table.add_column(col, overflow="fold")
+        for col in ("stage", "status", "s", "key figures / reason"):
+            table.add_column(col, overflow="fold", justify="right" if col == "s" else "left")
         colour = {"ok": "green", "skipped": "yellow", "failed": "red"}
         for s in report.stages:
             text = ", ".join(f"{k} {v}" for k, v in s.figures.items()) if s.status == "ok" else s.reason
-            table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", text)
+            table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", f"{s.seconds:.1f}", text)
         console.print(table)
         from .report import write_report  # matplotlib loads only when there is something to draw
         folder = out if out is not None else Path(st.root).resolve().parent

@@ -1,9 +1,9 @@
 """PNG report of a calibration run (matplotlib, Agg backend: no display needed).
 
 :func:`write_report` draws one figure with a panel per result that the run produced —
-reprojection error per view, corner coverage map, turntable per-view residuals, light positions
-on a polar plot beside the positioner's commanded positions, a polarization separation example
-and an HDR example — plus the stage summary. Panels whose stage did not run say why.
+reprojection error per view, corner coverage map, turntable per-view residuals, the environment
+map, light positions on a polar plot beside the positioner's commanded positions, a
+polarization separation example and an HDR example — plus the stage summary with timings. Panels whose stage did not run say why.
 """
 from __future__ import annotations
 
@@ -119,11 +119,16 @@ def write_report(report: CalibrationReport, path: str | Path, *, dpi: int = 110)
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig = plt.figure(figsize=(15, 13))
-    grid = fig.add_gridspec(3, 4, height_ratios=[1, 1, 0.9])
+    fig = plt.figure(figsize=(18, 13))
+    grid = fig.add_gridspec(3, 5, height_ratios=[1, 1, 0.9])
     _reprojection(fig.add_subplot(grid[0, 0:2]), report)
     _coverage(fig.add_subplot(grid[0, 2]), report)
     _turntable(fig.add_subplot(grid[0, 3]), report)
+    probe = report.plots.get("probe")
+    if probe is None:
+        _missing(fig.add_subplot(grid[0, 4]), report, "mirror_probe", "Environment map")
+    else:
+        _image(fig.add_subplot(grid[0, 4]), probe["env"], f"Environment map ({report.stage('mirror_probe').figures.get('frame')} frame, lat-long)")
     _lights(fig, grid[1, 0], report)
     pol = report.plots.get("polarization")
     if pol is None:
@@ -134,17 +139,17 @@ def write_report(report: CalibrationReport, path: str | Path, *, dpi: int = 110)
         _image(fig.add_subplot(grid[1, 2]), np.clip(pol["specular"], 0, None), "Specular")
     hdr = report.plots.get("hdr_example")
     if hdr is None:
-        _missing(fig.add_subplot(grid[1, 3]), report, "hdr", "HDR example")
+        _missing(fig.add_subplot(grid[1, 3:5]), report, "hdr", "HDR example")
     else:
         exps = ", ".join(f"{t:g}" for t in hdr["exposures_s"])
-        _image(fig.add_subplot(grid[1, 3]), hdr["image"], f"HDR step {hdr['step']} ({exps} s)")
+        _image(fig.add_subplot(grid[1, 3:5]), hdr["image"], f"HDR step {hdr['step']} ({exps} s)")
     ax = fig.add_subplot(grid[2, :])
     ax.axis("off")
-    rows = [[s.stage, s.status, _figures_text(s.figures) if s.status == "ok" else s.reason]
+    rows = [[s.stage, s.status, f"{s.seconds:.1f}",
+             "\n".join(_wrap(_figures_text(s.figures) if s.status == "ok" else s.reason, 170))]
             for s in report.stages]
-    table = ax.table(cellText=[[a, b, "\n".join(_wrap(c, 150))] for a, b, c in rows],
-                     colLabels=["stage", "status", "key figures / reason"], loc="center",
-                     cellLoc="left", colWidths=[0.1, 0.07, 0.83])
+    table = ax.table(cellText=rows, colLabels=["stage", "status", "s", "key figures / reason"],
+                     loc="center", cellLoc="left", colWidths=[0.09, 0.06, 0.04, 0.81])
     table.auto_set_font_size(False)
     table.set_fontsize(7)
     table.scale(1, 1.5)
