@@ -11,6 +11,8 @@ Units at this level are degrees and millimetres (and seconds for exposure).
 from __future__ import annotations
 
 import abc
+import math
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -189,6 +191,20 @@ class LightTarget:
         has_dir = self.azimuth_deg is not None and self.elevation_deg is not None
         if has_dir == (self.xyz_mm is not None):
             raise ValueError("LightTarget needs either azimuth_deg and elevation_deg, or xyz_mm")
+        # a NaN would otherwise slip through every limit comparison and reach the G-code
+        for name in ("azimuth_deg", "elevation_deg", "distance_mm"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, numbers.Real) and math.isfinite(value)):
+                raise ValueError(f"LightTarget.{name} must be a finite number, got {value!r}")
+        if self.distance_mm is not None and self.distance_mm <= 0:
+            raise ValueError(f"LightTarget.distance_mm must be > 0, got {self.distance_mm!r}")
+        if self.xyz_mm is not None:
+            try:
+                ok = len(self.xyz_mm) == 3 and all(math.isfinite(float(v)) for v in self.xyz_mm)
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise ValueError(f"LightTarget.xyz_mm must be 3 finite numbers (mm), got {self.xyz_mm!r}")
 
     def __str__(self) -> str:
         if self.xyz_mm is not None:

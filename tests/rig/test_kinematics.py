@@ -89,3 +89,19 @@ def test_sim_forward_kinematics_matches_rig(table):
         machine = dict(zip("XYZ", m))
         assert sim_forward(table, m) == pytest.approx(kin.forward(machine), abs=1e-9)
         assert rebuilt.forward(machine) == pytest.approx(kin.forward(machine), abs=1e-9)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(azimuth_deg=float("nan"), elevation_deg=10), "azimuth_deg must be a finite number"),
+    (dict(azimuth_deg=10, elevation_deg=float("inf")), "elevation_deg must be a finite number"),
+    (dict(azimuth_deg=10, elevation_deg=10, distance_mm=0), "distance_mm must be > 0"),
+    (dict(azimuth_deg=10, elevation_deg=10, distance_mm=float("nan")), "distance_mm must be a finite"),
+    (dict(xyz_mm=(1.0, 2.0)), "xyz_mm must be 3 finite numbers"),
+    (dict(xyz_mm=(1.0, 2.0, float("nan"))), "xyz_mm must be 3 finite numbers"),
+    (dict(azimuth_deg=10), "either azimuth_deg and elevation_deg, or xyz_mm"),
+])
+def test_light_target_rejects_non_finite_and_incomplete_values(kwargs, match):
+    # a NaN compares False with every limit: it must be stopped before it can reach the G-code
+    with pytest.raises(ValueError, match=match):
+        LightTarget(**kwargs)
+    assert LightTarget(azimuth_deg=np.int64(30), elevation_deg=np.float32(12.5)).azimuth_deg == 30
