@@ -27,6 +27,7 @@ from rig.errors import Disconnected, RigError
 from rig.rig import Rig
 
 from ..events import Event, EventKind
+from ..plan import Step
 from ..preview import PreviewError, make_preview
 from ..runner import RunnerError
 from ..store import StoreError
@@ -35,7 +36,7 @@ from .devices import ROWS, DeviceRequest, DevicesPane, DeviceState, light_direct
 from .help import HelpScreen
 from .imageview import PreviewFrame, PreviewPane
 from .logpane import LogEntry, LogPane
-from .session import SessionPane, SessionRequest
+from .session import SessionPane, SessionRequest, TargetScreen
 
 
 
@@ -122,6 +123,10 @@ class SessionEnded(Message):
         self.state, self.error = state, error
 
 
+class TargetCancelled(RunnerError):
+    """The operator cancelled a scene-change prompt; the runner pauses the session."""
+
+
 class GonioApp(App[None]):
     """The operator console.
 
@@ -139,6 +144,9 @@ class GonioApp(App[None]):
         A plan file to open at start.
     sim_options : dict, optional
         Simulated devices only: settings per role, e.g. ``{"turntable": {"speed_deg_s": 30}}``.
+    prompt_targets : bool, optional
+        Ask the operator to set up each scene target (lens cap, checkerboard ...) before the
+        steps that need it. Default: on a real rig; the simulated lab swaps its scene itself.
     **runner_options
         Passed to :class:`capture.runner.Runner` (``retry=``, ``move_timeout_s=`` ...).
     """
@@ -159,13 +167,16 @@ class GonioApp(App[None]):
     def __init__(self, rig: str = "sim", store: str | Path = "gonio-store", *, fast: bool = False,
                  poll_s: float = 0.25, plan: str | Path | None = None,
                  sim_options: dict[str, dict[str, Any]] | None = None,
-                 **runner_options: Any) -> None:
+                 prompt_targets: bool | None = None, **runner_options: Any) -> None:
         super().__init__()
         self.rig_spec = rig
         self.store_dir = Path(store)
         self.fast = fast
         self.poll_s = poll_s
         self.sim_options = sim_options
+        self.prompt_targets = prompt_targets
+        self._target_reply = threading.Event()  # set when the operator answers a scene prompt
+        self._target_ready = False
         self.rig: Rig | None = None
         self.opened: Any = None         # capture.rigs.OpenedRig: the rig and its SimLab, if any
         self.store: Any = None
@@ -268,6 +279,8 @@ class GonioApp(App[None]):
     def on_unmount(self) -> None:
         if self.runner_active:
             self.runner.request_pause(now=True)
+            self._target_ready = False  # a pending scene prompt counts as cancelled
+            self._target_reply.set()
         # let the runner record its pause before the devices go away under it
         self._runner_idle.wait(timeout=10)
         self.workers.cancel_all()
@@ -505,15 +518,30 @@ class GonioApp(App[None]):
     def _start_session(self, resume: str | None) -> None:
         """Create a session from the open plan (``resume`` None) or resume a stored one, then run
         it (this worker becomes the runner's thread)."""
+        options = {"prepare_target": backend.target_handler(
+            self.opened, self._ask_target, prompt=self.prompt_targets), **self.runner_options}
         try:
             runner, steps, summary = backend.make_runner(
                 self.rig, self.store, plan=self.plan, plan_path=self.plan_path, resume=resume,
-                **self.runner_options)
+                **options)
         except (ValueError, OSError, RigError, StoreError, RunnerError) as exc:
             self.post_message(ActionResult("session", "", "", exc))
             return
         self.post_message(SessionLoaded(steps, summary, backend.session_rows(self.store)))
         self.post_message(SessionOpened(runner))
+
+    def _ask_target(self, target: str, step: Step) -> None:
+        """The runner's ``prepare_target`` (runner thread): show the scene prompt and block
+        until the operator answers. Cancelling raises, so the runner pauses before it moves."""
+        self._target_reply.clear()
+
+        def answered(ready: bool | None) -> None:
+            self._target_ready = bool(ready)
+            self._target_reply.set()
+        self.call_from_thread(lambda: self.push_screen(TargetScreen(target, step.index), answered))
+        self._target_reply.wait()
+        if not self._target_ready:
+            raise TargetCancelled(f"the operator did not set up '{target}' for step {step.index}")
 
     @_while_attached
     def on_session_opened(self, message: SessionOpened) -> None:

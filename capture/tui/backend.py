@@ -3,7 +3,7 @@ runner the CLI uses. Every function here blocks (I/O); the app calls them from t
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from rig.rig import Rig
 
@@ -27,6 +27,22 @@ def home_every_axis(rig: Rig) -> str:
     """Home all axes and the positioner at once (blocking); returns a line for the log."""
     done = home_all(rig)
     return f"homed {', '.join(done)}"
+
+
+def target_handler(opened: OpenedRig, ask: Callable[[str, Step], None], *,
+                   prompt: bool | None = None) -> Callable[[str, Step], None] | None:
+    """Who sets up the scene a step needs (``object``, ``lens_cap``, ``checkerboard`` ...), as
+    in ``gonio capture run``: the simulated scene swaps itself for ``--rig sim``, the operator is
+    asked (``ask``) on a real rig. ``prompt`` True / False forces asking / not asking."""
+    if prompt is None:
+        prompt = opened.lab is None
+    if prompt:
+        return ask
+    if opened.lab is None:
+        return None
+    # the lab's default frame source is a bound SimWorld.frame_source; its world swaps scenes
+    world = getattr(opened.lab.frame_source, "__self__", None)
+    return getattr(world, "prepare_target", None)
 
 
 def open_store(root: str | Path) -> Store:

@@ -15,6 +15,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.message import Message
 from textual.reactive import reactive
+from textual.screen import ModalScreen
 from textual.widgets import DataTable, Input, Label, ProgressBar, Static
 
 from ..events import Event, EventKind
@@ -301,3 +302,30 @@ class SessionPane(Vertical):
 
     def action_resume_interrupted(self) -> None:
         self.post_message(SessionRequest("resume_interrupted", name=self.selected_session))
+
+
+class TargetScreen(ModalScreen[bool]):
+    """Asks the operator to set up the scene a step needs; dismissed with True (ready: the
+    runner goes on) or False (cancelled: the session pauses before anything moves)."""
+
+    BINDINGS = [Binding("enter", "dismiss(True)", "Ready"),
+                Binding("escape", "dismiss(False)", "Cancel (pause)")]
+
+    def __init__(self, target: str, step: int) -> None:
+        super().__init__()
+        self.target, self.step = target, step
+
+    def compose(self) -> ComposeResult:
+        with Vertical(id="target-box"):
+            yield Label(Text(f"Step {self.step} needs: {self.target.replace('_', ' ')}",
+                             style="bold"))
+            yield Label(f"{TARGET_TEXT.get(self.target, 'set up ' + self.target)}, then press "
+                        "enter. Escape pauses the session instead.")
+
+
+#: what the operator does for each scene target of a plan
+TARGET_TEXT = {"object": "put the object on the turntable", "lens_cap": "put the lens cap on",
+               "checkerboard": "put the checkerboard target on the turntable",
+               "spheres": "put the calibration spheres on the turntable",
+               "gray_card": "put the gray card on the turntable",
+               "mirror_probe": "put the mirror sphere on the turntable"}

@@ -19,6 +19,7 @@ from capture.rigs import home_all, open_rig
 from capture.store import Store
 from capture.tui import GonioApp
 from capture.tui.help import HelpScreen
+from capture.tui.session import TargetScreen
 from capture.tui.imageview import HalfBlockImage, HistogramView
 from sims.ptp_sim import placeholder_frame
 
@@ -272,6 +273,31 @@ async def test_device_fault_shows_alert_and_pauses_then_resumes(tmp_path):
         await until(pilot, lambda: pane.state == "done", timeout=30, what="the resumed session")
         assert pane.alert_text is None
         assert store_state(tmp_path / "store", app.runner.name) == ("done", 4, 4)
+
+
+@pytest.mark.asyncio
+async def test_scene_change_prompt_holds_the_runner_until_the_operator_answers(tmp_path):
+    plan = write_plan(tmp_path, angles=(0, 90))
+    app = make_app("sim", tmp_path / "store", fast=True, sim_options=QUICK_CAMERA,
+                   prompt_targets=True)  # as on a real rig
+    async with app.run_test(size=(80, 24)) as pilot:
+        await connected(pilot, app)
+        await home_everything(pilot, app)
+        await start_session(pilot, app, plan)
+        await until(pilot, lambda: isinstance(app.screen, TargetScreen), what="the prompt")
+        assert app.screen.target == "object"
+        await pilot.pause(0.3)
+        name = app.runner.name
+        assert store_state(tmp_path / "store", name)[2] == 0  # nothing captured while asking
+        await pilot.press("escape")  # not ready: the session pauses before anything moves
+        await until(pilot, lambda: app.session_pane.state == "paused" and not app.runner_active,
+                    what="the pause")
+        assert store_state(tmp_path / "store", name) == ("paused", 0, 0)
+        await pilot.press("2", "p")  # resume: asked again, ready this time
+        await until(pilot, lambda: isinstance(app.screen, TargetScreen), what="the prompt again")
+        await pilot.press("enter")
+        await until(pilot, lambda: app.session_pane.state == "done", what="the session")
+        assert store_state(tmp_path / "store", name) == ("done", 2, 2)
 
 
 @pytest.mark.asyncio
