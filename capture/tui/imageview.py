@@ -156,7 +156,3 @@ class PreviewPane(Vertical):
         box = self.query_one("#histograms", VerticalScroll)
         await box.remove_children()
         await box.mount_all([HistogramView(f, classes="histogram") for f in frames])
-
-    @property
-    def histogram_views(self) -> list[HistogramView]:
-        return list(self.query(HistogramView))

@@ -274,12 +274,6 @@ class SessionPane(Vertical):
         alert = self.query_one("#alert", Static)
         return str(alert.render()) if alert.display else None
 
-    @property
-    def progress(self) -> float:
-        """Fraction of steps done, 0..1."""
-        bar = self.query_one(ProgressBar)
-        return 0.0 if not bar.total else bar.progress / bar.total
-
     # -- actions out --------------------------------------------------------------------------
     def action_open_plan(self) -> None:
         box = self.query_one("#plan-path", Input)
