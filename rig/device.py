@@ -160,11 +160,25 @@ class Camera(Device):
         """Take one picture with the current settings and return its file."""
 
     def bracket(self, exposures_s: list[float]) -> list[Frame]:
-        """One frame per exposure time (seconds), in the given order; restores the old exposure."""
+        """One frame per exposure time (seconds), in the given order; restores the old exposure.
+
+        Raises
+        ------
+        ValueError
+            Before anything is captured, if the list is empty or an entry is not a positive
+            finite number of seconds (so a typo at the end does not waste the first exposures).
+        """
+        times = []
+        for i, t in enumerate(exposures_s):
+            if not (isinstance(t, numbers.Real) and math.isfinite(t) and t > 0):
+                raise ValueError(f"exposures_s[{i}] = {t!r} is not a positive finite time in seconds")
+            times.append(float(t))
+        if not times:
+            raise ValueError("exposures_s is empty: give at least one exposure time in seconds")
         original = self.exposure_s
         frames = []
         try:
-            for t in exposures_s:
+            for t in times:
                 self.set_exposure(t)
                 frames.append(self.capture())
         finally:

@@ -24,6 +24,7 @@ documented code to its meaning and a typed error.
 """
 from __future__ import annotations
 
+import math
 import re
 import threading
 import time
@@ -440,11 +441,17 @@ class ElliptecRotator(Axis):
     def move_by(self, delta: float) -> MoveStatus:
         """Relative rotation by ``delta`` degrees with the device's ``mr`` command."""
         info = self._require_info()
+        delta = float(delta)
+        if not math.isfinite(delta):
+            raise ValueError(f"{self.name}: delta must be a finite number of degrees, got {delta}")
         if self.require_home and not self._homed:
             raise NotHomed(f"cannot move by {delta:g} deg before homing", device=self.name)
-        pulses = round(float(delta) * info.pulses_per_unit / 360.0)
+        reach = (2**31 - 1) * 360.0 / info.pulses_per_unit  # what a signed 32-bit pulse count holds
+        if abs(delta) > reach:
+            raise LimitError(delta, (-reach, reach), "deg", device=self.name, what="relative move")
+        data = encode_pulses(round(delta * info.pulses_per_unit / 360.0))
         self._motion = MoveStatus.run(
-            lambda: self._run_motion("mr", encode_pulses(pulses), f"move by {delta:g} deg"),
+            lambda: self._run_motion("mr", data, f"move by {delta:g} deg"),
             target=f"+{delta:g}", device=self.name)
         return self._motion
 

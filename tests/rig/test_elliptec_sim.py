@@ -6,7 +6,7 @@ import time
 import pytest
 
 from rig.elliptec import ElliptecRotator
-from rig.errors import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, ProtocolError
+from rig.errors import DeviceBusy, DeviceError, DeviceTimeout, Disconnected, LimitError, ProtocolError
 from sims.elliptec_sim import ElliptecSim
 
 
@@ -54,6 +54,12 @@ def test_relative_move_wraps_past_full_turn(sim, rot):
     rot.move_to(350).wait(2)
     assert rot.move_by(20).wait(2) == pytest.approx(10.0, abs=0.003)
     assert sim.angle_deg == pytest.approx(10.0, abs=0.003)
+    sent = len(sim.requests)
+    with pytest.raises(ValueError, match="delta must be a finite number"):
+        rot.move_by(float("nan"))
+    with pytest.raises(LimitError, match="relative move"):
+        rot.move_by(1e12)  # more turns than a signed 32-bit pulse count holds
+    assert len(sim.requests) == sent  # neither reached the wire
 
 
 def test_timed_motion_and_stop():

@@ -120,6 +120,17 @@ def test_bracket_one_valid_frame_per_exposure():
     assert cam.exposure_s == 0.01 and sim.objects == {}
 
 
+@pytest.mark.parametrize("exposures,match", [([0.01, float("nan")], r"exposures_s\[1\] = nan"),
+                                             ([0.01, 0.02, -0.1], r"exposures_s\[2\]"),
+                                             ([0.01, "1/60"], r"exposures_s\[1\] = '1/60'"),
+                                             ([], "empty")])
+def test_bad_bracket_is_refused_before_any_capture(exposures, match):
+    cam, sim = make()
+    with pytest.raises(ValueError, match=match):
+        cam.bracket(exposures)
+    assert sim.captures == 0  # nothing was exposed
+
+
 def test_slow_mode_waits_for_exposure():
     cam, sim = make(PtpCameraSim(fast=False, readout_s=0.02))
     cam.set_exposure(0.2)
