@@ -150,7 +150,7 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
     """
     if len(frames) == 0:
         raise TooFewViews("HDR merge (exposures)", have=0, need=1)
-    D = np.stack([np.asarray(f) for f in frames]).astype(np.float32)
+    D = np.stack([np.asarray(f) for f in frames])  # converted to float32 block by block
     if D.ndim != 3:
         raise ValueError(f"frames must be 2-D mosaics of one shape, got stack shape {D.shape}")
     t = np.asarray(exposure_s, np.float64).ravel()
@@ -165,17 +165,30 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
     black = np.broadcast_to(np.asarray(black_level, np.float32), D.shape[1:])
     if np.any(black >= white_level):
         raise ValueError(f"black_level must be below white_level ({white_level})")
+    dk = None if darks is None else np.broadcast_to(np.asarray(darks, np.float32), D.shape)
+    out = HDRImage(np.empty(D.shape[1:], np.float32), np.empty(D.shape[1:], np.float32),
+                   np.empty(D.shape[1:], bool), np.empty(D.shape[1:], np.uint8))
+    # Row blocks: the per-pixel work needs several (N, rows, W) temporaries; whole 24 MP frames
+    # would allocate (and page-fault) gigabytes.
+    rows = max(1, _BLOCK_SAMPLES // (len(D) * D.shape[2]))
+    for r0 in range(0, D.shape[1], rows):
+        sl = slice(r0, r0 + rows)
+        _merge_block(D[:, sl].astype(np.float32), t, black[sl], None if dk is None else dk[:, sl], white_level, linear_fraction,
+                     np.float32(gain_e_per_dn), np.float32(read_noise_dn ** 2),
+                     out.radiance[sl], out.sigma[sl], out.saturated[sl], out.n_used[sl])
+    return out
+
+
+#: samples (frames x pixels) per block of :func:`merge_raw_brackets`
+_BLOCK_SAMPLES = 1 << 19  # 12 MP x 5 frames: 2.6 s in blocks vs 10.3 s whole (loaded 2-core box)
+
+
+def _merge_block(D, t, black, dark, white_level, linear_fraction, g, rn2, radiance, sigma, saturated, n_used):
+    """Merge one row block in place (see :func:`merge_raw_brackets`)."""
     clip_at = black + linear_fraction * (white_level - black)
     valid = D < clip_at
-    if darks is not None:
-        dk = np.broadcast_to(np.asarray(darks, np.float32), D.shape)
-        D = D - dk
-    else:
-        D = D - black
+    X = (D - (black if dark is None else dark)) / t[:, None, None].astype(np.float32)
     tt = t[:, None, None].astype(np.float32)
-    X = D / tt
-    rn2 = np.float32(read_noise_dn ** 2)
-    g = np.float32(gain_e_per_dn)
 
     def pooled(estimate):
         var = (np.maximum(estimate, 0)[None] * tt / g + rn2) / tt ** 2
@@ -185,16 +198,13 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
 
     # First estimate: each pixel's longest unclipped exposure (its best single SNR).
     longest = np.where(valid, tt, 0).argmax(axis=0)
-    first = np.take_along_axis(X, longest[None], axis=0)[0]
-    est, sw = pooled(first)
+    est, sw = pooled(np.take_along_axis(X, longest[None], axis=0)[0])
     est, sw = pooled(est)
-    n_used = valid.sum(axis=0).astype(np.uint8)
-    saturated = n_used == 0
-    shortest = int(np.argmin(t))
+    n_used[:] = valid.sum(axis=0)
+    saturated[:] = n_used == 0
     # All exposures clipped: the clip level of the shortest exposure is a lower bound.
-    est = np.where(saturated, (clip_at - black) / t[shortest], est)
-    sigma = np.where(saturated, 0.0, 1.0 / np.sqrt(np.maximum(sw, 1e-30)))
-    return HDRImage(est.astype(np.float32), sigma.astype(np.float32), saturated, n_used)
+    radiance[:] = np.where(saturated, (clip_at - black) / t.min(), est)
+    sigma[:] = np.where(saturated, 0.0, 1.0 / np.sqrt(np.maximum(sw, 1e-30)))
 
 
 def _ldr_stack(images, exposure_s):
