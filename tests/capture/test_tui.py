@@ -184,10 +184,14 @@ async def test_test_shot_updates_preview_and_histogram_warns(tmp_path):
 @pytest.mark.asyncio
 async def test_session_runs_to_100_percent_with_bracket_preview(tmp_path):
     plan = write_plan(tmp_path, angles=(0, 90, 180), stops=(-1, 0, 1))
-    app = make_app("sim", tmp_path / "store", fast=True, sim_options=QUICK_CAMERA)
+    bus = EventBus()
+    app = make_app("sim", tmp_path / "store", fast=True, sim_options=QUICK_CAMERA, bus=bus)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await home_everything(pilot, app)
+        # one swallowed request after step 0: a timeout the runner retries and gets past
+        bus.subscribe(lambda ev: ev.kind == EventKind.STEP_DONE and ev.step == 0
+                      and app.lab.sims["turntable"].inject("no_reply"))
         await start_session(pilot, app, plan)
         pane = app.session_pane
         await until(pilot, lambda: pane.state == "done", timeout=30, what="the session")
@@ -202,6 +206,11 @@ async def test_session_runs_to_100_percent_with_bracket_preview(tmp_path):
         assert (state, steps_done, frames) == ("done", 3, 9)
         kinds = [e.kind for e in app.log_pane.entries]
         assert kinds.count("frame_stored") == 9 and "done" in kinds
+        # the fault table says what the runner did about the timeout
+        (event, action), = pane.faults
+        assert event.kind == EventKind.RETRY and event.device == "turntable"
+        assert action.startswith("retried (1,")
+        assert pane.alert_text is None
 
 
 @pytest.mark.asyncio
