@@ -265,6 +265,8 @@ class PtpCameraSim(usb.backend.IBackend):
         known = {"no_reply", "stall", "short_read", "corrupt_object", "disconnect"}
         if fault not in known:
             raise ValueError(f"unknown fault {fault!r}; known: {sorted(known)}")
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count}")
         if fault == "disconnect":
             self.disconnect()
             return
