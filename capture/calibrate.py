@@ -16,13 +16,16 @@ code version)::
     mirror_probe  lat-long environment map from mirror-sphere captures (lab frame)
 
 A stage whose inputs are missing is *skipped* with the reason; a stage that fails records the
-error (naming the frame) and the others continue. Nothing here raises for bad data except
-:class:`SessionNotFound` (unknown session).
+error (naming the frame) and the others continue. Bad data never raises: only an unknown
+session (:class:`SessionNotFound`) and a session with nothing to calibrate
+(:class:`NothingToCalibrate`) do.
 
-Images: raw DNG bytes -> rawpy mosaic -> black level, per-exposure dark frame, white level ->
-HDR merge in the mosaic domain (unsaturated samples weighted by exposure time, the
-shot-noise-optimal weight) -> bilinear demosaic. Radiance unit: normalised DN per second
-(``(raw - black - dark) / (white - black) / exposure_s``), camera RGB, float32 H x W x 3.
+Images: the camera's raw bytes -> rawpy mosaic -> :func:`calibration.hdr.merge_raw_brackets`
+in the mosaic domain (master dark of the same exposure, else the black level; unclipped samples
+weighted by inverse variance with the read noise measured on the darks) -> bilinear demosaic.
+Radiance unit: DN per second, camera RGB, float32 H x W x 3. Calibration steps' images stay in
+memory during a run; measurement steps are merged for their figures and dropped (the
+polarization check merges the few poses it looks at again).
 
 Frames: pixels x right, y down; camera frame OpenCV, mm. The *lab frame* is the turntable
 (world) frame of :mod:`calibration.turntable` at platter angle 0 (the first target view):
@@ -65,6 +68,8 @@ STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "pol
 #: constrained model (principal point at the image centre, no tangential terms, k1 only): a
 #: board seen only near the image centre (turntable sweeps) cannot separate those parameters
 MIN_COVERAGE_FULL_MODEL = 0.5
+#: poses (turntable angle x light) the polarization check separates, spread over the session
+POLARIZATION_POSES = 4
 #: lat-long environment map height (width is twice), pixels
 PROBE_HEIGHT = 64
 _CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
@@ -239,7 +244,8 @@ class _Context:
                 self.frames.setdefault(f.step, []).append(f)
         self.darks: dict[float, np.ndarray] = {}       # exposure s -> master dark (DN, incl. black)
         self.read_noise_dn: float | None = None        # from the dark frames' frame-to-frame scatter
-        self.hdr: dict[int, np.ndarray] = {}           # step -> (H, W, 3) radiance
+        self.hdr: dict[int, np.ndarray] = {}           # calibration step -> (H, W, 3) radiance
+        self.bad_steps: set[int] = set()               # steps whose frames could not be merged
         self.results: dict[str, Any] = {}              # stage -> the calibration object it made
 
     def steps_of(self, kind: str) -> list[int]:
@@ -250,9 +256,30 @@ class _Context:
         return [f.id for s in steps for f in self.frames[s]]
 
     def raw(self, f: FrameRecord) -> RawMosaic:
-        if f.format.lower() != "dng":
-            raise ValueError(f"frame {f.id} (step {f.step}) is {f.format!r}; the pipeline reads raw DNG")
         return decode_raw(self.store.read_object(f.sha256), frame=f"frame {f.id} (step {f.step})")
+
+    @property
+    def read_noise(self) -> float:
+        """Read noise (DN) for the merge's noise model: from the darks, else 1 DN."""
+        return self.read_noise_dn if self.read_noise_dn else 1.0
+
+    def merge(self, step: int) -> tuple[np.ndarray, dict[str, Any]]:
+        """HDR radiance (H, W, 3) float32, DN/s, of one step's frames (all brackets and repeats)
+        and its figures. Raises ValueError naming an unreadable frame."""
+        frames = self.frames[step]
+        raws = [self.raw(f) for f in frames]
+        ts = [_exposure(f) for f in frames]
+        found = [self.dark_for(t) for t in ts]
+        # a frame without a dark at its exposure falls back to the black level alone
+        darks = np.stack([raws[0].black_level if d is None else d for d in found])
+        hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
+                                 white_level=raws[0].white_level, read_noise_dn=self.read_noise, darks=darks)
+        img = demosaic_bilinear(hdr.radiance, cfa_channels(raws[0].cfa, hdr.radiance.shape))
+        pos = hdr.radiance[~hdr.saturated & (hdr.radiance > 0)]
+        dr = float(np.log2(pos.max() / max(np.percentile(pos, 1), 1e-12))) if pos.size else 0.0
+        return img, {"step": step, "kind": self.steps[step]["kind"], "frames": len(frames),
+                     "exposures_s": sorted(set(ts)), "dark_subtracted": sum(d is not None for d in found),
+                     "saturated_fraction": float(hdr.saturated.mean()), "dynamic_range_stops": round(dr, 2)}
 
     def dark_for(self, exposure_s: float) -> np.ndarray | None:
         for t, dark in self.darks.items():
@@ -321,41 +348,32 @@ def _stage_dark(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list
 
 
 def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[int], dict]:
-    steps = [s for s in sorted(ctx.frames) if ctx.steps.get(s, {}).get("kind") != "dark"]
+    steps = [s for s in sorted(ctx.frames) if ctx.steps[s]["kind"] != "dark"]
     if not steps:
         raise _Skip("no frames besides dark frames in this session")
-    read_noise = ctx.read_noise_dn if ctx.read_noise_dn else 1.0
     per_step, example, errors = [], None, []
     for s in steps:
-        frames = ctx.frames[s]
         try:
-            raws = [ctx.raw(f) for f in frames]
+            img, meta = ctx.merge(s)
         except ValueError as exc:  # one unreadable frame loses its step, not the session
             errors.append(str(exc))
+            ctx.bad_steps.add(s)
             continue
-        ts = [_exposure(f) for f in frames]
-        found = [ctx.dark_for(t) for t in ts]
-        # a frame without a dark at its exposure falls back to the black level alone
-        darks = np.stack([raws[0].black_level if d is None else d for d in found])
-        hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
-                                 white_level=raws[0].white_level, read_noise_dn=read_noise, darks=darks)
-        ctx.hdr[s] = demosaic_bilinear(hdr.radiance, cfa_channels(raws[0].cfa, hdr.radiance.shape))
-        pos = hdr.radiance[~hdr.saturated & (hdr.radiance > 0)]
-        dr = float(np.log2(pos.max() / max(np.percentile(pos, 1), 1e-12))) if pos.size else 0.0
-        meta = {"step": s, "kind": ctx.steps[s]["kind"], "frames": len(frames),
-                "exposures_s": sorted(set(ts)), "dark_subtracted": sum(d is not None for d in found),
-                "saturated_fraction": float(hdr.saturated.mean()), "dynamic_range_stops": round(dr, 2)}
+        # calibration images stay in memory for the later stages; measurement steps (a session
+        # can hold thousands, hundreds of MB each) are merged again where a stage needs them
+        if ctx.steps[s]["kind"] != "measure":
+            ctx.hdr[s] = img
         per_step.append(meta)
         if example is None or len(meta["exposures_s"]) > len(example[1]["exposures_s"]):
-            example = (s, meta)
+            example = (s, meta, img)
     if example is None:
         raise CalibrationError("no step could be merged: " + "; ".join(errors))
-    rep.plots["hdr_example"] = {"step": example[0], "image": ctx.hdr[example[0]],
+    rep.plots["hdr_example"] = {"step": example[0], "image": example[2],
                                 "exposures_s": example[1]["exposures_s"]}
     figures = {"steps": len(per_step), "failed_steps": len(errors),
                "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
                "dark_subtracted_frames": sum(m["dark_subtracted"] for m in per_step)}
-    return ({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": read_noise,
+    return ({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": ctx.read_noise,
              "steps": per_step, "errors": errors}, figures, ctx.frame_ids([m["step"] for m in per_step]), {})
 
 
@@ -582,21 +600,26 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
 
 def _stage_polarization(ctx: _Context, rep: CalibrationReport):
     groups: dict[tuple, list[int]] = {}
-    for s in sorted(ctx.hdr):
+    for s in sorted(ctx.frames):
         st = ctx.steps[s]
-        if st.get("polarizer_deg") is None or st["kind"] == "dark":
+        if st.get("polarizer_deg") is None or st["kind"] == "dark" or s in ctx.bad_steps:
             continue
         groups.setdefault((st["kind"], st.get("turntable_deg"), repr(st.get("light"))), []).append(s)
     if not groups:
         raise _Skip("no captures with a polarizer (analyser) angle in this session")
+    groups = {k: v for k, v in groups.items()
+              if len({round(ctx.reading(s, "polarizer_deg") % 180, 1) for s in v}) >= 2}
+    if not groups:
+        raise _Skip("no pose was captured at two or more analyser angles")
     out, example, used = [], None, []
-    for steps in groups.values():
+    # a check, not the separation of the whole session: a few poses spread over the session
+    keys = list(groups)
+    keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(len(keys), POLARIZATION_POSES)).round().astype(int))]
+    for steps in (groups[k] for k in keys):
         # analyser angle relative to the light's polarizer (the lab mounts it at 0 deg)
         angles = np.array([ctx.reading(s, "polarizer_deg") for s in steps])
         distinct = np.unique(np.round(angles % 180, 1))
-        if len(distinct) < 2:
-            continue
-        stack = np.stack([ctx.hdr[s] for s in steps])
+        stack = np.stack([ctx.hdr[s] if s in ctx.hdr else ctx.merge(s)[0] for s in steps])
         if len(distinct) == 2 and abs(abs(distinct[1] - distinct[0]) - 90) < 1:
             par = int(np.argmin(np.abs(((angles + 90) % 180) - 90)))   # nearest 0 mod 180
             cro = int(np.argmin(np.abs((angles % 180) - 90)))
