@@ -15,6 +15,9 @@ from .errors import DegenerateFit, TooFewViews
 
 __all__ = ["Separation", "PolarizationFit", "separate_parallel_crossed", "fit_polarization"]
 
+#: pixels per block in :func:`fit_polarization`
+_BLOCK = 1 << 18
+
 
 @dataclass(frozen=True)
 class Separation:
@@ -129,19 +132,28 @@ def fit_polarization(stack, angles_deg) -> PolarizationFit:
     if sv[-1] < 1e-6 * sv[0]:
         raise DegenerateFit("analyser angles must include 3 distinct values modulo 180°, "
                             f"got {np.degrees(th) % 180}")
-    flat = s.reshape(len(th), -1).astype(np.float64)
-    if not np.all(np.isfinite(flat)):
-        raise ValueError("stack contains NaN or infinite values")
-    coef = np.linalg.pinv(A) @ flat
-    resid = flat - A @ coef
-    a, b, c = coef
-    amp = np.hypot(b, c)
-    imax, imin = a + amp, a - amp
-    tot = imax + imin
-    dop = np.divide(amp * 2, tot, out=np.zeros_like(tot), where=tot > 0)
+    flat = s.reshape(len(th), -1)
+    pinv = np.linalg.pinv(A).astype(np.float32)
+    A32 = A.astype(np.float32)
+    n = flat.shape[1]
+    imax, imin, phase, dop, resid = (np.empty(n, np.float32) for _ in range(5))
+    # float32 pixel blocks: a whole-stack float64 pass took 9.7 s on a 2048x1536x3 x 4 stack,
+    # blocks 1.2-3 s (loaded 2-core box)
+    for b0 in range(0, n, _BLOCK):
+        blk = flat[:, b0:b0 + _BLOCK].astype(np.float32)
+        if not np.all(np.isfinite(blk)):
+            raise ValueError("stack contains NaN or infinite values")
+        coef = np.einsum("ij,jk->ik", pinv, blk)  # tiny inner dimension: einsum beats BLAS here
+        a, b, c = coef
+        amp = np.hypot(b, c)
+        sl = slice(b0, b0 + blk.shape[1])
+        imax[sl], imin[sl] = a + amp, a - amp
+        phase[sl] = np.degrees(0.5 * np.arctan2(c, b))
+        tot = 2 * a
+        dop[sl] = np.clip(np.divide(2 * amp, tot, out=np.zeros_like(tot), where=tot > 0), 0, 1)
+        r = blk - np.einsum("ij,jk->ik", A32, coef)
+        resid[sl] = np.sqrt(np.einsum("ij,ij->j", r, r) / len(th))
     shape = s.shape[1:]
     out = lambda x: np.asarray(x, np.float32).reshape(shape)  # noqa: E731
-    return PolarizationFit(out(imax), out(imin), out(np.degrees(0.5 * np.arctan2(c, b))),
-                           out(np.clip(dop, 0, 1)), out(np.maximum(2 * imin, 0)),
-                           out(np.maximum(imax - imin, 0)),
-                           out(np.sqrt(np.mean(resid ** 2, axis=0))))
+    return PolarizationFit(out(imax), out(imin), out(phase), out(dop), out(np.maximum(2 * imin, 0)),
+                           out(np.maximum(imax - imin, 0)), out(resid))
