@@ -496,7 +496,7 @@ class ZaberRotaryStage(Axis):
                 "firmware": self.get_text("version", scope_device=True),
                 "serial": self.get_text("system.serial", scope_device=True),
                 "resolution": int(self.get("resolution")),
-                "cycle_microsteps": int(self.get("limit.cycle.dist")),
+                "cycle_microsteps": self._cycle_microsteps(),
                 "limit_min": int(self.get("limit.min")),
                 "limit_max": int(self.get("limit.max")),
                 "maxspeed": self.get("maxspeed"),
@@ -526,6 +526,16 @@ class ZaberRotaryStage(Axis):
             self.set_speed(self._speed_deg_s)
         if self._accel_deg_s2 is not None:
             self.set_accel(self._accel_deg_s2)
+
+    def _cycle_microsteps(self) -> int:
+        """``limit.cycle.dist``, or 0 where the firmware has no such setting (a linear axis on
+        firmware 6 rejects it with BADCOMMAND: not a continuous rotary stage)."""
+        try:
+            return int(self.get("limit.cycle.dist"))
+        except DeviceError as exc:
+            if exc.code != "BADCOMMAND":
+                raise
+            return 0
 
     def _enable_reply_checksums(self) -> None:
         """Set the device's ``comm.checksum`` to 1 (if needed) and require checksummed replies."""

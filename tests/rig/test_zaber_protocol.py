@@ -300,6 +300,19 @@ def test_non_cyclic_stage_needs_microstep_size_and_checks_limits():
         s.move_to(120.0)
 
 
+def test_firmware_without_cycle_setting_is_a_limited_travel_stage():
+    answers = [("get deviceid", "1", 0), ("get version", "6.28", 0), ("get system.serial", "1", 0),
+               ("get resolution", "64", 1)]
+    script = [(req(i, c, a), rep(i, d, axis=a)) for i, (c, d, a) in enumerate(answers)]
+    script.append((req(4, "get limit.cycle.dist"), rep(4, "BADCOMMAND", flag="RJ")))
+    later = [("get limit.min", "0", 1), ("get limit.max", "360000", 1), ("get maxspeed", "1000", 1),
+             ("get accel", "100", 1), ("get comm.checksum", "1", 0)]
+    script += [(req(5 + i, c, a), rep(5 + i, d, axis=a)) for i, (c, d, a) in enumerate(later)]
+    s = ZaberRotaryStage("turntable", transport=ScriptedTransport(script), microstep_deg=0.001)
+    s.connect()
+    assert not s.cyclic and s.limits == pytest.approx((0.0, 360.0))
+
+
 def test_from_config_rejects_unknown_keys():
     from rig import ConfigError
     with pytest.raises(ConfigError, match="speed"):
