@@ -105,7 +105,8 @@ class LabTargets:
             if not getattr(self, name) > 0:
                 raise ValueError(f"LabTargets.{name} must be > 0 mm, got {getattr(self, name)!r}")
         if not 0 < self.sphere_reflectance < 1:
-            raise ValueError(f"LabTargets.sphere_reflectance must be in (0, 1), got {self.sphere_reflectance!r}")
+            raise ValueError(f"LabTargets.sphere_reflectance must be in (0, 1), "
+                             f"got {self.sphere_reflectance!r}")
         if not 0 < self.gray_card_albedo <= 1:
             raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
 
@@ -192,7 +193,8 @@ def decode_raw(data: bytes, *, frame: str = "frame") -> RawMosaic:
             black = np.asarray(raw.black_level_per_channel, np.float32)[raw.raw_colors_visible]
             desc = raw.color_desc.decode()
             pattern = raw.raw_pattern
-            cfa = "".join(desc[c] for c in pattern.ravel()) if pattern is not None and pattern.shape == (2, 2) else ""
+            bayer = pattern is not None and pattern.shape == (2, 2)
+            cfa = "".join(desc[c] for c in pattern.ravel()) if bayer else ""
             white = float(raw.white_level)
     except (rawpy.LibRawError, OSError) as exc:
         raise ValueError(f"{frame}: not a readable raw file ({type(exc).__name__}: {exc})") from None
@@ -379,7 +381,8 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[
 
 def _detector(ctx: _Context):
     t = ctx.targets
-    board = make_charuco_board(t.charuco_squares, t.charuco_square_mm, t.charuco_marker_mm, t.charuco_dictionary)
+    board = make_charuco_board(t.charuco_squares, t.charuco_square_mm, t.charuco_marker_mm,
+                               t.charuco_dictionary)
 
     def detect(img, frame):
         # ChArUco first: its corner ids stay consistent as the board turns (the turntable fit
@@ -387,7 +390,8 @@ def _detector(ctx: _Context):
         try:
             return detect_charuco(img, board, frame=frame), "charuco"
         except TargetNotFound:
-            return detect_chessboard(img, t.chessboard_inner, t.chessboard_square_mm, frame=frame), "chessboard"
+            found = detect_chessboard(img, t.chessboard_inner, t.chessboard_square_mm, frame=frame)
+            return found, "chessboard"
     return detect
 
 
@@ -408,7 +412,8 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
     if len({*kinds}) > 1:  # two target types in one session: keep the majority
         major = max(set(kinds), key=kinds.count)
         keep = [i for i, k in enumerate(kinds) if k == major]
-        dets, kinds, det_steps = [dets[i] for i in keep], [kinds[i] for i in keep], [det_steps[i] for i in keep]
+        dets, det_steps = [dets[i] for i in keep], [det_steps[i] for i in keep]
+        kinds = [major] * len(keep)
     if len(dets) < 3:
         raise CalibrationError(f"a board was found in {len(dets)} of {len(steps)} checkerboard steps "
                                f"(need 3): {'; '.join(missing) or 'no views'}")
@@ -578,7 +583,8 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
     d = X - model.centre_mm
     rep.plots["lights"] = {"commanded_az": az, "commanded_el": el,
                            "measured_az": np.degrees(np.arctan2(d[:, 1], d[:, 0])) - model.azimuth_offset_deg,
-                           "measured_el": np.degrees(np.arcsin(np.clip(d[:, 2] / np.linalg.norm(d, axis=1), -1, 1))),
+                           "measured_el": np.degrees(np.arcsin(np.clip(
+                               d[:, 2] / np.linalg.norm(d, axis=1), -1, 1))),
                            "residuals_mm": model.residuals_mm}
     per_step = []
     for idx, st in sorted(ctx.steps.items()):
@@ -595,7 +601,8 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
               "residuals_mm": model.residuals_mm, "rms_mm": model.rms_mm, "step_lights": per_step}
     figures = {"rms_mm": round(model.rms_mm, 2), "radius_mm": round(model.radius_mm, 1),
                "el_offset_deg": round(model.elevation_offset_deg, 2), "steps_with_light": len(per_step)}
-    return result, figures, ctx.frame_ids([r["step"] for r in use]), {}, {"model": "arm (centre, radius, offsets)"}
+    params = {"model": "arm (centre, radius, azimuth/elevation offsets)"}
+    return result, figures, ctx.frame_ids([r["step"] for r in use]), {}, params
 
 
 def _stage_polarization(ctx: _Context, rep: CalibrationReport):
@@ -614,7 +621,8 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport):
     out, example, used = [], None, []
     # a check, not the separation of the whole session: a few poses spread over the session
     keys = list(groups)
-    keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(len(keys), POLARIZATION_POSES)).round().astype(int))]
+    pick = np.unique(np.linspace(0, len(keys) - 1, min(len(keys), POLARIZATION_POSES)).round().astype(int))
+    keys = [keys[i] for i in pick]
     for steps in (groups[k] for k in keys):
         # analyser angle relative to the light's polarizer (the lab mounts it at 0 deg)
         angles = np.array([ctx.reading(s, "polarizer_deg") for s in steps])
@@ -669,7 +677,8 @@ def _stage_gray_card(ctx: _Context, rep: CalibrationReport):
         k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         card = cv2.erode((labels == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         if card.sum() < 50:
-            raise TargetNotFound(f"gray card region has {int(card.sum())} px after erosion (need 50)", frame=name)
+            raise TargetNotFound(f"gray card region has {int(card.sum())} px after erosion (need 50)",
+                                 frame=name)
         rgb = np.median(img[card], axis=0)
         row = {"step": s, "pixels": int(card.sum()), "value_rgb": rgb,
                "relative_scale_rgb": albedo / rgb,
@@ -727,7 +736,8 @@ def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport):
               "artifacts": "environment.npz: env (H, 2H, 3) DN/s lat-long, weight (H, 2H)"}
     figures = {"views": len(rows), "frame": frame, "valid_pct": round(100 * float(probe.valid.mean()), 1),
                "sphere_radius_px": round(rows[0]["radius_px"], 1)}
-    return result, figures, ctx.frame_ids(steps), {"environment.npz": buf.getvalue()}, {"height": PROBE_HEIGHT}
+    artifacts = {"environment.npz": buf.getvalue()}
+    return result, figures, ctx.frame_ids(steps), artifacts, {"height": PROBE_HEIGHT}
 
 
 _RUNNERS: dict[str, Callable] = {
@@ -739,7 +749,8 @@ _RUNNERS: dict[str, Callable] = {
 #: what each stored calibration is called in ``Store.results`` (``kind``)
 RESULT_KIND = {"dark": "dark", "hdr": "hdr", "intrinsics": "intrinsics", "turntable": "turntable",
                "lights": "light_positions", "positioner": "positioner_model",
-               "polarization": "polarization_check", "gray_card": "gray_card", "mirror_probe": "environment_map"}
+               "polarization": "polarization_check", "gray_card": "gray_card",
+               "mirror_probe": "environment_map"}
 
 
 def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -> StageResult:
@@ -759,8 +770,10 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
     return StageResult(name, "failed" if errors else "ok", "; ".join(errors), figures, cid)
 
 
-def calibrate_session(store: Store, session_name: str, *, progress: Callable[[str, int, int], None] | None = None,
-                      targets: LabTargets | None = None, stages: tuple[str, ...] = STAGES) -> CalibrationReport:
+def calibrate_session(store: Store, session_name: str, *,
+                      progress: Callable[[str, int, int], None] | None = None,
+                      targets: LabTargets | None = None,
+                      stages: tuple[str, ...] = STAGES) -> CalibrationReport:
     """Run every calibration the session's captures allow and store the results.
 
     Parameters

@@ -38,7 +38,8 @@ def _targets(path: Path | None) -> LabTargets:
     known = {f.name for f in fields(LabTargets)}
     unknown = sorted(set(data) - known)
     if unknown:
-        raise fail(f"--targets {path}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        raise fail(f"--targets {path}: unknown key(s) {', '.join(unknown)}; "
+                   f"known: {', '.join(sorted(known))}")
     try:
         return LabTargets(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
     except (TypeError, ValueError) as exc:

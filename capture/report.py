@@ -3,7 +3,8 @@
 :func:`write_report` draws one figure with a panel per result that the run produced —
 reprojection error per view, corner coverage map, turntable per-view residuals, the environment
 map, light positions on a polar plot beside the positioner's commanded positions, a
-polarization separation example and an HDR example — plus the stage summary with timings. Panels whose stage did not run say why.
+polarization separation example and an HDR example — plus the stage summary with timings.
+Panels whose stage did not run say why.
 """
 from __future__ import annotations
 
@@ -50,7 +51,8 @@ def _reprojection(ax, report: CalibrationReport) -> None:
     err = np.asarray(p["per_view_rms_px"])
     ax.bar(np.arange(len(err)), err, color="tab:blue")
     ax.axhline(float(np.sqrt(np.mean(err ** 2))), color="k", ls="--", lw=1, label="overall RMS")
-    ax.set_xticks(np.arange(len(err)), [f.split("(")[-1].rstrip(")") for f in p["frames"]], rotation=60, fontsize=6)
+    labels = [f.split("(")[-1].rstrip(")") for f in p["frames"]]  # "frame 12 (step 3)" -> "step 3"
+    ax.set_xticks(np.arange(len(err)), labels, rotation=60, fontsize=6)
     ax.set_ylabel("RMS reprojection error (px)")
     ax.set_title("Intrinsics: reprojection error per view")
     ax.legend(fontsize=7)
@@ -128,14 +130,16 @@ def write_report(report: CalibrationReport, path: str | Path, *, dpi: int = 110)
     if probe is None:
         _missing(fig.add_subplot(grid[0, 4]), report, "mirror_probe", "Environment map")
     else:
-        _image(fig.add_subplot(grid[0, 4]), probe["env"], f"Environment map ({report.stage('mirror_probe').figures.get('frame')} frame, lat-long)")
+        frame = report.stage("mirror_probe").figures.get("frame")
+        _image(fig.add_subplot(grid[0, 4]), probe["env"], f"Environment map ({frame} frame, lat-long)")
     _lights(fig, grid[1, 0], report)
     pol = report.plots.get("polarization")
     if pol is None:
         for k, what in ((1, "diffuse"), (2, "specular")):
             _missing(fig.add_subplot(grid[1, k]), report, "polarization", f"Polarization: {what}")
     else:
-        _image(fig.add_subplot(grid[1, 1]), pol["diffuse"], f"Diffuse ({pol['method']}, steps {pol['steps']})")
+        _image(fig.add_subplot(grid[1, 1]), pol["diffuse"],
+               f"Diffuse ({pol['method']}, steps {pol['steps']})")
         _image(fig.add_subplot(grid[1, 2]), np.clip(pol["specular"], 0, None), "Specular")
     hdr = report.plots.get("hdr_example")
     if hdr is None:
