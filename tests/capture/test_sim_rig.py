@@ -129,6 +129,7 @@ READER = textwrap.dedent("""
     deadline = time.monotonic() + 60
     with Store(root, create=False) as st:
         sid = st.session("s").id
+        print("ready", flush=True)
         while time.monotonic() < deadline:
             with st._read() as db:  # one snapshot: rows and counts agree
                 rows = db.execute("SELECT sha256, size FROM frames WHERE session_id = ?", (sid,)).fetchall()
@@ -153,6 +154,7 @@ def test_reader_process_sees_consistent_data_while_runner_writes(lab, tmp_path):
     opened, store = lab
     reader = subprocess.Popen([sys.executable, "-c", READER, str(store.root), str(FRAMES), str(STEPS)],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert reader.stdout.readline().strip() == "ready"  # polling before the first write
     # a second in-process reader (another thread, its own connection), as the TUI would
     counts, problems = [], []
     stop = threading.Event()
@@ -175,7 +177,7 @@ def test_reader_process_sees_consistent_data_while_runner_writes(lab, tmp_path):
         t.join()
     out, err = reader.communicate(timeout=90)
     assert reader.returncode == 0, err
-    result = json.loads(out)
+    result = json.loads(out.strip().splitlines()[-1])
     assert result["bad"] == [] and result["final_ok"] and result["last"] == FRAMES
     assert result["polls"] > 1
     assert problems == [] and counts == sorted(counts) and len(counts) > 1
