@@ -1,10 +1,12 @@
 """The capture runner: executes a session's steps on a rig, durably, resumably.
 
 For each step not yet done, in order: move every axis the step names at once (``move_to`` on
-each, then ``wait_all``), read back where they ended up, capture the bracket (``set_exposure`` +
+each, then ``wait_all``), read back where they ended up (degrees / millimetres; stored with
+every frame of the step: nothing moves during a bracket), capture the bracket (``set_exposure`` +
 ``capture`` per exposure, ``repeats`` times) and store each frame durably; the step's last frame
 marks it done in the same transaction. Events go to an :class:`~capture.events.EventBus` and into
-the store.
+the store. Plans with ``exposure.auto`` are metered once per session first
+(:mod:`capture.metering`); the metering is stored and reused on resume.
 
 Faults: a retryable device error (busy, timeout, garbled reply) is retried with bounded
 exponential back-off; when retries run out, or the error needs an operator (``Disconnected``,
