@@ -111,7 +111,7 @@ class SessionPane(Vertical):
             yield Label("idle", id="session-state")
         yield Static("no plan open", id="plan-summary")
         with Horizontal(id="progress-row"):
-            yield ProgressBar(total=None, show_eta=False, id="progress")
+            yield ProgressBar(total=1, show_eta=False, id="progress")  # not None: no idle animation
             yield Label("", id="progress-text")
         yield Static("", id="current-step")
         yield Static("", id="alert")
