@@ -24,7 +24,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "calibration")]  # the package; synthetic-scene helpers
 
-from calib_synth import DIST_TRUE, K_TRUE, board_poses, chessboard_texture, render_plane, rot_axis_angle  # noqa: E402
+from calib_synth import (DIST_TRUE, K_TRUE, board_poses, chessboard_texture, render_plane,  # noqa: E402
+                         rot_axis_angle)
 from test_lights import render_spheres  # noqa: E402
 from test_radiometry import BLACK, GAIN, READ, WHITE, patch_radiance, simulate_raw  # noqa: E402
 
@@ -57,7 +58,8 @@ def angle_deg(u, v):
 def bench_intrinsics(n_views):
     rng = np.random.default_rng(42)
     tex, to_tex = chessboard_texture(12, 9)
-    imgs = [render_plane(tex, to_tex, K_TRUE, DIST_TRUE, r, t, rng=rng, noise=1.5) for r, t in board_poses(n_views, rng)]
+    imgs = [render_plane(tex, to_tex, K_TRUE, DIST_TRUE, r, t, rng=rng, noise=1.5)
+            for r, t in board_poses(n_views, rng)]
     for method in ("classic", "sb"):
         det = functools.partial(detect_chessboard, pattern_size=(11, 8), method=method)
         (dets, _), t_det = timed(lambda: detect_all(imgs, det))
@@ -100,11 +102,13 @@ def bench_turntable():
         imgs.append(render_plane(tex, to_tex, K_TRUE, DIST_TRUE, cv2.Rodrigues(R_cw @ Rz @ R_b0)[0].ravel(),
                                  R_cw @ Rz @ t_b0 + t_cw, rng=rng, noise=1.5))
     dets, _ = detect_all(imgs, functools.partial(detect_charuco, board=board))
-    for kw, name in ((dict(angles_deg=readings), "known angles"), (dict(angles_deg=readings, fit_scale=True), "fit scale"),
+    for kw, name in ((dict(angles_deg=readings), "known angles"),
+                     (dict(angles_deg=readings, fit_scale=True), "fit scale"),
                      ({}, "free angles")):
         fit, t = timed(lambda: fit_turntable(dets, K_TRUE, DIST_TRUE, **kw), 3)
         print(f"turntable ({name:12s}, 8 views): axis err {angle_deg(fit.axis_camera, R_cw[:, 2]):.4f}° "
-              f"(1σ {fit.axis_std_deg:.4f}°) [bar 0.1°], origin err {np.linalg.norm(fit.origin_camera - t_cw):.3f} mm, "
+              f"(1σ {fit.axis_std_deg:.4f}°) [bar 0.1°], "
+              f"origin err {np.linalg.norm(fit.origin_camera - t_cw):.3f} mm, "
               f"RMS {fit.rms_px:.3f} px, {1e3 * t:.0f} ms")
 
 
@@ -148,10 +152,11 @@ def bench_lights():
         from PIL import Image
         sph = detect_sphere(np.asarray(Image.open(uw / "chrome" / "chrome.mask.tga")))
         ref = np.loadtxt(uw / "lights.txt", skiprows=1)
-        ours = np.array([light_direction_orthographic(find_highlight(np.asarray(Image.open(uw / "chrome" / f"chrome.{i}.tga")),
-                                                                     sph).xy_px, sph) for i in range(12)])
+        photos = [np.asarray(Image.open(uw / "chrome" / f"chrome.{i}.tga")) for i in range(12)]
+        ours = np.array([light_direction_orthographic(find_highlight(p, sph).xy_px, sph) for p in photos])
         ang = angle_deg(ours * [1, -1, -1], ref)
-        print(f"real UW chrome sphere vs lights.txt (a course reference): mean {ang.mean():.2f}° max {ang.max():.2f}° "
+        print(f"real UW chrome sphere vs lights.txt (a course reference): mean {ang.mean():.2f}° "
+              f"max {ang.max():.2f}° "
               "(an independent re-derivation: 3° mean, 8° worst)")
 
 
@@ -160,8 +165,11 @@ def bench_polarization(size):
     h, w = size
     yy, xx = np.mgrid[0:h, 0:w]
     D = ((0.3 + 0.2 * np.sin(xx / 13.0) ** 2)[..., None] * np.array([1.0, 0.7, 0.4])).astype(np.float32)
-    S = (np.exp(-((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (2 * (w / 6) ** 2))[..., None] * np.ones(3)).astype(np.float32)
-    obs = lambda th: D / 2 + S * np.cos(np.radians(th - 12.0)) ** 2 + rng.normal(0, 0.002, D.shape).astype(np.float32)  # noqa: E731
+    lobe = np.exp(-((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (2 * (w / 6) ** 2))
+    S = (lobe[..., None] * np.ones(3)).astype(np.float32)
+    def obs(th):
+        return D / 2 + S * np.cos(np.radians(th - 12.0)) ** 2 + rng.normal(0, 0.002, D.shape).astype(np.float32)
+
     rel = lambda e, t: np.sqrt(np.mean((e - t) ** 2)) / np.sqrt(np.mean(t ** 2))  # noqa: E731
     p, c = obs(12.0), obs(102.0)
     sep, t2 = timed(lambda: separate_parallel_crossed(p, c, read_sigma=0.002), 3)
@@ -169,7 +177,8 @@ def bench_polarization(size):
     stack = np.stack([obs(a) for a in angles])
     fit, tn = timed(lambda: fit_polarization(stack, angles), 3)
     print(f"polarization {w}x{h}x3: two-image diffuse {100 * rel(sep.diffuse, D):.2f}% specular "
-          f"{100 * rel(sep.specular, S):.2f}% ({1e3 * t2:.0f} ms); 4-angle fit diffuse {100 * rel(fit.diffuse, D):.2f}% "
+          f"{100 * rel(sep.specular, S):.2f}% ({1e3 * t2:.0f} ms); "
+          f"4-angle fit diffuse {100 * rel(fit.diffuse, D):.2f}% "
           f"specular {100 * rel(fit.specular, S):.2f}% ({1e3 * tn:.0f} ms) [bar 2%]")
 
 
@@ -179,10 +188,12 @@ def bench_hdr(size):
     levels = np.geomspace(400.0, 1.5e7, 40)
     X = patch_radiance(levels)
     frames = [simulate_raw(X, t, rng) for t in times]
-    hdr = merge_raw_brackets(frames, times, black_level=BLACK, white_level=WHITE, gain_e_per_dn=GAIN, read_noise_dn=READ)
+    hdr = merge_raw_brackets(frames, times, black_level=BLACK, white_level=WHITE, gain_e_per_dn=GAIN,
+                             read_noise_dn=READ)
     clip = (WHITE - BLACK) * 0.97 / times.min()
     worst = max(abs(hdr.radiance[X == v].mean() / v - 1) for v in levels[levels < 0.95 * clip])
-    print(f"raw HDR merge (5 exposures, 4.5 decades): worst patch-mean error {100 * worst:.3f}% over the unsaturated "
+    print(f"raw HDR merge (5 exposures, 4.5 decades): worst patch-mean error {100 * worst:.3f}% "
+          "over the unsaturated "
           f"range [bar 1%]")
     h, w = size
     big = np.tile(X, (h // X.shape[0] + 1, w // X.shape[1] + 1))[:h, :w]
@@ -193,10 +204,11 @@ def bench_hdr(size):
 
     # 8-bit brackets through a known response: our weighted merge vs cv2.MergeDebevec
     h8, w8 = h // 4, w // 4
-    E = (np.geomspace(0.05, 400.0, w8)[None, :, None] * np.array([1.0, 0.8, 0.6]) * np.ones((h8, 1, 1))).astype(np.float32)
+    E = np.geomspace(0.05, 400.0, w8)[None, :, None] * np.array([1.0, 0.8, 0.6]) * np.ones((h8, 1, 1))
+    E = E.astype(np.float32)
     t8 = np.array([1 / 256, 1 / 64, 1 / 16, 1 / 4, 1.0, 4.0], np.float32)
-    imgs = [np.clip(np.round(255 * np.clip(E * t, 0, 1) ** (1 / 2.2) + rng.normal(0, 0.5, E.shape)), 0, 255).astype(np.uint8)
-            for t in t8]
+    imgs = [np.clip(np.round(255 * np.clip(E * t, 0, 1) ** (1 / 2.2) + rng.normal(0, 0.5, E.shape)), 0, 255)
+            .astype(np.uint8) for t in t8]
     resp = np.maximum(np.arange(256) / 255.0, 0.5 / 255) ** 2.2
     resp3 = np.stack([resp] * 3, 1).astype(np.float32)
     ours, t_ours = timed(lambda: merge_ldr(imgs, t8, resp3), 3)

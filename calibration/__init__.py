@@ -14,7 +14,8 @@ Modules (one function per calibration step; each validates its input first and r
 - :mod:`calibration.probe` — mirror-sphere light probes to world lat-long maps
 """
 from .errors import CalibrationError, DegenerateFit, TargetNotFound, TooFewViews
-from .hdr import HDRImage, RawMosaic, master_frame, merge_ldr, merge_raw_brackets, read_raw, recover_response, write_hdr
+from .hdr import (HDRImage, RawMosaic, master_frame, merge_ldr, merge_raw_brackets, read_raw,
+                  recover_response, write_hdr)
 from .intrinsics import IntrinsicsResult, RejectedView, calibrate_intrinsics, corner_coverage, detect_all
 from .lights import (Highlight, PointLight, PositionerModel, SphereImage, detect_sphere, find_highlight,
                      fit_positioner_model, light_direction_orthographic, locate_collinear_spheres,

@@ -136,7 +136,7 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
         Fraction of the black-to-white range regarded as linear.
     darks : ndarray of shape (H, W) or (N, H, W), optional
         Dark frame(s) at the same exposure time(s) (include the black level): subtracted
-        instead of ``black_level``.
+        instead of ``black_level`` (which then only sets the clip level).
 
     Returns
     -------
@@ -173,7 +173,8 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
     rows = max(1, _BLOCK_SAMPLES // (len(D) * D.shape[2]))
     for r0 in range(0, D.shape[1], rows):
         sl = slice(r0, r0 + rows)
-        _merge_block(D[:, sl].astype(np.float32), t, black[sl], None if dk is None else dk[:, sl], white_level, linear_fraction,
+        _merge_block(D[:, sl].astype(np.float32), t, black[sl], None if dk is None else dk[:, sl],
+                     white_level, linear_fraction,
                      np.float32(gain_e_per_dn), np.float32(read_noise_dn ** 2),
                      out.radiance[sl], out.sigma[sl], out.saturated[sl], out.n_used[sl])
     return out

@@ -8,9 +8,10 @@ stores the radiance arriving *from* that direction.
 :func:`mirror_sphere_to_latlong` treats the camera as distant (orthographic: a sphere small in
 the field of view); :func:`mirror_sphere_to_latlong_perspective` solves each reflection point
 for a calibrated camera at a finite distance (a 25 mm ball at 500 mm subtends ±3°, which the
-orthographic model turns into up to ~6° of direction error near the rim). Directions within ``blind_cone_deg`` of straight behind the sphere are not seen (they map to the
-silhouette, where the image is also most compressed); their weight fades to 0 and a second view
-from another side fills them (:func:`merge_probes`).
+orthographic model turns into up to ~6° of direction error near the rim). Directions within
+``blind_cone_deg`` of straight behind the sphere are not seen (they map to the silhouette, where
+the image is also most compressed); their weight fades to 0 and a second view from another side
+fills them (:func:`merge_probes`).
 """
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """Synthetic ground truth for the calibration tests (no dependency on sims/).
 
-Boards are drawn in their own plane (coarser than the image, so bilinear lookup never aliases) and resampled into the camera with
-the true projection (distortion included), then blurred and noised.
+Boards are drawn in their own plane (coarser than the image, so a bilinear lookup never
+aliases) and resampled into the camera with the true projection (distortion included), then
+blurred and noised.
 """
 from __future__ import annotations
 
