@@ -52,6 +52,9 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                                        "(default: the folder holding the store)."),
               targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
                                            "targets (board size, sphere radius ...: LabTargets fields)."),
+              measurement_hdr: bool = typer.Option(True, "--measurement-hdr/--calibration-hdr-only",
+                                                   help="Merge every measurement step's bracket too "
+                                                   "(slow for big sessions) or only the calibration steps."),
               quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Calibrate a session from its own captures and write the PNG report."""
     lab_targets = _targets(targets)
@@ -69,7 +72,8 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 progress.update(task, completed=index, stage=stage)
 
             try:
-                report = calibrate_session(st, session, progress=advance, targets=lab_targets)
+                report = calibrate_session(st, session, progress=advance, targets=lab_targets,
+                                           measurement_hdr=measurement_hdr)
             except NothingToCalibrate as exc:
                 progress.stop()
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)

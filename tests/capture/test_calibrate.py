@@ -311,3 +311,17 @@ def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
     assert report.stage("turntable").status == "skipped" and "intrinsics" in report.stage("turntable").reason
     assert report.stage("lights").reason == "no spheres captures in this session"
     store.close()
+
+
+def test_calibration_hdr_only_skips_measurement_steps(session):
+    store, _, _, _ = session
+    info = store.session("cal")
+    kinds = {i: d["kind"] for i, d, _ in store.steps(info.id)}
+    report = calibrate_session(store, "cal", targets=TARGETS, measurement_hdr=False,
+                               stages=("dark", "hdr", "polarization"))
+    hdr = next(r for r in store.results(info.id) if r["id"] == report.stage("hdr").calibration_id)
+    merged = {m["step"] for m in hdr["result"]["steps"]}
+    assert merged == {i for i, k in kinds.items() if k not in ("dark", "measure")}
+    # the polarization check merges the measurement poses it needs by itself
+    assert report.stage("polarization").status == "ok"
+    assert report.stage("intrinsics").reason == "not requested"
