@@ -39,6 +39,9 @@ from .logpane import LogEntry, LogPane
 from .session import SessionPane, SessionRequest, TargetScreen
 
 
+#: longest a console-initiated move or homing run may take before it is reported, seconds
+MOVE_TIMEOUT_S = 300.0
+
 
 def _while_attached(handler):
     """Drop worker messages that arrive after the app has begun tearing its widgets down."""
@@ -408,7 +411,7 @@ class GonioApp(App[None]):
             device.stop()
             return "stopped"
         if op == "home":
-            device.home().wait()
+            device.home().wait(MOVE_TIMEOUT_S)
             return "homed"
         if op in ("exposure", "iso"):
             took = device.set_exposure(value) if op == "exposure" else device.set_iso(value)
@@ -423,12 +426,12 @@ class GonioApp(App[None]):
                 az, el = (az + value, el) if sub == "az" else (az, el + value)
             else:
                 az, el = (value, el) if sub == "az" else (az, value)
-            device.move_to(LightTarget(azimuth_deg=az, elevation_deg=el)).wait()
+            device.move_to(LightTarget(azimuth_deg=az, elevation_deg=el)).wait(MOVE_TIMEOUT_S)
             az, el, _ = light_direction(device.light_position_mm)
             return f"light at az {az:.2f}° el {el:.2f}°"
         assert isinstance(device, Axis)
         status = device.move_by(value) if op == "jog" else device.move_to(value)
-        status.wait()
+        status.wait(MOVE_TIMEOUT_S)
         return f"at {device.position:.3f} {device.units}"
 
     @staticmethod
@@ -485,7 +488,7 @@ class GonioApp(App[None]):
     @_while_attached
     def on_session_loaded(self, message: SessionLoaded) -> None:
         if message.steps is not None:
-            self.session_pane.show_plan(message.steps, message.summary)
+            self.session_pane.show_plan(message.steps, message.summary, self.plan_path)
             self.log_line(logging.INFO, "console", message.summary)
         self.session_pane.show_sessions(message.sessions)
 

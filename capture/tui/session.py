@@ -134,9 +134,13 @@ class SessionPane(Vertical):
         self.query_one("#alert").display = False
 
     # -- state in -----------------------------------------------------------------------------
-    def show_plan(self, steps: list[tuple[int, dict, bool]], summary: str) -> None:
-        """Fill the steps table; ``steps`` as ``(index, step dict, done)``."""
+    def show_plan(self, steps: list[tuple[int, dict, bool]], summary: str,
+                  path: str | None = None) -> None:
+        """Fill the steps table; ``steps`` as ``(index, step dict, done)``; ``path`` is the
+        plan file, if any."""
         self.query_one("#plan-summary", Static).update(summary)
+        if path:
+            self.query_one("#plan-path", Input).value = path
         table = self.query_one("#steps", DataTable)
         table.clear()
         for idx, step, done in steps:
