@@ -173,6 +173,21 @@ def test_write_hdr_tiff_round_trip(tmp_path):
         write_hdr(tmp_path / "x.png", img)
 
 
+def test_write_hdr_exr_round_trip_or_clear_error(tmp_path):
+    img = np.random.default_rng(7).random((6, 5, 3)).astype(np.float32) * 100
+    try:
+        import OpenEXR
+    except ImportError:  # optional dependency: the error must say what to install
+        with pytest.raises(ValueError, match="OpenEXR"):
+            write_hdr(tmp_path / "x.exr", img)
+        return
+    write_hdr(tmp_path / "x.exr", img)
+    with OpenEXR.File(str(tmp_path / "x.exr")) as f:
+        ch = f.channels()
+        back = ch["RGB"].pixels if "RGB" in ch else np.stack([ch[c].pixels for c in "RGB"], -1)
+    np.testing.assert_array_equal(back, img)
+
+
 @pytest.mark.realdata
 @pytest.mark.parametrize("name", ["Blackmagic.dng", "RAW_KODAK_DC50.KDC", "picam_test.dng"])
 def test_real_raw_files_decode_and_merge(shared_data, name):
