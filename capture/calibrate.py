@@ -80,21 +80,22 @@ _CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIS
 class LabTargets:
     """The lab's physical calibration targets (what the pipeline looks for), millimetres.
 
-    Defaults are the printed targets of ``sims.targets`` (a 9 x 6 inner-corner chessboard of
-    20 mm squares; a 7 x 5 ChArUco of 30 mm squares, 22 mm DICT_5X5_100 markers) and 1-inch
-    bearing balls.
+    Defaults are the simulated lab's capture scenes (``sims.world.SimWorld.for_capture``): a
+    9 x 6 inner-corner chessboard of 15 mm squares, a 7 x 5 ChArUco of 22 mm squares with 16 mm
+    DICT_5X5_100 markers, 1-inch steel bearing balls. A real lab states its own (``gonio calibrate
+    --targets FILE``): the board's square size sets the metric scale of the turntable frame.
     """
 
     chessboard_inner: tuple[int, int] = (9, 6)
-    chessboard_square_mm: float = 20.0
+    chessboard_square_mm: float = 15.0
     charuco_squares: tuple[int, int] = (7, 5)
-    charuco_square_mm: float = 30.0
-    charuco_marker_mm: float = 22.0
+    charuco_square_mm: float = 22.0
+    charuco_marker_mm: float = 16.0
     charuco_dictionary: str = "DICT_5X5_100"
     sphere_radius_mm: float = 12.7
     #: mirror reflectance of the spheres (chrome ~0.65, bearing steel ~0.55): their limb shows
     #: the backdrop times this, which places the silhouette threshold
-    sphere_reflectance: float = 0.65
+    sphere_reflectance: float = 0.55
     gray_card_albedo: float = 0.18
     #: cv2.CALIB_* flags for the intrinsics fit (k3 fixed: a turntable-only board sweep
     #: covers the image centre, where k3 is not observable)

@@ -20,7 +20,7 @@ from capture.store import SessionNotFound, Store
 from reconstruct.brdf import Lambertian
 from reconstruct.raycast import Plane
 from reconstruct.render import SceneObject
-from sims.targets import CharucoTarget
+from sims.targets import CHROME_REFLECTANCE, CharucoTarget
 from sims.world import SimWorld, Target, board_on_turntable, default_camera, light_position, spheres_target
 
 W, H = 320, 240
@@ -28,7 +28,8 @@ SPHERE_RADIUS_MM = 25.0
 #: a board that fills much of the frame (a turntable sweep only ever shows the board near the centre)
 BOARD = CharucoTarget(squares=(10, 7), square_mm=28.0, marker_mm=21.0)
 TARGETS = LabTargets(charuco_squares=BOARD.squares, charuco_square_mm=BOARD.square_mm,
-                     charuco_marker_mm=BOARD.marker_mm, sphere_radius_mm=SPHERE_RADIUS_MM)
+                     charuco_marker_mm=BOARD.marker_mm, sphere_radius_mm=SPHERE_RADIUS_MM,
+                     sphere_reflectance=CHROME_REFLECTANCE)
 #: three chrome balls on a bar in front of a lit backdrop (fixed in the lab)
 SPHERES = spheres_target("chrome", count=3, radius_mm=SPHERE_RADIUS_MM, spacing_mm=90.0,
                          start_mm=(-120.0, -90.0, 110.0))
@@ -239,7 +240,7 @@ def test_cli_calibrate_table_report_and_exit_code(session, tmp_path):
     store, _, _, root = session
     targets = tmp_path / "targets.toml"
     targets.write_text(f"charuco_squares = [10, 7]\ncharuco_square_mm = 28.0\ncharuco_marker_mm = 21.0\n"
-                       f"sphere_radius_mm = {SPHERE_RADIUS_MM}\n")
+                       f"sphere_radius_mm = {SPHERE_RADIUS_MM}\nsphere_reflectance = {CHROME_REFLECTANCE}\n")
     before = len(store.results(store.session("cal").id))
     r = CliRunner().invoke(app, ["calibrate", "cal", "--store", str(root / "store"),
                                  "--targets", str(targets), "--out", str(tmp_path / "out"), "--quiet"])
