@@ -28,6 +28,8 @@ from typing import Sequence
 import numpy as np
 import trimesh
 
+from .frames import linear_rows
+
 try:  # Embree: ~100-3500x faster than trimesh's pure-Python intersector and bounded in memory
     from embreex import rtcore_scene as _rtcs
     from embreex.mesh_construction import TriangleMesh as _EmbreeTriangles
@@ -158,15 +160,15 @@ class Surface:
         if len(origins) and origins.strides[0] == 0:  # one shared origin: transform it once
             o = np.broadcast_to(A @ origins[0] + b, origins.shape)
         else:
-            o = _linear(A, origins) + b
-        return o, _linear(A, dirs)
+            o = linear_rows(A, origins) + b
+        return o, linear_rows(A, dirs)
 
     def _to_world(self, p, ng, ns):
         """Object-frame points and (unnormalised) normals -> world points and unit normals."""
         if self._identity:
             return p, _unit(ng), _unit(ns)
-        return (_linear(self.transform[:3, :3], p) + self.transform[:3, 3],
-                _unit(_linear(self._normal_matrix, ng)), _unit(_linear(self._normal_matrix, ns)))
+        return (linear_rows(self.transform[:3, :3], p) + self.transform[:3, 3],
+                _unit(linear_rows(self._normal_matrix, ng)), _unit(linear_rows(self._normal_matrix, ns)))
 
     def _hit_world(self, o, d, t, prim, b1, b2):
         """World rays (M, 3) and their hits -> float64 ``t`` (M,), position, unit geometric and
@@ -305,17 +307,17 @@ class Mesh(Surface):
     def _compute_world_tables(self) -> dict:
         g = self._geom
         A, b = self.transform[:3, :3], self.transform[:3, 3]
-        tri = (g["vertices"] @ A.T + b)[g["faces"]]
+        tri = (linear_rows(A, g["vertices"]) + b)[g["faces"]]
         e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
         d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
         den = d11 * d22 - d12 * d12
         inv = np.divide(1.0, den, out=np.zeros_like(den), where=np.abs(den) > 0)
         return {
-            "v0": tri[:, 0], "normal": _unit(g["face_normals"] @ self._normal_matrix.T),
+            "v0": tri[:, 0], "normal": _unit(linear_rows(self._normal_matrix, g["face_normals"])),
             "g1": (d22[:, None] * e1 - d12[:, None] * e2) * inv[:, None],
             "g2": (d11[:, None] * e2 - d12[:, None] * e1) * inv[:, None],
             "ok": inv != 0,  # degenerate faces keep Embree's barycentrics
-            "vertex_normals": _unit(g["vertex_normals"] @ self._normal_matrix.T),
+            "vertex_normals": _unit(linear_rows(self._normal_matrix, g["vertex_normals"])),
         }
 
     def _hit_world(self, o, d, t, prim, b1, b2):
@@ -481,7 +483,7 @@ class Plane(Surface):
         # constant normal: no per-hit transform of normals
         p = o + t[:, None] * d
         n = np.broadcast_to(_unit(self._normal_matrix[:, 2:].T)[0], p.shape)
-        xy = (self._inv[:2, :3] @ p.T).T + self._inv[:2, 3]
+        xy = linear_rows(self._inv[:3, :3], p)[:, :2] + self._inv[:2, 3]
         uv = xy / np.asarray(self.size) + 0.5 if self.size is not None else xy
         return t, p, n, n, uv
 
@@ -580,11 +582,6 @@ def _first_hits(surfaces: list[Surface], o, d, t_max=None) -> Hits:
         hits.normal[idx] = nsw
         hits.face_index[idx] = prim
     return hits
-
-
-def _linear(M, v):
-    """Rows of ``v`` (N, 3) times the 3x3 ``M`` (``v @ M.T``; this form is ~4x faster in numpy)."""
-    return (M @ v.T).T
 
 
 def _unit(v):

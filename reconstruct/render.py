@@ -404,7 +404,7 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     def run(r0, gen):
         r1 = min(H, r0 + rows)
         sl = slice(r0 * W, r1 * W)
-        o, d = _camera_rays(camera, r0, r1)
+        o, d = camera.row_rays(r0, r1)
         L, Ld, hits = _trace(scene, o, d, replace(opts, rng=gen), 0, bg)
         rad[sl] = L  # chunks write disjoint slices: safe from threads
         if components:
@@ -432,20 +432,6 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
                         face_index=face.reshape(H, W), surface_index=surf.reshape(H, W),
                         diffuse=None if diffuse is None else diffuse.reshape(H, W, 3),
                         specular=None if specular is None else specular.reshape(H, W, 3))
-
-
-def _camera_rays(camera: CameraModel, r0: int, r1: int):
-    """World rays (origins, unit directions) of pixel rows [r0, r1), row-major."""
-    W = camera.width
-    if np.any(camera.dist):
-        ys, xs = np.mgrid[r0:r1, 0:W]
-        return camera.pixel_rays(np.stack([xs.ravel(), ys.ravel()], axis=1))
-    # no distortion: d = R^T K^-1 (x, y, 1) = x a + y b + c, an outer sum (no per-pixel matmul)
-    a, b, c = (camera.R.T @ np.linalg.inv(camera.K)).T
-    d = (np.arange(W, dtype=np.float64)[None, :, None] * a
-         + (np.arange(r0, r1, dtype=np.float64)[:, None, None] * b + c)).reshape(-1, 3)
-    d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
-    return np.broadcast_to(camera.center, d.shape), d
 
 
 def render_rays(scene: Scene, origins, dirs, *, shadows: bool = True,

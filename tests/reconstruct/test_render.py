@@ -528,3 +528,21 @@ def test_docstring_examples_run():
     import reconstruct.render as module
     result = doctest.testmod(module)
     assert result.attempted > 0 and result.failed == 0
+
+
+@pytest.mark.parametrize("dist", [None, (-0.08, 0.06, 0.0005, -0.0003, 0.0)])
+def test_row_rays_are_the_pixel_rays_and_reproject_to_their_pixels(dist):
+    """The renderer's cached row rays equal ``pixel_rays`` and, through the distorted lens,
+    project back onto the pixel centres they were cast through (< 1e-6 px)."""
+    cam = CameraModel.look_at((650.0, 0.0, 260.0), (0.0, 0.0, 55.0), width=90, height=60,
+                              fov_deg=32, dist=dist)
+    o, d = cam.row_rays(20, 27)
+    ys, xs = np.mgrid[20:27, 0:90]
+    px = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(float)
+    o_ref, d_ref = cam.pixel_rays(px)
+    np.testing.assert_allclose(o, o_ref, atol=1e-9)
+    np.testing.assert_allclose(d, d_ref, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(cam.project(o + 300.0 * d), px, atol=1e-6)
+    with pytest.raises(ValueError, match="rows"):
+        cam.row_rays(50, 61)
