@@ -435,7 +435,6 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
         res = calibrate_intrinsics(dets, flags=flags)
     ctx.results["intrinsics"] = res
     ctx.results["detections"] = dict(zip(det_steps, dets))
-    ctx.results["target_kind"] = kinds[0]
     kept = {d.frame for d in dets} - {r.frame for r in res.rejected}
     rep.plots["intrinsics"] = {"frames": res.frames, "per_view_rms_px": res.per_view_rms_px,
                                "coverage": res.coverage, "image_size": res.image_size,
@@ -515,18 +514,25 @@ def _sphere_blobs(images: list[np.ndarray], reflectance: float, *, min_area: int
     limb ring and bias the sphere's depth.
     """
     med = np.median(np.stack([im.mean(axis=2) for im in images]), axis=0).astype(np.float32)
-    yy, xx = np.indices(med.shape)
+    h, w = med.shape
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     out = []
     for _, diam, coarse in _round_blobs(med < 0.3 * float(np.percentile(med, 95)), min_area):
         cy, cx = (float(v.mean()) for v in np.nonzero(coarse))
+        # work in a window around the sphere (1.6 radii: the annulus' outer edge)
+        y0, y1 = max(int(cy - 0.8 * diam), 0), min(int(cy + 0.8 * diam) + 2, h)
+        x0, x1 = max(int(cx - 0.8 * diam), 0), min(int(cx + 0.8 * diam) + 2, w)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        win = med[y0:y1, x0:x1]
         r = np.hypot(yy - cy, xx - cx) / (diam / 2)
-        level = 0.5 * (1 + reflectance) * float(np.median(med[(r > 1.2) & (r < 1.6)]))
-        local = cv2.morphologyEx(((med < level) & (r < 1.3)).astype(np.uint8), cv2.MORPH_OPEN, disc)
-        n, labels = cv2.connectedComponents(local, connectivity=4)
-        k = labels[int(round(cy)), int(round(cx))]
+        level = 0.5 * (1 + reflectance) * float(np.median(win[(r > 1.2) & (r < 1.6)]))
+        local = cv2.morphologyEx(((win < level) & (r < 1.3)).astype(np.uint8), cv2.MORPH_OPEN, disc)
+        _, labels = cv2.connectedComponents(local, connectivity=4)
+        k = labels[int(round(cy)) - y0, int(round(cx)) - x0]
         if k:
-            out.append((cx, labels == k))
+            mask = np.zeros(med.shape, bool)
+            mask[y0:y1, x0:x1] = labels == k
+            out.append((cx, mask))
     return [b for _, b in sorted(out, key=lambda t: t[0])]
 
 
@@ -543,13 +549,17 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
     spheres = [detect_sphere(b, frame=first) for b in blobs]
     centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
     tt = ctx.results.get("turntable")
-    lights, rows = [], []
+    lights, rows, errors = [], [], []
     for s, img in zip(steps, images):
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         lum = img.mean(axis=2)
-        hl = np.array([find_highlight(np.where(b, lum, 0.0), sp, frame=name).xy_px
-                       for b, sp in zip(blobs, spheres)])
-        pl = triangulate_point_light(hl, centres, radius, K, dist)
+        try:  # one bad light loses its step; the others still feed the positioner model
+            hl = np.array([find_highlight(np.where(b, lum, 0.0), sp, frame=name).xy_px
+                           for b, sp in zip(blobs, spheres)])
+            pl = triangulate_point_light(hl, centres, radius, K, dist)
+        except CalibrationError as exc:
+            errors.append(f"{name}: {exc}" if name not in str(exc) else str(exc))
+            continue
         row = {"step": s, "frame": ctx.frames[s][0].id, "position_camera_mm": pl.position_mm,
                "std_mm": pl.std_mm, "residuals_mm": pl.residuals_mm, "highlights_px": hl,
                "commanded": ctx.steps[s].get("light"), "readback_mm": _readback_light(ctx, s)}
@@ -557,15 +567,17 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
             row["position_lab_mm"] = tt.R_ref.T @ (pl.position_mm - tt.origin_camera)
         rows.append(row)
         lights.append(pl)
+    if not rows:
+        raise CalibrationError("no light could be located: " + "; ".join(errors))
     ctx.results["lights"] = rows
     res = np.concatenate([pl.residuals_mm for pl in lights])
     result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres,
-              "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows,
+              "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows, "errors": errors,
               "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (turntable at angle 0)"}
-    figures = {"lights": len(rows), "spheres": len(spheres),
+    figures = {"lights": len(rows), "failed": len(errors), "spheres": len(spheres),
                "ray_residual_rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 3),
                "max_std_mm": round(float(max(pl.std_mm.max() for pl in lights)), 2)}
-    return result, figures, ctx.frame_ids(steps), {}, {"sphere_radius_mm": radius}
+    return result, figures, ctx.frame_ids([r["step"] for r in rows]), {}, {"sphere_radius_mm": radius}
 
 
 def _readback_light(ctx: _Context, step: int) -> list[float] | None:
