@@ -293,6 +293,10 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
 
 
+def _is_full(exc: sqlite3.Error) -> bool:
+    return getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
+
+
 def _fsync_dir(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
@@ -425,25 +429,32 @@ class Store:
         """One short write transaction (``BEGIN IMMEDIATE``: takes the write lock up front so a
         concurrent writer waits in busy_timeout rather than failing on lock upgrade)."""
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
+            # BEGIN inside the try: a KeyboardInterrupt landing just after it must not leave the
+            # shared connection inside a transaction (every later BEGIN would then fail)
             try:
+                self._db.execute("BEGIN IMMEDIATE")
                 yield self._db
-            except BaseException:
-                self._db.execute("ROLLBACK")
+                _crash_point("before_commit")
+                self._db.execute("COMMIT")
+            except BaseException as exc:
+                if self._db.in_transaction:
+                    self._db.execute("ROLLBACK")
+                if isinstance(exc, sqlite3.OperationalError) and _is_full(exc):
+                    raise StoreFull(f"no space left on the disk holding {self.root} to commit; "
+                                    "free space and resume (nothing was recorded)") from exc
                 raise
-            _crash_point("before_commit")
-            self._db.execute("COMMIT")
             _crash_point("after_commit")
 
     @contextlib.contextmanager
     def _read(self) -> Iterator[sqlite3.Connection]:
         """A read transaction: every query inside sees the same snapshot."""
         with self._lock:
-            self._db.execute("BEGIN")
             try:
+                self._db.execute("BEGIN")
                 yield self._db
             finally:
-                self._db.execute("COMMIT")
+                if self._db.in_transaction:
+                    self._db.execute("COMMIT")
 
     def _query(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
         with self._read() as db:
@@ -669,10 +680,36 @@ class Store:
         self._write_object(data, sha)
 
     def put_object(self, data: bytes) -> str:
-        """Store bytes durably (without a row referencing them); return their SHA-256 hex."""
+        """Store bytes durably (without a row referencing them); return their SHA-256 hex.
+
+        An object no row references is an orphan: the next runner that starts with no other
+        writer active collects it. Use :meth:`add_result` ``artifacts`` to store and reference
+        bytes in one step."""
         sha = hashlib.sha256(data).hexdigest()
         self._ensure_object(data, sha)
         return sha
+
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[None]:
+        """Hold the store-writer lock shared while an object is written and its row committed:
+        :meth:`writer` collects garbage only when it can take that lock exclusively, so it never
+        deletes an object whose row is about to be committed (by a runner, or a calibration in
+        another process)."""
+        fd = self._lock_file("writers.lock")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH)
+            yield
+        finally:
+            os.close(fd)
+
+    def _drop_if_unreferenced(self, sha: str) -> None:
+        """Delete an object file nothing references any more. Checked and deleted inside a write
+        transaction, so no other writer can commit a reference to it meanwhile (they re-check the
+        file's presence inside theirs); a crash here leaves an orphan for garbage collection."""
+        with self._write() as db:
+            if self._unreferenced(db, sha):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(self.object_path(sha))
 
     def _unreferenced(self, db: sqlite3.Connection, sha: str) -> bool:
         return db.execute("SELECT NOT EXISTS (SELECT 1 FROM frames WHERE sha256 = ?) AND "
@@ -700,42 +737,40 @@ class Store:
             The disk is full (nothing was recorded; the session can be resumed).
         """
         sha = hashlib.sha256(data).hexdigest()
-        self._ensure_object(data, sha)
         now = time.time()
-        replaced = None
-        with self._write() as db:
-            # a concurrent writer may have deleted an identical, then-unreferenced file between
-            # our check and this transaction; writes are serialised here, so re-check inside
-            if not self.object_path(sha).exists():
-                self._write_object(data, sha)
-            old = db.execute("SELECT sha256 FROM frames WHERE session_id = ? AND step = ? AND "
-                             "bracket_index = ? AND repeat = ?",
-                             (session_id, step, bracket_index, repeat)).fetchone()
-            cur = db.execute(
-                "INSERT INTO frames (session_id, step, bracket_index, repeat, sha256, size, "
-                "filename, format, exposure_requested_s, exposure_s, iso, fnumber, positions_json, "
-                "captured_at, stored_at, metadata_json) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?) "
-                "ON CONFLICT (session_id, step, bracket_index, repeat) DO UPDATE SET "
-                "sha256 = excluded.sha256, size = excluded.size, filename = excluded.filename, "
-                "format = excluded.format, exposure_requested_s = excluded.exposure_requested_s, "
-                "exposure_s = excluded.exposure_s, iso = excluded.iso, fnumber = excluded.fnumber, "
-                "positions_json = excluded.positions_json, captured_at = excluded.captured_at, "
-                "stored_at = excluded.stored_at, metadata_json = excluded.metadata_json "
-                "RETURNING id",
-                (session_id, step, bracket_index, repeat, sha, len(data), filename, format,
-                 exposure_requested_s, exposure_s, iso, fnumber, _dumps(positions or {}),
-                 now if captured_at is None else captured_at, now, _dumps(metadata or {})))
-            frame_id = cur.fetchone()[0]
-            self._insert_events(db, session_id, events)
-            if completes_step:
-                db.execute("UPDATE steps SET done = 1, done_at = ? WHERE session_id = ? AND idx = ?",
-                           (now, session_id, step))
-                db.execute("UPDATE sessions SET updated = ? WHERE id = ?", (now, session_id))
-            if old is not None and old[0] != sha and self._unreferenced(db, old[0]):
-                replaced = old[0]
-                # deleted inside the write transaction: no other writer can start referencing it
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(self.object_path(replaced))
+        with self._writing():
+            self._ensure_object(data, sha)
+            with self._write() as db:
+                # a concurrent writer may have dropped an identical, then-unreferenced file
+                # between our check and this transaction; writes are serialised, so re-check here
+                if not self.object_path(sha).exists():
+                    self._write_object(data, sha)
+                old = db.execute("SELECT sha256 FROM frames WHERE session_id = ? AND step = ? AND "
+                                 "bracket_index = ? AND repeat = ?",
+                                 (session_id, step, bracket_index, repeat)).fetchone()
+                cur = db.execute(
+                    "INSERT INTO frames (session_id, step, bracket_index, repeat, sha256, size, "
+                    "filename, format, exposure_requested_s, exposure_s, iso, fnumber, positions_json, "
+                    "captured_at, stored_at, metadata_json) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?) "
+                    "ON CONFLICT (session_id, step, bracket_index, repeat) DO UPDATE SET "
+                    "sha256 = excluded.sha256, size = excluded.size, filename = excluded.filename, "
+                    "format = excluded.format, exposure_requested_s = excluded.exposure_requested_s, "
+                    "exposure_s = excluded.exposure_s, iso = excluded.iso, fnumber = excluded.fnumber, "
+                    "positions_json = excluded.positions_json, captured_at = excluded.captured_at, "
+                    "stored_at = excluded.stored_at, metadata_json = excluded.metadata_json "
+                    "RETURNING id",
+                    (session_id, step, bracket_index, repeat, sha, len(data), filename, format,
+                     exposure_requested_s, exposure_s, iso, fnumber, _dumps(positions or {}),
+                     now if captured_at is None else captured_at, now, _dumps(metadata or {})))
+                frame_id = cur.fetchone()[0]
+                self._insert_events(db, session_id, events)
+                if completes_step:
+                    db.execute("UPDATE steps SET done = 1, done_at = ? WHERE session_id = ? AND idx = ?",
+                               (now, session_id, step))
+                    db.execute("UPDATE sessions SET updated = ? WHERE id = ?", (now, session_id))
+            if old is not None and old[0] != sha:
+                # only after the commit: a crash before it must leave the old row's file in place
+                self._drop_if_unreferenced(old[0])
         return frame_id, sha
 
     @staticmethod
@@ -790,22 +825,30 @@ class Store:
         if category not in ("calibration", "reconstruction"):
             raise StoreError(f"category {category!r} must be 'calibration' or 'reconstruction'")
         frame_ids = sorted(set(int(i) for i in input_frames))
-        stored = {name: (self.put_object(blob), len(blob)) for name, blob in (artifacts or {}).items()}
-        with self._write() as db:
-            if frame_ids:
-                known = db.execute(f"SELECT count(*) FROM frames WHERE session_id = ? AND id IN "
-                                   f"({','.join('?' * len(frame_ids))})",
-                                   (session_id, *frame_ids)).fetchone()[0]
-                if known != len(frame_ids):
-                    raise StoreError(f"input_frames: {len(frame_ids) - known} of the ids are not "
-                                     "frames of this session")
-            cur = db.execute("INSERT INTO results (session_id, category, kind, created, params_json, "
-                             "result_json, input_frames_json, code_version) VALUES (?,?,?,?,?,?,?,?)",
-                             (session_id, category, kind, time.time(), _dumps(params or {}),
-                              _dumps(result), _dumps(frame_ids), code_version()))
-            rid = cur.lastrowid
-            db.executemany("INSERT INTO result_objects (result_id, name, sha256, size) VALUES (?,?,?,?)",
-                           [(rid, n, sha, size) for n, (sha, size) in stored.items()])
+        blobs = {name: (hashlib.sha256(blob).hexdigest(), blob)
+                 for name, blob in (artifacts or {}).items()}
+        with self._writing():
+            for sha, blob in blobs.values():
+                self._ensure_object(blob, sha)
+            with self._write() as db:
+                for sha, blob in blobs.values():  # as in add_frame: re-check inside
+                    if not self.object_path(sha).exists():
+                        self._write_object(blob, sha)
+                stored = {name: (sha, len(blob)) for name, (sha, blob) in blobs.items()}
+                if frame_ids:
+                    known = db.execute(f"SELECT count(*) FROM frames WHERE session_id = ? AND id IN "
+                                       f"({','.join('?' * len(frame_ids))})",
+                                       (session_id, *frame_ids)).fetchone()[0]
+                    if known != len(frame_ids):
+                        raise StoreError(f"input_frames: {len(frame_ids) - known} of the ids are not "
+                                         "frames of this session")
+                cur = db.execute("INSERT INTO results (session_id, category, kind, created, params_json, "
+                                 "result_json, input_frames_json, code_version) VALUES (?,?,?,?,?,?,?,?)",
+                                 (session_id, category, kind, time.time(), _dumps(params or {}),
+                                  _dumps(result), _dumps(frame_ids), code_version()))
+                rid = cur.lastrowid
+                db.executemany("INSERT INTO result_objects (result_id, name, sha256, size) VALUES (?,?,?,?)",
+                               [(rid, n, sha, size) for n, (sha, size) in stored.items()])
         return rid
 
     def add_calibration(self, session_id: int, kind: str, **kw: Any) -> int:

@@ -113,6 +113,102 @@ def test_restored_key_replaces_row_and_drops_unreferenced_file(tmp_path):
         assert st.verify("s1").orphans == []
 
 
+class _Killed(BaseException):
+    """Stands in for SIGKILL at a store hook point: nothing after it runs."""
+
+
+def test_replacement_killed_before_commit_keeps_the_old_file(tmp_path, monkeypatch):
+    # a re-done frame replaces the row; if the process dies before that commit, the old row is
+    # still the truth and its file must still be there (only the new file may be left, orphaned)
+    with Store(tmp_path) as st:
+        sid = _session(st).id
+        _, old = _frame(st, sid, 0, 0, b"old" * 100)
+
+        def kill(name):
+            if name == "before_commit":
+                raise _Killed(name)
+        monkeypatch.setattr(store_mod, "_crash_point", kill)
+        with pytest.raises(_Killed):
+            _frame(st, sid, 0, 0, b"new" * 100)
+        monkeypatch.undo()
+        [f] = st.frames(sid)
+        assert f.sha256 == old and store_mod.sha256_file(st.object_path(old)) == old
+        new = hashlib.sha256(b"new" * 100).hexdigest()
+        assert st.verify("s1").orphans == [f"objects/{new[:2]}/{new[2:]}"]
+
+
+def test_interrupt_right_after_begin_leaves_the_store_usable(tmp_path):
+    # Ctrl-C in a script lands between bytecodes, e.g. just after BEGIN returned
+    class Interrupting:
+        def __init__(self, db):
+            self.db, self.armed = db, True
+
+        def execute(self, sql, *args):
+            cur = self.db.execute(sql, *args)
+            if sql.startswith("BEGIN") and self.armed:
+                self.armed = False
+                raise KeyboardInterrupt
+            return cur
+
+        def __getattr__(self, name):
+            return getattr(self.db, name)
+    with Store(tmp_path) as st:
+        sid = _session(st).id
+        real = st._db
+        st._db = Interrupting(real)
+        with pytest.raises(KeyboardInterrupt):
+            _frame(st, sid, 0, 0, b"a" * 10)
+        assert not real.in_transaction
+        st._db.armed = True
+        with pytest.raises(KeyboardInterrupt):
+            st.progress(sid)  # a read transaction
+        assert not real.in_transaction
+        st._db = real
+        _frame(st, sid, 0, 0, b"a" * 10)
+        st.set_state(sid, "paused")
+        assert st.session("s1").state == "paused" and len(st.frames(sid)) == 1
+
+
+def test_database_full_at_commit_is_store_full_and_records_nothing(tmp_path):
+    with Store(tmp_path) as st:
+        sid = _session(st).id
+        pages = st._query("PRAGMA page_count")[0][0]
+        st._db.execute(f"PRAGMA max_page_count = {pages}")  # SQLite answers SQLITE_FULL beyond
+        with pytest.raises(StoreFull, match="no space left .* to commit"):
+            _frame(st, sid, 0, 0, b"a" * 10, metadata={"big": "x" * 200_000})
+        assert st.frames(sid) == [] and not st._db.in_transaction
+        st._db.execute("PRAGMA max_page_count = 1073741823")
+        _frame(st, sid, 0, 0, b"a" * 10)
+        assert len(st.frames(sid)) == 1
+
+
+def test_writer_start_never_collects_an_object_whose_row_is_being_committed(tmp_path, monkeypatch):
+    # a calibration (another process, no session lock) writes an artifact; a runner starting at
+    # that moment must not take it for an orphan of a crashed writer
+    import threading
+    renamed, release = threading.Event(), threading.Event()
+
+    def hold(name):
+        if name == "object_renamed" and threading.current_thread().name == "calibrate":
+            renamed.set()
+            release.wait(10)
+    monkeypatch.setattr(store_mod, "_crash_point", hold)
+    with Store(tmp_path) as st, Store(tmp_path) as runner_side:
+        sid = _session(st).id
+        out = {}
+        t = threading.Thread(name="calibrate", target=lambda: out.update(
+            rid=st.add_calibration(sid, "intrinsics", result={}, artifacts={"k.npz": b"K" * 64})))
+        t.start()
+        assert renamed.wait(10)
+        with runner_side.writer("s1") as removed:
+            assert removed is None  # another writer is active: no cleaning now
+        release.set()
+        t.join(10)
+        [res] = st.results(sid)
+        sha = res["artifacts"]["k.npz"]
+        assert st.read_object(sha) == b"K" * 64 and st.verify("s1").ok
+
+
 def test_last_frame_completes_step_in_same_transaction(tmp_path):
     with Store(tmp_path) as st:
         sid = _session(st).id
