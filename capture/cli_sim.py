@@ -41,7 +41,28 @@ def preview_png(dng: bytes):
     return np.rint(srgb * 255).astype(np.uint8)
 
 
-@app.command()
+# one paragraph per string: rich help keeps line breaks as written
+_RENDER_HELP = "\n\n".join([
+    "Render one frame of the simulated rig and write NAME.dng and NAME.png into --out.",
+    "The frame is what the simulated camera returns for that rig state: the scene (the object on "
+    "the turntable, or a calibration target with --scene) rendered from the rig's fixed camera "
+    "(lens distortion included) under the lamp on the light arm, exposed on the simulated sensor "
+    "(shot and read noise, dark current, vignetting, Bayer mosaic, clipping at the white level) "
+    "and written as the camera's raw DNG. The PNG is that DNG developed for viewing: demosaiced "
+    "with the camera's white balance, linear, sensor white = display white, sRGB-encoded. Nothing "
+    "is auto-brightened, so an under-exposed frame looks dark (raise --exposure or --iso).",
+    "Frames: world = turntable frame (+z up the axis, mm). The camera stands at azimuth 0 (on +x) "
+    "looking down at the platter: --light-az 0 lights the object from the camera's side, positive "
+    "azimuths move the lamp to the camera's right, and --turntable turns the object "
+    "counter-clockwise seen from above.",
+    "Examples: gonio sim render --out out --object bunny --turntable 180 --light-az 30 | "
+    "gonio sim render --out out --scene charuco --turntable 20 | "
+    "gonio sim render --out out --polarizer 90 --truth",
+    "Exit codes: 0 written; 2 bad arguments (the message names the option).",
+])
+
+
+@app.command(help=_RENDER_HELP)
 def render(
     out: Path = typer.Option(..., "--out", help="Folder for the DNG and PNG (created if needed)."),
     obj: str = typer.Option("sphere", "--object", help="On the turntable: sphere, hemisphere, multi, bunny or none."),
@@ -75,6 +96,12 @@ def render(
         raise _fail(f"--object must be one of {', '.join(OBJECTS + ('none',))}, got {obj!r}")
     if width < 16 or height < 16 or width % 2 or height % 2:
         raise _fail(f"--width and --height must be even and >= 16 (a Bayer mosaic), got {width} x {height}")
+    for option, value in (("--exposure", exposure), ("--iso", iso), ("--fnumber", fnumber),
+                          ("--light-radius", light_radius)):
+        if not value > 0:  # also catches NaN
+            raise _fail(f"{option} must be > 0, got {value!r}")
+    if supersample is not None and supersample < 1:
+        raise _fail(f"--supersample must be >= 1, got {supersample}")
     try:
         extra = {} if supersample is None else {"supersample": supersample}
         world = SimWorld.for_capture(scene, None if obj == "none" else obj,

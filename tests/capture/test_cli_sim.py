@@ -60,7 +60,19 @@ def test_sim_render_bad_arguments(tmp_path):
     assert res.exit_code == 2 and "even" in res.output
     res = runner.invoke(app, ["sim", "render", "--exposure", "0", "--width", "32", "--height", "32",
                               "--out", str(tmp_path)])
-    assert res.exit_code == 2 and "exposure_s" in res.output
+    assert res.exit_code == 2 and "--exposure must be > 0" in res.output
+    res = runner.invoke(app, ["sim", "render", "--supersample", "0", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "--supersample must be >= 1" in res.output
     res = runner.invoke(app, ["sim", "render", "--light-el", "100", "--width", "32", "--height", "32",
                               "--out", str(tmp_path)])
     assert res.exit_code == 2 and "elevation" in res.output
+
+
+def test_sim_render_help_explains_outputs_frames_and_options():
+    res = runner.invoke(app, ["sim", "render", "--help"], terminal_width=100)
+    assert res.exit_code == 0
+    text = " ".join(res.output.split())
+    for phrase in ("NAME.dng and NAME.png", "white balance", "sensor white = display white",
+                   "turntable frame", "azimuth 0", "Examples:", "Exit codes", "--object",
+                   "--scene", "--light-az", "--polarizer", "--truth"):
+        assert phrase in text, phrase
