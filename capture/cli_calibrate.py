@@ -11,6 +11,7 @@ Exit status: 0 every stage that ran succeeded; 1 a stage failed (the table names
 """
 from __future__ import annotations
 
+import json
 import tomllib
 from dataclasses import fields
 from pathlib import Path
@@ -55,6 +56,8 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
               measurement_hdr: bool = typer.Option(True, "--measurement-hdr/--calibration-hdr-only",
                                                    help="Merge every measurement step's bracket too "
                                                    "(slow for big sessions) or only the calibration steps."),
+              as_json: bool = typer.Option(False, "--json",
+                                           help="Print the stages as JSON instead of a table."),
               quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Calibrate a session from its own captures and write the PNG report."""
     lab_targets = _targets(targets)
@@ -78,6 +81,14 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 progress.stop()
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NOTHING) from None
+        from .report import write_report  # matplotlib loads only when there is something to draw
+        folder = out if out is not None else Path(st.root).resolve().parent
+        png = write_report(report, folder / f"{session}-calibration.png")
+        if as_json:
+            stages = [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
+                       "calibration_id": s.calibration_id, "seconds": s.seconds} for s in report.stages]
+            typer.echo(json.dumps({"session": session, "report": str(png), "stages": stages}, indent=2))
+            raise typer.Exit(EXIT_FAILED if report.failed else EXIT_OK)
         table = Table(title=f"calibration of session {session}")
         for col in ("stage", "status", "s", "key figures / reason"):
             table.add_column(col, overflow="fold", justify="right" if col == "s" else "left")
@@ -86,9 +97,6 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             text = ", ".join(f"{k} {v}" for k, v in s.figures.items()) if s.status == "ok" else s.reason
             table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", f"{s.seconds:.1f}", text)
         console.print(table)
-        from .report import write_report  # matplotlib loads only when there is something to draw
-        folder = out if out is not None else Path(st.root).resolve().parent
-        png = write_report(report, folder / f"{session}-calibration.png")
         console.print(f"stored {sum(s.status == 'ok' for s in report.stages)} calibration result(s) in "
                       f"{st.root}; report: {png}", highlight=False)
     raise typer.Exit(EXIT_FAILED if report.failed else EXIT_OK)

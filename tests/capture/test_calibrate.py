@@ -7,6 +7,8 @@ SimWorld's ground-truth camera, turntable axis and light positions.
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -250,6 +252,13 @@ def test_cli_calibrate_table_report_and_exit_code(session, tmp_path):
     assert "rms_px" in r.output and "axis" in r.output
     assert (tmp_path / "out" / "cal-calibration.png").stat().st_size > 50_000
     assert len(store.results(store.session("cal").id)) == before + len(STAGES)
+    r = CliRunner().invoke(app, ["calibrate", "cal", "--store", str(root / "store"),
+                                 "--targets", str(targets), "--out", str(tmp_path / "out"), "--quiet", "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output)
+    assert [s["stage"] for s in out["stages"]] == list(STAGES)
+    assert out["report"].endswith("cal-calibration.png")
+    assert out["stages"][2]["figures"]["fx_px"] > 0
 
 
 def test_cli_unknown_session_and_bad_targets(session, tmp_path):
