@@ -253,7 +253,7 @@ def test_cli_calibrate_table_report_and_exit_code(session, tmp_path):
     assert (tmp_path / "out" / "cal-calibration.png").stat().st_size > 50_000
     assert len(store.results(store.session("cal").id)) == before + len(STAGES)
     r = CliRunner().invoke(app, ["calibrate", "cal", "--store", str(root / "store"),
-                                 "--targets", str(targets), "--out", str(tmp_path / "out"), "--quiet", "--json"])
+                                 "--targets", str(targets), "--out", str(tmp_path / "out"), "-q", "--json"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.output)
     assert [s["stage"] for s in out["stages"]] == list(STAGES)
