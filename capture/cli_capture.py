@@ -25,14 +25,42 @@ from rich.table import Table
 
 from rig import RigError
 
-from .cli_session import STORE_OPTION, fail, human_bytes, human_time, open_store
+from .cli_session import STORE_OPTION, fail, human_bytes, human_time, open_store, unwrap
 from .events import Event, EventKind
-from .plan import Plan, PlanError, Step
+from .plan import Estimate, MotionModel, Plan, PlanError, Step
 from .rigs import OpenedRig, open_rig
 from .runner import Runner, RunnerError, check_plan_unchanged, create_session
 from .store import StoreError
 
-app = typer.Typer(name="capture", help="Plan, run and resume capture sessions.", no_args_is_help=True)
+HELP = """Plan, run and resume capture sessions.
+
+A plan is a TOML file naming what to measure: turntable angles, light directions on the
+positioner's sphere (or xyz points), polarizer angles, the exposure bracket (base and stops, or
+auto-metered), repeats, and calibration captures (dark, checkerboard, spheres, gray card, mirror
+probe). Units: degrees, millimetres, seconds. Example with every field: examples/plan.toml.
+'gonio capture plan PLAN --rig sim' checks it against the rig's limits and prints the steps,
+frames, bytes and time it will take.
+
+'gonio capture run PLAN --rig sim|RIG.toml --store DIR' records a new session in the store
+folder DIR: DIR/gonio.sqlite holds the plan, its steps, every frame's row (read-back positions,
+the camera's exposure and ISO) and every event; DIR/objects/ holds the frames, the camera's own
+DNG bytes, named by their SHA-256. A step counts as done only once its frames are on disk.
+
+Ctrl-C pauses after the current step (a second Ctrl-C stops motion at once). Device faults that
+retries cannot clear and low disk space pause the session with the reason; a crash or power cut
+leaves it interrupted. Either way 'gonio capture resume NAME --rig ... --store DIR' continues
+from the first step not done, and refuses, listing the differences, if the plan file changed.
+'gonio session list|show|verify|export' inspects what was recorded.
+
+Exit status: 0 done, 3 paused (resume it), 4 aborted, 2 error (bad plan, rig, store or too
+little disk space; nothing was captured).
+"""
+app = typer.Typer(name="capture", help=unwrap(HELP), no_args_is_help=True)
+
+
+def _command(f):
+    """``app.command()`` with the docstring's paragraphs unwrapped for the terminal."""
+    return app.command(help=unwrap(f.__doc__))(f)
 
 RIG_HELP = "'sim' for the built-in simulated lab, or a rig TOML file (driver and port per device)."
 EXIT = {"done": 0, "paused": 3, "aborted": 4}
@@ -60,13 +88,18 @@ def _light_text(light: dict[str, Any] | None) -> str:
     return f"az {light['azimuth_deg']:g}° el {light['elevation_deg']:g}°"
 
 
-@app.command()
+@_command
 def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
          rig: Optional[str] = typer.Option(None, "--rig", help=RIG_HELP + " Checks limits and uses "
                                            "the devices' speeds; without it, default speeds."),
          steps: bool = typer.Option(False, "--steps", help="Also list every step."),
          fast: bool = typer.Option(True, help="Simulated devices move instantly.")) -> None:
-    """Validate a plan and print its steps, frames, bytes and estimated time."""
+    """Validate a plan and print its steps, frames, bytes and estimated time.
+
+    With --rig the plan is checked against the devices' limits and timed with their speeds;
+    nothing moves. Exit status 0 when the plan is valid, 2 otherwise (the message names the
+    field, e.g. light.elevation_deg[3]).
+    """
     p = _load_plan(plan_file)
     opened = _open_rig(rig, fast) if rig else None
     try:
@@ -88,6 +121,7 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
     c.print(f"steps {est.steps}, frames {est.frames}, data {human_bytes(est.bytes)}, time "
             f"{human_time(est.seconds)} (motion {human_time(est.motion_s)}, exposure "
             f"{human_time(est.exposure_s)}, readout/transfer {human_time(est.overhead_s)})")
+    c.print(_frame_size_text(est, rig is not None))
     by_kind: Counter[str] = Counter()
     frames_by_kind: Counter[str] = Counter()
     for s in expanded:
@@ -105,6 +139,15 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
                           _light_text(s.light), "-" if s.polarizer_deg is None else f"{s.polarizer_deg:g}°",
                           ", ".join(f"{t:g}" for t in s.exposures_s), str(s.repeats))
         c.print(table)
+
+
+def _frame_size_text(est: Estimate, with_rig: bool) -> str:
+    size = human_bytes(est.frame_bytes)
+    if not est.frame_bytes_assumed:
+        return f"frame size {size} ({'from the camera' if est.frame_bytes_source == 'camera' else 'measured'})"
+    why = "the camera does not report its image size" if with_rig else "no --rig given"
+    return (f"frame size {size} assumed ({why}); 'gonio capture run' measures the first frame "
+            "and re-estimates the bytes")
 
 
 class _ProgressView:
@@ -200,7 +243,7 @@ def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
     raise typer.Exit(EXIT[state])
 
 
-@app.command()
+@_command
 def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         rig: str = typer.Option(..., "--rig", help=RIG_HELP),
         store: str = STORE_OPTION,
@@ -211,7 +254,20 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         home: bool = typer.Option(True, help="Home axes that report not homed before starting."),
         yes: bool = typer.Option(False, "--yes", "-y", help="Do not prompt for target changes."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
-    """Record a new session from a plan."""
+    """Record a new session from PLAN_FILE on the rig, into the store.
+
+    The plan is checked against the rig's limits and the disk's free space against its
+    estimate; then the session (plan, steps) is recorded and run step by step with a progress
+    bar (steps, frames, ETA). Frames go to STORE/objects/ as the camera's own DNG files named by
+    SHA-256, each listed in STORE/gonio.sqlite with the read-back positions and the settings the
+    camera reported.
+
+    Ctrl-C pauses after the current step; a second Ctrl-C stops motion at once (that step is
+    re-done on resume). To continue a paused or crashed session: gonio capture resume NAME
+    --rig ... --store STORE.
+
+    Exit status: 0 done, 3 paused, 4 aborted, 2 error (nothing captured).
+    """
     p = _load_plan(plan_file)
     st = open_store(store, create=True)
     with st:
@@ -222,14 +278,17 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
                                       plan_path=str(plan_file.resolve()))
             except (PlanError, RunnerError, StoreError) as exc:
                 raise fail(str(exc)) from None
-            typer.echo(f"session {info.name}: {len(st.steps(info.id))} steps, "
-                       f"{st.progress(info.id).frames_total} frames -> {store}")
+            todo = [Step.from_dict(d) for _, d, _ in st.steps(info.id)]
+            est = MotionModel.from_rig(opened.rig).estimate(todo)
+            typer.echo(f"session {info.name}: {est.steps} steps, {est.frames} frames, about "
+                       f"{human_bytes(est.bytes)} and {human_time(est.seconds)} -> store {store}")
+            typer.echo(_frame_size_text(est, True))
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
             _execute(runner, store, quiet)
 
 
-@app.command()
+@_command
 def resume(name: str = typer.Argument(..., help="Session name."),
            rig: str = typer.Option(..., "--rig", help=RIG_HELP),
            store: str = STORE_OPTION,
@@ -239,7 +298,16 @@ def resume(name: str = typer.Argument(..., help="Session name."),
            home: bool = typer.Option(True, help="Home axes that report not homed before resuming."),
            yes: bool = typer.Option(False, "--yes", "-y", help="Do not prompt for target changes."),
            quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
-    """Continue a paused or interrupted session from its first step not done."""
+    """Continue a paused or interrupted session from its first step not done.
+
+    Steps already done are kept; a step that was cut short is captured again and its frames
+    replaced (never duplicated). Devices whose link dropped are reconnected and axes that lost
+    their reference are homed. The plan file the session was planned from (or --plan) must be
+    unchanged: if it differs, resume refuses and lists the changed fields. Find NAME with
+    'gonio session list --store STORE'.
+
+    Exit status: 0 done (or already done), 3 paused again, 4 aborted, 2 error.
+    """
     st = open_store(store)
     with st:
         try:

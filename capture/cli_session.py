@@ -14,7 +14,9 @@ archive (read in a temporary folder).
 from __future__ import annotations
 
 import datetime as _dt
+import inspect
 import json
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -25,8 +27,25 @@ from rich.table import Table
 
 from .store import Store, StoreError
 
-app = typer.Typer(name="session", help="List, inspect, verify and export recorded sessions.",
-                  no_args_is_help=True)
+HELP = """List, inspect, verify and export recorded sessions.
+
+A store is a folder that 'gonio capture run --store DIR' writes: DIR/gonio.sqlite (sessions,
+their plans and steps, frames with what the devices reported, events and faults, calibration
+and reconstruction results) and DIR/objects/ (the frame files, named by their SHA-256).
+--store defaults to $GONIO_STORE or ./gonio-store and also opens an exported .tar, .tar.gz or
+.zip. Reading is safe while a session is being recorded.
+
+Exit status: 0 ok; 1 'verify' found missing, corrupt or orphaned files; 2 error (no such store
+or session).
+"""
+
+
+def unwrap(text: str) -> str:
+    """Help text with the source's line breaks inside paragraphs removed (rich prints them)."""
+    return re.sub(r"(?<!\n)\n(?!\n)", " ", inspect.cleandoc(text))
+
+
+app = typer.Typer(name="session", help=unwrap(HELP), no_args_is_help=True)
 
 STORE_OPTION = typer.Option("gonio-store", "--store", envvar="GONIO_STORE",
                             help="Store folder (or an exported .tar/.zip). Env: GONIO_STORE.")

@@ -419,7 +419,12 @@ class Step:
 
 @dataclass(frozen=True)
 class Estimate:
-    """What a plan will take. Times in seconds, sizes in bytes."""
+    """What a plan will take. Times in seconds, sizes in bytes.
+
+    ``frame_bytes`` is the size assumed per frame and ``frame_bytes_source`` where it came from:
+    ``camera`` (its describe()), ``measured`` (frames already stored) or ``default`` (the camera
+    cannot tell: :data:`DEFAULT_FRAME_BYTES` is assumed until the first frame is captured).
+    """
 
     steps: int
     frames: int
@@ -427,10 +432,17 @@ class Estimate:
     motion_s: float
     exposure_s: float
     overhead_s: float
+    frame_bytes: int = DEFAULT_FRAME_BYTES
+    frame_bytes_source: str = "default"
 
     @property
     def seconds(self) -> float:
         return self.motion_s + self.exposure_s + self.overhead_s
+
+    @property
+    def frame_bytes_assumed(self) -> bool:
+        """True when the bytes are a guess (the camera does not report its image size)."""
+        return self.frame_bytes_source == "default"
 
 
 def plan_hash(plan_dict: dict[str, Any]) -> str:
@@ -442,11 +454,13 @@ def plan_hash(plan_dict: dict[str, Any]) -> str:
 @dataclass(frozen=True)
 class MotionModel:
     """Trapezoidal move times per device (speed unit/s, acceleration unit/s^2), the expected
-    frame size (bytes) and per-frame overhead (s)."""
+    frame size (bytes), where that size came from (see :class:`Estimate`) and the per-frame
+    overhead (s)."""
 
     speeds: dict[str, tuple[float, float]] = field(default_factory=lambda: dict(DEFAULT_SPEEDS))
     frame_bytes: int = DEFAULT_FRAME_BYTES
     frame_overhead_s: float = DEFAULT_FRAME_OVERHEAD_S
+    frame_bytes_source: str = "default"
 
     @classmethod
     def from_rig(cls, rig: Any) -> "MotionModel":
@@ -459,12 +473,14 @@ class MotionModel:
             v = _first_number(d, ("max_speed_deg_s", "speed_deg_s", "max_speed_mm_s", "speed_mm_s"))
             a = _first_number(d, ("accel_deg_s2", "accel_mm_s2"))
             speeds[role] = (v or speeds[role][0], a or speeds[role][1])
-        cam = desc.get("camera", {})
-        fb = _first_number(cam, ("frame_bytes",))
-        if fb is None and _first_number(cam, ("width",)) and _first_number(cam, ("height",)):
-            fb = cam["width"] * cam["height"] * 2 + 65536  # 16-bit raw plus header
-        return cls(speeds=speeds, frame_bytes=int(fb or DEFAULT_FRAME_BYTES),
-                   frame_overhead_s=0.2 + (fb or DEFAULT_FRAME_BYTES) / USB_BYTES_PER_S)
+        model = cls(speeds=speeds)
+        fb = frame_bytes_from_describe(desc.get("camera", {}))
+        return model if fb is None else model.with_frame_bytes(fb, "camera")
+
+    def with_frame_bytes(self, frame_bytes: float, source: str = "measured") -> "MotionModel":
+        """This model with another frame size (bytes; e.g. measured from a stored frame)."""
+        return replace(self, frame_bytes=int(round(frame_bytes)), frame_bytes_source=source,
+                       frame_overhead_s=0.2 + frame_bytes / USB_BYTES_PER_S)
 
     def move_s(self, role: str, distance: float) -> float:
         """Time of one trapezoidal move of ``distance`` (device units), seconds."""
@@ -501,7 +517,35 @@ class MotionModel:
         exposure = sum(sum(s.exposures_s) * s.repeats for s in steps)
         return Estimate(steps=len(steps), frames=frames, bytes=frames * self.frame_bytes,
                         motion_s=motion, exposure_s=exposure,
-                        overhead_s=frames * self.frame_overhead_s)
+                        overhead_s=frames * self.frame_overhead_s, frame_bytes=self.frame_bytes,
+                        frame_bytes_source=self.frame_bytes_source)
+
+
+def frame_bytes_from_describe(cam: dict[str, Any]) -> int | None:
+    """Bytes of one raw frame from a camera's describe(), or None if it does not say.
+
+    Understood: ``frame_bytes``; ``width`` and ``height`` (pixels) with optional ``bit_depth``;
+    ``image_size`` as PTP's ImageSize property (0x5003) reports it, ``"6000x4000"``, or
+    ``[6000, 4000]``. A raw file holds one sample per pixel (the Bayer mosaic), stored in 16 bits
+    up to 16-bit depth, plus a header (taken as 64 kB).
+    """
+    fb = _first_number(cam, ("frame_bytes",))
+    if fb is not None:
+        return int(fb)
+    size = cam.get("image_size")
+    if isinstance(size, str) and size.lower().count("x") == 1:
+        try:
+            size = [int(v) for v in size.lower().split("x")]
+        except ValueError:
+            size = None
+    if isinstance(size, (list, tuple)) and len(size) == 2 and all(_is_num(v) and v > 0 for v in size):
+        w, h = size
+    elif _first_number(cam, ("width",)) and _first_number(cam, ("height",)):
+        w, h = cam["width"], cam["height"]
+    else:
+        return None
+    depth = _first_number(cam, ("bit_depth",)) or 16
+    return int(w * h * math.ceil(depth / 16) * 2 + 65536)
 
 
 def _axis_role(name: str) -> str:

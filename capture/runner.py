@@ -92,9 +92,11 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
     estimate = MotionModel.from_rig(rig).estimate(steps)
     free = store.free_bytes()
     if free < estimate.bytes + reserve_bytes:
+        assumed = (f", assuming {estimate.frame_bytes / 1e6:.0f} MB per frame (the camera does not "
+                   "report its image size)" if estimate.frame_bytes_assumed else "")
         raise RunnerError(f"not enough disk space in {store.root}: the plan needs about "
-                          f"{estimate.bytes / 1e9:.2f} GB (+{reserve_bytes / 1e9:.2f} GB reserve), "
-                          f"{free / 1e9:.2f} GB are free")
+                          f"{estimate.bytes / 1e9:.2f} GB{assumed} (+{reserve_bytes / 1e9:.2f} GB "
+                          f"reserve), {free / 1e9:.2f} GB are free")
     name = name or f"{plan.name or 'session'}-{time.strftime('%Y%m%d-%H%M%S')}"
     return store.create_session(name, plan=plan.to_dict(), plan_hash=plan.hash,
                                 steps=[s.to_dict() for s in steps], plan_path=plan_path,
@@ -166,6 +168,8 @@ class Runner:
         self._session: SessionInfo | None = None
         self._counters: dict[str, Any] = {}
         self._exposure_scale = 1.0  # metered / plan base exposure, for auto-exposure steps
+        self._model = MotionModel()  # frame size for disk-space checks; set per run
+        self._remeasured = False
 
     # -- control (any thread) -----------------------------------------------------------------
     def request_pause(self, *, now: bool = False) -> None:
@@ -250,12 +254,15 @@ class Runner:
         pending = [Step.from_dict(d) for _, d, done in all_steps if not done]
         done_steps = [Step.from_dict(d) for _, d, done in all_steps if done]
         progress = self.store.progress(sid)
-        frame_bytes = (progress.bytes_stored / progress.frames_stored if progress.frames_stored
-                       else MotionModel.from_rig(self.rig).frame_bytes)
+        self._model, self._remeasured = MotionModel.from_rig(self.rig), False
+        if progress.frames_stored:  # frames of this session tell the size best
+            self._model = self._model.with_frame_bytes(
+                progress.bytes_stored / progress.frames_stored)
         self._counters = {"steps_total": len(all_steps), "steps_done": len(done_steps),
                           "frames_total": progress.frames_total,
                           "frames_done": sum(s.frames for s in done_steps), "eta_s": None}
-        self._check_space(sum(s.frames for s in pending) * frame_bytes, "to finish the session")
+        self._check_space(sum(s.frames for s in pending) * self._model.frame_bytes,
+                          "to finish the session")
         self._emit(EventKind.RESUMED if resumed else EventKind.SESSION_STARTED,
                    f"{'resuming' if resumed else 'starting'} at step "
                    f"{pending[0].index if pending else len(all_steps)} of {len(all_steps)}",
@@ -267,7 +274,12 @@ class Runner:
         started = time.monotonic()
         for n, step in enumerate(pending):
             self._check_requests()
-            self._check_space(step.frames * frame_bytes, f"for step {step.index}")
+            if self._remeasured:
+                # the first frame gave the real size: does the rest of the session still fit?
+                self._remeasured = False
+                self._check_space(sum(s.frames for s in pending[n:]) * self._model.frame_bytes,
+                                  "to finish the session (re-estimated from the first frame)")
+            self._check_space(step.frames * self._model.frame_bytes, f"for step {step.index}")
             if step.target != target:
                 self._change_target(step)
                 target = step.target
@@ -414,11 +426,25 @@ class Runner:
                     raise _Stop("paused", str(exc)) from None
                 self._counters["frames_done"] += 1
                 self._counters["steps_done"] += k == total
+                if self._model.frame_bytes_source == "default":
+                    self._measure_frame_bytes(len(frame.data), step)
                 self._emit(EventKind.FRAME_STORED, f"{frame.filename} {frame.exposure_s:g} s",
                            step=step.index, bracket_index=b, repeat=repeat, size=len(frame.data),
                            sha256=sha, **self._counters)
         self._emit(EventKind.STEP_DONE, f"step {step.index} done", step=step.index,
                    **self._counters)
+
+    def _measure_frame_bytes(self, size: int, step: Step) -> None:
+        """The camera could not tell its frame size: take it from the first frame stored, and
+        re-estimate the bytes still to store (checked against free space before the next step)."""
+        assumed = self._model.frame_bytes
+        self._model = self._model.with_frame_bytes(size)
+        self._remeasured = True
+        left = (self._counters["frames_total"] - self._counters["frames_done"]) * size
+        self._emit(EventKind.NOTE, f"frame size measured from the first frame: {size / 1e6:.2f} MB "
+                   f"(the camera does not report it; {assumed / 1e6:.0f} MB was assumed); about "
+                   f"{left / 1e9:.2f} GB still to store", step=step.index, frame_bytes=size,
+                   assumed_frame_bytes=assumed, bytes_left=left)
 
     def _move(self, step: Step) -> None:
         rig, statuses = self.rig, []

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from capture.plan import MotionModel, Plan, PlanError, Step, _serpentine, plan_diff
+from capture.plan import (DEFAULT_FRAME_BYTES, MotionModel, Plan, PlanError, Step, _serpentine,
+                          frame_bytes_from_describe, plan_diff)
 from capture_fakes import SMALL_PLAN, make_rig
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "plan.toml"
@@ -220,3 +221,27 @@ def test_estimate_counts_frames_bytes_and_time():
 def test_example_plan_is_valid():
     plan = Plan.from_toml(EXAMPLE)
     assert plan.steps() and plan.estimate().frames > 0
+
+
+@pytest.mark.parametrize("describe, expected", [
+    ({"frame_bytes": 1234}, 1234),
+    ({"image_size": "6000x4000"}, 6000 * 4000 * 2 + 65536),   # PTP ImageSize (0x5003) form
+    ({"image_size": [6000, 4000]}, 6000 * 4000 * 2 + 65536),
+    ({"width": 3000, "height": 2000, "bit_depth": 14}, 3000 * 2000 * 2 + 65536),
+    ({"driver": "ptp", "model": "no size"}, None),
+    ({"image_size": "big"}, None),
+])
+def test_frame_bytes_from_camera_describe(describe, expected):
+    assert frame_bytes_from_describe(describe) == expected
+
+
+def test_estimate_says_when_the_frame_size_is_assumed():
+    plan = Plan.from_dict(SMALL_PLAN)
+    rig = make_rig()
+    assert plan.estimate(rig).frame_bytes_source == "camera"  # the fake reports frame_bytes
+    rig.camera.describe = lambda: {"driver": "fake"}
+    est = plan.estimate(rig)
+    assert est.frame_bytes_assumed and est.bytes == est.frames * DEFAULT_FRAME_BYTES
+    measured = MotionModel.from_rig(rig).with_frame_bytes(48e6).estimate(plan.steps(rig))
+    assert measured.frame_bytes_source == "measured" and measured.bytes == measured.frames * 48_000_000
+    assert measured.overhead_s > est.overhead_s  # a bigger transfer per frame

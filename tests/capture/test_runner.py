@@ -241,3 +241,32 @@ def test_operator_override_keeps_plan_hash(tmp_path):
     plan = Plan.from_dict(SMALL_PLAN)
     info = create_session(store, plan, make_rig(), name="s", operator="bo", reserve_bytes=0)
     assert info.operator == "bo" and info.plan_hash == plan.hash
+
+
+def test_unknown_frame_size_is_measured_from_the_first_frame(tmp_path, monkeypatch):
+    # the camera's describe() gives no image size, so 25 MB is assumed; the frames are 30 MB:
+    # after the first one the runner re-estimates and pauses cleanly (step 0 done) instead of
+    # running the disk full two steps later
+    store = Store(tmp_path, durable=False)
+    rig = make_rig(frame_bytes=30_000_000)
+    monkeypatch.setattr(rig.camera, "describe", lambda: {"driver": "fake"})
+    plan = Plan.from_dict({"turntable": {"angles_deg": [0, 10, 20]}, "exposure": {"stops": [0]}})
+    info = create_session(store, plan, rig, name="s", reserve_bytes=0)
+    free = 80_000_000  # fits 3 assumed frames (75 MB), not 3 real ones (90 MB)
+    monkeypatch.setattr(store, "free_bytes", lambda: free - store.progress(info.id).bytes_stored)
+    events = []
+    r = Runner(rig, store, "s", reserve_bytes=0)
+    r.bus.subscribe(events.append)
+    assert r.run() == "paused"
+    [note] = [e for e in events if e.kind == EventKind.NOTE and "frame size" in e.message]
+    assert note.data["frame_bytes"] == 30_000_000 and note.data["assumed_frame_bytes"] == 25_000_000
+    assert note.data["bytes_left"] == 2 * 30_000_000
+    [low] = [e for e in events if e.kind == EventKind.LOW_DISK]
+    assert "re-estimated from the first frame" in low.message
+    assert store.progress(info.id).steps_done == 1
+    # on resume the stored frames give the size: no second measurement
+    free = 10**12
+    events.clear()
+    assert r.run() == "done"
+    assert not [e for e in events if e.kind == EventKind.NOTE and "frame size" in e.message]
+    store.close()
