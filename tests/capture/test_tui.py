@@ -70,6 +70,20 @@ async def until(pilot, cond, timeout: float = 15.0, what: str = "condition") -> 
         await pilot.pause(0.02)
 
 
+async def settled(sim, timeout: float = 3.0) -> float:
+    """The simulated turntable's angle once it has stopped (unchanged over 0.2 s), degrees."""
+    deadline = time.monotonic() + timeout
+    angle = sim.angle_deg
+    while True:
+        await asyncio.sleep(0.2)
+        now = sim.angle_deg
+        if now == pytest.approx(angle, abs=1e-6):
+            return now
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the turntable is still moving after {timeout} s")
+        angle = now
+
+
 def cell(app: GonioApp, row: str, column: str) -> str:
     return str(app.query_one("#device-table", DataTable).get_cell(row, column))
 
@@ -238,9 +252,7 @@ async def test_pause_resume_and_abort_stops_motion(tmp_path):
         await until(pilot, lambda: 20 < sim.angle_deg < 150, timeout=20, what="a move under way")
         await pilot.press("a")
         await until(pilot, lambda: pane.state == "aborted", timeout=10, what="the abort")
-        a1 = sim.angle_deg
-        await asyncio.sleep(0.3)
-        assert sim.angle_deg == pytest.approx(a1, abs=1e-6), "the turntable kept moving"
+        a1 = await settled(sim)
         assert 1 < a1 < 169, "the move was not cut short"
         assert store_state(tmp_path / "store", name) == ("aborted", done_at_pause, done_at_pause)
 
@@ -343,14 +355,17 @@ async def test_resume_an_interrupted_session_is_one_key(tmp_path):
 
 @pytest.mark.asyncio
 async def test_keys_answer_within_100_ms_during_a_long_move_and_estop_stops_it(tmp_path):
-    app = make_app("sim", tmp_path / "store", fast=False, sim_options=SLOW_TURNTABLE)
+    # 10 deg/s: the pilot waits for the process to go idle after each key, which it never
+    # does while the in-process simulators run a move, so every press returns after ~2 s
+    very_slow = {**SLOW_TURNTABLE, "turntable": {"speed_deg_s": 10.0, "accel_deg_s2": 20.0}}
+    app = make_app("sim", tmp_path / "store", fast=False, sim_options=very_slow)
     async with app.run_test(size=(80, 24)) as pilot:
         await connected(pilot, app)
         await home_everything(pilot, app)
         await select_row(pilot, app, "turntable")
-        await pilot.press("g", "1", "7", "0", "enter")  # 170 deg at 30 deg/s: ~6 s
+        await pilot.press("g", "1", "7", "0", "enter")  # 170 deg at 10 deg/s: ~17 s
         sim = app.lab.sims["turntable"]
-        await until(pilot, lambda: 1 < sim.angle_deg < 100, what="the move to start")
+        await until(pilot, lambda: 1 < sim.angle_deg < 60, what="the move to start")
 
         pane, tabs = app.devices_pane, app.query_one("#tabs")
         stamps: list[float] = []
@@ -365,14 +380,12 @@ async def test_keys_answer_within_100_ms_during_a_long_move_and_estop_stops_it(t
             assert stamps, f"key {key!r} had no effect"
             delays.append(stamps[0] - t0)
         assert pane.step_index == 1 and tabs.active == "devices"
-        assert sim.angle_deg < 170, "the move ended before the keys were measured"
+        assert sim.angle_deg < 150, "the move ended before the keys were measured"
         assert max(delays) < 0.1, f"key handling took {max(delays) * 1000:.0f} ms"
-        # emergency stop: the half-turn ends where it is
+        # emergency stop: the stage decelerates and stays short of 170 deg
         await pilot.press("ctrl+e")
-        await asyncio.sleep(0.3)
-        a1 = sim.angle_deg
-        await asyncio.sleep(0.3)
-        assert sim.angle_deg == pytest.approx(a1, abs=1e-6) and a1 < 179
+        a1 = await settled(sim)
+        assert a1 < 169, "the move was not cut short"
         assert any(e.kind == "estop" for e in app.log_pane.entries)
 
 
