@@ -81,7 +81,7 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 progress.stop()
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NOTHING) from None
-        from .report import write_report  # matplotlib loads only when there is something to draw
+        from .report import write_report  # here, not at the top: matplotlib would slow every gonio start
         folder = out if out is not None else Path(st.root).resolve().parent
         png = write_report(report, folder / f"{session}-calibration.png")
         if as_json:
@@ -97,6 +97,6 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             text = ", ".join(f"{k} {v}" for k, v in s.figures.items()) if s.status == "ok" else s.reason
             table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", f"{s.seconds:.1f}", text)
         console.print(table)
-        console.print(f"stored {sum(s.status == 'ok' for s in report.stages)} calibration result(s) in "
+        console.print(f"stored {sum(s.calibration_id is not None for s in report.stages)} calibration result(s) in "
                       f"{st.root}; report: {png}", highlight=False)
     raise typer.Exit(EXIT_FAILED if report.failed else EXIT_OK)
