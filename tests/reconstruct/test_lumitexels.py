@@ -134,3 +134,34 @@ def test_bad_views_are_named():
         assemble_lumitexels(mesh, [View(cam, np.zeros((10, 10, 3)), np.zeros(3))])
     with pytest.raises(LumitexelError, match="no views"):
         assemble_lumitexels(mesh, [])
+
+
+def test_noisy_samples_are_within_noise_of_ground_truth(sphere_capture):
+    # sensor-like noise on every view: shot noise (variance ∝ signal) plus read noise
+    mesh, mat, views = sphere_capture
+    rng = np.random.default_rng(7)
+    gain, read = 2e-4, 2e-4           # radiance units: variance = gain * L + read^2
+    noisy, sigmas = [], []
+    for v in views:
+        sigma = np.sqrt(gain * np.clip(v.radiance, 0, None) + read ** 2)
+        noisy.append(View(v.camera, (v.radiance + rng.normal(0, 1, v.radiance.shape) * sigma)
+                          .astype(np.float32), v.light_position, v.light_intensity,
+                          v.object_to_world))
+        sigmas.append(sigma)
+    lt = assemble_lumitexels(mesh, noisy)
+    truth = mat.evaluate(lt.wi, lt.wo) * lt.wi[:, 2:3]
+    # the sample's sigma: the pixel noise at that point (bilinear weights can only lower it),
+    # scaled like the sample (d^2 / I)
+    sig = np.empty_like(truth)
+    for k, v in enumerate(noisy):
+        sel = lt.view == k
+        cam = v.camera.with_pose(v.camera.R @ v.object_to_world[:3, :3],
+                                 v.camera.R @ v.object_to_world[:3, 3] + v.camera.t)
+        px = np.rint(cam.project(lt.position[lt.texel[sel]])).astype(int)
+        d2 = np.sum((np.linalg.solve(v.object_to_world[:3, :3], v.light_position
+                                     - v.object_to_world[:3, 3]) - lt.position[lt.texel[sel]]) ** 2, 1)
+        sig[sel] = sigmas[k][px[:, 1], px[:, 0]] * (d2 / v.light_intensity)[:, None]
+    z = (lt.reflectance - truth) / sig
+    assert abs(z.mean()) < 0.05                     # unbiased
+    assert z.std() < 1.05                           # no error beyond the noise
+    assert np.mean(np.abs(z) > 4) < 1e-3
