@@ -165,3 +165,25 @@ def test_noisy_samples_are_within_noise_of_ground_truth(sphere_capture):
     assert abs(z.mean()) < 0.05                     # unbiased
     assert z.std() < 1.05                           # no error beyond the noise
     assert np.mean(np.abs(z) > 4) < 1e-3
+
+
+def test_polarization_separated_views_give_per_sample_diffuse_and_specular():
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
+    mesh.apply_translation([0, 0, 45.0])
+    cam = CameraModel.look_at((400, 0, 120), (0, 0, 45), width=120, height=90, fov_deg=18)
+    mat = material()
+    views = []
+    for angle in (0, 90, 200):
+        light = np.array([250.0, 100.0, 250.0])
+        scene = Scene()
+        scene.add(Mesh(mesh, turntable(angle)), mat)
+        scene.add_light(PointLight(light, intensity=2e5))
+        res = render(scene, cam, components=True)
+        views.append(View(cam, res.radiance, light, 2e5, turntable(angle),
+                          diffuse=res.diffuse, specular=res.specular))
+    lt = assemble_lumitexels(mesh, views)
+    assert lt.diffuse is not None and lt.specular is not None
+    assert np.allclose(lt.diffuse + lt.specular, lt.reflectance, rtol=1e-4, atol=1e-7)
+    expected_diffuse = mat.diffuse_part().evaluate(lt.wi, lt.wo) * lt.wi[:, 2:3]
+    rel = np.abs(lt.diffuse - expected_diffuse).max(1) / expected_diffuse.max(1)
+    assert np.percentile(rel, 99) < 0.01
