@@ -97,6 +97,6 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             text = ", ".join(f"{k} {v}" for k, v in s.figures.items()) if s.status == "ok" else s.reason
             table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", f"{s.seconds:.1f}", text)
         console.print(table)
-        console.print(f"stored {sum(s.calibration_id is not None for s in report.stages)} calibration result(s) in "
-                      f"{st.root}; report: {png}", highlight=False)
+        stored = sum(s.calibration_id is not None for s in report.stages)
+        console.print(f"stored {stored} calibration result(s) in {st.root}; report: {png}", highlight=False)
     raise typer.Exit(EXIT_FAILED if report.failed else EXIT_OK)
