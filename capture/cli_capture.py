@@ -141,13 +141,14 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         c.print(table)
 
 
-def _frame_size_text(est: Estimate, with_rig: bool) -> str:
+def _frame_size_text(est: Estimate, with_rig: bool, running: bool = False) -> str:
     size = human_bytes(est.frame_bytes)
     if not est.frame_bytes_assumed:
-        return f"frame size {size} ({'from the camera' if est.frame_bytes_source == 'camera' else 'measured'})"
+        source = "from the camera" if est.frame_bytes_source == "camera" else "measured"
+        return f"frame size {size} ({source})"
     why = "the camera does not report its image size" if with_rig else "no --rig given"
-    return (f"frame size {size} assumed ({why}); 'gonio capture run' measures the first frame "
-            "and re-estimates the bytes")
+    who = "the first frame captured will tell" if running else "'gonio capture run' measures the first frame"
+    return f"frame size {size} assumed ({why}); {who} and the bytes are re-estimated"
 
 
 class _ProgressView:
@@ -282,7 +283,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
             est = MotionModel.from_rig(opened.rig).estimate(todo)
             typer.echo(f"session {info.name}: {est.steps} steps, {est.frames} frames, about "
                        f"{human_bytes(est.bytes)} and {human_time(est.seconds)} -> store {store}")
-            typer.echo(_frame_size_text(est, True))
+            typer.echo(_frame_size_text(est, True, running=True))
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
             _execute(runner, store, quiet)
