@@ -22,6 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .frames import linear_rows
+
 #: Rec. 709 / sRGB luminance weights of linear RGB.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -103,11 +105,11 @@ class EnvironmentMap:
     def directions(self) -> np.ndarray:
         """World-frame unit directions of the pixel centres, shape (H, W, 3)."""
         d = pixel_directions(*self.shape)
-        return d @ self.rotation  # map -> world: R^T applied to row vectors
+        return d @ self.rotation  # map -> world: R^T applied to row vectors (a small grid)
 
     def to_pixel(self, dirs) -> np.ndarray:
         """Continuous pixel coordinates (x, y) of world directions (N, 3) -> (N, 2)."""
-        d = _check_dirs(dirs) @ self.rotation.T
+        d = linear_rows(self.rotation, _check_dirs(dirs))
         return direction_to_pixel(d, *self.shape)
 
     def lookup(self, dirs, *, interpolation: str = "bilinear") -> np.ndarray:
@@ -188,7 +190,7 @@ class EnvironmentMap:
         z = c0 + rng.random(n) * (c1 - c0)
         phi = 2 * np.pi * (j + rng.random(n)) / W
         r = np.sqrt(np.maximum(0.0, 1 - z * z))
-        d = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1) @ self.rotation
+        d = linear_rows(self.rotation.T, np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1))
         return d, p_pix[k] / sa[k]
 
     def pdf(self, dirs) -> np.ndarray:

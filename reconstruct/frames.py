@@ -6,8 +6,13 @@ import numpy as np
 
 def normalize(v: np.ndarray, axis: int = -1) -> np.ndarray:
     """Unit vectors along ``axis`` (zero vectors stay zero)."""
-    n = np.linalg.norm(v, axis=axis, keepdims=True)
-    return np.divide(v, n, out=np.zeros_like(v, dtype=np.result_type(v, np.float32)), where=n > 0)
+    v = np.asarray(v)
+    v = v.astype(np.result_type(v, np.float32), copy=False)
+    sq = np.einsum("...i,...i->...", v, v)[..., None] if axis in (-1, v.ndim - 1) else \
+        np.sum(v * v, axis=axis, keepdims=True)
+    with np.errstate(divide="ignore"):  # one reciprocal per vector: ~2x faster than dividing
+        inv = np.where(sq > 0, 1.0 / np.sqrt(sq), 0.0).astype(v.dtype, copy=False)
+    return v * inv
 
 
 def linear_rows(M: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -35,16 +40,24 @@ def tangent_frames(normals: np.ndarray, tangents: np.ndarray | None = None) -> n
     except at n = -z. ``frames @ v`` takes world vectors to local ones.
     """
     n = normalize(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
-    if tangents is None:
-        sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
-        a = -1.0 / (sign + n[:, 2])
-        b = n[:, 0] * n[:, 1] * a
-        t = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    frames = np.empty((len(n), 3, 3))
+    frames[:, 2] = n
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    if tangents is None:  # t and b = n x t in closed form, written in place (no cross/stack)
+        sign = np.where(z >= 0, 1.0, -1.0)
+        a = -1.0 / (sign + z)
+        b = x * y * a
+        frames[:, 0, 0] = 1 + sign * x * x * a
+        frames[:, 0, 1] = sign * b
+        frames[:, 0, 2] = -sign * x
+        frames[:, 1, 0] = b
+        frames[:, 1, 1] = sign + y * y * a
+        frames[:, 1, 2] = -y
     else:
         t = np.asarray(tangents, float).reshape(-1, 3)
-        t = normalize(t - np.sum(t * n, axis=1, keepdims=True) * n)
-    bt = np.cross(n, t)
-    return np.stack([t, bt, n], axis=1)
+        frames[:, 0] = normalize(t - np.sum(t * n, axis=1, keepdims=True) * n)
+        frames[:, 1] = np.cross(n, frames[:, 0])
+    return frames
 
 
 def to_local(vectors: np.ndarray, frames: np.ndarray) -> np.ndarray:

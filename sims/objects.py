@@ -119,7 +119,8 @@ def make_sphere(radius_mm: float = 40.0, material: BRDF = GLAZE, *,
     def ids(position, uv, face_index):
         if len(dirs) == 0:
             return np.zeros(len(uv), dtype=np.int64)
-        return (np.max(_sphere_dirs(uv) @ dirs.T, axis=1) > cos_dot).astype(np.int64)
+        d = _sphere_dirs(uv)  # one matrix-vector product per marker (no multithreaded GEMM)
+        return (np.max([d @ m for m in dirs], axis=0) > cos_dot).astype(np.int64)
 
     part = Part(Sphere(radius_mm, center), MaterialMap([material, dot], ids), "sphere")
     return GroundTruthObject("sphere", [part], markers_mm=center + radius_mm * dirs,
