@@ -2,6 +2,7 @@
 the simulators' fault injection; and a reader process polling the store while the runner writes."""
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -24,14 +25,35 @@ STEPS, FRAMES = 8, 16
 RETRY = RetryPolicy(attempts=4, base_delay_s=0.01)
 
 
+@contextlib.contextmanager
+def _open_lab(tmp_path, turntable_timeout_s: float = 3.0):
+    """The simulated lab over its real transports, with a session ``s`` planned in a store.
+
+    Reply timeouts are generous (the drivers' defaults are 0.5-1 s): on a loaded machine a
+    simulator thread can be starved that long, and a spurious timeout would be retried and
+    break the tests' exact fault expectations. The placeholder DNG stands in for the rendered
+    scene: these tests are about the runner."""
+    cfg = {"turntable": {"driver": "zaber", "port": "sim", "timeout_s": turntable_timeout_s},
+           "positioner": {"driver": "grbl", "port": "sim", "timeout_s": 3.0},
+           "polarizer": {"driver": "elliptec", "port": "sim", "timeout_s": 3.0},
+           "camera": {"driver": "ptp", "port": "sim"}}
+    with open_rig(cfg, fast=True, home=True, frame_source=placeholder_frame) as opened:
+        with Store(tmp_path / "store") as store:
+            create_session(store, Plan.from_dict(PLAN), opened.rig, name="s", reserve_bytes=0)
+            yield opened, store
+
+
 @pytest.fixture
 def lab(tmp_path):
-    # the placeholder DNG instead of the rendered scene: these tests are about the runner
-    with open_rig("sim", fast=True, home=True, frame_source=placeholder_frame) as opened:
-        store = Store(tmp_path / "store")
-        create_session(store, Plan.from_dict(PLAN), opened.rig, name="s", reserve_bytes=0)
-        yield opened, store
-        store.close()
+    with _open_lab(tmp_path) as opened_and_store:
+        yield opened_and_store
+
+
+@pytest.fixture
+def lab_quick_turntable_timeout(tmp_path):
+    # the injected lost reply costs one reply timeout: keep the turntable's at its default
+    with _open_lab(tmp_path, turntable_timeout_s=0.5) as opened_and_store:
+        yield opened_and_store
 
 
 def _complete(store: Store) -> None:
@@ -61,8 +83,8 @@ def test_session_on_simulated_lab_records_readbacks(lab):
     assert describe["turntable"]["driver"] == "zaber" and describe["camera"]["driver"] == "ptp"
 
 
-def test_timeout_mid_session_is_retried(lab):
-    opened, store = lab
+def test_timeout_mid_session_is_retried(lab_quick_turntable_timeout):
+    opened, store = lab_quick_turntable_timeout
     events = []
     r = Runner(opened.rig, store, "s", retry=RETRY, reserve_bytes=0)
     r.bus.subscribe(events.append)
