@@ -30,3 +30,14 @@ class TooFewViews(CalibrationError):
 
 class DegenerateFit(CalibrationError):
     """The data cannot determine the parameters (parallel views, collinear points, no spread)."""
+
+
+class InvalidInput(CalibrationError):
+    """An argument is unusable before any fitting starts (wrong shape, type or range, NaN/inf).
+
+    The message names the argument (``argument`` holds its name when the caller gave it).
+    """
+
+    def __init__(self, message: str, *, argument: str | None = None) -> None:
+        self.argument = argument
+        super().__init__(message)

@@ -18,7 +18,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from .errors import TooFewViews
+from . import _validate
+from .errors import InvalidInput, TooFewViews
 
 __all__ = ["RawMosaic", "HDRImage", "read_raw", "merge_raw_brackets", "master_frame",
            "recover_response", "merge_ldr", "write_hdr"]
@@ -73,7 +74,7 @@ def read_raw(path: str | os.PathLike) -> RawMosaic:
 
     Raises
     ------
-    ValueError
+    InvalidInput
         The file cannot be decoded (names the path and LibRaw's reason).
     """
     import rawpy
@@ -87,7 +88,7 @@ def read_raw(path: str | os.PathLike) -> RawMosaic:
             desc = raw.color_desc.decode()
             cfa = "".join(desc[c] for c in raw.raw_pattern.ravel()[:4])
     except (rawpy.LibRawError, OSError) as err:
-        raise ValueError(f"{path}: cannot decode raw file ({err})") from None
+        raise InvalidInput(f"{path}: cannot decode raw file ({err})") from None
     return RawMosaic(data, black, white, cfa)
 
 
@@ -96,14 +97,19 @@ def master_frame(frames, method: str = "median") -> np.ndarray:
 
     ``'median'`` rejects cosmic rays and hot single events; ``'mean'`` has lower noise.
     """
-    f = np.asarray(frames, dtype=np.float32)
+    try:
+        f = np.asarray(frames, dtype=np.float32)
+    except (TypeError, ValueError):
+        raise InvalidInput("frames must be a stack of equally sized numeric frames", argument="frames") from None
     if f.ndim < 3 or f.shape[0] < 1:
-        raise ValueError(f"frames must be a stack (N, H, W[, C]), got shape {f.shape}")
+        raise InvalidInput(f"frames must be a stack (N, H, W[, C]), got shape {f.shape}")
+    if not np.all(np.isfinite(f)):
+        raise InvalidInput("frames contain NaN or infinite values", argument="frames")
     if method == "median":
         return np.median(f, axis=0).astype(np.float32)
     if method == "mean":
         return f.mean(axis=0, dtype=np.float64).astype(np.float32)
-    raise ValueError(f"method must be 'median' or 'mean', got {method!r}")
+    raise InvalidInput(f"method must be 'median' or 'mean', got {method!r}")
 
 
 def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=0.0, white_level: float,
@@ -150,22 +156,36 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
     """
     if len(frames) == 0:
         raise TooFewViews("HDR merge (exposures)", have=0, need=1)
-    D = np.stack([np.asarray(f) for f in frames])  # converted to float32 block by block
+    D = [_validate.image(f, f"frames[{k}]") for k, f in enumerate(frames)]
+    if len({f.shape for f in D}) != 1:
+        raise InvalidInput(f"frames must share one shape, got {sorted({f.shape for f in D})}", argument="frames")
+    D = np.stack(D)  # converted to float32 block by block
     if D.ndim != 3:
-        raise ValueError(f"frames must be 2-D mosaics of one shape, got stack shape {D.shape}")
-    t = np.asarray(exposure_s, np.float64).ravel()
+        raise InvalidInput(f"frames must be 2-D mosaics of one shape, got stack shape {D.shape}")
+    t = _validate.array(exposure_s, "exposure_s").ravel()
+    white_level = _validate.positive(white_level, "white_level")
+    gain_e_per_dn = _validate.positive(gain_e_per_dn, "gain_e_per_dn")
+    read_noise_dn = _validate.positive(read_noise_dn, "read_noise_dn", allow_zero=True)
     if t.shape != (len(D),):
-        raise ValueError(f"exposure_s must have one time per frame ({len(D)}), got shape {t.shape}")
+        raise InvalidInput(f"exposure_s must have one time per frame ({len(D)}), got shape {t.shape}")
     if np.any(~(t > 0)):
-        raise ValueError(f"exposure_s must be positive, got {t}")
+        raise InvalidInput(f"exposure_s must be positive, got {t}")
     if not gain_e_per_dn > 0 or read_noise_dn < 0:
-        raise ValueError("gain_e_per_dn must be > 0 and read_noise_dn >= 0")
+        raise InvalidInput("gain_e_per_dn must be > 0 and read_noise_dn >= 0")
     if not 0 < linear_fraction <= 1:
-        raise ValueError(f"linear_fraction must be in (0, 1], got {linear_fraction}")
-    black = np.broadcast_to(np.asarray(black_level, np.float32), D.shape[1:])
+        raise InvalidInput(f"linear_fraction must be in (0, 1], got {linear_fraction}")
+    black = _validate.array(black_level, "black_level", dtype=np.float32)
+    if black.shape not in ((), D.shape[1:]):
+        raise InvalidInput(f"black_level must be a scalar or one level per photosite {D.shape[1:]}, "
+                           f"got shape {black.shape}", argument="black_level")
+    black = np.broadcast_to(black, D.shape[1:])
     if np.any(black >= white_level):
-        raise ValueError(f"black_level must be below white_level ({white_level})")
-    dk = None if darks is None else np.broadcast_to(np.asarray(darks, np.float32), D.shape)
+        raise InvalidInput(f"black_level must be below white_level ({white_level})")
+    dk = None if darks is None else _validate.array(darks, "darks", dtype=np.float32)
+    if dk is not None:
+        if dk.shape not in (D.shape[1:], D.shape):
+            raise InvalidInput(f"darks must have shape {D.shape[1:]} or {D.shape}, got {dk.shape}", argument="darks")
+        dk = np.broadcast_to(dk, D.shape)
     out = HDRImage(np.empty(D.shape[1:], np.float32), np.empty(D.shape[1:], np.float32),
                    np.empty(D.shape[1:], bool), np.empty(D.shape[1:], np.uint8))
     # Row blocks: the per-pixel work needs several (N, rows, W) temporaries; whole 24 MP frames
@@ -209,16 +229,19 @@ def _merge_block(D, t, black, dark, white_level, linear_fraction, g, rn2, radian
 
 
 def _ldr_stack(images, exposure_s):
-    imgs = np.stack([np.asarray(i) for i in images])
+    imgs = [_validate.image(i, f"images[{k}]") for k, i in enumerate(images)]
+    if len({i.shape for i in imgs}) > 1:
+        raise InvalidInput(f"images must share one shape, got {sorted({i.shape for i in imgs})}", argument="images")
+    imgs = np.stack(imgs) if imgs else np.zeros((0, 1, 1), np.uint8)
     if imgs.dtype != np.uint8:
-        raise ValueError(f"images must be 8-bit (uint8), got {imgs.dtype}")
+        raise InvalidInput(f"images must be 8-bit (uint8), got {imgs.dtype}")
     if imgs.ndim == 3:
         imgs = imgs[..., None]
     if imgs.ndim != 4:
-        raise ValueError(f"images must be (H, W) or (H, W, C) each, got stack shape {imgs.shape}")
+        raise InvalidInput(f"images must be (H, W) or (H, W, C) each, got stack shape {imgs.shape}")
     t = np.asarray(exposure_s, np.float64).ravel()
     if t.shape != (len(imgs),) or np.any(~(t > 0)):
-        raise ValueError(f"exposure_s must hold {len(imgs)} positive times, got {t}")
+        raise InvalidInput(f"exposure_s must hold {len(imgs)} positive times, got {t}")
     if len(imgs) < 2:
         raise TooFewViews("response recovery / LDR merge (exposures)", have=len(imgs), need=2)
     return imgs, t
@@ -242,7 +265,7 @@ def recover_response(images, exposure_s, *, samples: int = 70, smoothness: float
     """
     imgs, t = _ldr_stack(images, exposure_s)
     if imgs.shape[-1] != 3:
-        raise ValueError("recover_response needs 3-channel images (OpenCV's calibration is RGB)")
+        raise InvalidInput("recover_response needs 3-channel images (OpenCV's calibration is RGB)")
     cal = cv2.createCalibrateDebevec(samples, smoothness, False)
     resp = cal.process([np.ascontiguousarray(i) for i in imgs], t.astype(np.float32))
     return resp.reshape(256, 3).astype(np.float32)
@@ -274,11 +297,14 @@ def merge_ldr(images, exposure_s, response, *, clip_margin: int = 3) -> HDRImage
     """
     imgs, t = _ldr_stack(images, exposure_s)
     C = imgs.shape[-1]
-    resp = np.asarray(response, np.float64).reshape(256, -1)
+    resp = _validate.array(response, "response")
+    if resp.shape not in ((256,), (256, 1), (256, C)):
+        raise InvalidInput(f"response must be (256,) or (256, {C}), got {resp.shape}", argument="response")
+    resp = resp.reshape(256, -1)
     if resp.shape[1] not in (1, C):
-        raise ValueError(f"response must be (256,) or (256, {C}), got {np.shape(response)}")
+        raise InvalidInput(f"response must be (256,) or (256, {C}), got {np.shape(response)}")
     if np.any(~(resp[1:255] > 0)):
-        raise ValueError("response must be positive for codes 1..254")
+        raise InvalidInput("response must be positive for codes 1..254")
     log_f = np.log(np.maximum(np.broadcast_to(resp, (256, C)), 1e-30)).astype(np.float32)
     codes = np.arange(256)
     w_lut = np.minimum(codes, 255 - codes).astype(np.float32)
@@ -328,10 +354,13 @@ def write_hdr(path: str | os.PathLike, image) -> None:
     """
     img = np.asarray(image, np.float32)
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
-        raise ValueError(f"image must be (H, W) or (H, W, 1|3|4), got shape {img.shape}")
+        raise InvalidInput(f"image must be (H, W) or (H, W, 1|3|4), got shape {img.shape}")
     if not np.all(np.isfinite(img)):
-        raise ValueError("image contains NaN or infinite values")
+        raise InvalidInput("image contains NaN or infinite values")
     suffix = os.fspath(path).lower().rsplit(".", 1)[-1]
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(folder):
+        raise InvalidInput(f"path: folder {folder} does not exist", argument="path")
     if suffix in ("tif", "tiff"):
         import tifffile
 
@@ -340,8 +369,8 @@ def write_hdr(path: str | os.PathLike, image) -> None:
         try:
             import OpenEXR
         except ImportError:
-            raise ValueError(f"{path}: writing EXR needs the 'OpenEXR' package (pip install OpenEXR); "
-                             "use .tif for float32 TIFF") from None
+            raise InvalidInput(f"{path}: writing EXR needs the 'OpenEXR' package (pip install OpenEXR); "
+                               "use .tif for float32 TIFF") from None
         chans = img if img.ndim == 3 else img[..., None]
         names = "RGBA"[:chans.shape[2]] if chans.shape[2] > 1 else "Y"
         channels = {n: np.ascontiguousarray(chans[..., i]) for i, n in enumerate(names)}
@@ -349,4 +378,4 @@ def write_hdr(path: str | os.PathLike, image) -> None:
                           channels) as f:
             f.write(os.fspath(path))
     else:
-        raise ValueError(f"{path}: unsupported HDR format '.{suffix}' (use .tif, .tiff or .exr)")
+        raise InvalidInput(f"{path}: unsupported HDR format '.{suffix}' (use .tif, .tiff or .exr)")

@@ -11,7 +11,8 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from .errors import DegenerateFit, TargetNotFound, TooFewViews
+from . import _validate
+from .errors import DegenerateFit, InvalidInput, TargetNotFound, TooFewViews
 from .targets import TargetDetection
 
 __all__ = [
@@ -119,10 +120,10 @@ def detect_all(images: Sequence, detector: Callable[..., TargetDetection], *,
     missing : list of RejectedView
     """
     if on_missing not in ("raise", "skip"):
-        raise ValueError(f"on_missing must be 'raise' or 'skip', got {on_missing!r}")
+        raise InvalidInput(f"on_missing must be 'raise' or 'skip', got {on_missing!r}")
     names = [f"frame {i}" for i in range(len(images))] if names is None else list(names)
     if len(names) != len(images):
-        raise ValueError(f"names has {len(names)} entries for {len(images)} images")
+        raise InvalidInput(f"names has {len(names)} entries for {len(images)} images")
     found, missing = [], []
     for img, name in zip(images, names):
         try:
@@ -153,10 +154,10 @@ def corner_coverage(image_points: Sequence[np.ndarray], image_size: tuple[int, i
         Row 0 is the top of the image. Empty cells show where more views are needed
         (distortion is poorly constrained there).
     """
-    w, h = image_size
-    gx, gy = grid
-    pts = np.concatenate([np.asarray(p, float).reshape(-1, 2) for p in image_points]) \
-        if len(image_points) else np.zeros((0, 2))
+    w, h = (_validate.integer(v, "image_size", minimum=1) for v in image_size)
+    gx, gy = (_validate.integer(v, "grid", minimum=1) for v in grid)
+    pts = np.concatenate([_validate.array(p, f"image_points[{i}]", shape=(-1, 2))
+                          for i, p in enumerate(image_points)]) if len(image_points) else np.zeros((0, 2))
     counts, _, _ = np.histogram2d(pts[:, 1], pts[:, 0], bins=(gy, gx), range=((-0.5, h - 0.5), (-0.5, w - 0.5)))
     return counts.astype(np.int64)
 
@@ -218,21 +219,25 @@ def calibrate_intrinsics(detections: Sequence[TargetDetection], image_size: tupl
     """
     dets = list(detections)
     if min_views < _MIN_VIEWS:
-        raise ValueError(f"min_views must be >= {_MIN_VIEWS}, got {min_views}")
+        raise InvalidInput(f"min_views must be >= {_MIN_VIEWS}, got {min_views}")
     if len(dets) < min_views:
         raise TooFewViews("intrinsics calibration", have=len(dets), need=min_views)
     for i, d in enumerate(dets):
         if not isinstance(d, TargetDetection):
-            raise TypeError(f"detections[{i}] must be a TargetDetection, got {type(d).__name__}")
+            raise InvalidInput(f"detections[{i}] must be a TargetDetection, got {type(d).__name__}")
+        _validate.array(d.image_points, f"detections[{i}].image_points", shape=(-1, 2))
+        _validate.array(d.object_points, f"detections[{i}].object_points", shape=(len(d.image_points), 3))
         if len(d.image_points) < 6:
             raise TooFewViews(f"detections[{i}] ({d.frame}) corners", have=len(d.image_points), need=6)
     sizes = {d.image_size for d in dets}
     if image_size is None:
         if len(sizes) != 1:
-            raise ValueError(f"detections come from images of different sizes {sorted(sizes)}; "
+            raise InvalidInput(f"detections come from images of different sizes {sorted(sizes)}; "
                              "calibrate each camera/resolution separately")
         image_size = sizes.pop()
-    image_size = (int(image_size[0]), int(image_size[1]))
+    image_size = tuple(_validate.integer(v, "image_size", minimum=1) for v in image_size)
+    if len(image_size) != 2:
+        raise InvalidInput(f"image_size must be (width, height), got {image_size}", argument="image_size")
     names = [d.frame or f"view {i}" for i, d in enumerate(dets)]
 
     rejected: list[RejectedView] = []

@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import DegenerateFit, TargetNotFound, TooFewViews
+from . import _validate
+from .errors import DegenerateFit, InvalidInput, TargetNotFound, TooFewViews
 
 __all__ = [
     "SphereImage", "Highlight", "PointLight", "PositionerModel",
@@ -82,14 +83,14 @@ class PointLight:
 
 
 def _image_2d(image, arg_name: str) -> np.ndarray:
-    img = np.asarray(image)
+    img = _validate.image(image, arg_name)
     if img.ndim == 3 and img.shape[2] in (3, 4):
         img = img[..., :3].astype(np.float64).mean(axis=2)
     if img.ndim != 2:
-        raise ValueError(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
+        raise InvalidInput(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
     img = img.astype(np.float64, copy=False)
     if not np.all(np.isfinite(img)):
-        raise ValueError(f"{arg_name} contains NaN or infinite values")
+        raise InvalidInput(f"{arg_name} contains NaN or infinite values")
     return img
 
 
@@ -117,6 +118,8 @@ def detect_sphere(mask, *, threshold: float | None = None, frame: str | None = N
         No blob of at least 50 pixels.
     """
     img = _image_2d(mask, "mask")
+    if threshold is not None and not np.isfinite(threshold):
+        raise InvalidInput(f"threshold must be finite, got {threshold!r}", argument="threshold")
     level = 0.5 * img.max() if threshold is None else float(threshold)
     binary = (img > level).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
@@ -167,8 +170,12 @@ def find_highlight(image, sphere: SphereImage | None = None, *, saturation: floa
         No pixel above the background inside the search region.
     """
     img = _image_2d(image, "image")
+    if sphere is not None:
+        _sphere(sphere)
+    if saturation is not None:
+        saturation = _validate.positive(saturation, "saturation")
     if not 0 < rel_threshold < 1:
-        raise ValueError(f"rel_threshold must be in (0, 1), got {rel_threshold}")
+        raise InvalidInput(f"rel_threshold must be in (0, 1), got {rel_threshold}")
     offset = np.zeros(2)
     region = np.ones(img.shape, bool)
     if sphere is not None:  # work in the sphere's bounding box only (frames may be 24 MP)
@@ -217,21 +224,33 @@ def light_direction_orthographic(highlight_xy, sphere: SphereImage) -> np.ndarra
         Unit directions towards the light in the camera frame (x right, y down, z forward;
         the viewer is at -z).
     """
-    h = np.asarray(highlight_xy, float)
+    h = _validate.array(highlight_xy, "highlight_xy", ndim=(1, 2))
+    if h.shape[-1] != 2:
+        raise InvalidInput(f"highlight_xy must have shape (2,) or (M, 2), got {h.shape}", argument="highlight_xy")
+    _sphere(sphere)
     nx, ny = ((h[..., 0] - sphere.center_px[0]) / sphere.radius_px,
               (h[..., 1] - sphere.center_px[1]) / sphere.radius_px)
     rho2 = nx ** 2 + ny ** 2
     if np.any(rho2 >= 1):
-        raise ValueError("highlight_xy lies outside the sphere's disc")
+        raise InvalidInput("highlight_xy lies outside the sphere's disc")
     n = np.stack([nx, ny, -np.sqrt(1 - rho2)], axis=-1)
     v = np.array([0.0, 0.0, -1.0])  # towards the viewer
     return 2 * np.sum(n * v, axis=-1, keepdims=True) * n - v
 
 
-def _rays(pixels, K, dist) -> np.ndarray:
-    px = np.asarray(pixels, float).reshape(-1, 1, 2)
-    dist = np.zeros(5) if dist is None else np.asarray(dist, float)
-    xy = cv2.undistortPoints(px, np.asarray(K, float), dist).reshape(-1, 2)
+def _sphere(sphere) -> None:
+    if not isinstance(sphere, SphereImage):
+        raise InvalidInput(f"sphere must be a SphereImage, got {type(sphere).__name__}", argument="sphere")
+    _validate.array(sphere.center_px, "sphere.center_px", shape=(2,))
+    _validate.positive(sphere.radius_px, "sphere.radius_px")
+
+
+def _rays(pixels, K, dist, name: str) -> np.ndarray:
+    px = _validate.array(pixels, name, ndim=(1, 2))
+    if px.shape[-1] != 2:
+        raise InvalidInput(f"{name} must have shape (M, 2), got {px.shape}", argument=name)
+    K, dist = _validate.camera(K, dist)
+    xy = cv2.undistortPoints(px.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
     d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
@@ -248,9 +267,11 @@ def sphere_center_from_silhouette(sphere: SphereImage, K, dist=None, radius_mm: 
     ndarray of shape (3,)
         Centre, mm (scale set by ``radius_mm``).
     """
-    if not radius_mm > 0:
-        raise ValueError(f"radius_mm must be positive, got {radius_mm}")
-    U = _rays(sphere.edge_px, K, dist)
+    radius_mm = _validate.positive(radius_mm, "radius_mm")
+    _sphere(sphere)
+    if len(sphere.edge_px) < 5:
+        raise TooFewViews("sphere outline points (sphere.edge_px)", have=len(sphere.edge_px), need=5)
+    U = _rays(sphere.edge_px, K, dist, "sphere.edge_px")
     w = np.linalg.lstsq(U, np.ones(len(U)), rcond=None)[0]
     cos_b = 1.0 / np.linalg.norm(w)
     if not 0 < cos_b < 1:
@@ -280,18 +301,27 @@ def reflect_highlight(highlight_xy, center_mm, radius_mm, K, dist=None) -> tuple
 
     Raises
     ------
-    ValueError
+    InvalidInput
         A ray misses its sphere (names the index).
     """
-    C = np.asarray(center_mm, float).reshape(-1, 3)
-    R = np.broadcast_to(np.asarray(radius_mm, float), (len(C),))
-    d = _rays(highlight_xy, K, dist)
+    C = _validate.array(center_mm, "center_mm", ndim=(1, 2))
+    if C.shape[-1] != 3:
+        raise InvalidInput(f"center_mm must have shape (M, 3), got {C.shape}", argument="center_mm")
+    C = C.reshape(-1, 3)
+    R = _validate.array(radius_mm, "radius_mm")
+    if R.ndim > 1 or R.size not in (1, len(C)) or np.any(R <= 0):
+        raise InvalidInput(f"radius_mm must be one positive radius or one per sphere ({len(C)}), got {R}",
+                           argument="radius_mm")
+    R = np.broadcast_to(R, (len(C),))
+    if np.any(np.linalg.norm(C, axis=1) <= R):
+        raise InvalidInput("center_mm: the camera lies inside a sphere (|center| <= radius)", argument="center_mm")
+    d = _rays(highlight_xy, K, dist, "highlight_xy")
     if len(d) != len(C):
-        raise ValueError(f"highlight_xy has {len(d)} points for {len(C)} sphere centres")
+        raise InvalidInput(f"highlight_xy has {len(d)} points for {len(C)} sphere centres")
     b = np.sum(d * C, axis=1)
     disc = b ** 2 - (np.sum(C * C, axis=1) - R ** 2)
     if np.any(disc < 0):
-        raise ValueError(f"highlight_xy[{int(np.argmin(disc))}]: the viewing ray misses its sphere")
+        raise InvalidInput(f"highlight_xy[{int(np.argmin(disc))}]: the viewing ray misses its sphere")
     X = d * (b - np.sqrt(disc))[:, None]
     n = (X - C) / R[:, None]
     v = -d
@@ -335,7 +365,8 @@ def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, 
     DegenerateFit
         The reflected rays are (nearly) parallel: the light is at infinity for this layout.
     """
-    h = np.asarray(highlights_xy, float).reshape(-1, 2)
+    h = _validate.array(highlights_xy, "highlights_xy", shape=(-1, 2))
+    sigma_px = _validate.positive(sigma_px, "sigma_px")
     if len(h) < 2:
         raise TooFewViews("point-light triangulation (spheres)", have=len(h), need=2)
     P, L = reflect_highlight(h, centers_mm, radius_mm, K, dist)
@@ -378,11 +409,10 @@ def locate_collinear_spheres(flash_highlights_xy, spacing_mm: float, K, dist=Non
     ndarray of shape (M, 3)
         Sphere centres, camera frame, mm.
     """
-    f = _rays(flash_highlights_xy, K, dist)
+    f = _rays(flash_highlights_xy, K, dist, "flash_highlights_xy")
     if len(f) < 3:
         raise TooFewViews("collinear sphere location (spheres)", have=len(f), need=3)
-    if not spacing_mm > 0:
-        raise ValueError(f"spacing_mm must be positive, got {spacing_mm}")
+    spacing_mm = _validate.positive(spacing_mm, "spacing_mm")
     skew = np.zeros((len(f), 3, 3))
     skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -f[:, 2], f[:, 1], -f[:, 0]
     skew -= skew.transpose(0, 2, 1)
@@ -462,11 +492,11 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
     DegenerateFit
         The poses do not span both angles (the offsets are then undetermined).
     """
-    az = np.asarray(azimuth_deg, float).ravel()
-    el = np.asarray(elevation_deg, float).ravel()
-    X = np.asarray(positions_mm, float)
+    az = _validate.array(azimuth_deg, "azimuth_deg").ravel()
+    el = _validate.array(elevation_deg, "elevation_deg").ravel()
+    X = _validate.array(positions_mm, "positions_mm")
     if az.shape != el.shape or X.shape != (len(az), 3):
-        raise ValueError(f"azimuth_deg {az.shape}, elevation_deg {el.shape} and positions_mm {X.shape} "
+        raise InvalidInput(f"azimuth_deg {az.shape}, elevation_deg {el.shape} and positions_mm {X.shape} "
                          "must be (N,), (N,), (N, 3)")
     if len(az) < 3:
         raise TooFewViews("positioner model (poses)", have=len(az), need=3)

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import DegenerateFit, TooFewViews
+from . import _validate
+from .errors import DegenerateFit, InvalidInput, TooFewViews
 
 __all__ = ["Separation", "PolarizationFit", "separate_parallel_crossed", "fit_polarization"]
 
@@ -57,12 +58,12 @@ class PolarizationFit:
 
 
 def _as_float_image(a, name: str) -> np.ndarray:
-    arr = np.asarray(a)
+    arr = _validate.image(a, name)
     if arr.ndim not in (2, 3):
-        raise ValueError(f"{name} must be (H, W) or (H, W, C), got shape {arr.shape}")
+        raise InvalidInput(f"{name} must be (H, W) or (H, W, C), got shape {arr.shape}")
     arr = arr.astype(np.float32, copy=False)
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or infinite values")
+        raise InvalidInput(f"{name} contains NaN or infinite values")
     return arr
 
 
@@ -88,9 +89,10 @@ def separate_parallel_crossed(parallel, crossed, *, read_sigma: float = 0.0, sho
     p = _as_float_image(parallel, "parallel")
     c = _as_float_image(crossed, "crossed")
     if p.shape != c.shape:
-        raise ValueError(f"parallel {p.shape} and crossed {c.shape} must have the same shape")
-    if read_sigma < 0 or shot_gain < 0:
-        raise ValueError("read_sigma and shot_gain must be >= 0")
+        raise InvalidInput(f"parallel {p.shape} and crossed {c.shape} must have the same shape")
+    read_sigma = _validate.positive(read_sigma, "read_sigma", allow_zero=True)
+    shot_gain = _validate.positive(shot_gain, "shot_gain", allow_zero=True)
+    k_sigma = _validate.positive(k_sigma, "k_sigma", allow_zero=True)
     diff = p - c
     sigma = np.sqrt(2 * read_sigma ** 2 + shot_gain * (np.maximum(p, 0) + np.maximum(c, 0)))
     return Separation(np.maximum(2 * c, 0), np.maximum(diff, 0), diff > k_sigma * sigma)
@@ -120,11 +122,13 @@ def fit_polarization(stack, angles_deg) -> PolarizationFit:
         The angles do not span 3 distinct values modulo 180° (the fit is underdetermined).
     """
     s = np.asarray(stack)
-    th = np.radians(np.asarray(angles_deg, float).ravel())
+    if s.dtype.kind not in "biuf":
+        raise InvalidInput(f"stack must be a numeric array, got {s.dtype}", argument="stack")
+    th = np.radians(_validate.array(angles_deg, "angles_deg").ravel())
     if s.ndim not in (3, 4):
-        raise ValueError(f"stack must be (N, H, W) or (N, H, W, C), got shape {s.shape}")
+        raise InvalidInput(f"stack must be (N, H, W) or (N, H, W, C), got shape {s.shape}")
     if th.shape != (s.shape[0],):
-        raise ValueError(f"angles_deg must have one angle per image ({s.shape[0]}), got {th.shape}")
+        raise InvalidInput(f"angles_deg must have one angle per image ({s.shape[0]}), got {th.shape}")
     if len(th) < 3:
         raise TooFewViews("polarization fit (analyser angles)", have=len(th), need=3)
     A = np.column_stack([np.ones_like(th), np.cos(2 * th), np.sin(2 * th)])
@@ -142,7 +146,7 @@ def fit_polarization(stack, angles_deg) -> PolarizationFit:
     for b0 in range(0, n, _BLOCK):
         blk = flat[:, b0:b0 + _BLOCK].astype(np.float32)
         if not np.all(np.isfinite(blk)):
-            raise ValueError("stack contains NaN or infinite values")
+            raise InvalidInput("stack contains NaN or infinite values")
         coef = np.einsum("ij,jk->ik", pinv, blk)  # tiny inner dimension: einsum beats BLAS here
         a, b, c = coef
         amp = np.hypot(b, c)

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import TooFewViews
+from . import _validate
+from .errors import InvalidInput, TooFewViews
 
 __all__ = ["Probe", "latlong_directions", "mirror_sphere_to_latlong", "mirror_sphere_to_latlong_perspective",
            "merge_probes"]
@@ -49,9 +50,7 @@ class Probe:
 
 def latlong_directions(height: int) -> np.ndarray:
     """Unit world directions of every lat-long pixel centre, shape (height, 2*height, 3)."""
-    if int(height) < 2:
-        raise ValueError(f"height must be >= 2, got {height}")
-    h = int(height)
+    h = _validate.integer(height, "height", minimum=2)
     theta = (np.arange(h) + 0.5) * np.pi / h
     phi = (np.arange(2 * h) + 0.5) * np.pi / h
     st = np.sin(theta)[:, None]
@@ -88,17 +87,12 @@ def mirror_sphere_to_latlong(image, center_px, radius_px: float, R_world_to_came
     -------
     Probe
     """
-    img = np.asarray(image, np.float32)
-    if img.ndim not in (2, 3):
-        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {img.shape}")
-    R = np.asarray(R_world_to_camera, float)
-    if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-        raise ValueError("R_world_to_camera must be a 3x3 rotation matrix")
-    c = np.asarray(center_px, float).reshape(2)
-    if not radius_px > 0:
-        raise ValueError(f"radius_px must be positive, got {radius_px}")
+    img = _image(image)
+    R = _rotation(R_world_to_camera)
+    c = _validate.array(center_px, "center_px", shape=(2,))
+    radius_px = _validate.positive(radius_px, "radius_px")
     if not 0 <= blind_cone_deg < 90 or fade_deg < 0:
-        raise ValueError("blind_cone_deg must be in [0, 90) and fade_deg >= 0")
+        raise InvalidInput("blind_cone_deg must be in [0, 90) and fade_deg >= 0")
     w_cam = latlong_directions(height) @ R.T
     n = w_cam + np.array([0.0, 0.0, -1.0])
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
@@ -112,6 +106,20 @@ def mirror_sphere_to_latlong(image, center_px, radius_px: float, R_world_to_came
     weight = np.where(inside, weight, 0.0).astype(np.float32)
     env = env * (weight > 0)[..., None] if env.ndim == 3 else env * (weight > 0)
     return Probe(env.astype(np.float32), weight)
+
+
+def _image(image) -> np.ndarray:
+    img = _validate.image(image, "image").astype(np.float32, copy=False)
+    if not np.all(np.isfinite(img)):
+        raise InvalidInput("image contains NaN or infinite values", argument="image")
+    return img
+
+
+def _rotation(R) -> np.ndarray:
+    R = _validate.array(R, "R_world_to_camera", shape=(3, 3))
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InvalidInput("R_world_to_camera must be a 3x3 rotation matrix", argument="R_world_to_camera")
+    return R
 
 
 def _blind_weight(behind_deg, blind_cone_deg, fade_deg):
@@ -152,16 +160,15 @@ def mirror_sphere_to_latlong_perspective(image, K, dist, center_mm, radius_mm: f
     -------
     Probe
     """
-    img = np.asarray(image, np.float32)
-    if img.ndim not in (2, 3):
-        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {img.shape}")
-    R = np.asarray(R_world_to_camera, float)
-    if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-        raise ValueError("R_world_to_camera must be a 3x3 rotation matrix")
-    C = np.asarray(center_mm, float).reshape(3)
-    if not radius_mm > 0 or not np.linalg.norm(C) > radius_mm:
-        raise ValueError("radius_mm must be positive and the camera must lie outside the sphere "
-                         f"(|center_mm| = {np.linalg.norm(C):.1f}, radius_mm = {radius_mm})")
+    img = _image(image)
+    R = _rotation(R_world_to_camera)
+    K, dist = _validate.camera(K, dist)
+    C = _validate.array(center_mm, "center_mm", shape=(3,))
+    radius_mm = _validate.positive(radius_mm, "radius_mm")
+    height = _validate.integer(height, "height", minimum=2)
+    if not np.linalg.norm(C) > radius_mm:
+        raise InvalidInput("center_mm: the camera must lie outside the sphere "
+                           f"(|center_mm| = {np.linalg.norm(C):.1f}, radius_mm = {radius_mm})", argument="center_mm")
     w_cam = (latlong_directions(height) @ R.T).reshape(-1, 3)
     n = w_cam - C / np.linalg.norm(C)  # start: the orthographic solution
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
@@ -170,8 +177,7 @@ def mirror_sphere_to_latlong_perspective(image, K, dist, center_mm, radius_mm: f
         n = w_cam - X / np.linalg.norm(X, axis=1, keepdims=True)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     X = C + radius_mm * n
-    uv = cv2.projectPoints(X, np.zeros(3), np.zeros(3), np.asarray(K, float),
-                           np.zeros(5) if dist is None else np.asarray(dist, float))[0].reshape(-1, 2)
+    uv = cv2.projectPoints(X, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
     shape = (height, 2 * height)
     mapx = uv[:, 0].reshape(shape).astype(np.float32)
     mapy = uv[:, 1].reshape(shape).astype(np.float32)
@@ -197,9 +203,12 @@ def merge_probes(probes) -> Probe:
     probes = list(probes)
     if not probes:
         raise TooFewViews("probe merge", have=0, need=1)
+    for i, p in enumerate(probes):
+        if not isinstance(p, Probe):
+            raise InvalidInput(f"probes[{i}] must be a Probe, got {type(p).__name__}", argument="probes")
     shapes = {p.env.shape for p in probes}
     if len(shapes) != 1:
-        raise ValueError(f"probes must share one lat-long shape, got {sorted(shapes)}")
+        raise InvalidInput(f"probes must share one lat-long shape, got {sorted(shapes)}")
     W = np.stack([p.weight for p in probes])
     E = np.stack([p.env for p in probes])
     Wb = W[..., None] if E.ndim == 4 else W

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import DegenerateFit
+from . import _validate
+from .errors import DegenerateFit, InvalidInput
 
 __all__ = ["VignettingModel", "GrayCard", "flat_field_gain", "fit_vignetting", "apply_flat",
            "gray_card_scale", "normalize_irradiance"]
@@ -35,18 +36,21 @@ def flat_field_gain(flats, dark=None, *, channels=None) -> np.ndarray:
     ndarray, float32, shape of one frame
         Gain with mean 1 per channel; divide images by it (:func:`apply_flat`).
     """
-    f = np.asarray(flats, np.float32)
+    f = _validate.array(flats, "flats", dtype=np.float32, finite=False)
     if f.ndim not in (3, 4) or f.shape[0] < 1:
-        raise ValueError(f"flats must be a stack (N, H, W) or (N, H, W, C), got shape {f.shape}")
+        raise InvalidInput(f"flats must be a stack (N, H, W) or (N, H, W, C), got shape {f.shape}")
     mean = f.mean(axis=0)
     if dark is not None:
-        mean = mean - np.asarray(dark, np.float32)
+        dk = _validate.array(dark, "dark", dtype=np.float32)
+        if dk.shape not in ((), mean.shape):
+            raise InvalidInput(f"dark must have one frame's shape {mean.shape}, got {dk.shape}", argument="dark")
+        mean = mean - dk
     if not np.all(np.isfinite(mean)):
-        raise ValueError("flats contain NaN or infinite values")
+        raise InvalidInput("flats contain NaN or infinite values")
     if channels is not None:
         ch = np.asarray(channels)
         if ch.shape != mean.shape:
-            raise ValueError(f"channels {ch.shape} must match the flat's shape {mean.shape}")
+            raise InvalidInput(f"channels {ch.shape} must match the flat's shape {mean.shape}")
         gain = np.empty_like(mean)
         for c in np.unique(ch):  # 3-4 CFA channels
             sel = ch == c
@@ -56,7 +60,7 @@ def flat_field_gain(flats, dark=None, *, channels=None) -> np.ndarray:
     else:
         gain = mean / mean.mean()
     if np.any(gain <= 0):
-        raise ValueError("flat field has non-positive pixels after dark subtraction (underexposed flat?)")
+        raise InvalidInput("flat field has non-positive pixels after dark subtraction (underexposed flat?)")
     return gain.astype(np.float32)
 
 
@@ -104,11 +108,12 @@ def fit_vignetting(gain, *, order: int = 3, fit_center: bool = True, step: int =
     step : int
         Subsampling of the pixels used in the fit.
     """
-    g = np.asarray(gain, np.float64)
+    g = _validate.array(gain, "gain")
+    step = _validate.integer(step, "step", minimum=1)
     if g.ndim != 2:
-        raise ValueError(f"gain must be (H, W), got shape {g.shape}")
+        raise InvalidInput(f"gain must be (H, W), got shape {g.shape}")
     if not 1 <= order <= 6:
-        raise ValueError(f"order must be in 1..6, got {order}")
+        raise InvalidInput(f"order must be in 1..6, got {order}")
     h, w = g.shape
     norm = 0.5 * np.hypot(h, w)
     yy, xx = np.mgrid[0:h:step, 0:w:step]
@@ -136,10 +141,10 @@ def fit_vignetting(gain, *, order: int = 3, fit_center: bool = True, step: int =
 def apply_flat(image, gain, *, min_gain: float = 0.05) -> np.ndarray:
     """``image / gain`` (float32); pixels with ``gain < min_gain`` (dead or outside the image
     circle) become 0 rather than being amplified."""
-    img = np.asarray(image, np.float32)
-    g = np.asarray(gain, np.float32)
+    img = _validate.array(image, "image", dtype=np.float32)
+    g = _validate.array(gain, "gain", dtype=np.float32)
     if g.shape != img.shape[:g.ndim]:
-        raise ValueError(f"gain {g.shape} does not match image {img.shape}")
+        raise InvalidInput(f"gain {g.shape} does not match image {img.shape}")
     if g.ndim < img.ndim:
         g = g[..., None]
     return np.where(g >= min_gain, img / np.maximum(g, min_gain), 0.0).astype(np.float32)
@@ -177,13 +182,14 @@ def gray_card_scale(values, *, reflectance: float = 0.18, light_distance_mm: flo
     GrayCard
         With the standard error of the scale from the pixels' scatter.
     """
-    v = np.asarray(values, np.float64).ravel()
+    v = _validate.array(values, "values", finite=False).ravel()
     if v.size == 0 or not np.all(np.isfinite(v)):
-        raise ValueError("values must be a non-empty set of finite pixel values")
+        raise InvalidInput("values must be a non-empty set of finite pixel values")
     if not 0 < reflectance <= 1:
-        raise ValueError(f"reflectance must be in (0, 1], got {reflectance}")
-    if not light_distance_mm > 0 or not 0 < cos_incidence <= 1:
-        raise ValueError("light_distance_mm must be > 0 and cos_incidence in (0, 1]")
+        raise InvalidInput(f"reflectance must be in (0, 1], got {reflectance}")
+    light_distance_mm = _validate.positive(light_distance_mm, "light_distance_mm")
+    if not 0 < cos_incidence <= 1:
+        raise InvalidInput("light_distance_mm must be > 0 and cos_incidence in (0, 1]")
     m = v.mean()
     if not m > 0:
         raise DegenerateFit("gray card values have a non-positive mean (wrong mask or black frame?)")
@@ -218,10 +224,12 @@ def normalize_irradiance(radiance, points_mm, light_mm, *, normals=None, scale: 
         0 where invalid.
     valid : ndarray of shape (H, W), bool
     """
-    L = np.asarray(radiance, np.float32)
-    P = np.asarray(points_mm, np.float64)
+    L = _validate.array(radiance, "radiance", dtype=np.float32, ndim=(2, 3))
+    P = _validate.array(points_mm, "points_mm", finite=False)
+    light_mm = _validate.array(light_mm, "light_mm", shape=(3,))
+    scale = _validate.positive(scale, "scale")
     if P.shape != L.shape[:2] + (3,):
-        raise ValueError(f"points_mm must have shape {L.shape[:2] + (3,)}, got {P.shape}")
+        raise InvalidInput(f"points_mm must have shape {L.shape[:2] + (3,)}, got {P.shape}")
     to_light = np.asarray(light_mm, np.float64).reshape(3) - P
     r2 = np.sum(to_light ** 2, axis=-1)
     factor = scale * r2
@@ -229,7 +237,7 @@ def normalize_irradiance(radiance, points_mm, light_mm, *, normals=None, scale: 
     if normals is not None:
         N = np.asarray(normals, np.float64)
         if N.shape != P.shape:
-            raise ValueError(f"normals must have shape {P.shape}, got {N.shape}")
+            raise InvalidInput(f"normals must have shape {P.shape}, got {N.shape}")
         cos = np.sum(N * to_light, axis=-1) / np.sqrt(np.maximum(r2, 1e-30))
         valid &= cos >= min_cos
         factor = factor / np.maximum(cos, min_cos)

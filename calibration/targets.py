@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import TargetNotFound
+from . import _validate
+from .errors import InvalidInput, TargetNotFound
 
 __all__ = [
     "TargetDetection", "as_points2d", "chessboard_object_points", "detect_chessboard",
@@ -52,7 +53,7 @@ def as_points2d(points, *, arg_name: str = "points") -> np.ndarray:
     if arr.ndim == 3 and arr.shape[1:] == (1, 2):
         arr = arr[:, 0, :]
     if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"{arg_name} must have shape (N, 2) or (N, 1, 2), got {arr.shape}")
+        raise InvalidInput(f"{arg_name} must have shape (N, 2) or (N, 1, 2), got {arr.shape}")
     return arr
 
 
@@ -62,16 +63,16 @@ def to_gray_u8(image, *, arg_name: str = "image") -> np.ndarray:
     Float or 16-bit images are scaled by their own maximum (detectors need contrast, not
     radiometry).
     """
-    img = np.asarray(image)
+    img = _validate.image(image, arg_name)
     if img.ndim == 3 and img.shape[2] in (3, 4):
         img = img[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
     elif img.ndim != 2:
-        raise ValueError(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
+        raise InvalidInput(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
     if img.dtype == np.uint8:
         return img
     img = img.astype(np.float32)
     if not np.all(np.isfinite(img)):
-        raise ValueError(f"{arg_name} contains NaN or infinite values")
+        raise InvalidInput(f"{arg_name} contains NaN or infinite values")
     top = float(img.max())
     if top <= 0:
         return np.zeros(img.shape, np.uint8)
@@ -90,7 +91,7 @@ def chessboard_object_points(pattern_size: tuple[int, int], square_size: float =
     """
     cols, rows = _pattern(pattern_size)
     if not square_size > 0:
-        raise ValueError(f"square_size must be positive, got {square_size}")
+        raise InvalidInput(f"square_size must be positive, got {square_size}")
     grid = np.zeros((rows * cols, 3))
     grid[:, :2] = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * float(square_size)
     return grid
@@ -100,9 +101,9 @@ def _pattern(pattern_size) -> tuple[int, int]:
     try:
         cols, rows = (int(v) for v in pattern_size)
     except (TypeError, ValueError):
-        raise ValueError(f"pattern_size must be (cols, rows) inner corners, got {pattern_size!r}") from None
+        raise InvalidInput(f"pattern_size must be (cols, rows) inner corners, got {pattern_size!r}") from None
     if cols < 2 or rows < 2:
-        raise ValueError(f"pattern_size must be at least (2, 2) inner corners, got {(cols, rows)}")
+        raise InvalidInput(f"pattern_size must be at least (2, 2) inner corners, got {(cols, rows)}")
     return cols, rows
 
 
@@ -150,7 +151,7 @@ def detect_chessboard(image, pattern_size: tuple[int, int], square_size: float =
                                        (-1, -1),
                                        (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.1))
     else:
-        raise ValueError(f"method must be 'sb' or 'classic', got {method!r}")
+        raise InvalidInput(f"method must be 'sb' or 'classic', got {method!r}")
     if not found or corners is None:
         raise TargetNotFound(f"no {cols}x{rows} chessboard found", frame=frame)
     pts = as_points2d(corners, arg_name="corners")
@@ -186,10 +187,10 @@ def make_charuco_board(squares: tuple[int, int] = (7, 5), square_size: float = 2
         Name of a predefined ArUco dictionary, e.g. ``'DICT_5X5_100'``.
     """
     if dictionary not in _DICTS:
-        raise ValueError(f"dictionary must be a cv2.aruco DICT_* name, got {dictionary!r}")
+        raise InvalidInput(f"dictionary must be a cv2.aruco DICT_* name, got {dictionary!r}")
     cols, rows = _pattern(squares)
     if not 0 < marker_size < square_size:
-        raise ValueError(f"marker_size must be in (0, square_size={square_size}), got {marker_size}")
+        raise InvalidInput(f"marker_size must be in (0, square_size={square_size}), got {marker_size}")
     aruco_dict = cv2.aruco.getPredefinedDictionary(_DICTS[dictionary])
     return cv2.aruco.CharucoBoard((cols, rows), float(square_size), float(marker_size), aruco_dict)
 
@@ -218,6 +219,9 @@ def detect_charuco(image, board, *, frame: str | None = None, min_corners: int =
     TargetNotFound
         Fewer than ``min_corners`` corners found (names ``frame``).
     """
+    if not isinstance(board, cv2.aruco.CharucoBoard):
+        raise InvalidInput(f"board must be a cv2.aruco.CharucoBoard (see make_charuco_board), "
+                           f"got {type(board).__name__}", argument="board")
     gray = to_gray_u8(image)
     detector = cv2.aruco.CharucoDetector(board)
     corners, ids, _marker_corners, _marker_ids = detector.detectBoard(gray)

@@ -22,7 +22,8 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import DegenerateFit, TooFewViews
+from . import _validate
+from .errors import DegenerateFit, InvalidInput, TooFewViews
 from .targets import TargetDetection
 
 __all__ = ["TurntableFit", "fit_turntable"]
@@ -138,18 +139,23 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
         The views span less than 10° of rotation, or the rotations share no common axis.
     """
     dets = list(detections)
-    K = np.asarray(K, float)
-    if K.shape != (3, 3):
-        raise ValueError(f"K must have shape (3, 3), got {K.shape}")
-    dist = np.zeros(5) if dist is None else np.asarray(dist, float).ravel()
+    K, dist = _validate.camera(K, dist)
+    for i, d in enumerate(dets):
+        if not isinstance(d, TargetDetection):
+            raise InvalidInput(f"detections[{i}] must be a TargetDetection, got {type(d).__name__}",
+                               argument="detections")
+        _validate.array(d.image_points, f"detections[{i}].image_points", shape=(-1, 2))
+        _validate.array(d.object_points, f"detections[{i}].object_points", shape=(len(d.image_points), 3))
+        if len(d.image_points) < 4:
+            raise TooFewViews(f"detections[{i}] ({d.frame}) corners for a pose", have=len(d.image_points), need=4)
     known = angles_deg is not None
     if known:
-        readings = np.asarray(angles_deg, float).ravel()
+        readings = _validate.array(angles_deg, "angles_deg").ravel()
         if readings.shape != (len(dets),):
-            raise ValueError(f"angles_deg must have one reading per detection ({len(dets)}), "
+            raise InvalidInput(f"angles_deg must have one reading per detection ({len(dets)}), "
                              f"got shape {readings.shape}")
     elif fit_scale:
-        raise ValueError("fit_scale=True needs angles_deg (the turntable readings)")
+        raise InvalidInput("fit_scale=True needs angles_deg (the turntable readings)")
     need = 2 if known and not fit_scale else 3
     if len(dets) < need:
         raise TooFewViews("turntable fit", have=len(dets), need=need)
