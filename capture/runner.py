@@ -441,9 +441,10 @@ class Runner:
         self._model = self._model.with_frame_bytes(size)
         self._remeasured = True
         left = (self._counters["frames_total"] - self._counters["frames_done"]) * size
+        left_text = f"{left / 1e9:.2f} GB" if left >= 1e9 else f"{left / 1e6:.1f} MB"
         self._emit(EventKind.NOTE, f"frame size measured from the first frame: {size / 1e6:.2f} MB "
                    f"(the camera does not report it; {assumed / 1e6:.0f} MB was assumed); about "
-                   f"{left / 1e9:.2f} GB still to store", step=step.index, frame_bytes=size,
+                   f"{left_text} still to store", step=step.index, frame_bytes=size,
                    assumed_frame_bytes=assumed, bytes_left=left)
 
     def _move(self, step: Step) -> None:

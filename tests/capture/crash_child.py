@@ -18,8 +18,9 @@ from capture.store import SessionNotFound, Store  # noqa: E402
 from capture_fakes import make_rig  # noqa: E402
 
 
-def run_session(root: Path, n_angles: int) -> int:
-    """Create (first time) and run the session ``crash``; 0 when it finished."""
+def run_session(root: Path, n_angles: int, on_event=None) -> int:
+    """Create (first time) and run the session ``crash``; 0 when it finished.
+    ``on_event(event)`` is subscribed to the runner's events."""
     rig = make_rig(frame_bytes=20_000, capture_s=0.002)
     angles = [k * 350 / n_angles for k in range(n_angles)]  # inside the fake turntable's limits
     plan = Plan.from_dict({"name": "crash", "turntable": {"angles_deg": angles},
@@ -29,8 +30,11 @@ def run_session(root: Path, n_angles: int) -> int:
             store.session("crash")
         except SessionNotFound:
             create_session(store, plan, None, name="crash", reserve_bytes=0)
-        state = Runner(rig, store, "crash", reserve_bytes=0,
-                       retry=RetryPolicy(attempts=2, base_delay_s=0.001)).run()
+        runner = Runner(rig, store, "crash", reserve_bytes=0,
+                        retry=RetryPolicy(attempts=2, base_delay_s=0.001))
+        if on_event is not None:
+            runner.bus.subscribe(on_event)
+        state = runner.run()
     print(f"state={state} hooks={store_mod._crash_count}", flush=True)
     return 0 if state == "done" else 1
 

@@ -39,15 +39,21 @@ def _scratch_store(monkeypatch):
     monkeypatch.delenv("GONIO_CRASH_AFTER", raising=False)
 
 
-def _forked(store_dir: Path, after: int | None, n_angles: int, err_path: Path) -> None:
-    """Child body: arm the kill hook, run the session, exit with its status."""
+def _forked(store_dir: Path, after: int | None, n_angles: int, err_path: Path,
+            reached=None, frames: int = 0) -> None:
+    """Child body: arm the kill hook, run the session, exit with its status. ``reached`` (an
+    Event) is set once ``frames`` frames of the session are stored."""
     if after is not None:
         os.environ["GONIO_CRASH_AFTER"] = str(after)
     store_mod._crash_count = 0
     fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
     os.dup2(fd, 2)
+
+    def progress(e):
+        if e.data.get("frames_done", 0) >= frames:
+            reached.set()
     with redirect_stdout(io.StringIO()):
-        code = run_session(store_dir, n_angles)
+        code = run_session(store_dir, n_angles, progress if reached is not None else None)
     os._exit(code)
 
 
@@ -135,20 +141,20 @@ def _frames_stored(store_dir: Path) -> int:
 
 
 def test_sigkill_at_random_times_then_resume(tmp_path):
-    # kill times are drawn over the length of an uninterrupted run measured here, so they fall
-    # across the whole session on a fast or a loaded machine alike
-    t0 = time.monotonic()
-    assert _fork_run(tmp_path / "reference")[0] == 0
-    duration = time.monotonic() - t0
+    # a random frame count, then a random 0-3 ms: the kill lands somewhere in the next capture,
+    # file write or commit, anywhere in the session, however fast or loaded the machine is
     rng = random.Random(20261121)
     kills, at_frames = 0, []
-    for i in range(15):
+    for i in range(10):
         if kills == 5:
             break
         store_dir = tmp_path / f"random{i}"
-        p = FORK.Process(target=_forked, args=(store_dir, None, N_ANGLES, tmp_path / f"r{i}.err"))
+        reached, frames = FORK.Event(), rng.randrange(0, 2 * N_ANGLES - 1)
+        p = FORK.Process(target=_forked, args=(store_dir, None, N_ANGLES, tmp_path / f"r{i}.err",
+                                               reached, frames))
         p.start()
-        time.sleep(rng.uniform(0.05, 0.9) * duration)
+        assert reached.wait(60)
+        time.sleep(rng.uniform(0, 0.003))
         os.kill(p.pid, signal.SIGKILL)
         p.join(60)
         if p.exitcode == -signal.SIGKILL:  # (a child may finish before its kill: not counted)
