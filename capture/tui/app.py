@@ -7,6 +7,7 @@ is thread-safe). The runner's events arrive through its event bus and are forwar
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import inspect
 import logging
@@ -195,6 +196,7 @@ class GonioApp(App[None]):
         self._preview_cache: dict[str, Any] = {}
         self._cache_lock = threading.Lock()
         self._polling = threading.Lock()
+        self._device_locks: dict[str, threading.Lock] = {}
 
     # -- layout -------------------------------------------------------------------------------
     def compose(self) -> ComposeResult:
@@ -389,8 +391,13 @@ class GonioApp(App[None]):
 
     @work(thread=True)
     def _device_action(self, op: str, key: str, value: float | None) -> None:
+        role = ROWS[key][0] if key else ""
+        # requests to one device run in order (three jog presses add up); stop never waits
+        lock = (contextlib.nullcontext() if op == "stop" or not role
+                else self._device_locks.setdefault(role, threading.Lock()))
         try:
-            text = self._do(op, key, value)
+            with lock:
+                text = self._do(op, key, value)
         except Exception as exc:  # noqa: BLE001 - one failed request must not take the console down
             self.post_message(ActionResult(op, key, "", exc))
             return

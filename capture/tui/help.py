@@ -40,7 +40,7 @@ HELP = """\
 | `o` | open a plan file (TOML) and show its steps, duration and data size |
 | `n` | new session from the open plan, and start it |
 | `p` | pause / resume the running session |
-| `a` | abort the session (motion stops; the steps done stay in the store) |
+| `a` `a` | abort the session: `a` twice within 5 s (motion stops; the steps done stay in the store, but an aborted session cannot be resumed) |
 | `r` | resume the interrupted session selected in the list (or the latest one) |
 
 **Preview** shows the last frame (2x2-binned raw, sRGB) and one histogram per exposure of the

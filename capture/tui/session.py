@@ -89,7 +89,7 @@ class SessionPane(Vertical):
         Binding("o", "open_plan", "Open plan"),
         Binding("n", "request('new')", "New+start"),
         Binding("p", "toggle_pause", "Pause/resume"),
-        Binding("a", "request('abort')", "Abort"),
+        Binding("a", "abort", "Abort (a a)"),
         Binding("r", "resume_interrupted", "Resume interrupted"),
     ]
 
@@ -104,6 +104,7 @@ class SessionPane(Vertical):
         self._started = 0.0
         self._steps_at_start = 0
         self._step_data: dict[str, Any] = {}
+        self._abort_armed = 0.0  # monotonic time of the first "a"
 
     def compose(self) -> ComposeResult:
         with Horizontal(id="plan-bar"):
@@ -294,6 +295,17 @@ class SessionPane(Vertical):
 
     def action_request(self, op: str) -> None:
         self.post_message(SessionRequest(op))
+
+    def action_abort(self) -> None:
+        """Abort needs ``a`` twice within 5 s: an aborted session is final (no resume)."""
+        now = time.monotonic()
+        if now - self._abort_armed <= 5.0:
+            self._abort_armed = 0.0
+            self.post_message(SessionRequest("abort"))
+        else:
+            self._abort_armed = now
+            self.notify("press a again to abort the session (it cannot be resumed after)",
+                        severity="warning", timeout=5)
 
     def action_toggle_pause(self) -> None:
         self.post_message(SessionRequest("resume" if self.state == "paused" else "pause"))

@@ -250,6 +250,8 @@ async def test_pause_resume_and_abort_stops_motion(tmp_path):
         # abort while the turntable is on its way (to 170 deg, or back to 0)
         sim = app.lab.sims["turntable"]
         await until(pilot, lambda: 20 < sim.angle_deg < 150, timeout=20, what="a move under way")
+        await pilot.press("a")  # once: only a warning, the move goes on
+        assert pane.state == "running"
         await pilot.press("a")
         await until(pilot, lambda: pane.state == "aborted", timeout=10, what="the abort")
         a1 = await settled(sim)
