@@ -718,6 +718,8 @@ def _validate(p: Plan) -> None:
                         "(fraction of the raw range; above 0.9 the highlights risk clipping)")
     _finite(p.turntable_deg, "turntable.angles_deg")
     _finite(p.polarizer_deg, "polarizer.angles_deg")
+    _no_duplicates(p.turntable_deg, "turntable.angles_deg")
+    _no_duplicates(p.polarizer_deg, "polarizer.angles_deg")
     if p.light is not None:
         lt = p.light
         if lt.xyz_mm is not None:
@@ -725,12 +727,14 @@ def _validate(p: Plan) -> None:
                 raise PlanError("light.xyz_mm is empty; give at least one [x, y, z] point")
             for i, pt in enumerate(lt.xyz_mm):
                 _finite(pt, f"light.xyz_mm[{i}]")
+            _no_duplicates([tuple(pt) for pt in lt.xyz_mm], "light.xyz_mm")
         else:
             for key, lo, hi in (("azimuth_deg", -360.0, 360.0), ("elevation_deg", -90.0, 90.0)):
                 values = getattr(lt, key)
                 if not values:
                     raise PlanError(f"light.{key} is empty; the light grid needs at least one value")
                 _finite(values, f"light.{key}")
+                _no_duplicates(values, f"light.{key}")
                 _check_limits(f"light.{key}", values, (lo, hi), "the valid range", "")
             if lt.distance_mm is not None and not lt.distance_mm > 0:
                 raise PlanError(f"light.distance_mm = {_fmt(lt.distance_mm)} must be positive (mm)")
@@ -752,6 +756,17 @@ def _validate(p: Plan) -> None:
     if not measuring and not p.calibration:
         raise PlanError("the plan captures nothing: give turntable, light or polarizer values, "
                         "or a [[calibration]] capture")
+
+
+def _no_duplicates(values: Sequence[Any], where: str) -> None:
+    # a repeated grid value captures the same pose twice under two step numbers: `repeats` is
+    # the way to do that
+    seen: dict[Any, int] = {}
+    for i, v in enumerate(values):
+        if v in seen:
+            raise PlanError(f"{where}[{i}] = {_fmt(v)} repeats {where}[{seen[v]}]; use repeats = N "
+                            "to capture a pose more than once")
+        seen[v] = i
 
 
 def _no_unknown(d: dict, allowed: set[str], where: str) -> None:

@@ -117,6 +117,11 @@ def test_python_built_plan_equals_toml_plan():
     ({"calibration": [{"kind": "dark", "when": "during"}]}, r"calibration\[0\].when = 'during'"),
     ({"name": 5, "turntable": {"angles_deg": [0]}}, "name must be a string"),
     ({}, "the plan captures nothing"),
+    ({"turntable": {"angles_deg": [0, 90, 90]}},
+     r"turntable.angles_deg\[2\] = 90 repeats turntable.angles_deg\[1\]; use repeats"),
+    ({"light": {"azimuth_deg": [0], "elevation_deg": [30, 30]}}, r"light.elevation_deg\[1\] = 30 repeats"),
+    ({"light": {"xyz_mm": [[1, 2, 3], [1, 2, 3]]}}, r"light.xyz_mm\[1\] = .* repeats light.xyz_mm\[0\]"),
+    ({"polarizer": {"angles_deg": [0, 90, 0]}}, r"polarizer.angles_deg\[2\] = 0 repeats"),
 ])
 def test_bad_plans_name_the_field(data, message):
     with pytest.raises(PlanError, match=message):
