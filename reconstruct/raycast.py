@@ -296,9 +296,9 @@ class Mesh(Surface):
         self._world = None  # per-pose face tables (see _world_tables)
 
     def _world_tables(self) -> dict:
-        """Per-face world-frame data for this pose: first vertex, unit face normal, and the dual
-        edge vectors g1, g2 with barycentrics b1 = (p - v0) . g1, b2 = (p - v0) . g2 (O(F),
-        computed once per pose)."""
+        """Per-face world-frame data for this pose: first vertex, unit face normal, the three
+        corners' unit normals, and the dual edge vectors g1, g2 with barycentrics
+        b1 = (p - v0) . g1, b2 = (p - v0) . g2 (O(F), computed once per pose)."""
         with _BUILD_LOCK:
             if self._world is None:
                 self._world = self._compute_world_tables()
@@ -317,7 +317,9 @@ class Mesh(Surface):
             "g1": (d22[:, None] * e1 - d12[:, None] * e2) * inv[:, None],
             "g2": (d11[:, None] * e2 - d12[:, None] * e1) * inv[:, None],
             "ok": inv != 0,  # degenerate faces keep Embree's barycentrics
-            "vertex_normals": _unit(linear_rows(self._normal_matrix, g["vertex_normals"])),
+            # per face, its three corners' unit normals (F, 3, 3): one gather per hit
+            "corner_normals": _unit(linear_rows(self._normal_matrix,
+                                                g["vertex_normals"]))[g["faces"]],
         }
 
     def _hit_world(self, o, d, t, prim, b1, b2):
@@ -333,12 +335,11 @@ class Mesh(Surface):
         ok &= wt["ok"][prim]
         b1 = np.where(ok, np.einsum("ij,ij->i", q, wt["g1"][prim]), b1)
         b2 = np.where(ok, np.einsum("ij,ij->i", q, wt["g2"][prim]), b2)
-        faces = self._geom["faces"][prim]
         w = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
-        ns = _unit(np.einsum("nk,nkj->nj", w, wt["vertex_normals"][faces])) if self.smooth else ng
+        ns = _unit(np.einsum("nk,nkj->nj", w, wt["corner_normals"][prim])) if self.smooth else ng
         uv = self._geom["uv"]
-        uv = np.einsum("nk,nkj->nj", w, uv[faces]) if uv is not None else np.full((len(prim), 2),
-                                                                                   np.nan)
+        uv = np.einsum("nk,nkj->nj", w, uv[self._geom["faces"][prim]]) if uv is not None else \
+            np.full((len(prim), 2), np.nan)
         return t, p, ng, ns, uv
 
 
