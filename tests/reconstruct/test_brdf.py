@@ -310,6 +310,20 @@ def test_lafortune_sign_conventions():
     assert _peak_angle(off_specular, theta_i) < -theta_i - 0.05  # peak pushed towards grazing
 
 
+def test_lafortune_is_lensch_eq7_literally():
+    """f(u, v) = rho_d + sum_i [C_x,i (u_x v_x + u_y v_y) + C_z,i u_z v_z]^N_i (Lensch et al.
+    2003, Eq. 7; u = light, v = view, local frame), our rho_d being the paper's times pi and a
+    negative lobe base clamped to 0: a forward lobe (C_x < 0), a retro-reflective one (C_x > 0)."""
+    rng = np.random.default_rng(16)
+    u, v = hemisphere(rng, 4000), hemisphere(rng, 4000)
+    cx, cz, n = np.array([-0.95, 0.6]), np.array([0.9, 0.7]), np.array([12.0, 4.0])
+    base = cx[:, None] * (u[:, 0] * v[:, 0] + u[:, 1] * v[:, 1]) + cz[:, None] * u[:, 2] * v[:, 2]
+    expected = 0.25 / np.pi + np.sum(np.clip(base, 0, None) ** n[:, None], axis=0)
+    got = Lafortune(0.25, cx, cz, n).evaluate(u, v)
+    np.testing.assert_allclose(got, np.tile(expected[:, None], (1, 3)), rtol=1e-12)
+    assert np.any(base < 0)  # the clamp is exercised
+
+
 def test_lafortune_multi_lobe_per_channel_is_the_sum_of_single_lobes():
     rng = np.random.default_rng(14)
     wi, wo = hemisphere(rng, 3000), hemisphere(rng, 3000)

@@ -118,6 +118,18 @@ def test_zickler_uvw_is_reciprocal_and_regular_at_theta_h_zero(pairs):
     np.testing.assert_allclose(uvw[:, 2], 0.3 / (np.pi / 2))
 
 
+def test_zickler_uvw_known_values_of_eq1():
+    """Zickler et al. 2005 Eq. 1 literally: (sin th_h cos 2 phi_d, sin th_h sin 2 phi_d, 2 th_d / pi)."""
+    uvw = zickler_uvw(np.pi / 6, np.pi / 3, np.pi / 8)
+    np.testing.assert_allclose(uvw, [[0.5 * np.sqrt(0.5), 0.5 * np.sqrt(0.5), 2 / 3]], atol=1e-15)
+    # the same point reached from a direction pair with those halfway/difference angles
+    wi, wo = from_halfway_difference(np.pi / 6, 0.7, np.pi / 3, np.pi / 8)
+    np.testing.assert_allclose(uvw_from_directions(wi, wo), uvw, atol=1e-12)
+    # phi_d = pi/4 puts the sample on the v axis; phi_d = pi/2 on -u
+    np.testing.assert_allclose(zickler_uvw([0.4, 0.4], 0.2, [np.pi / 4, np.pi / 2])[:, :2],
+                               [[0.0, np.sin(0.4)], [-np.sin(0.4), 0.0]], atol=1e-15)
+
+
 def test_zickler_inverse_rejects_points_off_the_domain():
     with pytest.raises(ValueError, match="u\\^2 \\+ v\\^2"):
         zickler_uvw_inverse([[0.9, 0.9, 0.5]])
