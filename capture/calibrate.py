@@ -27,16 +27,27 @@ Radiance unit: DN per second, camera RGB, float32 H x W x 3. Calibration steps' 
 memory during a run; measurement steps are merged for their figures and dropped (the
 polarization check merges the few poses it looks at again).
 
-Frames: pixels x right, y down; camera frame OpenCV, mm. The *lab frame* is the turntable
-(world) frame of :mod:`calibration.turntable` at platter angle 0 (the first target view):
-origin on the axis, +z up the axis. Fixed things (lights) are reported in the lab and camera
-frames; the object frame at turntable reading r is the lab frame turned by the platter angle.
+Frames: pixels x right, y down; camera frame OpenCV, mm. The *lab frame* is the world frame of
+DESIGN.md, fixed in the room: origin on the turntable axis at the platter surface, +z up the
+axis, +x horizontal from the axis towards the camera (azimuth 0 = the camera's side), +y = z x x.
+It comes from the turntable fit (axis, a point on it) plus two facts the images cannot give: the
+height of the board's corner-grid centre above the platter (:class:`LabTargets`) and the
+convention that azimuth 0 faces the camera. Fixed things (lights, sphere centres, the probe's
+room) are reported in the lab and camera frames; the object frame at turntable reading r is
+the lab frame turned about +z by the platter angle (``TurntableFit.platter_angle_deg``) plus
+the fit's angle at the first board view.
+
+Lights: with :attr:`LabTargets.sphere_centres_mm` (default: the simulated lab's row of steel
+balls) the spheres' centres come from the lab frame (Lensch et al. 2003 Sec. 4.1: spheres of
+known radius and position); without them, from their silhouettes against a lit backdrop. Each
+light is the least-squares intersection of the rays reflected at the highlights
+(:func:`calibration.lights.triangulate_point_light`).
 """
 from __future__ import annotations
 
 import io
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable
 
 import cv2
@@ -49,7 +60,7 @@ from calibration.intrinsics import calibrate_intrinsics
 from calibration.probe import merge_probes, mirror_sphere_to_latlong
 from calibration.radiometry import gray_card_scale
 from calibration.polarization import fit_polarization, separate_parallel_crossed
-from calibration.lights import (detect_sphere, find_highlight, fit_positioner_model,
+from calibration.lights import (SphereImage, detect_sphere, find_highlight, fit_positioner_model,
                                 sphere_center_from_silhouette, triangulate_point_light)
 from calibration.targets import detect_charuco, detect_chessboard, make_charuco_board
 from calibration.turntable import fit_turntable
@@ -72,6 +83,9 @@ MIN_COVERAGE_FULL_MODEL = 0.5
 POLARIZATION_POSES = 4
 #: lat-long environment map height (width is twice), pixels
 PROBE_HEIGHT = 64
+#: the simulated lab's steel-ball row (``sims.world.spheres_target``: six 1-inch balls 40 mm
+#: apart along +y, 120 mm above the platter, 80 mm behind the axis), lab frame, mm
+SIM_SPHERE_CENTRES_MM = tuple((-80.0, y, 120.0) for y in (-100.0, -60.0, -20.0, 20.0, 60.0, 100.0))
 _CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
                       | cv2.CALIB_FIX_K3)
 
@@ -97,6 +111,13 @@ class LabTargets:
     #: the backdrop times this, which places the silhouette threshold
     sphere_reflectance: float = 0.55
     gray_card_albedo: float = 0.18
+    #: centres of the light-calibration spheres in the lab frame (module docstring), mm; empty
+    #: or None: find them from their silhouettes (needs a lit backdrop behind the spheres)
+    sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = SIM_SPHERE_CENTRES_MM
+    #: height above the platter of the centre of the board's corner grid, mm (puts the lab
+    #: origin on the platter; a 180-degree ambiguous chessboard has the same centre either way)
+    chessboard_centre_height_mm: float = 72.5
+    charuco_centre_height_mm: float = 75.0
     #: cv2.CALIB_* flags for the intrinsics fit (k3 fixed: a turntable-only board sweep
     #: covers the image centre, where k3 is not observable)
     intrinsics_flags: int = cv2.CALIB_FIX_K3
@@ -110,6 +131,26 @@ class LabTargets:
                              f"got {self.sphere_reflectance!r}")
         if not 0 < self.gray_card_albedo <= 1:
             raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
+        for name in ("chessboard_centre_height_mm", "charuco_centre_height_mm"):
+            if not np.isfinite(getattr(self, name)):
+                raise ValueError(f"LabTargets.{name} must be a finite number of mm, got {getattr(self, name)!r}")
+        centres = self.sphere_centres_mm
+        if centres is not None and len(centres):
+            try:
+                arr = np.asarray(centres, dtype=float)
+            except (TypeError, ValueError):
+                raise ValueError(f"LabTargets.sphere_centres_mm must be a list of [x, y, z] mm, "
+                                 f"got {centres!r}") from None
+            if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 2 or not np.all(np.isfinite(arr)):
+                raise ValueError(f"LabTargets.sphere_centres_mm must hold >= 2 finite [x, y, z] (mm), "
+                                 f"got shape {arr.shape}")
+            gaps = np.linalg.norm(arr[:, None] - arr[None], axis=2)[np.triu_indices(len(arr), 1)]
+            if gaps.min() < 2 * self.sphere_radius_mm:
+                raise ValueError(f"LabTargets.sphere_centres_mm: two centres are {gaps.min():.1f} mm apart, "
+                                 f"less than a sphere's diameter ({2 * self.sphere_radius_mm} mm)")
+            centres = tuple(tuple(float(v) for v in row) for row in arr)
+        # frozen: normalise TOML lists (and an empty list: no positions) in place
+        object.__setattr__(self, "sphere_centres_mm", centres if centres else None)
 
 
 @dataclass
@@ -435,6 +476,7 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
         res = calibrate_intrinsics(dets, flags=flags)
     ctx.results["intrinsics"] = res
     ctx.results["detections"] = dict(zip(det_steps, dets))
+    ctx.results["detector"] = kinds[0]
     kept = {d.frame for d in dets} - {r.frame for r in res.rejected}
     rep.plots["intrinsics"] = {"frames": res.frames, "per_view_rms_px": res.per_view_rms_px,
                                "coverage": res.coverage, "image_size": res.image_size,
@@ -459,31 +501,74 @@ def _need(ctx: _Context, stage: str, why: str):
     return ctx.results[stage]
 
 
+def _consistent_numbering(dets: dict, K, dist) -> dict:
+    """The board views renumbered to one corner order. A chessboard's corner order is ambiguous
+    by a half turn in its plane (OpenCV may start at either end), so each view takes the order
+    whose board x axis (``solvePnP``) agrees with the first view's; ChArUco ids need no help."""
+    out, ref = {}, None
+    for s, d in dets.items():
+        if d.ids is None:
+            R = cv2.Rodrigues(cv2.solvePnP(d.object_points, d.image_points, K, dist)[1])[0]
+            if ref is None:
+                ref = R[:, 0]
+            elif float(R[:, 0] @ ref) < 0:
+                d = replace(d, image_points=d.image_points[::-1].copy())
+        out[s] = d
+    return out
+
+
+def _lab_frame(fit, targets: LabTargets, detector: str) -> tuple[np.ndarray, np.ndarray]:
+    """Lab -> camera pose ``(R, t mm)`` (lab frame: module docstring) from a turntable fit and
+    the height of the board's corner-grid centre."""
+    if detector == "charuco":  # OpenCV's ChArUco corners run from one square in to one square short
+        (cols, rows), sq = targets.charuco_squares, targets.charuco_square_mm
+        grid_centre, height = np.array([cols * sq / 2, rows * sq / 2, 0.0]), targets.charuco_centre_height_mm
+    else:  # chessboard object points start at the first inner corner
+        (cols, rows), sq = targets.chessboard_inner, targets.chessboard_square_mm
+        grid_centre = np.array([(cols - 1) * sq / 2, (rows - 1) * sq / 2, 0.0])
+        height = targets.chessboard_centre_height_mm
+    R_tw, t_tw = fit.target_in_world
+    centre_z = float((R_tw @ grid_centre + t_tw)[2])
+    # +x towards the camera: the camera centre's azimuth in the fit's frame
+    cam = -fit.R_ref.T @ fit.origin_camera
+    psi = np.arctan2(cam[1], cam[0])
+    Rz = np.array([[np.cos(psi), -np.sin(psi), 0.0], [np.sin(psi), np.cos(psi), 0.0], [0.0, 0.0, 1.0]])
+    return fit.R_ref @ Rz, fit.origin_camera + (centre_z - height) * fit.axis_camera
+
+
 def _stage_turntable(ctx: _Context, rep: CalibrationReport):
     if not ctx.steps_of("checkerboard"):
         raise _Skip("no checkerboard captures in this session")
     intr = _need(ctx, "intrinsics", "camera matrix")
-    dets_by_step = ctx.results["detections"]
     kept = set(intr.frames)
-    steps = [s for s, d in dets_by_step.items() if d.frame in kept]
+    dets_by_step = _consistent_numbering({s: d for s, d in ctx.results["detections"].items()
+                                          if d.frame in kept}, intr.K, intr.dist)
+    steps = list(dets_by_step)
     readings = [ctx.reading(s, "turntable_deg") for s in steps]
     if len(set(np.round(readings, 3))) < 2:
-        raise _Skip(f"the target was seen at {len(set(np.round(readings, 3)))} turntable angle(s); "
-                    "the axis needs captures at several angles")
+        raise _Skip(f"the target was seen at {len(set(np.round(readings, 3)))} turntable "
+                    "angle(s); the axis needs captures at several angles")
     fit = fit_turntable([dets_by_step[s] for s in steps], intr.K, intr.dist, angles_deg=readings)
+    R_lab, t_lab = _lab_frame(fit, ctx.targets, ctx.results["detector"])
     ctx.results["turntable"] = fit
+    ctx.results["lab_frame"] = (R_lab, t_lab)
     rep.plots["turntable"] = {"readings_deg": np.array(readings), "per_view_rms_px": fit.per_view_rms_px,
                               "view_angles_deg": fit.view_angles_deg}
     tilt = float(np.degrees(np.arccos(abs(fit.axis_camera[1]))))
+    camera_lab = -R_lab.T @ t_lab
     result = {"axis_camera": fit.axis_camera, "origin_camera_mm": fit.origin_camera, "R_ref": fit.R_ref,
               "angle_scale": fit.angle_scale, "angle_offset_deg": fit.angle_offset_deg,
               "readings_deg": readings, "view_angles_deg": fit.view_angles_deg,
               "per_view_rms_px": fit.per_view_rms_px, "rms_px": fit.rms_px,
               "axis_std_deg": fit.axis_std_deg,
-              "target_in_world": {"R": fit.target_in_world[0], "t_mm": fit.target_in_world[1]}}
+              "target_in_world": {"R": fit.target_in_world[0], "t_mm": fit.target_in_world[1]},
+              "lab_to_camera": {"R": R_lab, "t_mm": t_lab}, "camera_centre_lab_mm": camera_lab,
+              "frames": "R_ref/origin_camera_mm: the fit's frame (origin on the axis at the board origin's "
+                        "height, +x along the board's first view); lab_to_camera: the lab frame "
+                        "(origin on the axis at the platter, +x towards the camera)"}
     figures = {"rms_px": round(fit.rms_px, 3), "axis": [round(float(v), 4) for v in fit.axis_camera],
                "axis_std_deg": round(fit.axis_std_deg, 3), "axis_from_image_y_deg": round(tilt, 2),
-               "views": len(steps)}
+               "views": len(steps), "camera_lab_mm": [round(float(v), 1) for v in camera_lab]}
     return result, figures, ctx.frame_ids(steps), {}, {"angles_from": "frame read-backs turntable_deg"}
 
 
@@ -536,48 +621,97 @@ def _sphere_blobs(images: list[np.ndarray], reflectance: float, *, min_area: int
     return [b for _, b in sorted(out, key=lambda t: t[0])]
 
 
+#: a sphere whose brightest pixel is below this fraction of the frame's brightest highlight
+#: does not show the lamp (the object shadows it, or the lamp is behind it): it sits that light
+#: out. The lamp's reflection is ~100x brighter than any lit surface the balls reflect.
+MIN_HIGHLIGHT_FRACTION = 0.25
+
+
+def _known_spheres(ctx: _Context, K, dist, radius: float, shape: tuple[int, int], frame: str):
+    """The spheres at their configured lab positions (``LabTargets.sphere_centres_mm`` through
+    the lab frame) that the image holds: camera-frame centres (M, 3) mm, their image discs
+    (:class:`SphereImage`, masks) and their indices in the configured list."""
+    R, t = ctx.results["lab_frame"]
+    centres = np.asarray(ctx.targets.sphere_centres_mm, float) @ R.T + t
+    depth = np.linalg.norm(centres, axis=1)
+    if np.any(centres[:, 2] <= radius):
+        raise CalibrationError(f"LabTargets.sphere_centres_mm: sphere(s) "
+                               f"{np.nonzero(centres[:, 2] <= radius)[0].tolist()} lie behind the camera "
+                               "in the lab frame (check the positions and the frame convention)")
+    px = cv2.projectPoints(centres, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    # apparent radius of a sphere: its outline cone's half-angle times the focal length
+    r_px = np.sqrt(K[0, 0] * K[1, 1]) * np.tan(np.arcsin(radius / depth))
+    h, w = shape
+    inside = (px[:, 0] - r_px >= 0) & (px[:, 1] - r_px >= 0) & (px[:, 0] + r_px < w) & (px[:, 1] + r_px < h)
+    if inside.sum() < 2:
+        raise TargetNotFound(f"{int(inside.sum())} of the {len(centres)} configured spheres project inside "
+                             "the image (need 2); check LabTargets.sphere_centres_mm", frame=frame)
+    spheres = [SphereImage(p, float(r), None, np.zeros((0, 2))) for p, r in zip(px[inside], r_px[inside])]
+    masks = []
+    yy, xx = np.indices((h, w))
+    for sp in spheres:
+        masks.append((xx - sp.center_px[0]) ** 2 + (yy - sp.center_px[1]) ** 2 < sp.radius_px ** 2)
+    return centres[inside], spheres, masks, np.nonzero(inside)[0]
+
+
 def _stage_lights(ctx: _Context, rep: CalibrationReport):
     steps = ctx.merged_steps("spheres")
     intr = _need(ctx, "intrinsics", "camera matrix")
     K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
     images = [ctx.hdr[s] for s in steps]
-    blobs = _sphere_blobs(images, ctx.targets.sphere_reflectance)
     first = f"frame {ctx.frames[steps[0]][0].id} (step {steps[0]})"
-    if len(blobs) < 2:
-        raise TargetNotFound(f"{len(blobs)} mirror sphere silhouette(s) found in the spheres steps "
-                             "(need 2 against a lit backdrop)", frame=first)
-    spheres = [detect_sphere(b, frame=first) for b in blobs]
-    centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
-    tt = ctx.results.get("turntable")
+    known = ctx.targets.sphere_centres_mm is not None
+    if known and "lab_frame" in ctx.results:
+        centres, spheres, blobs, index = _known_spheres(ctx, K, dist, radius, images[0].shape[:2], first)
+        source = "known positions (LabTargets.sphere_centres_mm, lab frame)"
+    else:  # no positions, or no lab frame to place them: the silhouettes against a backdrop
+        blobs = _sphere_blobs(images, ctx.targets.sphere_reflectance)
+        if len(blobs) < 2:
+            why = ("the turntable stage gave no lab frame to place LabTargets.sphere_centres_mm, and "
+                   if known else "no LabTargets.sphere_centres_mm, and ")
+            raise TargetNotFound(f"{why}{len(blobs)} mirror sphere silhouette(s) were found in the spheres "
+                                 "steps (need 2 against a lit backdrop)", frame=first)
+        spheres = [detect_sphere(b, frame=first) for b in blobs]
+        centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
+        index = np.arange(len(spheres))
+        source = "silhouettes"
+    lab = ctx.results.get("lab_frame")
     lights, rows, errors = [], [], []
     for s, img in zip(steps, images):
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         lum = img.mean(axis=2)
         try:  # one bad light loses its step; the others still feed the positioner model
-            hl = np.array([find_highlight(np.where(b, lum, 0.0), sp, frame=name).xy_px
-                           for b, sp in zip(blobs, spheres)])
-            pl = triangulate_point_light(hl, centres, radius, K, dist)
+            found = [find_highlight(np.where(b, lum, 0.0), sp, frame=name) for b, sp in zip(blobs, spheres)]
+            peaks = np.array([f.peak for f in found])
+            use = np.nonzero(peaks >= MIN_HIGHLIGHT_FRACTION * peaks.max())[0]
+            hl = np.array([found[i].xy_px for i in use])
+            pl = triangulate_point_light(hl, centres[use], radius, K, dist)
         except CalibrationError as exc:
             errors.append(f"{name}: {exc}" if name not in str(exc) else str(exc))
             continue
         row = {"step": s, "frame": ctx.frames[s][0].id, "position_camera_mm": pl.position_mm,
                "std_mm": pl.std_mm, "residuals_mm": pl.residuals_mm, "highlights_px": hl,
+               "spheres_used": index[use].tolist(),
                "commanded": ctx.steps[s].get("light"), "readback_mm": _readback_light(ctx, s)}
-        if tt is not None:
-            row["position_lab_mm"] = tt.R_ref.T @ (pl.position_mm - tt.origin_camera)
+        if lab is not None:
+            row["position_lab_mm"] = lab[0].T @ (pl.position_mm - lab[1])
         rows.append(row)
         lights.append(pl)
     if not rows:
         raise CalibrationError("no light could be located: " + "; ".join(errors))
     ctx.results["lights"] = rows
     res = np.concatenate([pl.residuals_mm for pl in lights])
-    result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres,
+    result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres, "sphere_centres_from": source,
               "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows, "errors": errors,
-              "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (turntable at angle 0)"}
+              "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (axis at the platter, +x to the camera)"}
+    if lab is not None:
+        result["sphere_centres_lab_mm"] = (centres - lab[1]) @ lab[0]
     figures = {"lights": len(rows), "failed": len(errors), "spheres": len(spheres),
+               "centres": "known" if source.startswith("known") else "silhouettes",
                "ray_residual_rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 3),
                "max_std_mm": round(float(max(pl.std_mm.max() for pl in lights)), 2)}
-    return result, figures, ctx.frame_ids([r["step"] for r in rows]), {}, {"sphere_radius_mm": radius}
+    return result, figures, ctx.frame_ids([r["step"] for r in rows]), {}, {"sphere_radius_mm": radius,
+                                                                          "sphere_centres_from": source}
 
 
 def _readback_light(ctx: _Context, step: int) -> list[float] | None:
@@ -596,7 +730,7 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
     el = np.array([r["commanded"]["elevation_deg"] for r in use])
     X = np.array([r["position_lab_mm"] for r in use])
     model = fit_positioner_model(az, el, X)
-    tt = ctx.results["turntable"]
+    R_lab, t_lab = ctx.results["lab_frame"]
     d = X - model.centre_mm
     rep.plots["lights"] = {"commanded_az": az, "commanded_el": el,
                            "measured_az": np.degrees(np.arctan2(d[:, 1], d[:, 0])) - model.azimuth_offset_deg,
@@ -610,7 +744,7 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
             continue
         p_lab = model.position(light["azimuth_deg"], light["elevation_deg"])
         per_step.append({"step": idx, "position_lab_mm": p_lab,
-                         "position_camera_mm": tt.R_ref @ p_lab + tt.origin_camera})
+                         "position_camera_mm": R_lab @ p_lab + t_lab})
     ctx.results["positioner"] = model
     result = {"centre_lab_mm": model.centre_mm, "radius_mm": model.radius_mm,
               "azimuth_offset_deg": model.azimuth_offset_deg,
@@ -735,9 +869,9 @@ def _find_mirror_sphere(img: np.ndarray, frame: str) -> tuple[np.ndarray, float]
 
 def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport):
     steps = ctx.merged_steps("mirror_probe")
-    tt = ctx.results.get("turntable")
+    lab = ctx.results.get("lab_frame")
     # the room is fixed in the lab: map it in the lab frame when the turntable gave one
-    R, frame = (tt.R_ref, "lab") if tt is not None else (np.eye(3), "camera")
+    R, frame = (lab[0], "lab") if lab is not None else (np.eye(3), "camera")
     probes, rows = [], []
     for s in steps:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
