@@ -7,7 +7,7 @@ import pytest
 from reconstruct.coords import (from_halfway_difference, halfway_difference, local_directions,
                                 romeiro_st, romeiro_st_inverse, st_from_directions,
                                 uvw_from_directions, zickler_uvw, zickler_uvw_inverse)
-from reconstruct.frames import tangent_frames
+from reconstruct.frames import linear_rows, normalize, tangent_frames, to_local, to_world
 
 
 def hemisphere(rng, n):
@@ -188,3 +188,31 @@ def test_bad_shapes_are_named():
         local_directions(np.zeros((4, 3)), np.zeros((4, 3)), np.ones((3, 3)))
     with pytest.raises(ValueError, match="theta_d must be finite"):
         from_halfway_difference(0.1, 0.0, np.nan, 0.0)
+
+
+def test_frames_are_orthonormal_right_handed_and_continuous_through_the_poles():
+    rng = np.random.default_rng(21)
+    n = rng.normal(size=(5000, 3))
+    n[:4] = [[0, 0, 1], [0, 0, -1], [1, 0, 0], [0, 1e-9, -1]]
+    F = tangent_frames(n)
+    np.testing.assert_allclose(np.einsum("nij,nkj->nik", F, F), np.broadcast_to(np.eye(3), F.shape),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(F), 1.0, atol=1e-12)   # t x b = n
+    np.testing.assert_allclose(F[:, 2], n / np.linalg.norm(n, axis=1, keepdims=True), atol=1e-15)
+    v = rng.normal(size=(5000, 3))
+    np.testing.assert_allclose(to_world(to_local(v, F), F), v, atol=1e-12)
+    # a given tangent is kept (projected into the tangent plane)
+    F2 = tangent_frames([[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.5]])
+    np.testing.assert_allclose(F2[0], np.eye(3), atol=1e-15)
+
+
+def test_linear_rows_and_normalize():
+    rng = np.random.default_rng(22)
+    M, v = rng.normal(size=(3, 3)), rng.normal(size=(1000, 3))
+    np.testing.assert_allclose(linear_rows(M, v), v @ M.T, rtol=1e-13, atol=1e-13)
+    u = normalize(np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(u, [[0.6, 0.8, 0.0], [0.0, 0.0, 0.0]], atol=1e-15)
+    assert np.all(u[1] == 0)  # a zero vector stays zero (no NaN)
+    assert normalize(np.ones((2, 3), np.float32)).dtype == np.float32
+    np.testing.assert_allclose(normalize(np.array([[3.0, 1.0], [4.0, 0.0]]), axis=0),
+                               [[0.6, 1.0], [0.8, 0.0]], atol=1e-15)
