@@ -54,9 +54,13 @@ def render_plane(texture, board_to_tex, K, dist, rvec, tvec, size=SIZE, *, noise
     R = cv2.Rodrigues(np.asarray(rvec, float))[0]
     # Plane z_board = 0 seen through homography H = [r1 r2 t]: board (u, v, 1) ~ H^-1 ray.
     H_inv = np.linalg.inv(np.column_stack([R[:, 0], R[:, 1], np.asarray(tvec, float).ravel()]))
-    uvw = rays @ H_inv.T.astype(np.float32)
-    lam = uvw[:, 2]
-    board = uvw[:, :2] / lam[:, None]
+    # rays are (x, y, 1): three element-wise planes instead of an (N, 3) x (3, 3) BLAS product,
+    # whose thread start-up dominates at this size
+    Hi = H_inv.astype(np.float32)
+    x, y = rays[:, 0], rays[:, 1]
+    lam = Hi[2, 0] * x + Hi[2, 1] * y + Hi[2, 2]
+    board = np.stack([(Hi[0, 0] * x + Hi[0, 1] * y + Hi[0, 2]) / lam,
+                      (Hi[1, 0] * x + Hi[1, 1] * y + Hi[1, 2]) / lam], axis=1)
     tex_xy = board_to_tex(board).astype(np.float32)
     mapx = tex_xy[:, 0].reshape(h * s, w * s)
     mapy = tex_xy[:, 1].reshape(h * s, w * s)
@@ -66,7 +70,7 @@ def render_plane(texture, board_to_tex, K, dist, rvec, tvec, size=SIZE, *, noise
     img = hi
     if blur:
         img = cv2.GaussianBlur(img, (0, 0), blur)
-    img = img + rng.normal(0, noise, img.shape)
+    img = img + np.float32(noise) * rng.standard_normal(img.shape, dtype=np.float32)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 

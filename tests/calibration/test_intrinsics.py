@@ -22,7 +22,7 @@ def chess_views():
     rng = np.random.default_rng(42)
     tex, to_tex = chessboard_texture(12, 9)
     return [render_plane(tex, to_tex, K_TRUE, DIST_TRUE, r, t, rng=rng, noise=1.5)
-            for r, t in board_poses(16, rng)]
+            for r, t in board_poses(10, rng)]
 
 
 def test_points_normalised_from_both_opencv_shapes():

@@ -125,29 +125,39 @@ def test_mirror_probe_matches_simulated_environment():
 
 
 @pytest.mark.slow
-def test_lensch_sphere_row_on_rendered_frames():
+@pytest.mark.parametrize("light_az_el", [(60.0, 40.0), (-30.0, 25.0)])
+def test_lensch_sphere_row_on_rendered_frames(light_az_el):
     """The sim's row of six 1-inch steel balls: ring-flash highlights -> sphere centres (Lensch
-    Eqs. 1-5), lamp highlights -> point light. Measured: centres within 0.4-0.7 mm at 740 mm;
-    light 2.1 % of its distance off with the true centres (stated 1-sigma 11.6 mm: the balls
-    are ~36 px in radius and the highlights a few pixels), 6 % with the flash-derived centres,
-    in line with the paper's '2 cm at 1 m'."""
+    Eqs. 1-5), lamp highlights -> point light, within the issue's 0.5 % of its distance.
+
+    The balls are ~36 px in radius and the lamp's highlight about a pixel wide, so the frames are
+    rendered 3 x 3 supersampled (pixel-area integration, as a sensor does): one ray per pixel
+    aliases the highlight and gives 2.1 % whatever the estimator. Measured (true centres):
+    0.39 % / 0.36 % for these two lights (0.84 % / 1.38 % with the old 0.5 highlight threshold).
+    With ring-flash-derived centres (0.25-0.3 mm off at 740 mm) the light lands 1.4-3.3 % off:
+    the row's reflected rays are nearly coplanar, so centre errors are amplified along the row;
+    that is checked against the stated uncertainty, not the 0.5 % bar."""
     from calibration.lights import locate_collinear_spheres, triangulate_point_light
 
-    world = sims_world.SimWorld.for_capture("spheres", None)
+    world = sims_world.SimWorld.for_capture("spheres", None, supersample=3)
     cam = world.camera
     row = world.targets[0]
     centres_w = row.points_world(0.0)
     radius = row.spec.radius_mm
     centres = centres_w @ cam.R.T + cam.t
-    light = sims_world.light_position(60.0, 40.0)
-    flash = world.radiance({"ring_flash": True}).mean(axis=2)
+    light = sims_world.light_position(*light_az_el)
+    light_cam = cam.R @ light + cam.t
     lamp = world.radiance({"light_position_mm": light}).mean(axis=2)
     discs = [SphereImage(uv, float(cam.K[0, 0] * radius / np.sqrt(c @ c - radius ** 2)), None, np.zeros((0, 2)))
              for uv, c in zip(cam.project(centres_w), centres)]
-    flash_hl = np.array([find_highlight(flash, d).xy_px for d in discs])
     lamp_hl = np.array([find_highlight(lamp, d).xy_px for d in discs])
-    est = locate_collinear_spheres(flash_hl, row.spec.spacing_mm, cam.K, cam.dist)
-    assert np.linalg.norm(est - centres, axis=1).max() < 1.0
     pl = triangulate_point_light(lamp_hl, centres, radius, cam.K, cam.dist, sigma_px=0.1)
-    err = np.linalg.norm(pl.position_mm - (cam.R @ light + cam.t))
-    assert err < 3 * np.sqrt(np.trace(pl.covariance_mm2))
+    distance = np.linalg.norm(light_cam - centres.mean(axis=0))
+    assert np.linalg.norm(pl.position_mm - light_cam) < 0.005 * distance
+    if light_az_el == (60.0, 40.0):  # the flash frame does not depend on the lamp: render it once
+        flash = world.radiance({"ring_flash": True}).mean(axis=2)
+        flash_hl = np.array([find_highlight(flash, d).xy_px for d in discs])
+        est = locate_collinear_spheres(flash_hl, row.spec.spacing_mm, cam.K, cam.dist)
+        assert np.linalg.norm(est - centres, axis=1).max() < 0.5
+        pl2 = triangulate_point_light(lamp_hl, est, radius, cam.K, cam.dist, sigma_px=0.1)
+        assert np.linalg.norm(pl2.position_mm - light_cam) < 3 * np.sqrt(np.trace(pl2.covariance_mm2))
