@@ -207,3 +207,22 @@ def test_real_raw_files_decode_and_merge(shared_data, name):
     lin = (raw.data < raw.black_level + 0.9 * (raw.white_level - raw.black_level)) & (raw.data > raw.black_level + 200)
     ref = (raw.data.astype(np.float64) - raw.black_level) / 0.01
     assert np.median(np.abs(hdr.radiance[lin] / ref[lin] - 1)) < 0.01
+
+
+def test_ldr_merge_beats_opencv_merge_debevec():
+    """The issue's bar: on the same bracket and the same (true) response, our merge (hat weight
+    zero at 0 and 255, per-channel weights, clipped exposures blocked) is measurably more accurate
+    than cv2.MergeDebevec. Measured log-RMS error 0.0092 vs 0.077 (8x); asserted > 3x."""
+    import cv2
+    rng = np.random.default_rng(8)
+    h, w = 32, 128
+    E = (np.geomspace(0.05, 400.0, w)[None, :, None] * np.array([1.0, 0.8, 0.6]) * np.ones((h, 1, 1)))
+    times = np.array([1 / 256, 1 / 64, 1 / 16, 1 / 4, 1.0, 4.0], np.float32)
+    imgs, resp = _ldr_bracket(rng, E, times)
+    resp3 = np.stack([resp] * 3, 1).astype(np.float32)
+    ours = merge_ldr(imgs, times, resp3).radiance
+    theirs = cv2.createMergeDebevec().process(imgs, times, resp3.reshape(256, 1, 3))
+    ok = (E * times.min() < 0.98) & (E * times.max() > 0.02)
+    err = lambda a: np.sqrt(np.mean(np.log(np.maximum(a, 1e-12) / E)[ok] ** 2))  # noqa: E731
+    assert err(ours) < 0.015  # 8-bit quantisation and 0.5-code noise: ~1 % per sample at best
+    assert err(theirs) > 3 * err(ours), (err(ours), err(theirs))
