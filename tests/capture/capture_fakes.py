@@ -66,6 +66,8 @@ class FakeAxis(_Faulty, Axis):
         self._pos = 0.0
         self.move_s = move_s
         self.moves: list[float] = []
+        # set to a threading.Barrier shared by axes to prove their moves overlap in time
+        self.rendezvous: threading.Barrier | None = None
 
     def read(self):
         return {"position": reading(self._pos, self.units)}
@@ -95,6 +97,8 @@ class FakeAxis(_Faulty, Axis):
         self.moves.append(value)
 
         def go():
+            if self.rendezvous is not None:
+                self.rendezvous.wait()  # BrokenBarrierError unless the other axis moves too
             time.sleep(self.move_s)
             self._pos = float(value)
         if self.move_s:
