@@ -283,6 +283,7 @@ class Runner:
             if step.target != target:
                 self._change_target(step)
                 target = step.target
+                self._check_requests()  # a pause asked for while the operator set the scene up
             self._run_step(step)
             elapsed = time.monotonic() - started
             self._counters["eta_s"] = elapsed / (n + 1) * (len(pending) - n - 1)
