@@ -11,6 +11,7 @@ import io
 import multiprocessing
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -138,6 +139,31 @@ def _frames_stored(store_dir: Path) -> int:
         return 0
     with Store(store_dir) as st:
         return len(st.frames(st.session("crash").id)) if st.sessions() else 0
+
+
+def test_sigkill_while_resume_redoes_a_half_done_step(tmp_path):
+    # kill the first run right after one frame of a step committed, then kill the resume at each
+    # hook point while it re-does that step (replacing the stored frame, then deleting its old
+    # file): every row keeps its file at every instant
+    half = None
+    for h in range(1, 60):
+        store_dir = tmp_path / f"first{h}"
+        assert _fork_run(store_dir, after=h)[0] == -signal.SIGKILL
+        if _frames_stored(store_dir) % 2 == 1:
+            half = store_dir
+            break
+    assert half is not None, "no kill point left a step half done"
+    names = set()
+    for k in range(1, 13):
+        store_dir = tmp_path / f"resume{k}"
+        shutil.copytree(half, store_dir)
+        code, err = _fork_run(store_dir, after=k)
+        assert code == -signal.SIGKILL, f"expected a kill at resume hook {k}: {err}"
+        names.add(err.split("GONIO_CRASH at ")[1].split()[0])
+        _check_consistent(store_dir)
+        assert _fork_run(store_dir)[0] == 0
+        _check_complete(store_dir, N_ANGLES)
+    assert {"object_half_written", "before_commit", "after_commit"} <= names
 
 
 def test_sigkill_at_random_times_then_resume(tmp_path):
