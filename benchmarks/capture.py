@@ -83,6 +83,20 @@ def runner_overhead(n_angles: int, durable: bool, tmp: Path) -> dict[str, float]
             "runner_ms_per_step": 1e3 * (wall - r.device_s - r.store_s) / steps}
 
 
+def fsync_ms(tmp: Path, n: int = 20) -> float:
+    """Median time of one small write + fsync on the benchmark's disk, ms: the durable store
+    pays three per frame (file, directory, WAL commit), which no runner code can avoid."""
+    times = []
+    with open(tmp / "fsync-probe", "wb") as f:
+        for _ in range(n):
+            f.write(b"x" * 4096)
+            f.flush()
+            t = time.perf_counter()
+            os.fsync(f.fileno())
+            times.append(time.perf_counter() - t)
+    return 1e3 * sorted(times)[n // 2]
+
+
 def store_throughput(n_frames: int, frame_mb: float, tmp: Path) -> dict[str, float]:
     rng_bytes = [os.urandom(int(frame_mb * 1e6)) for _ in range(2)]
     with Store(tmp / "throughput") as st:
@@ -137,6 +151,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="gonio-bench-"))
     try:
         print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+        print(f"disk: one fsync {fsync_ms(tmp):.2f} ms (median); a durable frame costs three")
         n_angles = 10 if args.quick else 36
         for durable in (True, False):
             r = runner_overhead(n_angles, durable, tmp)

@@ -147,7 +147,8 @@ def _frame_size_text(est: Estimate, with_rig: bool, running: bool = False) -> st
         source = "from the camera" if est.frame_bytes_source == "camera" else "measured"
         return f"frame size {size} ({source})"
     why = "the camera does not report its image size" if with_rig else "no --rig given"
-    who = "the first frame captured will tell" if running else "'gonio capture run' measures the first frame"
+    who = ("the first frame captured will tell" if running
+           else "'gonio capture run' measures the first frame")
     return f"frame size {size} assumed ({why}); {who} and the bytes are re-estimated"
 
 

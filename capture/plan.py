@@ -538,7 +538,8 @@ def frame_bytes_from_describe(cam: dict[str, Any]) -> int | None:
             size = [int(v) for v in size.lower().split("x")]
         except ValueError:
             size = None
-    if isinstance(size, (list, tuple)) and len(size) == 2 and all(_is_num(v) and v > 0 for v in size):
+    if (isinstance(size, (list, tuple)) and len(size) == 2
+            and all(_is_num(v) and v > 0 for v in size)):
         w, h = size
     elif _first_number(cam, ("width",)) and _first_number(cam, ("height",)):
         w, h = cam["width"], cam["height"]
