@@ -662,7 +662,7 @@ def _light_geometry(scene, light, p, ng, scale, shadows):
         front = np.einsum("ij,ij->i", wi, ng) > 0
         g[~front] = 0.0  # the light is behind the face itself (even if the shading normal is not)
         o = p + (OFFSET_EPS * scale) * ng  # the light is on the normal's side
-        # back faces get a zero-length ray (Embree and the analytic tests report no hit for it):
+        # back faces get a zero-length ray (their g is already 0, so its answer does not matter):
         # cheaper than gathering the front-facing rays and scattering the result back
         t_max = np.where(front, dist - 2 * OFFSET_EPS * scale, 0.0)
         g[_occluded(scene.surfaces, o, wi, t_max)] = 0.0
