@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import rawpy
+from rich.color import Color, ColorType
+from rich.color_triplet import ColorTriplet
 from rich.segment import Segment
 from rich.style import Style
 
@@ -57,14 +59,6 @@ class RawMosaic:
     pattern: str
     black_level: np.ndarray
     white_level: float
-
-    def channel_mask(self) -> np.ndarray:
-        """Channel index (0 = R, 1 = G, 2 = B) of every pixel, shape (H, W), uint8 (a view of a
-        tiled 2x2 array, not a copy per pixel)."""
-        tile = np.array([[CHANNELS.index(c) for c in self.pattern[:2]],
-                         [CHANNELS.index(c) for c in self.pattern[2:]]], dtype=np.uint8)
-        h, w = self.cfa.shape
-        return np.tile(tile, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
 
 
 def decode_dng(data: bytes) -> RawMosaic:
@@ -120,17 +114,18 @@ def bin_cfa(mosaic: RawMosaic) -> np.ndarray:
     h, w = mosaic.cfa.shape
     if h < 2 or w < 2:
         raise PreviewError(f"mosaic is {h}x{w} pixels; at least one 2x2 tile is needed")
-    tiles = mosaic.cfa[: h // 2 * 2, : w // 2 * 2].reshape(h // 2, 2, w // 2, 2)
-    tiles = tiles.transpose(0, 2, 1, 3).astype(np.float32)  # (h/2, w/2, 2, 2)
-    span = np.maximum(mosaic.white_level - mosaic.black_level, 1.0).astype(np.float32)
-    tiles = (tiles - mosaic.black_level.astype(np.float32)) / span
-    out = np.zeros((h // 2, w // 2, 3), dtype=np.float32)
+    hh, ww = h // 2, w // 2
+    out = np.zeros((hh, ww, 3), dtype=np.float32)
     counts = np.zeros(3, dtype=np.float32)
-    for k, c in enumerate(mosaic.pattern):  # four tile positions, not pixels
+    for k, c in enumerate(mosaic.pattern):  # four tile positions (strided views), not pixels
+        i, j = divmod(k, 2)
+        black = np.float32(mosaic.black_level[i, j])
+        scale = np.float32(1.0 / max(mosaic.white_level - black, 1.0))
         ch = CHANNELS.index(c)
-        out[..., ch] += tiles[..., k // 2, k % 2]
+        out[..., ch] += (mosaic.cfa[i:2 * hh:2, j:2 * ww:2].astype(np.float32) - black) * scale
         counts[ch] += 1
-    return np.clip(out / counts, 0.0, 1.0, out=out)
+    out /= counts
+    return np.clip(out, 0.0, 1.0, out=out)
 
 
 def fit_cells(image_hw: tuple[int, int], cols: int, rows: int) -> tuple[int, int]:
@@ -238,10 +233,15 @@ def half_block_segments(rgb8: np.ndarray) -> list[list[Segment]]:
         for s, e, k in zip(starts.tolist(), ends.tolist(), key[r, starts].tolist()):
             style = styles.get(k)
             if style is None:
-                style = styles[k] = Style(color=f"#{k >> 24:06x}", bgcolor=f"#{k & 0xFFFFFF:06x}")
+                style = styles[k] = Style.from_color(_truecolor(k >> 24), _truecolor(k & 0xFFFFFF))
             line.append(Segment(UPPER_HALF * (e - s), style))
         lines.append(line)
     return lines
+
+
+def _truecolor(rgb: int) -> Color:
+    # built directly: parsing "#rrggbb" strings cost half of the rendering time
+    return Color("", ColorType.TRUECOLOR, triplet=ColorTriplet(rgb >> 16, (rgb >> 8) & 255, rgb & 255))
 
 
 @dataclass(frozen=True)
@@ -322,23 +322,27 @@ def raw_histogram(mosaic: RawMosaic, bins: int = 64, *, white_fraction: float = 
         raise PreviewError(f"bins must be >= 1, got {bins}")
     if not 0 < white_fraction <= 1:
         raise PreviewError(f"white_fraction must be in (0, 1], got {white_fraction}")
-    cfa = mosaic.cfa
-    h, w = cfa.shape
-    channel = mosaic.channel_mask()
-    black = np.tile(mosaic.black_level, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
     lo, hi = float(mosaic.black_level.min()), float(mosaic.white_level)
     edges = np.linspace(lo, hi, bins + 1)
-    b = np.clip(((cfa - lo) * (bins / max(hi - lo, 1.0))).astype(np.int64), 0, bins - 1)
-    counts = np.bincount((channel.astype(np.int64) * bins + b).ravel(),
-                         minlength=3 * bins).reshape(3, bins)
-    per_channel = np.bincount(channel.ravel(), minlength=3).astype(float)
-    crushed = np.bincount(channel.ravel(), weights=(cfa <= black).ravel(), minlength=3)
-    white = black + white_fraction * (hi - black)
-    clipped = np.bincount(channel.ravel(), weights=(cfa >= white).ravel(), minlength=3)
+    # the bin of every possible DN, so each CFA position needs one bincount over its raw values
+    bin_of = np.clip(((np.arange(65536) - lo) * (bins / max(hi - lo, 1.0))).astype(np.int64),
+                     0, bins - 1)
+    counts = np.zeros((3, bins), dtype=np.int64)
+    total, crushed, clipped = np.zeros(3), np.zeros(3), np.zeros(3)
+    for k, c in enumerate(mosaic.pattern):  # the four positions of the 2x2 tile
+        i, j = divmod(k, 2)
+        per_dn = np.bincount(mosaic.cfa[i::2, j::2].ravel(), minlength=65536)
+        ch = CHANNELS.index(c)
+        counts[ch] += np.bincount(bin_of, weights=per_dn, minlength=bins).astype(np.int64)
+        black = float(mosaic.black_level[i, j])
+        white = black + white_fraction * (hi - black)
+        total[ch] += per_dn.sum()
+        crushed[ch] += per_dn[: int(np.floor(black)) + 1].sum()
+        clipped[ch] += per_dn[int(np.ceil(white)):].sum()
     with np.errstate(invalid="ignore", divide="ignore"):
         return Histogram(counts=counts, edges=edges,
-                         clipped_black_pct=np.nan_to_num(100 * crushed / per_channel),
-                         clipped_white_pct=np.nan_to_num(100 * clipped / per_channel),
+                         clipped_black_pct=np.nan_to_num(100 * crushed / total),
+                         clipped_white_pct=np.nan_to_num(100 * clipped / total),
                          black=lo, white=float(lo + white_fraction * (hi - lo)))
 
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from rich.segment import Segment
 from rich.text import Text
 from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual import work
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.reactive import reactive
@@ -42,7 +43,12 @@ class PreviewFrame:
 
 
 class HalfBlockImage(Widget):
-    """Draws a :class:`~capture.preview.Preview` with '▀' cells, re-rendered on resize."""
+    """Draws a :class:`~capture.preview.Preview` with '▀' cells.
+
+    The cells are built on a worker thread (a 120x40 region of a detailed image costs tens of
+    milliseconds, mostly creating one rich Style per colour pair) whenever the preview, the
+    size or the gain changes; until they arrive the previous lines stay on screen.
+    """
 
     DEFAULT_CSS = """
     HalfBlockImage { width: 1fr; height: 1fr; min-height: 4; }
@@ -54,30 +60,47 @@ class HalfBlockImage(Widget):
         super().__init__(**kwargs)
         self._preview: Preview | None = None
         self._lines: list[list[Segment]] = []
-        self._key: tuple | None = None
+        self._key: tuple | None = None      # what self._lines show
+        self._wanted: tuple | None = None   # what is being rendered
 
     @property
     def preview(self) -> Preview | None:
         return self._preview
 
+    @property
+    def rendered(self) -> bool:
+        """True once the lines on screen show the current preview, size and gain."""
+        return self._key is not None and self._key == self._current_key()
+
     def show(self, preview: Preview | None) -> None:
         """Display ``preview`` (None clears the widget)."""
         self._preview = preview
-        self._key = None
+        if preview is None:
+            self._lines, self._key = [], None
         self.refresh()
 
     def watch_gain(self) -> None:
-        self._key = None
         self.refresh()
 
+    def _current_key(self) -> tuple:
+        return (id(self._preview), self.size.width, self.size.height, self.gain)
+
     def _ensure_lines(self) -> None:
-        w, h = self.size.width, self.size.height
-        key = (w, h, self.gain)
-        if self._preview is None or w < 1 or h < 1:
-            self._lines = []
-        elif key != self._key:
-            self._lines = self._preview.render(w, h, gain=self.gain)
-        self._key = key
+        key = self._current_key()
+        if self._preview is None or key in (self._key, self._wanted) or min(key[1:3]) < 1:
+            return
+        self._wanted = key
+        self._render_lines(self._preview, key)
+
+    @work(thread=True, exclusive=True, group="half-blocks")
+    def _render_lines(self, preview: Preview, key: tuple) -> None:
+        lines = preview.render(key[1], key[2], gain=key[3])
+        self.app.call_from_thread(self._rendered, key, lines)
+
+    def _rendered(self, key: tuple, lines: list[list[Segment]]) -> None:
+        if key == self._wanted:  # not superseded by a newer frame or size
+            self._lines, self._key = lines, key
+            self.refresh()
 
     def render_line(self, y: int) -> Strip:
         self._ensure_lines()

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from capture.events import EventBus, EventKind
 from capture.tui import GonioApp
+from capture.tui.imageview import HalfBlockImage
 
 HERE = Path(__file__).resolve().parent
 PLAN = """
@@ -64,6 +65,7 @@ async def main(size: tuple[int, int]) -> None:
         await wait(pilot, lambda: app.session_pane.state == "done")
         await pilot.pause(0.3)
         await pilot.press("3")
+        await wait(pilot, lambda: app.query_one(HalfBlockImage).rendered)
         await pilot.pause(0.3)
         save("preview")
         # a second session, paused by a pulled cable half-way
