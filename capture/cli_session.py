@@ -1,6 +1,7 @@
 """``gonio session``: list, show, verify and export recorded sessions.
 
-- ``gonio session list [--store DIR]`` one line per session: state, steps, frames, size.
+- ``gonio session list [--store DIR]`` one line per session: state, steps, frames, size. A
+  session marked running that no process writes is shown ``interrupted`` (resume it).
 - ``gonio session show NAME`` plan summary, progress, rig snapshot, recent faults and events,
   results with provenance.
 - ``gonio session verify NAME`` re-hashes every file; lists missing, corrupt and orphaned files
@@ -85,6 +86,14 @@ def human_time(seconds: float | None) -> str:
     return f"{s // 3600} h {s % 3600 // 60:02d} min"
 
 
+def _state(st: Store, info) -> str:
+    """The stored state, but ``interrupted`` for a session marked running that no process is
+    writing (its runner was killed or the machine lost power)."""
+    if info.state == "running" and not st.session_active(info.name):
+        return "interrupted"
+    return info.state
+
+
 def _when(t: float) -> str:
     return _dt.datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
 
@@ -97,7 +106,7 @@ def list_(store: str = STORE_OPTION,
         rows = []
         for s in st.sessions():
             p = st.progress(s.id)
-            rows.append({"name": s.name, "state": s.state, "steps_done": p.steps_done,
+            rows.append({"name": s.name, "state": _state(st, s), "steps_done": p.steps_done,
                          "steps_total": p.steps_total, "frames_stored": p.frames_stored,
                          "frames_total": p.frames_total, "bytes": p.bytes_stored,
                          "object": s.object, "operator": s.operator, "created": s.created})
@@ -110,7 +119,8 @@ def list_(store: str = STORE_OPTION,
     table = Table(title=f"sessions in {store}")
     for col in ("name", "state", "steps", "frames", "size", "object", "created"):
         table.add_column(col)
-    colour = {"done": "green", "paused": "yellow", "running": "cyan", "aborted": "red", "planned": "white"}
+    colour = {"done": "green", "paused": "yellow", "running": "cyan", "aborted": "red",
+              "planned": "white", "interrupted": "yellow"}
     for r in rows:
         table.add_row(r["name"], f"[{colour[r['state']]}]{r['state']}[/]",
                       f"{r['steps_done']}/{r['steps_total']}", f"{r['frames_stored']}/{r['frames_total']}",
@@ -129,13 +139,14 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
         except StoreError as exc:
             raise fail(str(exc)) from None
         p = st.progress(info.id)
+        state = _state(st, info)
         kinds = Counter(d["kind"] for _, d, _ in st.steps(info.id))
         snaps = st.rig_snapshots(info.id)
         faults = st.events(info.id, kinds=["fault", "low_disk"])
         recent = st.events(info.id)[-events:] if events > 0 else []
         results = st.results(info.id)
     if as_json:
-        typer.echo(json.dumps({"name": info.name, "state": info.state, "operator": info.operator,
+        typer.echo(json.dumps({"name": info.name, "state": state, "operator": info.operator,
                                "object": info.object, "notes": info.notes, "plan": info.plan,
                                "plan_hash": info.plan_hash, "plan_path": info.plan_path,
                                "created": info.created, "updated": info.updated,
@@ -144,8 +155,10 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
                                "events": recent, "results": results}, indent=2, default=str))
         return
     c = Console(width=140)
-    c.print(f"[bold]{info.name}[/]  state [bold]{info.state}[/]  object {info.object or '-'}  "
+    c.print(f"[bold]{info.name}[/]  state [bold]{state}[/]  object {info.object or '-'}  "
             f"operator {info.operator or '-'}")
+    if state in ("paused", "interrupted", "planned"):
+        c.print(f"continue with: gonio capture resume {info.name} --rig <sim|rig file> --store {store}")
     c.print(f"created {_when(info.created)}, updated {_when(info.updated)}; plan "
             f"{info.plan_path or '(built in Python)'} hash {info.plan_hash[:12]}")
     if info.notes:

@@ -905,6 +905,18 @@ class Store:
                         out.append(p)
         return out
 
+    def session_active(self, session: str) -> bool:
+        """True while a runner (this process or another) holds ``session``'s writer lock. A
+        session left ``running`` without one was interrupted (a crash, a kill, a power cut)."""
+        fd = self._lock_file(f"session-{self.session(session).id}.lock")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)  # closing releases the probe's lock
+        return False
+
     def writer_active(self) -> bool:
         """True while some runner (this process or another) holds the store's writer lock."""
         fd = self._lock_file("writers.lock")

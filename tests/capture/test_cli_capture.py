@@ -156,3 +156,17 @@ def test_ctrl_c_pauses_cleanly_and_resume_finishes(tmp_path):
     with Store(store) as st:
         assert st.session("slow").state == "done" and st.verify("slow").ok
         assert len(st.frames(st.session("slow").id)) == 8
+
+
+def test_session_left_running_without_a_writer_shows_as_interrupted(tmp_path):
+    store = tmp_path / "store"
+    with Store(store) as st:
+        info = create_session(st, Plan.from_toml(_plan(tmp_path)), None, name="s", reserve_bytes=0)
+        st.set_state(info.id, "running")  # what a killed runner leaves behind
+        with Store(store) as runner_side, runner_side.writer("s"):
+            r = cli.invoke(session_app, ["list", "--store", str(store)])
+            assert "running" in r.output and "interrupted" not in r.output
+    r = cli.invoke(session_app, ["list", "--store", str(store)])
+    assert r.exit_code == 0 and "interrupted" in r.output
+    r = cli.invoke(session_app, ["show", "s", "--store", str(store)])
+    assert "state interrupted" in r.output and "gonio capture resume s" in r.output

@@ -268,6 +268,8 @@ def test_writer_lock_collects_garbage_and_excludes_second_writer(tmp_path):
                     pass
         with other.writer("s1") as removed:
             assert removed == []
+            assert st.session_active("s1")  # seen through another open file, as another process
+        assert not st.session_active("s1")
 
 
 def test_results_keep_provenance_and_artifacts(tmp_path):
