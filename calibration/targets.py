@@ -139,7 +139,10 @@ def detect_chessboard(image, pattern_size: tuple[int, int], square_size: float =
     cols, rows = _pattern(pattern_size)
     gray = to_gray_u8(image)
     if method == "sb":
-        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
+        # no CALIB_CB_ACCURACY: its own refinement costs 1.5-3 s a view and the saddle-point
+        # refinement below gives the same corners (synthetic 0.037-0.046 px either way; OpenCV's
+        # left*.jpg RMS 0.1952 px either way) 4x faster
+        flags = cv2.CALIB_CB_NORMALIZE_IMAGE
         found, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=flags)
         if not found:  # the exhaustive search is several times slower: only when needed
             found, corners = cv2.findChessboardCornersSB(gray, (cols, rows),
