@@ -621,9 +621,13 @@ def _sphere_blobs(images: list[np.ndarray], reflectance: float, *, min_area: int
     return [b for _, b in sorted(out, key=lambda t: t[0])]
 
 
-#: a sphere whose brightest pixel is below this fraction of the frame's brightest highlight
-#: does not show the lamp (the object shadows it, or the lamp is behind it): it sits that light
-#: out. The lamp's reflection is ~100x brighter than any lit surface the balls reflect.
+#: a sphere shows the lamp when its brightest pixel is at least this many times the frame's 99th
+#: luminance percentile (lit surfaces: a mirror shows them dimmer than they are, while the lamp's
+#: image is ~50-200x brighter than a white card it lights, though the HDR merge may clip it)
+#: and at least MIN_HIGHLIGHT_FRACTION of the frame's brightest highlight;
+#: other spheres (shadowed by the object, the lamp behind them, or a highlight smaller than a
+#: pixel that the pixel grid missed) sit that light out
+MIN_LAMP_CONTRAST = 2.0
 MIN_HIGHLIGHT_FRACTION = 0.25
 
 
@@ -676,14 +680,19 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
         index = np.arange(len(spheres))
         source = "silhouettes"
     lab = ctx.results.get("lab_frame")
-    lights, rows, errors = [], [], []
+    lights, rows, errors, unseen = [], [], [], []
     for s, img in zip(steps, images):
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         lum = img.mean(axis=2)
         try:  # one bad light loses its step; the others still feed the positioner model
             found = [find_highlight(np.where(b, lum, 0.0), sp, frame=name) for b, sp in zip(blobs, spheres)]
             peaks = np.array([f.peak for f in found])
-            use = np.nonzero(peaks >= MIN_HIGHLIGHT_FRACTION * peaks.max())[0]
+            use = np.nonzero((peaks >= MIN_HIGHLIGHT_FRACTION * peaks.max())
+                             & (peaks >= MIN_LAMP_CONTRAST * float(np.percentile(lum, 99))))[0]
+            if len(use) < 2:  # not a fault: from here the lamp cannot be seen in two spheres
+                unseen.append({"step": s, "frame": ctx.frames[s][0].id, "commanded": ctx.steps[s].get("light"),
+                               "spheres_showing_lamp": len(use)})
+                continue
             hl = np.array([found[i].xy_px for i in use])
             pl = triangulate_point_light(hl, centres[use], radius, K, dist)
         except CalibrationError as exc:
@@ -698,15 +707,17 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
         rows.append(row)
         lights.append(pl)
     if not rows:
-        raise CalibrationError("no light could be located: " + "; ".join(errors))
+        raise CalibrationError(f"no light could be located: {len(unseen)} of {len(steps)} spheres steps show "
+                               "the lamp in fewer than 2 spheres" + "".join(f"; {e}" for e in errors))
     ctx.results["lights"] = rows
     res = np.concatenate([pl.residuals_mm for pl in lights])
     result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres, "sphere_centres_from": source,
               "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows, "errors": errors,
+              "unseen": unseen,
               "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (axis at the platter, +x to the camera)"}
     if lab is not None:
         result["sphere_centres_lab_mm"] = (centres - lab[1]) @ lab[0]
-    figures = {"lights": len(rows), "failed": len(errors), "spheres": len(spheres),
+    figures = {"lights": len(rows), "failed": len(errors), "unseen": len(unseen), "spheres": len(spheres),
                "centres": "known" if source.startswith("known") else "silhouettes",
                "ray_residual_rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 3),
                "max_std_mm": round(float(max(pl.std_mm.max() for pl in lights)), 2)}

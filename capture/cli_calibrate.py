@@ -52,7 +52,8 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
               out: Path = typer.Option(None, "--out", help="Folder for the PNG report "
                                        "(default: the folder holding the store)."),
               targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
-                                           "targets (board size, sphere radius ...: LabTargets fields)."),
+                                           "targets (board size and height, sphere radius and lab "
+                                           "positions ...: LabTargets fields)."),
               measurement_hdr: bool = typer.Option(True, "--measurement-hdr/--calibration-hdr-only",
                                                    help="Merge every measurement step's bracket too "
                                                    "(slow for big sessions) or only the calibration steps."),
