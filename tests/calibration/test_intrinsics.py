@@ -11,7 +11,7 @@ from calibration.errors import DegenerateFit, TargetNotFound, TooFewViews
 from calibration.intrinsics import calibrate_intrinsics, corner_coverage, detect_all
 from calibration.targets import (as_points2d, chessboard_object_points, detect_charuco,
                                  detect_chessboard, make_charuco_board)
-from calib_synth import DIST_TRUE, K_TRUE, SIZE, board_poses, chessboard_texture, render_plane
+from calib_synth import DIST_TRUE, K_TRUE, board_poses, chessboard_texture, render_plane
 
 PATTERN = (11, 8)  # synthetic board: 12 x 9 squares
 DETECT = functools.partial(detect_chessboard, pattern_size=PATTERN, method="classic")
