@@ -86,7 +86,7 @@ def human_time(seconds: float | None) -> str:
     return f"{s // 3600} h {s % 3600 // 60:02d} min"
 
 
-def _state(st: Store, info) -> str:
+def display_state(st: Store, info) -> str:
     """The stored state, but ``interrupted`` for a session marked running that no process is
     writing (its runner was killed or the machine lost power)."""
     if info.state == "running" and not st.session_active(info.name):
@@ -106,7 +106,7 @@ def list_(store: str = STORE_OPTION,
         rows = []
         for s in st.sessions():
             p = st.progress(s.id)
-            rows.append({"name": s.name, "state": _state(st, s), "steps_done": p.steps_done,
+            rows.append({"name": s.name, "state": display_state(st, s), "steps_done": p.steps_done,
                          "steps_total": p.steps_total, "frames_stored": p.frames_stored,
                          "frames_total": p.frames_total, "bytes": p.bytes_stored,
                          "object": s.object, "operator": s.operator, "created": s.created})
@@ -139,7 +139,7 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
         except StoreError as exc:
             raise fail(str(exc)) from None
         p = st.progress(info.id)
-        state = _state(st, info)
+        state = display_state(st, info)
         kinds = Counter(d["kind"] for _, d, _ in st.steps(info.id))
         snaps = st.rig_snapshots(info.id)
         faults = st.events(info.id, kinds=["fault", "low_disk"])

@@ -29,7 +29,7 @@ from rig.errors import Disconnected
 
 from .events import Event, EventBus, EventKind
 from .metering import MeteringError, meter
-from .plan import MotionModel, Plan, Step, limit_from_describe, plan_diff
+from .plan import Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff
 from .store import SessionInfo, Store, StoreFull
 
 #: free space kept in reserve on the store's disk, bytes
@@ -102,6 +102,18 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
                                 steps=[s.to_dict() for s in steps], plan_path=plan_path,
                                 operator=plan.operator if operator is None else operator,
                                 object=plan.object, notes=plan.notes)
+
+
+def estimate_remaining(store: Store, session: str | SessionInfo, rig: Any = None) -> Estimate:
+    """Steps, frames, bytes and time (s) a session still has to do (its steps not done), with
+    ``rig``'s speeds; the frame size is the mean of the frames the session already stored, else
+    what the camera reports (see :class:`~capture.plan.Estimate` ``frame_bytes_source``)."""
+    info = store.session(session) if isinstance(session, str) else session
+    model = MotionModel.from_rig(rig)
+    progress = store.progress(info.id)
+    if progress.frames_stored:
+        model = model.with_frame_bytes(progress.bytes_stored / progress.frames_stored)
+    return model.estimate([Step.from_dict(d) for _, d, done in store.steps(info.id) if not done])
 
 
 def check_plan_unchanged(session: SessionInfo, plan: Plan, source: str = "the plan") -> None:
@@ -527,4 +539,4 @@ def _where(pos: dict[str, Any]) -> str:
 
 
 __all__ = ["DEFAULT_RESERVE_BYTES", "RetryPolicy", "Runner", "RunnerError", "check_plan_unchanged",
-           "create_session"]
+           "create_session", "estimate_remaining"]

@@ -121,6 +121,7 @@ def test_resume_refuses_a_changed_plan(tmp_path):
     plan_file.write_text(TINY)
     r = cli.invoke(capture_app, ["resume", "s", "--rig", "sim", "--store", str(store), "--quiet"])
     assert r.exit_code == 0, r.output
+    assert "session s (planned): 0 of 2 steps done; 2 steps, 2 frames left" in r.output
     with Store(store) as st:
         assert st.session("s").state == "done" and st.verify("s").ok
 

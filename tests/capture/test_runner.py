@@ -7,7 +7,8 @@ import pytest
 
 from capture.events import EventKind
 from capture.plan import Plan
-from capture.runner import RetryPolicy, Runner, RunnerError, check_plan_unchanged, create_session
+from capture.runner import (RetryPolicy, Runner, RunnerError, check_plan_unchanged, create_session,
+                            estimate_remaining)
 from capture.store import Store
 from capture_fakes import SMALL_PLAN, make_rig
 
@@ -155,6 +156,19 @@ def test_pause_now_interrupts_step_and_redo_replaces_frames(setup):
     assert (p.steps_done, p.frames_stored) == (4, 9)  # step 4 half done
     assert _runner(store, rig).run() == "done"
     _assert_complete(store, info)
+
+
+def test_estimate_remaining_counts_steps_not_done_with_the_stored_frame_size(setup):
+    store, rig, info = setup
+    rig.camera.describe = lambda: {"driver": "fake"}  # no size from the camera
+    assert estimate_remaining(store, "s", rig).frame_bytes_assumed
+    r = _runner(store, rig)
+    r.bus.subscribe(lambda e: e.kind == EventKind.STEP_DONE and e.step == 4 and r.request_pause())
+    assert r.run() == "paused"
+    est = estimate_remaining(store, info, rig)
+    left = PLANNED_STEPS - store.progress(info.id).steps_done
+    assert (est.steps, est.frames) == (left, 2 * left)
+    assert est.frame_bytes_source == "measured" and est.bytes == 2 * left * 4096
 
 
 def test_abort_stops_motion_and_is_final(setup):
