@@ -25,7 +25,8 @@ from rich.table import Table
 
 from rig import RigError
 
-from .cli_session import STORE_OPTION, display_state, fail, human_bytes, human_time, open_store, unwrap
+from .cli_session import (STORE_OPTION, display_state, fail, human_bytes, human_time, open_store,
+                          unwrap)
 from .events import Event, EventKind
 from .plan import Estimate, MotionModel, Plan, PlanError, Step
 from .rigs import OpenedRig, open_rig
@@ -335,8 +336,8 @@ def resume(name: str = typer.Argument(..., help="Session name."),
             except PlanError as exc:
                 raise fail(f"the session's plan does not fit this rig: {exc}") from None
             est, p = estimate_remaining(st, info, opened.rig), st.progress(info.id)
-            typer.echo(f"session {name} ({display_state(st, info)}): {p.steps_done} of {p.steps_total} "
-                       f"steps done; {est.steps} steps, {est.frames} frames left, about "
+            typer.echo(f"session {name} ({display_state(st, info)}): {p.steps_done} of "
+                       f"{p.steps_total} steps done; {est.steps} steps, {est.frames} frames left, about "
                        f"{human_bytes(est.bytes)} and {human_time(est.seconds)}")
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
