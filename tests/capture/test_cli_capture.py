@@ -28,7 +28,32 @@ elevation_deg = [40]
 base_s = 0.01
 stops = [0]
 """
+# the simulated lab from a rig file, with reply timeouts well above the drivers' defaults
+# (0.5-1 s): a loaded or swapping machine must not turn a slow reply into a failed test
+TOLERANT_SIM_RIG = """
+[turntable]
+driver = "zaber"
+port = "sim"
+timeout_s = 5.0
+[positioner]
+driver = "grbl"
+port = "sim"
+timeout_s = 5.0
+[polarizer]
+driver = "elliptec"
+port = "sim"
+timeout_s = 5.0
+[camera]
+driver = "ptp"
+port = "sim"
+"""
 cli = CliRunner()
+
+
+def _rig(tmp_path: Path) -> str:
+    p = tmp_path / "rig.toml"
+    p.write_text(TOLERANT_SIM_RIG)
+    return str(p)
 
 
 def _plan(tmp_path: Path, text: str = TINY) -> Path:
@@ -69,7 +94,7 @@ def test_help_explains_plans_store_resume_and_exit_codes():
 
 def test_plan_errors_name_the_field(tmp_path):
     r = cli.invoke(capture_app, ["plan", str(_plan(tmp_path, TINY.replace("[40]", "[40, 88]"))),
-                                 "--rig", "sim"])
+                                 "--rig", _rig(tmp_path)])
     assert r.exit_code == 2
     assert "light.elevation_deg[1] = 88 is outside the positioner's limit 0..85" in r.output
     r = cli.invoke(capture_app, ["plan", str(_plan(tmp_path, TINY + "\n[extra]\nx = 1\n"))])
@@ -78,7 +103,7 @@ def test_plan_errors_name_the_field(tmp_path):
 
 def test_run_then_list_show_verify_export(tmp_path):
     store = tmp_path / "store"
-    r = cli.invoke(capture_app, ["run", str(_plan(tmp_path)), "--rig", "sim", "--store", str(store),
+    r = cli.invoke(capture_app, ["run", str(_plan(tmp_path)), "--rig", _rig(tmp_path), "--store", str(store),
                                  "--session", "one", "--quiet"])
     assert r.exit_code == 0, r.output
     assert "session one done" in r.output
@@ -114,12 +139,12 @@ def test_resume_refuses_a_changed_plan(tmp_path):
         create_session(st, Plan.from_toml(plan_file), None, name="s", plan_path=str(plan_file),
                        reserve_bytes=0)
     plan_file.write_text(TINY.replace("[0, 90]", "[0, 45, 90]"))
-    r = cli.invoke(capture_app, ["resume", "s", "--rig", "sim", "--store", str(store)])
+    r = cli.invoke(capture_app, ["resume", "s", "--rig", _rig(tmp_path), "--store", str(store)])
     assert r.exit_code == 2
     assert "the plan" in r.output and "changed since the session was planned" in r.output
     assert "turntable.angles_deg: [0.0, 90.0] -> [0.0, 45.0, 90.0]" in r.output
     plan_file.write_text(TINY)
-    r = cli.invoke(capture_app, ["resume", "s", "--rig", "sim", "--store", str(store), "--quiet"])
+    r = cli.invoke(capture_app, ["resume", "s", "--rig", _rig(tmp_path), "--store", str(store), "--quiet"])
     assert r.exit_code == 0, r.output
     assert "session s (planned): 0 of 2 steps done; 2 steps, 2 frames left" in r.output
     with Store(store) as st:
@@ -131,7 +156,7 @@ def test_ctrl_c_pauses_cleanly_and_resume_finishes(tmp_path):
     plan_file = _plan(tmp_path, TINY.replace("[0, 90]", "{ start = 0, stop = 315, step = 45 }"))
     store = tmp_path / "store"
     gonio = [sys.executable, "-m", "capture.cli"]
-    p = subprocess.Popen([*gonio, "capture", "run", str(plan_file), "--rig", "sim",
+    p = subprocess.Popen([*gonio, "capture", "run", str(plan_file), "--rig", _rig(tmp_path),
                           "--store", str(store), "--session", "slow", "--quiet"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     # the runner announces the object target just before step 0 (event-driven: no polling)
@@ -152,7 +177,7 @@ def test_ctrl_c_pauses_cleanly_and_resume_finishes(tmp_path):
         assert info.state == "paused"
         assert st.progress(info.id).steps_done < 8
         assert st.events(info.id)[-1]["kind"] == "paused"
-    r = cli.invoke(capture_app, ["resume", "slow", "--rig", "sim", "--store", str(store), "--quiet"])
+    r = cli.invoke(capture_app, ["resume", "slow", "--rig", _rig(tmp_path), "--store", str(store), "--quiet"])
     assert r.exit_code == 0, r.output
     with Store(store) as st:
         assert st.session("slow").state == "done" and st.verify("slow").ok
