@@ -228,3 +228,13 @@ SMALL_PLAN = {
     "polarizer": {"angles_deg": [0, 90]},
     "exposure": {"base_s": 0.01, "stops": [-1, 1]},
 }
+
+
+def tolerant_sim_config(turntable_timeout_s: float = 5.0) -> dict:
+    """A rig config serving every role from the simulated lab (``port = "sim"``) with reply
+    timeouts well above the drivers' defaults (0.5-1 s): on a loaded or swapping machine a
+    simulator thread can stall that long, and the tests must not read that as a device fault."""
+    return {"turntable": {"driver": "zaber", "port": "sim", "timeout_s": turntable_timeout_s},
+            "positioner": {"driver": "grbl", "port": "sim", "timeout_s": 5.0},
+            "polarizer": {"driver": "elliptec", "port": "sim", "timeout_s": 5.0},
+            "camera": {"driver": "ptp", "port": "sim"}}

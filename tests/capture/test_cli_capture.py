@@ -12,8 +12,10 @@ from typer.testing import CliRunner
 from capture.cli_capture import app as capture_app
 from capture.cli_session import app as session_app
 from capture.plan import Plan
+from capture.rigs import to_toml
 from capture.runner import create_session
 from capture.store import Store
+from capture_fakes import tolerant_sim_config
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "plan.toml"
 TINY = """
@@ -28,31 +30,13 @@ elevation_deg = [40]
 base_s = 0.01
 stops = [0]
 """
-# the simulated lab from a rig file, with reply timeouts well above the drivers' defaults
-# (0.5-1 s): a loaded or swapping machine must not turn a slow reply into a failed test
-TOLERANT_SIM_RIG = """
-[turntable]
-driver = "zaber"
-port = "sim"
-timeout_s = 5.0
-[positioner]
-driver = "grbl"
-port = "sim"
-timeout_s = 5.0
-[polarizer]
-driver = "elliptec"
-port = "sim"
-timeout_s = 5.0
-[camera]
-driver = "ptp"
-port = "sim"
-"""
 cli = CliRunner()
 
 
 def _rig(tmp_path: Path) -> str:
+    """The simulated lab from a rig file with generous reply timeouts (see capture_fakes)."""
     p = tmp_path / "rig.toml"
-    p.write_text(TOLERANT_SIM_RIG)
+    p.write_text(to_toml(tolerant_sim_config()))
     return str(p)
 
 

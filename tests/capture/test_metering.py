@@ -10,6 +10,7 @@ from capture.plan import Plan
 from capture.rigs import open_rig
 from capture.runner import Runner, create_session
 from capture.store import Store
+from capture_fakes import tolerant_sim_config
 from sims.ptp_sim import placeholder_frame
 
 LIMITS = (1e-4, 30.0)
@@ -68,7 +69,7 @@ def test_runner_meters_once_and_resume_reuses_it(tmp_path):
                            "exposure": {"base_s": 0.002, "stops": [-1, 0, 1], "auto": True,
                                         "highlight": 0.5},
                            "calibration": [{"kind": "dark", "frames": 1}]})
-    with open_rig("sim", fast=True, home=True, frame_source=placeholder_frame) as opened, \
+    with open_rig(tolerant_sim_config(), fast=True, home=True, frame_source=placeholder_frame) as opened, \
             Store(tmp_path) as store:
         info = create_session(store, plan, opened.rig, name="s", reserve_bytes=0)
         events = []

@@ -16,6 +16,7 @@ from capture.plan import Plan
 from capture.rigs import open_rig
 from capture.runner import RetryPolicy, Runner, create_session
 from capture.store import Store
+from capture_fakes import tolerant_sim_config
 from sims.ptp_sim import placeholder_frame
 
 PLAN = {"name": "sim", "turntable": {"angles_deg": [0, 60]},
@@ -26,17 +27,13 @@ RETRY = RetryPolicy(attempts=4, base_delay_s=0.01)
 
 
 @contextlib.contextmanager
-def _open_lab(tmp_path, turntable_timeout_s: float = 3.0):
+def _open_lab(tmp_path, turntable_timeout_s: float = 5.0):
     """The simulated lab over its real transports, with a session ``s`` planned in a store.
 
-    Reply timeouts are generous (the drivers' defaults are 0.5-1 s): on a loaded machine a
-    simulator thread can be starved that long, and a spurious timeout would be retried and
-    break the tests' exact fault expectations. The placeholder DNG stands in for the rendered
-    scene: these tests are about the runner."""
-    cfg = {"turntable": {"driver": "zaber", "port": "sim", "timeout_s": turntable_timeout_s},
-           "positioner": {"driver": "grbl", "port": "sim", "timeout_s": 3.0},
-           "polarizer": {"driver": "elliptec", "port": "sim", "timeout_s": 3.0},
-           "camera": {"driver": "ptp", "port": "sim"}}
+    Reply timeouts are generous (:func:`tolerant_sim_config`): a spurious timeout would be
+    retried and break the tests' exact fault expectations. The placeholder DNG stands in for
+    the rendered scene: these tests are about the runner."""
+    cfg = tolerant_sim_config(turntable_timeout_s)
     with open_rig(cfg, fast=True, home=True, frame_source=placeholder_frame) as opened:
         with Store(tmp_path / "store") as store:
             create_session(store, Plan.from_dict(PLAN), opened.rig, name="s", reserve_bytes=0)
