@@ -72,11 +72,15 @@ def _summary(est: Any, name: str) -> str:
 
 
 def session_rows(store: Store) -> list[tuple[str, str, str]]:
-    """``(name, state, "done/total steps")`` per stored session, newest first."""
+    """``(name, state, "done/total steps")`` per stored session, newest first; a session
+    marked running that no process is writing shows as ``interrupted``."""
     rows = []
     for info in sorted(store.sessions(), key=lambda s: s.updated, reverse=True):
         p = store.progress(info.id)
-        rows.append((info.name, info.state, f"{p.steps_done}/{p.steps_total}"))
+        state = info.state
+        if state == "running" and not store.session_active(info.name):
+            state = "interrupted"
+        rows.append((info.name, state, f"{p.steps_done}/{p.steps_total}"))
     return rows
 
 

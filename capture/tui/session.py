@@ -156,7 +156,8 @@ class SessionPane(Vertical):
         table = self.query_one("#sessions", DataTable)
         table.clear()
         for name, state, progress in rows:
-            style = "yellow" if state in ("running", "paused") else ""
+            style = {"running": "green", "paused": "yellow", "interrupted": "bold yellow",
+                     "aborted": "red"}.get(state, "")
             table.add_row(name, Text(state, style=style), progress, key=name)
 
     @property

@@ -344,7 +344,7 @@ async def test_resume_an_interrupted_session_is_one_key(tmp_path):
         await pilot.press("2")
         sessions = app.query_one("#sessions", DataTable)
         await until(pilot, lambda: sessions.row_count == 1, what="the session list")
-        assert str(sessions.get_cell("crashed", "state")) == "running"
+        assert str(sessions.get_cell("crashed", "state")) == "interrupted"  # no writer left
         await pilot.press("r")
         await until(pilot, lambda: app.session_pane.state == "done", timeout=30,
                     what="the resumed session")
