@@ -4,7 +4,7 @@
   session marked running that no process writes is shown ``interrupted`` (resume it).
 - ``gonio session show NAME`` plan summary, progress, rig snapshot, recent faults and events,
   results with provenance.
-- ``gonio session verify NAME`` re-hashes every file; lists missing, corrupt and orphaned files
+- ``gonio session verify NAME [--remove-orphans]`` re-hashes every file; lists missing, corrupt and orphaned files
   and done steps with the wrong frame count; exit status 1 if anything is wrong.
 - ``gonio session export NAME DEST`` writes a self-contained store (folder, ``.tar``, ``.tar.gz``
   or ``.zip``) holding only that session, which ``--store`` can open directly.
@@ -189,7 +189,10 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
 
 
 @app.command()
-def verify(name: str = typer.Argument(..., help="Session name."), store: str = STORE_OPTION) -> None:
+def verify(name: str = typer.Argument(..., help="Session name."), store: str = STORE_OPTION,
+           remove_orphans: bool = typer.Option(
+               False, "--remove-orphans", help="Delete the orphaned files found (left by an "
+               "interrupted write; refused while a session is being written).")) -> None:
     """Re-hash every file of the session; exit 1 on missing, corrupt or orphaned files."""
     with open_store(store) as st:
         try:
@@ -200,6 +203,13 @@ def verify(name: str = typer.Argument(..., help="Session name."), store: str = S
                       transient=True) as bar:
             task = bar.add_task("verify", total=None)
             report = st.verify(name, progress=lambda i, n: bar.update(task, completed=i, total=n))
+        if remove_orphans and report.orphans:
+            try:
+                removed = st.remove_orphans()
+            except StoreError as exc:
+                raise fail(str(exc)) from None
+            typer.echo(f"removed {len(removed)} orphaned file(s)")
+            report.orphans = [o for o in report.orphans if o not in removed]
     typer.echo(f"{report.checked} file(s) checked")
     for label, items in (("missing", report.missing), ("corrupt", report.corrupt),
                          ("orphaned", report.orphans)):

@@ -938,6 +938,26 @@ class Store:
                 removed.append(str(p.relative_to(self.root)))
         return removed
 
+    def remove_orphans(self) -> list[str]:
+        """Delete orphans and ``.tmp-`` files now (what :meth:`writer` does when a runner starts),
+        returning their paths relative to the store.
+
+        Raises
+        ------
+        SessionBusy
+            Something is writing this store right now (its files in flight look like orphans).
+        """
+        fd = self._lock_file("writers.lock")
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise SessionBusy(f"a session in {self.root} is being written; orphans are removed "
+                                  "when the next runner starts, or try again once it ends") from None
+            return self.collect_garbage()
+        finally:
+            os.close(fd)
+
     def verify(self, session: str, *, progress: Callable[[int, int], None] | None = None
                ) -> VerifyReport:
         """Re-hash every file of a session; list missing and corrupt files, store-wide orphans

@@ -112,6 +112,11 @@ def test_run_then_list_show_verify_export(tmp_path):
     r = cli.invoke(session_app, ["verify", "one", "--store", str(store)])
     assert r.exit_code == 1
     assert f"corrupt: {f.sha256}" in r.output and f"orphaned: objects/{orphan[:2]}/{orphan[2:]}" in r.output
+    r = cli.invoke(session_app, ["verify", "one", "--store", str(store), "--remove-orphans"])
+    assert r.exit_code == 1 and "removed 1 orphaned file(s)" in r.output  # still corrupt
+    assert "0 missing, 1 corrupt, 0 orphaned" in r.output
+    with Store(store) as st:
+        assert not st.object_path(orphan).exists() and st.object_path(f.sha256).exists()
     r = cli.invoke(session_app, ["show", "nope", "--store", str(store)])
     assert r.exit_code == 2 and "no session 'nope'" in r.output
 

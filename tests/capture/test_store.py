@@ -269,7 +269,11 @@ def test_writer_lock_collects_garbage_and_excludes_second_writer(tmp_path):
         with other.writer("s1") as removed:
             assert removed == []
             assert st.session_active("s1")  # seen through another open file, as another process
+            stray = st.put_object(b"stray")
+            with pytest.raises(SessionBusy, match="being written"):
+                st.remove_orphans()  # its files in flight would look like orphans
         assert not st.session_active("s1")
+        assert st.remove_orphans() == [f"objects/{stray[:2]}/{stray[2:]}"]
 
 
 def test_results_keep_provenance_and_artifacts(tmp_path):
