@@ -4,8 +4,9 @@
   session marked running that no process writes is shown ``interrupted`` (resume it).
 - ``gonio session show NAME`` plan summary, progress, rig snapshot, recent faults and events,
   results with provenance.
-- ``gonio session verify NAME [--remove-orphans]`` re-hashes every file; lists missing, corrupt and orphaned files
-  and done steps with the wrong frame count; exit status 1 if anything is wrong.
+- ``gonio session verify NAME [--remove-orphans]`` re-hashes every file; lists missing, corrupt
+  and orphaned files and done steps with the wrong frame count; exit status 1 if anything is
+  wrong. ``--remove-orphans`` deletes what interrupted writes left (no session may be writing).
 - ``gonio session export NAME DEST`` writes a self-contained store (folder, ``.tar``, ``.tar.gz``
   or ``.zip``) holding only that session, which ``--store`` can open directly.
 
