@@ -133,7 +133,8 @@ class LabTargets:
             raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
         for name in ("chessboard_centre_height_mm", "charuco_centre_height_mm"):
             if not np.isfinite(getattr(self, name)):
-                raise ValueError(f"LabTargets.{name} must be a finite number of mm, got {getattr(self, name)!r}")
+                raise ValueError(f"LabTargets.{name} must be a finite number of mm, "
+                                 f"got {getattr(self, name)!r}")
         centres = self.sphere_centres_mm
         if centres is not None and len(centres):
             try:
@@ -690,8 +691,8 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
             use = np.nonzero((peaks >= MIN_HIGHLIGHT_FRACTION * peaks.max())
                              & (peaks >= MIN_LAMP_CONTRAST * float(np.percentile(lum, 99))))[0]
             if len(use) < 2:  # not a fault: from here the lamp cannot be seen in two spheres
-                unseen.append({"step": s, "frame": ctx.frames[s][0].id, "commanded": ctx.steps[s].get("light"),
-                               "spheres_showing_lamp": len(use)})
+                unseen.append({"step": s, "frame": ctx.frames[s][0].id,
+                               "commanded": ctx.steps[s].get("light"), "spheres_showing_lamp": len(use)})
                 continue
             hl = np.array([found[i].xy_px for i in use])
             pl = triangulate_point_light(hl, centres[use], radius, K, dist)
@@ -714,7 +715,8 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
     result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres, "sphere_centres_from": source,
               "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows, "errors": errors,
               "unseen": unseen,
-              "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (axis at the platter, +x to the camera)"}
+              "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (axis at the platter, +x to the "
+                       "camera)"}
     if lab is not None:
         result["sphere_centres_lab_mm"] = (centres - lab[1]) @ lab[0]
     figures = {"lights": len(rows), "failed": len(errors), "unseen": len(unseen), "spheres": len(spheres),

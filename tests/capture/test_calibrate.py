@@ -204,6 +204,23 @@ def test_light_positions_match_the_sim(session):
         assert abs(np.linalg.norm(p - mid) - np.linalg.norm(t - mid)) < 0.25 * np.linalg.norm(t - mid)
 
 
+def test_lights_fall_back_to_silhouettes_without_a_lab_frame(session):
+    """Known positions need the lab frame; without the turntable stage the spheres are found
+    from their silhouettes against the backdrop (perspective cone fit, K from the session)."""
+    store, _, camera, _ = session
+    report = calibrate_session(store, "cal", targets=TARGETS, measurement_hdr=False,
+                               stages=("dark", "hdr", "intrinsics", "lights"))
+    assert report.stage("lights").status == "ok", report.stage("lights").reason
+    assert report.stage("lights").figures["centres"] == "silhouettes"
+    r = next(x for x in store.results(store.session("cal").id)
+             if x["id"] == report.stage("lights").calibration_id)["result"]
+    truth = SPHERES.points_world(0.0) @ camera.R.T + camera.t
+    # within 4 % of their distance (seen: 2.1-3.6 %, the silhouette's depth from a ~40 px disc)
+    err = np.linalg.norm(np.array(r["sphere_centres_camera_mm"]) - truth, axis=1)
+    assert np.all(err < 0.04 * np.linalg.norm(truth, axis=1)), err
+    assert len(r["lights"]) == 4 and "position_lab_mm" not in r["lights"][0]
+
+
 def test_lab_frame_matches_the_sim_world(session):
     """The lab frame (axis at the platter, +x towards the camera) is the sims' world frame: the
     camera centre lands on the simulated eye point."""
@@ -441,3 +458,31 @@ def test_default_sim_session_locates_lights_from_known_sphere_positions(tmp_path
         p = np.array(row["position_camera_mm"])
         # the stated uncertainty is honest: the error lies within 3 sigma of it
         assert np.linalg.norm(p - t) < 3 * np.linalg.norm(row["std_mm"]), (p, t, row["std_mm"])
+
+
+@pytest.mark.slow
+def test_default_sim_session_full_resolution_lights_within_4_percent(tmp_path):
+    """The default lab at the sim camera's full 1200 x 800 (40-85 s on two cores): every light
+    is seen in the six balls and lands within 4 % of its distance from the ball row (seen:
+    -3.1 .. +0.2 %, direction 0.2-0.9 deg).
+
+    What limits it: the 50 mm lamp's highlight on a 1-inch ball is ~2 px across and the sim
+    samples one ray per pixel, so the highlight centroid is quantised to ~0.1-0.2 px; a row
+    200 mm long seeing a light 430-470 mm away turns that into 1-2 % of depth (with the true
+    camera and centres: -1.6 .. +1.4 %). The rest is the intrinsics: the board on the turntable
+    covers the image centre only, so the fit is the constrained one (k1 only, principal point
+    at the centre) while the balls sit near the top edge, where the lens' k2 and tangential
+    terms move a ray by a few tenths of a pixel. The lab frame itself is good to ~1 mm."""
+    store, report, camera = _default_session(tmp_path / "store", SimWorld("sphere", seed=1).frame_source)
+    assert all(report.stage(s).status == "ok" for s in ("intrinsics", "turntable", "lights", "positioner"))
+    lights, truths, truth_centres = _located_lights(store, camera)
+    assert not lights["unseen"] and len(lights["lights"]) == 4
+    # seen: 1.1 mm
+    assert np.all(np.linalg.norm(np.array(lights["sphere_centres_camera_mm"]) - truth_centres, axis=1) < 3.0)
+    mid = truth_centres.mean(axis=0)
+    for row, t in zip(lights["lights"], truths):
+        p = np.array(row["position_camera_mm"])
+        assert abs(np.linalg.norm(p - mid) / np.linalg.norm(t - mid) - 1) < 0.04, (p, t)
+        assert _angle_deg(p - mid, t - mid) < 1.5
+        lab_truth = light_position(row["commanded"]["azimuth_deg"], row["commanded"]["elevation_deg"])
+        assert np.linalg.norm(np.array(row["position_lab_mm"]) - lab_truth) < 0.05 * np.linalg.norm(lab_truth)
