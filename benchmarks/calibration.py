@@ -196,8 +196,9 @@ def bench_sim_sphere_row():
                                       locate_collinear_spheres(flash_hl + rng.normal(0, 0.1, flash_hl.shape),
                                                                row.spec.spacing_mm, cam.K, cam.dist),
                                       radius, cam.K, cam.dist).position_mm for _ in range(200)]
+        mc_sigma = np.sqrt(np.trace(np.cov(np.array(mc).T)))
         print(f"  light az {az:.0f} el {el:.0f} (flash centres): err {err:.1f} mm = {100 * err / dist:.2f}% of "
-              f"{dist:.0f} mm [bar 0.5%; Lensch ~2%], Monte Carlo 1σ {np.sqrt(np.trace(np.cov(np.array(mc).T))):.1f} mm")
+              f"{dist:.0f} mm [bar 0.5%; Lensch ~2%], Monte Carlo 1σ {mc_sigma:.1f} mm")
 
 
 def bench_polarization(size):
