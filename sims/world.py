@@ -331,9 +331,15 @@ class SimWorld:
         self.flat_radiance: float | None = None
         # what set_scene("object") puts back
         self._home = dict(object=self.object, environment=environment, light_intensity=light_intensity,
+                          supersample=self.supersample,
                           platter=self.platter)
 
-    _SCENE_FIELDS = ("object", "targets", "environment", "light_intensity", "platter", "dark", "flat_radiance")
+    _SCENE_FIELDS = ("object", "targets", "environment", "light_intensity", "platter", "dark", "flat_radiance",
+                     "supersample")
+    #: pixel-area integration per capture kind: one ray per pixel aliases sharp print edges by
+    #: ~0.25 px and the ~1 px lamp highlight on a small steel ball enough to move a triangulated
+    #: light by ~2 % (3 x 3 brings it under 0.4 %, tests/calibration)
+    KIND_SUPERSAMPLE = {"checkerboard": 2, "charuco": 2, "spheres": 3, "chrome": 2}
     #: the runner's target names (capture/plan.py) -> capture kinds
     TARGET_KINDS = {"object": "object", "lens_cap": "dark", "checkerboard": "checkerboard",
                     "charuco": "charuco", "spheres": "spheres", "gray_card": "graycard",
@@ -346,10 +352,11 @@ class SimWorld:
         noise stream. ``"object"`` puts this world's own object back."""
         kind = self.TARGET_KINDS.get(kind, kind)
         keep = dict(camera=self.camera, sensor=self.sensor, light_radius_mm=self.light_radius_mm,
-                    light_polarizer_deg=self.light_polarizer_deg, supersample=self.supersample,
-                    env_samples=self.env_samples)
+                    light_polarizer_deg=self.light_polarizer_deg, env_samples=self.env_samples,
+                    supersample=max(self._home["supersample"], self.KIND_SUPERSAMPLE.get(kind, 1)))
         home = dict(self._home)
         obj = home.pop("object")
+        home.pop("supersample")
         if kind in ("probe", "passive"):  # the probe kinds bring their own lighting and no cloth
             home = {"environment": home["environment"]} if home["environment"] is not None else {}
         other = SimWorld.for_capture(kind, obj, **keep, **home)
@@ -376,8 +383,7 @@ class SimWorld:
             raise ValueError(f"capture kind must be one of {CAPTURE_KINDS}, got {kind!r}")
         if kind == "object":
             return cls(object, **kwargs)
-        if kind in ("checkerboard", "charuco"):  # pixel-area integration: sharp print edges alias
-            kwargs.setdefault("supersample", 2)
+        kwargs.setdefault("supersample", cls.KIND_SUPERSAMPLE.get(kind, 1))
         if kind == "checkerboard":  # sized to fit the default camera's view at any angle
             return cls(None, targets=[board_on_turntable(Checkerboard(square_mm=15.0, margin_mm=10.0))], **kwargs)
         if kind == "charuco":
