@@ -46,6 +46,7 @@ light is the least-squares intersection of the rays reflected at the highlights
 from __future__ import annotations
 
 import io
+import itertools
 import time
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable
@@ -61,7 +62,8 @@ from calibration.probe import merge_probes, mirror_sphere_to_latlong
 from calibration.radiometry import gray_card_scale
 from calibration.polarization import fit_polarization, separate_parallel_crossed
 from calibration.lights import (SphereImage, detect_sphere, find_highlight, fit_positioner_model,
-                                sphere_center_from_silhouette, triangulate_point_light)
+                                reflect_highlight, sphere_center_from_silhouette,
+                                triangulate_point_light)
 from calibration.targets import detect_charuco, detect_chessboard, make_charuco_board
 from calibration.turntable import fit_turntable
 
@@ -659,6 +661,63 @@ def _known_spheres(ctx: _Context, K, dist, radius: float, shape: tuple[int, int]
     return centres[inside], spheres, masks, np.nonzero(inside)[0]
 
 
+def _lamp_candidates(lum: np.ndarray, sphere: SphereImage, level: float, frame: str) -> list[tuple]:
+    """Bright spots on one sphere's disc that may be the lamp's image: ``(xy px, flux)`` per blob
+    above ``level`` (its sub-pixel position from :func:`find_highlight`), largest flux first.
+
+    Besides the lamp's own image, a ball in a row shows the lamp once more through its
+    neighbour (a smaller, dimmer spot near the limb facing it); once the HDR merge clips both,
+    only their size and where their reflected rays go tell them apart.
+    """
+    c, r = sphere.center_px, sphere.radius_px
+    x0, y0 = np.maximum(np.floor(c - r).astype(int), 0)
+    x1, y1 = np.minimum(np.ceil(c + r).astype(int) + 1, [lum.shape[1], lum.shape[0]])
+    win = lum[y0:y1, x0:x1]
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    disc = (xx - c[0]) ** 2 + (yy - c[1]) ** 2 < (r - 1) ** 2
+    n, labels = cv2.connectedComponents(((win > level) & disc).astype(np.uint8), connectivity=8)
+    local = SphereImage(c - [x0, y0], r, None, np.zeros((0, 2)))
+    out = []
+    for k in range(1, n):
+        blob = labels == k
+        hl = find_highlight(np.where(blob, win, 0.0), local, frame=frame)
+        out.append((hl.xy_px + [x0, y0], float(win[blob].sum())))
+    return sorted(out, key=lambda t: -t[1])
+
+
+#: most spot combinations :func:`_pick_highlights` tries (a ball row shows 1-2 spots per ball)
+MAX_SPOT_COMBINATIONS = 4096
+
+
+def _pick_highlights(cands: list[list[tuple]], centres: np.ndarray, radius: float, K, dist):
+    """One lamp highlight per sphere: of every combination of the spheres' spots, the one whose
+    reflected rays meet best, i.e. whose least-squares light sees the smallest RMS angle between
+    each reflected ray and the direction from its reflection point to the light (an angle, not
+    a distance: rays all pass near the balls they leave). A sphere whose ray then misses by
+    more than 3x the median angle (and 1 deg) sits the light out when 2 others remain.
+
+    Returns the chosen pixels (K, 2) and the indices (K,) of their spheres in ``cands``.
+    """
+    xy = np.concatenate([[p for p, _ in cs] for cs in cands])
+    owner = np.repeat(np.arange(len(cands)), [len(cs) for cs in cands])
+    P, L = reflect_highlight(xy, centres[owner], radius, K, dist)
+    first = np.r_[0, np.cumsum([len(cs) for cs in cands])[:-1]]
+    combos = np.array(list(itertools.islice(itertools.product(*[range(len(cs)) for cs in cands]),
+                                            MAX_SPOT_COMBINATIONS))) + first     # (C, M) spot rows
+    Pc, Lc = P[combos], L[combos]                                                # (C, M, 3)
+    proj = np.eye(3) - Lc[..., :, None] * Lc[..., None, :]
+    X = np.linalg.solve(proj.sum(axis=1), np.einsum("cmij,cmj->ci", proj, Pc)[..., None])[..., 0]
+    to = X[:, None] - Pc
+    cos = np.sum(to * Lc, axis=2) / np.maximum(np.linalg.norm(to, axis=2), 1e-9)
+    ang = np.degrees(np.arccos(np.clip(cos, -1, 1)))                             # (C, M)
+    best = int(np.argmin(np.sqrt(np.mean(ang ** 2, axis=1))))
+    keep = np.arange(len(cands))
+    a = ang[best]
+    if len(cands) > 2:
+        keep = keep[(a <= max(3 * float(np.median(a)), 1.0)) | (np.argsort(np.argsort(a)) < 2)]
+    return xy[combos[best][keep]], keep
+
+
 def _stage_lights(ctx: _Context, rep: CalibrationReport):
     steps = ctx.merged_steps("spheres")
     intr = _need(ctx, "intrinsics", "camera matrix")
@@ -686,15 +745,16 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         lum = img.mean(axis=2)
         try:  # one bad light loses its step; the others still feed the positioner model
-            found = [find_highlight(np.where(b, lum, 0.0), sp, frame=name) for b, sp in zip(blobs, spheres)]
-            peaks = np.array([f.peak for f in found])
-            use = np.nonzero((peaks >= MIN_HIGHLIGHT_FRACTION * peaks.max())
-                             & (peaks >= MIN_LAMP_CONTRAST * float(np.percentile(lum, 99))))[0]
+            peak = max(float(lum[b].max()) for b in blobs)
+            level = max(MIN_HIGHLIGHT_FRACTION * peak, MIN_LAMP_CONTRAST * float(np.percentile(lum, 99)))
+            cands = [_lamp_candidates(lum, sp, level, name) for sp in spheres]
+            use = np.array([i for i, cs in enumerate(cands) if cs], int)
             if len(use) < 2:  # not a fault: from here the lamp cannot be seen in two spheres
                 unseen.append({"step": s, "frame": ctx.frames[s][0].id,
                                "commanded": ctx.steps[s].get("light"), "spheres_showing_lamp": len(use)})
                 continue
-            hl = np.array([found[i].xy_px for i in use])
+            hl, kept = _pick_highlights([cands[i] for i in use], centres[use], radius, K, dist)
+            use = use[kept]
             pl = triangulate_point_light(hl, centres[use], radius, K, dist)
         except CalibrationError as exc:
             errors.append(f"{name}: {exc}" if name not in str(exc) else str(exc))
