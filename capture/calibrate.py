@@ -41,7 +41,9 @@ Lights: with :attr:`LabTargets.sphere_centres_mm` (default: the simulated lab's 
 balls) the spheres' centres come from the lab frame (Lensch et al. 2003 Sec. 4.1: spheres of
 known radius and position); without them, from their silhouettes against a lit backdrop. Each
 light is the least-squares intersection of the rays reflected at the highlights
-(:func:`calibration.lights.triangulate_point_light`).
+(:func:`calibration.lights.triangulate_point_light`); of the bright spots on each ball (the lamp,
+and the lamp again through a neighbouring ball) the combination whose rays meet best is used.
+Expose the spheres short enough that the lamp's image does not clip.
 """
 from __future__ import annotations
 
