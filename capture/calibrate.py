@@ -83,6 +83,9 @@ STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "pol
 #: constrained model (principal point at the image centre, no tangential terms, k1 only): a
 #: board seen only near the image centre (turntable sweeps) cannot separate those parameters
 MIN_COVERAGE_FULL_MODEL = 0.5
+#: the arm model fails when its RMS residual exceeds this fraction of its radius (seen: 1 % at
+#: 1200 x 800; a mirrored solution of scattered 320 x 240 lights: 40 %)
+MAX_ARM_RMS_FRACTION = 0.1
 #: poses (turntable angle x light) the polarization check separates, spread over the session
 POLARIZATION_POSES = 4
 #: lat-long environment map height (width is twice), pixels
@@ -805,6 +808,12 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
     el = np.array([r["commanded"]["elevation_deg"] for r in use])
     X = np.array([r["position_lab_mm"] for r in use])
     model = fit_positioner_model(az, el, X)
+    if model.radius_mm <= 0 or model.rms_mm > MAX_ARM_RMS_FRACTION * model.radius_mm:
+        # LM can settle on a mirrored arm (negative radius) when the lights scatter in distance
+        raise CalibrationError(
+            f"the arm model does not fit the {len(use)} measured lights (radius {model.radius_mm:.0f} mm, "
+            f"rms {model.rms_mm:.0f} mm): their distances scatter too much (lights stage max_std_mm); "
+            "image the spheres at a higher resolution or add light poses")
     R_lab, t_lab = ctx.results["lab_frame"]
     d = X - model.centre_mm
     rep.plots["lights"] = {"commanded_az": az, "commanded_el": el,
