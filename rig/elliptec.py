@@ -287,14 +287,9 @@ class ElliptecRotator(Axis):
     def from_config(cls, name: str, section: dict[str, Any], **context: Any) -> "ElliptecRotator":
         """Build from a rig-file section: ``port`` plus optional ``address``, ``timeout_s``,
         ``move_timeout_s``, ``busy_retry_s``, ``require_home``."""
-        known = {"driver", "port", "address", "timeout_s", "move_timeout_s", "busy_retry_s",
-                 "require_home"}
-        unknown = set(section) - known
-        if unknown:
-            raise ValueError(f"[{name}] unknown keys for the elliptec driver: {sorted(unknown)}; "
-                             f"known: {sorted(known)}")
-        kwargs = {k: section[k] for k in known - {"driver", "port"} if k in section}
-        return cls(name, section["port"], **kwargs)
+        from .rig import driver_options
+        allowed = {"address", "timeout_s", "move_timeout_s", "busy_retry_s", "require_home"}
+        return cls(name, section["port"], **driver_options(name, section, "elliptec", allowed))
 
     # -- link ---------------------------------------------------------------------------------
     def connect(self) -> None:

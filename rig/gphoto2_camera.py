@@ -94,13 +94,9 @@ class Gphoto2Camera(Camera):
     def from_config(cls, name: str, section: dict[str, Any], **context: Any) -> "Gphoto2Camera":
         """Build from a rig-file section: ``port`` plus optional ``model``, ``timeout_s``,
         ``busy_timeout_s``, ``keep_on_camera``."""
-        known = {"driver", "port", "model", "timeout_s", "busy_timeout_s", "keep_on_camera"}
-        unknown = set(section) - known
-        if unknown:
-            raise ValueError(f"[{name}] unknown keys for the gphoto2 driver: {sorted(unknown)}; "
-                             f"known: {sorted(known)}")
-        return cls(name, section["port"], **{k: section[k] for k in known - {"driver", "port"}
-                                             if k in section})
+        from .rig import driver_options
+        allowed = {"model", "timeout_s", "busy_timeout_s", "keep_on_camera"}
+        return cls(name, section["port"], **driver_options(name, section, "gphoto2", allowed))
 
     # -- errors -------------------------------------------------------------------------------
     def _error(self, exc: Exception, what: str) -> RigError:

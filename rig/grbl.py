@@ -310,18 +310,10 @@ class GrblPositioner(LightPositioner):
     def from_config(cls, name: str, section: dict[str, Any], **context: Any) -> "GrblPositioner":
         """Build from a rig-file section: ``port``, ``kinematics`` (``"arm"``, ``"gantry"`` or
         an inline table), optional ``baudrate``, ``timeout_s``, ``poll_interval_s``."""
-        from .rig import ConfigError
-        allowed = {"driver", "port", "kinematics", "baudrate", "timeout_s", "poll_interval_s",
-                   "poll_retries", "position_tolerance"}
-        unknown = set(section) - allowed
-        if unknown:
-            raise ConfigError(f"[{name}] unknown key(s) for the grbl driver: {', '.join(sorted(unknown))}; "
-                              f"allowed: {', '.join(sorted(allowed))}")
-        kwargs = {k: v for k, v in section.items() if k not in ("driver", "port")}
-        try:
-            return cls(name, section["port"], **kwargs)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"[{name}] {exc}") from None
+        from .rig import driver_options
+        allowed = {"kinematics", "baudrate", "timeout_s", "poll_interval_s", "poll_retries",
+                   "position_tolerance"}
+        return cls(name, section["port"], **driver_options(name, section, "grbl", allowed))
 
     # -- wire -------------------------------------------------------------------------------------
     def _readline(self, deadline: float, what: str, timeout: float) -> str:

@@ -153,14 +153,10 @@ class PtpCamera(Camera):
         """Build from a rig-file section: ``port = "usb:VID:PID"`` plus optional ``timeout_s``,
         ``busy_timeout_s``, ``capture_timeout_s``, ``keep_on_camera``, ``session_id``.
         ``usb_backend`` (context) is a pyusb backend; None uses libusb."""
-        known = {"driver", "port", "timeout_s", "busy_timeout_s", "capture_timeout_s",
-                 "keep_on_camera", "session_id"}
-        unknown = set(section) - known
-        if unknown:
-            raise ValueError(f"[{name}] unknown keys for the ptp driver: {sorted(unknown)}; "
-                             f"known: {sorted(known)}")
+        from .rig import driver_options
+        allowed = {"timeout_s", "busy_timeout_s", "capture_timeout_s", "keep_on_camera", "session_id"}
+        kwargs = driver_options(name, section, "ptp", allowed)
         vid, pid = parse_port(section["port"])
-        kwargs = {k: section[k] for k in known - {"driver", "port"} if k in section}
         return cls(name, vid, pid, backend=usb_backend, **kwargs)
 
     # -- link ---------------------------------------------------------------------------------

@@ -82,6 +82,18 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
     return cfg
 
 
+def driver_options(name: str, section: dict[str, Any], driver: str,
+                   allowed: set[str] | frozenset[str]) -> dict[str, Any]:
+    """A section's driver options (every key but ``driver`` and ``port``), checked against the
+    driver's ``allowed`` keys. Drivers call this from their ``from_config``;
+    :meth:`Rig.from_config` adds the file name to any error."""
+    unknown = set(section) - set(allowed) - {"driver", "port"}
+    if unknown:
+        raise ConfigError(f"[{name}] unknown key(s) for the {driver} driver: "
+                          f"{', '.join(sorted(unknown))}; allowed: {', '.join(sorted(allowed))}")
+    return {k: v for k, v in section.items() if k not in ("driver", "port")}
+
+
 def driver_class(driver: str) -> type[Device]:
     module, _, cls = DRIVERS[driver].partition(":")
     return getattr(importlib.import_module(module), cls)

@@ -400,19 +400,11 @@ class ZaberRotaryStage(Axis):
         """Build from a rig-file section: ``port`` and optional ``device``, ``axis``,
         ``baudrate``, ``timeout_s``, ``use_checksum``, ``reply_checksums``, ``microstep_deg``, ``speed_deg_s``,
         ``accel_deg_s2``, ``poll_interval_s``, ``poll_retries``, ``busy_retries``."""
-        from .rig import ConfigError
-        allowed = {"driver", "port", "device", "axis", "baudrate", "timeout_s", "use_checksum",
-                   "reply_checksums", "microstep_deg", "poll_interval_s", "poll_retries", "busy_retries", "speed_deg_s",
+        from .rig import driver_options
+        allowed = {"device", "axis", "baudrate", "timeout_s", "use_checksum", "reply_checksums",
+                   "microstep_deg", "poll_interval_s", "poll_retries", "busy_retries", "speed_deg_s",
                    "accel_deg_s2"}
-        unknown = set(section) - allowed
-        if unknown:
-            raise ConfigError(f"[{name}] unknown key(s) for the zaber driver: {', '.join(sorted(unknown))}; "
-                              f"allowed: {', '.join(sorted(allowed))}")
-        kwargs = {k: v for k, v in section.items() if k not in ("driver", "port")}
-        try:
-            return cls(name, section["port"], **kwargs)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"[{name}] {exc}") from None
+        return cls(name, section["port"], **driver_options(name, section, "zaber", allowed))
 
     # -- wire -------------------------------------------------------------------------------------
     def _next_id(self) -> int:

@@ -205,7 +205,7 @@ def test_from_config_validates_keys():
     rot = ElliptecRotator.from_config("polarizer", {"driver": "elliptec", "port": "/dev/x",
                                                     "address": "2", "move_timeout_s": 3})
     assert rot.address == "2" and rot.move_timeout_s == 3
-    with pytest.raises(ValueError, match="unknown keys.*speed"):
+    with pytest.raises(ValueError, match=r"unknown key\(s\).*speed"):
         ElliptecRotator.from_config("polarizer", {"driver": "elliptec", "port": "x", "speed": 1})
     with pytest.raises(ValueError, match="timeout_s"):
         ElliptecRotator("p", "x", timeout_s=0)

@@ -48,7 +48,7 @@ def test_parse_port_and_from_config():
     cam = PtpCamera.from_config("camera", {"driver": "ptp", "port": "usb:1209:6770", "timeout_s": 1},
                                 usb_backend=sim)
     assert (cam.vendor_id, cam.product_id, cam.backend, cam.timeout_s) == (VID, PID, sim, 1)
-    with pytest.raises(ValueError, match="unknown keys"):
+    with pytest.raises(ValueError, match=r"unknown key\(s\)"):
         PtpCamera.from_config("camera", {"driver": "ptp", "port": "usb:1:2", "iso": 100})
 
 

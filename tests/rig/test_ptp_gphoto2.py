@@ -113,7 +113,7 @@ def test_port_and_config_validation():
     cam = Gphoto2Camera.from_config("camera", {"driver": "gphoto2", "port": "usb:001,005",
                                                "keep_on_camera": True})
     assert cam.port == "usb:001,005" and cam.keep_on_camera
-    with pytest.raises(ValueError, match="unknown keys"):
+    with pytest.raises(ValueError, match=r"unknown key\(s\)"):
         Gphoto2Camera.from_config("camera", {"driver": "gphoto2", "port": "auto", "fps": 3})
 
 

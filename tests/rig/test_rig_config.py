@@ -48,9 +48,9 @@ def test_bad_turntable_sections_are_config_errors():
 @pytest.mark.parametrize("role,section,match", [
     ("polarizer", {"driver": "elliptec", "port": "/dev/x", "address": "Z"}, r"\[polarizer\] address"),
     ("polarizer", {"driver": "elliptec", "port": "/dev/x", "move_timeout_s": -1}, r"\[polarizer\] move_timeout_s"),
-    ("polarizer", {"driver": "elliptec", "port": "/dev/x", "timeout": 1}, r"\[polarizer\] unknown keys.*timeout"),
+    ("polarizer", {"driver": "elliptec", "port": "/dev/x", "timeout": 1}, r"\[polarizer\] unknown key\(s\).*timeout"),
     ("camera", {"driver": "ptp", "port": "usb:zz"}, r"\[camera\].*usb:VID:PID"),
-    ("camera", {"driver": "ptp", "port": "usb:04a9:32b4", "exposure": 1}, r"\[camera\] unknown keys.*exposure"),
+    ("camera", {"driver": "ptp", "port": "usb:04a9:32b4", "exposure": 1}, r"\[camera\] unknown key\(s\).*exposure"),
     ("turntable", {"driver": "zaber", "port": "/dev/x", "speed": 9}, r"\[turntable\].*speed"),
 ])
 def test_every_driver_reports_bad_sections_as_config_errors_naming_the_file(tmp_path, role, section, match):
