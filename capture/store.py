@@ -905,10 +905,9 @@ class Store:
                         out.append(p)
         return out
 
-    def session_active(self, session: str) -> bool:
-        """True while a runner (this process or another) holds ``session``'s writer lock. A
-        session left ``running`` without one was interrupted (a crash, a kill, a power cut)."""
-        fd = self._lock_file(f"session-{self.session(session).id}.lock")
+    def _lock_held(self, name: str) -> bool:
+        """Whether another holder has lock file ``name`` (probed without waiting)."""
+        fd = self._lock_file(name)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -917,16 +916,14 @@ class Store:
             os.close(fd)  # closing releases the probe's lock
         return False
 
+    def session_active(self, session: str) -> bool:
+        """True while a runner (this process or another) holds ``session``'s writer lock. A
+        session left ``running`` without one was interrupted (a crash, a kill, a power cut)."""
+        return self._lock_held(f"session-{self.session(session).id}.lock")
+
     def writer_active(self) -> bool:
         """True while some runner (this process or another) holds the store's writer lock."""
-        fd = self._lock_file("writers.lock")
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
-        finally:
-            os.close(fd)  # closing releases the probe's lock
-        return False
+        return self._lock_held("writers.lock")
 
     def collect_garbage(self) -> list[str]:
         """Delete orphans (see :meth:`orphans`). Only safe with no writer running: use

@@ -35,9 +35,8 @@ from __future__ import annotations
 import errno
 import io
 import struct
-import threading
 import time
-from collections import Counter, deque
+from collections import deque
 from datetime import datetime, timezone
 from typing import Any, Callable
 
@@ -47,6 +46,7 @@ import usb.backend
 import usb.core
 
 from .dng import write_dng
+from .faults import FaultInjection
 
 _HDR = struct.Struct("<IHHI")
 CMD, DATA, RESP, EVENT = 1, 2, 3, 4
@@ -167,7 +167,7 @@ class _Transfer:
         return not self.parts
 
 
-class PtpCameraSim(usb.backend.IBackend):
+class PtpCameraSim(FaultInjection, usb.backend.IBackend):
     """Camera firmware behind a pyusb backend.
 
     Parameters
@@ -195,6 +195,8 @@ class PtpCameraSim(usb.backend.IBackend):
         wMaxPacketSize of the bulk endpoints, bytes.
     """
 
+    FAULTS = frozenset({"no_reply", "stall", "short_read", "corrupt_object", "disconnect"})
+
     def __init__(self, frame_source: FrameSource | None = None, *,
                  extra_state: Callable[[], dict[str, Any]] | None = None,
                  vendor_id: int = 0x1209, product_id: int = 0x6770, fast: bool = True,
@@ -214,13 +216,12 @@ class PtpCameraSim(usb.backend.IBackend):
         self.store_capacity = store_capacity
         self.max_packet = max_packet
         self.serial_number = serial_number
-        self.faults: Counter[str] = Counter()
+        self._init_faults()
         self.commands: list[tuple[int, tuple[int, ...]]] = []  # (op, params) received, for tests
         self.captures = 0
         self.busy_replies = 0  # DeviceBusy answers given, for tests
         self.cancels = 0  # class Cancel requests received
         self.disconnected = False
-        self._lock = threading.RLock()
         self._dev = object()  # the enumerated device's identity
         self.props = {PROP_EXPOSURE: [UINT32, 100, 100, EXPOSURE_VALUES],     # 1/100 s
                       PROP_ISO: [UINT16, 100, 100, ISO_VALUES],
@@ -261,26 +262,12 @@ class PtpCameraSim(usb.backend.IBackend):
             self._events.append((time.monotonic(), _container(EVENT, EV_PROP_CHANGED, 0, (code,))))
 
     def inject(self, fault: str, count: int = 1) -> None:
-        """Arm ``fault`` (see the module docstring) for its next ``count`` occurrences."""
-        known = {"no_reply", "stall", "short_read", "corrupt_object", "disconnect"}
-        if fault not in known:
-            raise ValueError(f"unknown fault {fault!r}; known: {sorted(known)}")
-        if count < 1:
-            raise ValueError(f"count must be >= 1, got {count}")
+        """Arm ``fault`` (see the module docstring) for its next ``count`` occurrences;
+        ``disconnect`` pulls the cable at once."""
+        super().inject(fault, count)
         if fault == "disconnect":
+            self.take_fault("disconnect")
             self.disconnect()
-            return
-        with self._lock:
-            self.faults[fault] += count
-
-    def _take(self, fault: str) -> bool:
-        if self.faults[fault] > 0:
-            self.faults[fault] -= 1
-            return True
-        return False
-
-    def clear_faults(self) -> None:
-        self.faults.clear()
 
     def disconnect(self) -> None:
         """Pull the cable: every transfer fails with ENODEV and the device no longer enumerates."""
@@ -421,7 +408,7 @@ class PtpCameraSim(usb.backend.IBackend):
             elif ctype == CMD:
                 params = struct.unpack(f"<{(length - 12) // 4}I", raw[12:length])
                 self.commands.append((code, params))
-                if self._take("no_reply"):
+                if self.take_fault("no_reply"):
                     return len(raw)
                 self._command(code, tid, params)
             return len(raw)
@@ -429,7 +416,7 @@ class PtpCameraSim(usb.backend.IBackend):
     def bulk_read(self, dev_handle, ep, intf, buff, timeout) -> int:
         with self._lock:
             self._check(ep)
-            if self._in and self._take("stall"):
+            if self._in and self.take_fault("stall"):
                 self._in.clear()  # the in-flight transfer is lost
                 self._halted.add(ep)
                 raise usb.core.USBError("Pipe error", -9, errno.EPIPE)
@@ -465,7 +452,7 @@ class PtpCameraSim(usb.backend.IBackend):
 
     def _queue_data(self, op: int, tid: int, data: bytes | memoryview) -> None:
         header = _HDR.pack(12 + len(data), DATA, op, tid)
-        if self._take("short_read"):
+        if self.take_fault("short_read"):
             cut = max(1, (len(data) // 2) // self.max_packet * self.max_packet - 100)
             self._in.append(_Transfer(header, memoryview(data)[:cut]))  # a short packet, too soon
             return
@@ -600,7 +587,7 @@ class PtpCameraSim(usb.backend.IBackend):
             del self.objects[handle]
             return self._reply(op, tid, OK)
         data = obj["data"]
-        if self._take("corrupt_object"):
+        if self.take_fault("corrupt_object"):
             damaged = bytearray(data[: max(0, len(data) - 4096)])
             damaged[len(damaged) // 2: len(damaged) // 2 + 64] = bytes(64)
             data = bytes(damaged)

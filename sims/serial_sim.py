@@ -23,10 +23,11 @@ import tempfile
 import threading
 import time
 import tty
-from collections import Counter
+
+from .faults import FaultInjection
 
 
-class SerialSim:
+class SerialSim(FaultInjection):
     """Firmware simulator skeleton.
 
     Parameters
@@ -45,7 +46,7 @@ class SerialSim:
     def __init__(self, name: str, *, fast: bool = False) -> None:
         self.name = name
         self.fast = fast
-        self.faults: Counter[str] = Counter()
+        self._init_faults()
         self.requests: list[bytes] = []  # every request received, for tests
         self._dir = tempfile.mkdtemp(prefix=f"gonio-sim-{name}-")
         self.port = os.path.join(self._dir, name)
@@ -53,7 +54,6 @@ class SerialSim:
         self._slave: int | None = None
         self._thread: threading.Thread | None = None
         self._running = False
-        self._lock = threading.RLock()
 
     # -- lifecycle ----------------------------------------------------------------------------
     def start(self) -> str:
@@ -135,35 +135,7 @@ class SerialSim:
     def on_power_up(self) -> None:
         """Reset firmware state as after power-up."""
 
-    # -- faults -------------------------------------------------------------------------------
-    def inject(self, fault: str, count: int = 1) -> None:
-        """Arm ``fault`` for the next ``count`` requests it applies to.
-
-        Raises
-        ------
-        ValueError
-            If ``fault`` is not one this simulator models (a typo would otherwise arm nothing
-            and a fault test would pass without its fault), or ``count`` < 1.
-        """
-        if fault not in self.FAULTS:
-            raise ValueError(f"{type(self).__name__}: unknown fault {fault!r}; "
-                             f"known: {', '.join(sorted(self.FAULTS))}")
-        if count < 1:
-            raise ValueError(f"count must be >= 1, got {count}")
-        with self._lock:
-            self.faults[fault] += count
-
-    def take_fault(self, fault: str) -> bool:
-        """Consume one armed ``fault``; True if it was armed."""
-        with self._lock:
-            if self.faults[fault] > 0:
-                self.faults[fault] -= 1
-                return True
-            return False
-
-    def clear_faults(self) -> None:
-        self.faults.clear()
-
+    # -- faults (inject / take_fault / clear_faults: sims.faults.FaultInjection) ------------
     @staticmethod
     def garble(reply: bytes) -> bytes:
         """Corrupt a reply the way line noise does: flipped bits, a lost byte, terminator kept."""
