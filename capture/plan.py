@@ -14,6 +14,8 @@ A plan is a TOML file (or :class:`Plan` built in Python)::
     # distance_mm = 600             # optional; default: the positioner's own radius
     # ... or explicit points in the world (turntable) frame:
     # xyz_mm = [[300, 0, 400], [0, 300, 400]]
+    # held_out_deg = [[30, 40]]     # [azimuth, elevation] lights captured at every pose but
+                                    # never fitted: they score the reconstruction
 
     [polarizer]
     angles_deg = [0, 90]            # parallel / crossed; or  count = 4  (0, 45, 90, 135)
@@ -58,6 +60,8 @@ CALIBRATION_KINDS = {
     "spheres": ("spheres", 1, "grid"),
     "gray_card": ("gray_card", 1, "grid"),
     "mirror_probe": ("mirror_probe", 1, "none"),
+    # the object lit by the room alone (lamp off): passive reflectometry's input
+    "passive": ("passive", 1, "none"),
 }
 
 #: motion model defaults where a device's describe() gives none (speed unit/s, accel unit/s^2)
@@ -90,12 +94,17 @@ class LightGrid:
         Light distance from the origin, mm (None: the positioner's own radius).
     xyz_mm : tuple of (x, y, z) or None
         Explicit light points in the world frame, mm (instead of the grid), visited in order.
+    held_out_deg : tuple of (azimuth, elevation)
+        Extra light directions (degrees, at ``distance_mm``) captured at every turntable and
+        polarizer pose like the grid, but marked ``held_out``: never given to a fitter, used to
+        score renders of the recovered model.
     """
 
     azimuth_deg: tuple[float, ...] = ()
     elevation_deg: tuple[float, ...] = ()
     distance_mm: float | None = None
     xyz_mm: tuple[tuple[float, float, float], ...] | None = None
+    held_out_deg: tuple[tuple[float, float], ...] = ()
 
     @property
     def count(self) -> int:
@@ -108,6 +117,10 @@ class LightGrid:
         if self.xyz_mm is not None:
             return [{"xyz_mm": list(p)} for p in self.xyz_mm]
         return [_light_dir(az, el, self.distance_mm) for el in self.elevation_deg for az in self.azimuth_deg]
+
+    def held_out_targets(self) -> list[dict[str, Any]]:
+        """The held-out light positions as steps' ``light`` dicts."""
+        return [_light_dir(az, el, self.distance_mm) for az, el in self.held_out_deg]
 
 
 def _light_dir(az: float, el: float, dist: float | None) -> dict[str, Any]:
@@ -233,6 +246,8 @@ class Plan:
                 d["light"] = {"azimuth_deg": list(self.light.azimuth_deg),
                               "elevation_deg": list(self.light.elevation_deg),
                               "distance_mm": self.light.distance_mm}
+                if self.light.held_out_deg:
+                    d["light"]["held_out_deg"] = [list(p) for p in self.light.held_out_deg]
         d["calibration"] = [
             {"kind": c.kind, "frames": c.frames, "exposure_s": c.exposure_s,
              "turntable_angles_deg": None if c.turntable_angles_deg is None else list(c.turntable_angles_deg),
@@ -310,13 +325,21 @@ class Plan:
         names = [axes[i][0] for i in order]
         steps = []
         for combo in _serpentine([axes[i][1] for i in order]):
-            v = dict(zip(names, combo))
-            steps.append(Step(index=0, kind="measure", target="object",
-                              turntable_deg=v.get("turntable"), light=self._light_of(v),
-                              polarizer_deg=v.get("polarizer"),
-                              exposures_s=self.exposure.exposures_s, repeats=self.repeats,
-                              iso=self.exposure.iso, auto_exposure=self.exposure.auto))
+            steps.append(self._measure_step(dict(zip(names, combo))))
+        if self.light is not None and self.light.held_out_deg:
+            # held-out lights: the same turntable and polarizer poses, after the grid
+            levels = [list(self.turntable_deg) or [None], list(self.light.held_out_deg),
+                      list(self.polarizer_deg) or [None]]
+            for a, (az, el), pol in _serpentine(levels):
+                steps.append(replace(self._measure_step({"turntable": a, "light_az": az, "light_el": el,
+                                                         "polarizer": pol}), held_out=True))
         return steps
+
+    def _measure_step(self, v: dict[str, Any]) -> "Step":
+        return Step(index=0, kind="measure", target="object", turntable_deg=v.get("turntable"),
+                    light=self._light_of(v), polarizer_deg=v.get("polarizer"),
+                    exposures_s=self.exposure.exposures_s, repeats=self.repeats,
+                    iso=self.exposure.iso, auto_exposure=self.exposure.auto)
 
     def _light_of(self, v: dict[str, Any]) -> dict[str, Any] | None:
         if "light_xyz" in v:
@@ -339,7 +362,8 @@ class Plan:
             angles = [self.turntable_deg[0] + k * 45.0 for k in range(8)]
         else:
             angles = [self.turntable_deg[0] if self.turntable_deg else None]
-        all_lights = self.light.targets() if self.light is not None else []
+        # held-out lights are calibrated like the grid's (a ``grid`` calibration covers them)
+        all_lights = [*self.light.targets(), *self.light.held_out_targets()] if self.light is not None else []
         light_list: list[dict | None] = {"grid": all_lights, "first": all_lights[:1]}.get(lights, [])
         light_list = light_list or [None]
         # dark frames: lens cap on, nothing needs to move
@@ -385,6 +409,8 @@ class Step:
     iso : float or None
     auto_exposure : bool
         The bracket follows the session's metered exposure.
+    held_out : bool
+        A measurement at a held-out light (:attr:`LightGrid.held_out_deg`): scores, never fits.
     """
 
     index: int
@@ -397,6 +423,7 @@ class Step:
     repeats: int = 1
     iso: float | None = None
     auto_exposure: bool = False
+    held_out: bool = False
 
     @property
     def frames(self) -> int:
@@ -407,14 +434,15 @@ class Step:
                 "turntable_deg": self.turntable_deg, "light": self.light,
                 "polarizer_deg": self.polarizer_deg, "exposures_s": list(self.exposures_s),
                 "repeats": self.repeats, "iso": self.iso, "frames": self.frames,
-                "auto_exposure": self.auto_exposure}
+                "auto_exposure": self.auto_exposure, **({"held_out": True} if self.held_out else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Step":
         return cls(index=d["index"], kind=d["kind"], target=d["target"],
                    turntable_deg=d["turntable_deg"], light=d["light"],
                    polarizer_deg=d["polarizer_deg"], exposures_s=tuple(d["exposures_s"]),
-                   repeats=d["repeats"], iso=d.get("iso"), auto_exposure=d.get("auto_exposure", False))
+                   repeats=d["repeats"], iso=d.get("iso"), auto_exposure=d.get("auto_exposure", False),
+                   held_out=d.get("held_out", False))
 
 
 @dataclass(frozen=True)
@@ -605,14 +633,15 @@ def _parse(data: Any) -> Plan:
         raise PlanError(f"a plan must be a table, got {type(data).__name__}")
     _no_unknown(data, _TOP, "plan")
     tt = _table(data, "turntable", {"angles_deg"})
-    lt = _table(data, "light", {"azimuth_deg", "elevation_deg", "distance_mm", "xyz_mm"})
+    lt = _table(data, "light", {"azimuth_deg", "elevation_deg", "distance_mm", "xyz_mm", "held_out_deg"})
     po = _table(data, "polarizer", {"angles_deg", "count"})
     ex = _table(data, "exposure", {"base_s", "stops", "iso", "auto", "highlight"})
     light = None
     if lt is not None:
         if "xyz_mm" in lt:
-            if {"azimuth_deg", "elevation_deg", "distance_mm"} & lt.keys():
-                raise PlanError("light: give either xyz_mm or azimuth_deg/elevation_deg, not both")
+            if {"azimuth_deg", "elevation_deg", "distance_mm", "held_out_deg"} & lt.keys():
+                raise PlanError("light: give either xyz_mm or azimuth_deg/elevation_deg (and held_out_deg), "
+                                "not both")
             pts = lt["xyz_mm"]
             if not isinstance(pts, list):
                 raise PlanError(f"light.xyz_mm must be a list of [x, y, z] points in mm, got {_tname(pts)}")
@@ -627,9 +656,17 @@ def _parse(data: Any) -> Plan:
             dist = lt.get("distance_mm")
             if dist is not None and not _is_num(dist):
                 raise PlanError(f"light.distance_mm must be a number (mm), got {_tname(dist)}")
+            held = lt.get("held_out_deg", [])
+            if not isinstance(held, list):
+                raise PlanError(f"light.held_out_deg must be a list of [azimuth, elevation] pairs (degrees), "
+                                f"got {_tname(held)}")
+            for i, p in enumerate(held):
+                if not (isinstance(p, list) and len(p) == 2 and all(_is_num(x) for x in p)):
+                    raise PlanError(f"light.held_out_deg[{i}] must be [azimuth, elevation] (degrees), got {p!r}")
             light = LightGrid(azimuth_deg=_numbers(lt["azimuth_deg"], "light.azimuth_deg"),
                               elevation_deg=_numbers(lt["elevation_deg"], "light.elevation_deg"),
-                              distance_mm=None if dist is None else float(dist))
+                              distance_mm=None if dist is None else float(dist),
+                              held_out_deg=tuple((float(a), float(e)) for a, e in held))
     pol: tuple[float, ...] = ()
     if po is not None:
         if ("angles_deg" in po) == ("count" in po):
@@ -737,6 +774,14 @@ def _validate(p: Plan) -> None:
                 _finite(values, f"light.{key}")
                 _no_duplicates(values, f"light.{key}")
                 _check_limits(f"light.{key}", values, (lo, hi), "the valid range", "")
+            for i, (az, el) in enumerate(lt.held_out_deg):
+                _finite((az, el), f"light.held_out_deg[{i}]")
+                if not (-360 <= az <= 360 and -90 <= el <= 90):
+                    raise PlanError(f"light.held_out_deg[{i}] = [{az:g}, {el:g}] is outside the valid range "
+                                    "(azimuth -360..360, elevation -90..90)")
+                if any(az == a and el == e for e in lt.elevation_deg for a in lt.azimuth_deg):
+                    raise PlanError(f"light.held_out_deg[{i}] = [{az:g}, {el:g}] is also on the light grid; "
+                                    "a held-out light must be one the fit never sees")
             if lt.distance_mm is not None and not lt.distance_mm > 0:
                 raise PlanError(f"light.distance_mm = {_fmt(lt.distance_mm)} must be positive (mm)")
     for i, c in enumerate(p.calibration):
@@ -899,6 +944,12 @@ def _check_reach(light: LightGrid, desc: dict[str, Any]) -> None:
                                     f"positioner's reach: {exc.message}") from None
                 raise PlanError(f"{field_} = {value:g} is outside the positioner's limit "
                                 f"{lo:g}..{hi:g}") from None
+    for i, (az, el) in enumerate(light.held_out_deg):
+        try:
+            kin.inverse(LightTarget(azimuth_deg=az, elevation_deg=el, distance_mm=light.distance_mm))
+        except LimitError as exc:
+            raise PlanError(f"light.held_out_deg[{i}] = [{az:g}, {el:g}] is out of the positioner's "
+                            f"reach: {exc.message}") from None
 
 
 def limit_from_describe(desc: dict[str, Any], name: str) -> tuple[float, float] | None:

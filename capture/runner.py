@@ -356,8 +356,9 @@ class Runner:
                "checkerboard": "put the checkerboard target on the turntable",
                "spheres": "put the calibration spheres on the turntable",
                "gray_card": "put the gray card on the turntable",
-               "mirror_probe": "put the mirror sphere on the turntable"}.get(step.target,
-                                                                            f"set up {step.target}")
+               "mirror_probe": "put the mirror sphere on the turntable",
+               "passive": "put the object on the turntable, lamp off, room lit",
+               }.get(step.target, f"set up {step.target}")
         self._emit(EventKind.TARGET, msg, step=step.index, target=step.target, kind=step.kind)
         if self.prepare_target is not None:
             self.prepare_target(step.target, step)

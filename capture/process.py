@@ -1,0 +1,518 @@
+"""A stored, calibrated session -> what the reconstruction methods take (once, for all of them).
+
+:func:`read_calibration` gathers the session's stored calibration results (``Store.results``,
+written by :func:`capture.calibrate.calibrate_session`) into a :class:`SessionCalibration`: the
+camera (intrinsics + lab -> camera pose), the turntable's angle model, a calibrated light
+position for every step, the lamp's radiant intensity in HDR units (from the gray card) and the
+mirror-probe environment map. :func:`session_inputs` then turns every measurement pose into a
+:class:`reconstruct.lumitexels.View`:
+
+- HDR radiance per step from the raw bracket (:func:`merge_step`: the master darks the dark
+  stage stored, a noise-weighted raw merge, bilinear demosaic), in DN/s of camera RGB;
+- the object pose ``Rz(angle_scale * reading)`` about the lab's +z (the object frame is the lab
+  frame at turntable reading 0, which is also the frame of the simulated lab's meshes);
+- the light position from the positioner model (or the lights stage for the same commanded
+  light), the camera from the intrinsics;
+- parallel (analyser at the lamp polarizer's 0 deg) and crossed (90 deg) captures of one pose
+  merged into one view whose ``radiance`` is their sum (what an unpolarised analyser sees),
+  with ``diffuse = 2 crossed`` and ``specular = parallel - crossed``
+  (:func:`calibration.polarization.separate_parallel_crossed`).
+
+Measurement steps whose light the plan marks ``held_out`` become :attr:`ProcessInputs.held_out`
+views: captured like the rest, never given to a fitter, used to score renders of the recovered
+models. A ``passive`` capture (lamp off, room lit) becomes a :class:`PassiveInput`: the image,
+the object's normals and view directions per pixel from the mesh, and the environment map, all
+in the lab frame.
+
+Frames and units: the lab frame of :mod:`capture.calibrate` (origin on the turntable axis at the
+platter, +z up, +x towards the camera), mm; radiance in DN/s; light intensity in DN/s * mm^2 per
+unit of ``f_r cos`` (so lumitexel reflectance is ``f_r cos theta_i``, 1/sr, when the gray card
+gave the absolute scale).
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import cv2
+import numpy as np
+import trimesh
+
+from calibration.hdr import merge_raw_brackets
+from calibration.polarization import separate_parallel_crossed
+from reconstruct.camera import CameraModel
+from reconstruct.envmap import EnvironmentMap
+from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
+from reconstruct.raycast import Mesh, Surface, first_hits
+
+from .calibrate import cfa_channels, decode_raw, demosaic_bilinear
+from .store import FrameRecord, Store
+
+__all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
+           "PassiveInput", "ProcessInputs", "read_calibration", "merge_step", "session_inputs",
+           "lumitexels_with_held_out", "split_samples", "object_pose", "load_mesh"]
+
+class ProcessError(ValueError):
+    """The session cannot give reconstruction inputs; the message says what is missing."""
+
+
+class MissingCalibration(ProcessError):
+    """A calibration stage the inputs need has no stored result (run ``gonio calibrate``)."""
+
+
+@dataclass(frozen=True)
+class GrayCardPose:
+    """Where the gray card stands at turntable reading 0, lab frame, mm (it turns with the
+    platter): its centre and unit normal (printed side). With it the lamp's intensity follows from
+    the card's exact distance and incidence angle; without it the calibration's own assumption
+    (card at the lab origin facing the light) is used."""
+
+    centre_mm: tuple[float, float, float]
+    normal: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SessionCalibration:
+    """The stored calibration of a session, in the form the reconstruction inputs need.
+
+    Attributes
+    ----------
+    camera : CameraModel
+        Calibrated intrinsics and distortion; pose lab -> camera (R, t mm).
+    angle_scale : float
+        Platter angle per turntable reading (the turntable fit's angle model; the object frame is
+        the lab frame at reading 0, so the fit's offset drops out).
+    lights_mm : dict of int -> ndarray of shape (3,)
+        Calibrated light position per step index, lab frame, mm.
+    light_source : str
+        ``positioner`` (arm model: every step) or ``lights`` (per commanded light, from the
+        spheres steps).
+    light_intensity : ndarray of shape (3,)
+        Lamp radiant intensity per camera channel in HDR units (DN/s * mm^2 per unit f_r cos).
+    absolute : bool
+        The intensity comes from the gray card (lumitexel reflectance is f_r cos theta_i in
+        1/sr); False: relative units (intensity 1).
+    environment : EnvironmentMap or None
+        Mirror-probe lat-long map in the lab frame, DN/s (None: no probe calibration).
+    environment_weight : ndarray of shape (He, We) or None
+        The probe's per-texel confidence (0 in the blind cone behind the sphere).
+    ids : dict of str -> int
+        Stored calibration result id per kind (provenance of everything computed from this).
+    """
+
+    camera: CameraModel
+    angle_scale: float
+    lights_mm: dict[int, np.ndarray]
+    light_source: str
+    light_intensity: np.ndarray
+    absolute: bool
+    environment: EnvironmentMap | None
+    environment_weight: np.ndarray | None
+    ids: dict[str, int]
+
+    def object_pose(self, reading_deg: float) -> np.ndarray:
+        """Object -> lab 4x4 at turntable ``reading_deg``."""
+        return object_pose(self.angle_scale * reading_deg)
+
+
+def object_pose(angle_deg: float) -> np.ndarray:
+    """4x4 rotation by ``angle_deg`` about the lab's +z (counter-clockwise seen from above)."""
+    a = np.radians(angle_deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    return T
+
+
+def _latest(store: Store, session_id: int) -> dict[str, dict[str, Any]]:
+    """The newest stored calibration result of each kind."""
+    out: dict[str, dict[str, Any]] = {}
+    for r in store.results(session_id, "calibration"):
+        out[r["kind"]] = r
+    return out
+
+
+def _need(results: dict, kind: str, stage: str, why: str) -> dict[str, Any]:
+    if kind not in results:
+        raise MissingCalibration(f"no stored {stage} calibration ({why}); run `gonio calibrate` on the "
+                                 "session and check that stage")
+    return results[kind]
+
+
+def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | None = None) -> SessionCalibration:
+    """Collect the session's stored calibration into a :class:`SessionCalibration`.
+
+    Raises
+    ------
+    MissingCalibration
+        The intrinsics, turntable or light calibration is not stored (names the stage).
+    """
+    info = store.session(session)
+    res = _latest(store, info.id)
+    intr = _need(res, "intrinsics", "intrinsics", "the camera matrix")["result"]
+    tt = _need(res, "turntable", "turntable", "the lab frame and the object's pose per turntable angle")["result"]
+    w, h = intr["image_size"]
+    lab = tt["lab_to_camera"]
+    camera = CameraModel(K=np.array(intr["K"]), width=int(w), height=int(h), dist=np.array(intr["dist"]),
+                         R=np.array(lab["R"]), t=np.array(lab["t_mm"]))
+    steps = {i: d for i, d, _ in store.steps(info.id)}
+    lights, source = _step_lights(res, steps)
+    ids = {k: r["id"] for k, r in res.items()}
+    intensity, absolute = _light_intensity(res, steps, lights, tt, gray_card)
+    env, weight = None, None
+    if "environment_map" in res and "environment.npz" in res["environment_map"]["artifacts"]:
+        with np.load(io.BytesIO(store.read_object(res["environment_map"]["artifacts"]["environment.npz"]))) as z:
+            env, weight = EnvironmentMap(np.maximum(z["env"], 0.0)), np.asarray(z["weight"])
+    return SessionCalibration(camera=camera, angle_scale=float(tt.get("angle_scale", 1.0)), lights_mm=lights,
+                              light_source=source, light_intensity=intensity, absolute=absolute,
+                              environment=env, environment_weight=weight, ids=ids)
+
+
+def _light_key(light: dict | None) -> tuple | None:
+    if not light:
+        return None
+    if "xyz_mm" in light:
+        return ("xyz", *(round(float(v), 3) for v in light["xyz_mm"]))
+    return (round(float(light["azimuth_deg"]), 3), round(float(light["elevation_deg"]), 3),
+            light.get("distance_mm"))
+
+
+def _step_lights(res: dict, steps: dict[int, dict]) -> tuple[dict[int, np.ndarray], str]:
+    """A light position (lab, mm) for every step with a light: from the positioner model when it
+    was fitted, else from the lights stage's measurement at the same commanded light."""
+    if "positioner_model" in res:
+        rows = res["positioner_model"]["result"]["step_lights"]
+        return {int(r["step"]): np.asarray(r["position_lab_mm"], float) for r in rows}, "positioner"
+    rows = _need(res, "light_positions", "lights", "where the lamp was for each capture")["result"]["lights"]
+    by_key = {}
+    for r in rows:
+        if "position_lab_mm" in r and _light_key(r.get("commanded")) is not None:
+            by_key.setdefault(_light_key(r["commanded"]), []).append(np.asarray(r["position_lab_mm"], float))
+    out = {i: np.mean(by_key[_light_key(d["light"])], axis=0) for i, d in steps.items()
+           if _light_key(d.get("light")) in by_key}
+    return out, "lights"
+
+
+def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
+                     card: GrayCardPose | None) -> tuple[np.ndarray, bool]:
+    """Lamp intensity per channel (DN/s mm^2 per unit f_r cos) from the gray card: a card of albedo
+    rho reads ``M = (rho / pi) I cos_i / d^2``."""
+    gc = res.get("gray_card")
+    if gc is None:
+        return np.ones(3), False
+    r = gc["result"]
+    albedo = float(r["albedo"])
+    estimates = []
+    for row in r["cards"]:
+        s = int(row["step"])
+        M = np.asarray(row["value_rgb"], float)
+        if card is not None and s in lights:
+            reading = steps[s].get("turntable_deg") or 0.0
+            T = object_pose(float(tt.get("angle_scale", 1.0)) * reading)
+            c = T[:3, :3] @ np.asarray(card.centre_mm, float)
+            n = T[:3, :3] @ np.asarray(card.normal, float)
+            to_l = lights[s] - c
+            d = float(np.linalg.norm(to_l))
+            cos = float(n @ to_l) / d
+            if cos > 0.05:
+                estimates.append(M * np.pi * d ** 2 / (albedo * cos))
+        elif "brdf_scale_rgb" in row:
+            estimates.append(1.0 / np.asarray(row["brdf_scale_rgb"], float))
+    if not estimates:
+        return np.ones(3), False
+    return np.median(np.array(estimates), axis=0), True
+
+
+# -- images -------------------------------------------------------------------------------------
+@dataclass
+class StepImage:
+    """One step's merged HDR image. ``radiance`` (H, W, 3) float32 DN/s; ``valid`` (H, W) bool:
+    not clipped in every exposure."""
+
+    step: int
+    spec: dict[str, Any]
+    radiance: np.ndarray
+    valid: np.ndarray
+    frame_ids: list[int]
+
+
+class _Frames:
+    """The session's frames by step and its master darks (from the stored dark calibration)."""
+
+    def __init__(self, store: Store, session: str) -> None:
+        self.store = store
+        self.info = store.session(session)
+        self.steps = {i: d for i, d, _ in store.steps(self.info.id)}
+        self.by_step: dict[int, list[FrameRecord]] = {}
+        for f in store.frames(self.info.id):
+            self.by_step.setdefault(f.step, []).append(f)
+        res = _latest(store, self.info.id)
+        self.darks: dict[float, np.ndarray] = {}
+        self.read_noise = 1.0
+        if "dark" in res:
+            d = res["dark"]
+            self.read_noise = float(d["result"].get("read_noise_dn") or 1.0)
+            for name, sha in d["artifacts"].items():
+                t = float(name.removeprefix("dark_").removesuffix("s.npy"))
+                self.darks[t] = np.load(io.BytesIO(store.read_object(sha)))
+
+    def dark(self, t: float) -> np.ndarray | None:
+        for te, dark in self.darks.items():
+            if abs(te - t) <= 0.01 * t:
+                return dark
+        return None
+
+
+def merge_step(frames: _Frames, step: int) -> StepImage:
+    """HDR radiance of one step's raw bracket (all exposures and repeats), dark-subtracted.
+
+    Raises
+    ------
+    ProcessError
+        The step has no stored frames or a frame lacks its exposure time (names the frame).
+    """
+    recs = frames.by_step.get(step)
+    if not recs:
+        raise ProcessError(f"step {step} has no stored frames")
+    raws, ts = [], []
+    for f in recs:
+        t = f.exposure_s or f.exposure_requested_s
+        if not t or t <= 0:
+            raise ProcessError(f"frame {f.id} (step {step}) has no exposure time")
+        raws.append(decode_raw(frames.store.read_object(f.sha256), frame=f"frame {f.id} (step {step})"))
+        ts.append(float(t))
+    found = [frames.dark(t) for t in ts]
+    darks = np.stack([raws[0].black_level if d is None else d for d in found])
+    hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
+                             white_level=raws[0].white_level, read_noise_dn=frames.read_noise, darks=darks)
+    colors = cfa_channels(raws[0].cfa, hdr.radiance.shape)
+    img = demosaic_bilinear(hdr.radiance, colors)
+    # a pixel is unusable where any photosite of its 3 x 3 demosaic neighbourhood clipped everywhere
+    clipped = cv2.dilate(hdr.saturated.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return StepImage(step, frames.steps[step], img, ~clipped, [f.id for f in recs])
+
+
+# -- the inputs of all methods -----------------------------------------------------------------
+@dataclass
+class PassiveInput:
+    """One image of the object lit by the room (lamp off), ready for passive reflectometry.
+
+    ``image`` (H, W, 3) DN/s; ``normals`` (H, W, 3) unit, lab frame (zero outside ``mask``);
+    ``mask`` (H, W) bool: the object, unclipped; ``view_dirs`` (H, W, 3) unit, surface -> camera,
+    lab frame; ``environment`` the probe map (lab frame, DN/s) and its ``weight``."""
+
+    step: int
+    image: np.ndarray
+    normals: np.ndarray
+    mask: np.ndarray
+    view_dirs: np.ndarray
+    environment: EnvironmentMap
+    environment_weight: np.ndarray | None
+    frame_ids: list[int]
+
+
+@dataclass
+class ProcessInputs:
+    """Everything the methods take, from one session.
+
+    Attributes
+    ----------
+    calibration : SessionCalibration
+    views, held_out : list of View
+        Training and held-out measurement views (lab frame; ``radiance`` DN/s; polarization-
+        separated ``diffuse`` / ``specular`` when the pose was captured parallel and crossed).
+    view_steps, held_out_steps : list of tuple of int
+        The step indices each view was made from.
+    view_frames : list of int
+        Every frame id the views were made from (provenance).
+    passive : PassiveInput or None
+    separated : bool
+        Every view carries a diffuse / specular split.
+    notes : list of str
+        What was dropped or assumed, for the report.
+    """
+
+    calibration: SessionCalibration
+    views: list[View]
+    held_out: list[View]
+    view_steps: list[tuple[int, ...]]
+    held_out_steps: list[tuple[int, ...]]
+    view_frames: list[int]
+    passive: PassiveInput | None = None
+    separated: bool = False
+    notes: list[str] = field(default_factory=list)
+
+
+def load_mesh(path) -> trimesh.Trimesh:
+    """The object's mesh from any file trimesh reads, in the object frame (mm).
+
+    Raises
+    ------
+    ProcessError
+        The file is missing or holds no triangles (names the path).
+    """
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except (OSError, ValueError) as exc:
+        raise ProcessError(f"--mesh {path}: cannot read a mesh ({exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ProcessError(f"--mesh {path}: holds no triangle mesh")
+    return mesh
+
+
+def _analyser(angle: float | None) -> str | None:
+    """``parallel`` / ``crossed`` relative to the lamp's polarizer at 0 deg, None otherwise."""
+    if angle is None:
+        return None
+    a = float(angle) % 180.0
+    if min(a, 180.0 - a) < 1.0:
+        return "parallel"
+    if abs(a - 90.0) < 1.0:
+        return "crossed"
+    return None
+
+
+def session_inputs(store: Store, session: str, *, calibration: SessionCalibration | None = None,
+                   mesh: trimesh.Trimesh | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
+    """Turn a calibrated session's measurement (and passive) steps into method inputs.
+
+    Parameters
+    ----------
+    store, session
+        The session (calibrated: see :func:`read_calibration`).
+    calibration : SessionCalibration, optional
+        Default: :func:`read_calibration` (no gray-card pose).
+    mesh : trimesh.Trimesh, optional
+        The object's mesh (object frame, mm): needed for the passive input's normals.
+    progress : callable(done, total), optional
+        After each merged step.
+
+    Raises
+    ------
+    ProcessError
+        No measurement steps, or a measurement step without a calibrated light.
+    """
+    cal = read_calibration(store, session) if calibration is None else calibration
+    frames = _Frames(store, session)
+    measure = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "measure" and frames.by_step.get(i)]
+    passive = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "passive" and frames.by_step.get(i)]
+    if not measure:
+        raise ProcessError(f"session {session!r} has no stored measurement steps")
+    missing = [i for i in measure if i not in cal.lights_mm]
+    if missing:
+        raise ProcessError(f"no calibrated light for measurement step(s) {missing[:5]} (commanded "
+                           f"{frames.steps[missing[0]].get('light')}): the {cal.light_source} calibration "
+                           "does not cover them; add spheres captures at those lights")
+    # poses: (turntable, light) -> the steps at each analyser angle
+    poses: dict[tuple, list[int]] = {}
+    for i in measure:
+        d = frames.steps[i]
+        poses.setdefault((d.get("turntable_deg"), repr(_light_key(d["light"]))), []).append(i)
+    total = len(measure) + len(passive)
+    done = 0
+    views, held, vsteps, hsteps, frame_ids, notes = [], [], [], [], [], []
+    separated_all = True
+    for (reading, _), steps in poses.items():
+        imgs = []
+        for s in steps:
+            imgs.append(merge_step(frames, s))
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        by = {_analyser(im.spec.get("polarizer_deg")): im for im in imgs}
+        valid = np.logical_and.reduce([im.valid for im in imgs])
+        if "parallel" in by and "crossed" in by:
+            par, cro = by["parallel"], by["crossed"]
+            sep = separate_parallel_crossed(par.radiance, cro.radiance)
+            radiance, diffuse, specular = par.radiance + cro.radiance, sep.diffuse, sep.specular
+            used = [par, cro]
+        else:  # one analyser state (or none): a plain view
+            im = by.get(None) or by.get("parallel") or imgs[0]
+            radiance, diffuse, specular, used = im.radiance, None, None, [im]
+            separated_all = False
+        spec = used[0].spec
+        view = View(camera=cal.camera, radiance=radiance, light_position=cal.lights_mm[used[0].step],
+                    light_intensity=cal.light_intensity, object_to_world=cal.object_pose(reading or 0.0),
+                    valid=valid, diffuse=diffuse, specular=specular)
+        ids = tuple(im.step for im in used)
+        if spec.get("held_out"):
+            held.append(view)
+            hsteps.append(ids)
+        else:
+            views.append(view)
+            vsteps.append(ids)
+        frame_ids += [f for im in used for f in im.frame_ids]
+    if not views:
+        raise ProcessError(f"session {session!r}: every measurement light is held out; nothing to fit")
+    p_input = None
+    if passive:
+        if cal.environment is None:
+            notes.append("passive capture present but no mirror-probe environment map is stored: "
+                         "passive reflectometry skipped")
+        elif mesh is None:
+            notes.append("passive capture present but no mesh: passive reflectometry skipped")
+        else:
+            im = merge_step(frames, passive[0])
+            done += 1
+            if progress is not None:
+                progress(done, total)
+            p_input = _passive_input(im, cal, mesh)
+    return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
+                         view_frames=frame_ids, passive=p_input, separated=separated_all, notes=notes)
+
+
+def _passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh) -> PassiveInput:
+    """Per-pixel lab-frame normals and view directions of the object in the passive image."""
+    cam = cal.camera
+    pose = cal.object_pose(im.spec.get("turntable_deg") or 0.0)
+    surface = Mesh(mesh, transform=pose)
+    o, d = cam.pixel_rays()
+    hits = first_hits([surface], o, d)
+    H, W = cam.height, cam.width
+    normals = np.zeros((H * W, 3))
+    normals[hits.mask] = hits.normal[hits.mask]
+    view = np.zeros((H * W, 3))
+    view[hits.mask] = -d[hits.mask] / np.linalg.norm(d[hits.mask], axis=1, keepdims=True)
+    mask = hits.mask.reshape(H, W) & im.valid
+    return PassiveInput(step=im.step, image=im.radiance, normals=normals.reshape(H, W, 3), mask=mask,
+                        view_dirs=view.reshape(H, W, 3), environment=cal.environment,
+                        environment_weight=cal.environment_weight, frame_ids=im.frame_ids)
+
+
+def lumitexels_with_held_out(mesh: trimesh.Trimesh | Surface, inputs: ProcessInputs, *,
+                             progress: Callable[[int, int], None] | None = None
+                             ) -> tuple[Lumitexels, Lumitexels]:
+    """Lumitexels of the training views and, on the same texels, the held-out samples.
+
+    Both come from one assembly over every view (so the texels are the same points), then the
+    samples are split by view (:func:`split_samples`); texels without a training sample are
+    dropped from both. Returns ``(train, held_out)``; ``held_out`` has no samples when the
+    plan held no light out.
+    """
+    lt = assemble_lumitexels(mesh, [*inputs.views, *inputs.held_out], progress=progress)
+    return split_samples(lt, lt.view >= len(inputs.views))
+
+
+def split_samples(lt: Lumitexels, held: np.ndarray) -> tuple[Lumitexels, Lumitexels]:
+    """Split ``lt``'s samples by the boolean mask ``held`` (S,) into (training, held-out)
+    lumitexels over the same texels: those with at least one training sample."""
+    held = np.asarray(held, bool)
+    if held.shape != (lt.n_samples,):
+        raise ValueError(f"held must have shape ({lt.n_samples},), got {held.shape}")
+    keep = np.flatnonzero(np.bincount(lt.texel[~held], minlength=lt.n_texels) > 0)
+    remap = -np.ones(lt.n_texels, np.int64)
+    remap[keep] = np.arange(len(keep))
+
+    def part(mask: np.ndarray) -> Lumitexels:
+        mask = mask & (remap[lt.texel] >= 0)
+        kw = {}
+        for name in ("position", "normal", "best_view", "pixel"):
+            kw[name] = getattr(lt, name)[keep]
+        kw["texel"] = remap[lt.texel[mask]]
+        for name in ("view", "wi", "wo", "reflectance", "weight", "diffuse", "specular"):
+            v = getattr(lt, name)
+            kw[name] = None if v is None else v[mask]
+        return Lumitexels(**kw)
+
+    return part(~held), part(held)
