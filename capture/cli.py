@@ -30,6 +30,8 @@ def _register() -> None:
     from .cli_capture import app as capture_app; app.add_typer(capture_app, name="capture")  # noqa: E702
     from .cli_sim import app as sim_app; app.add_typer(sim_app, name="sim")  # noqa: E702
     from .cli_calibrate import calibrate; app.command("calibrate")(calibrate)  # noqa: E702
+    from .cli_process import process; app.command("process")(process)  # noqa: E702
+    from .cli_demo import demo; app.command("demo")(demo)  # noqa: E702
     pass
 
 

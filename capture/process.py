@@ -51,7 +51,7 @@ from .store import FrameRecord, Store
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
            "PassiveInput", "ProcessInputs", "read_calibration", "merge_step", "session_inputs",
-           "lumitexels_with_held_out", "split_samples", "object_pose", "load_mesh"]
+           "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose", "load_mesh"]
 
 class ProcessError(ValueError):
     """The session cannot give reconstruction inputs; the message says what is missing."""
@@ -196,7 +196,8 @@ def _step_lights(res: dict, steps: dict[int, dict]) -> tuple[dict[int, np.ndarra
 def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
                      card: GrayCardPose | None) -> tuple[np.ndarray, bool]:
     """Lamp intensity per channel (DN/s mm^2 per unit f_r cos) from the gray card: a card of albedo
-    rho reads ``M = (rho / pi) I cos_i / d^2``."""
+    rho reads ``M = (rho / pi) I cos_i / d^2``, halved when an analyser was in front of the lens
+    (the card depolarises: any analyser passes half its light)."""
     gc = res.get("gray_card")
     if gc is None:
         return np.ones(3), False
@@ -205,7 +206,8 @@ def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
     estimates = []
     for row in r["cards"]:
         s = int(row["step"])
-        M = np.asarray(row["value_rgb"], float)
+        analyser = 2.0 if steps[s].get("polarizer_deg") is not None else 1.0
+        M = np.asarray(row["value_rgb"], float) * analyser
         if card is not None and s in lights:
             reading = steps[s].get("turntable_deg") or 0.0
             T = object_pose(float(tt.get("angle_scale", 1.0)) * reading)
@@ -217,7 +219,7 @@ def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
             if cos > 0.05:
                 estimates.append(M * np.pi * d ** 2 / (albedo * cos))
         elif "brdf_scale_rgb" in row:
-            estimates.append(1.0 / np.asarray(row["brdf_scale_rgb"], float))
+            estimates.append(analyser / np.asarray(row["brdf_scale_rgb"], float))
     if not estimates:
         return np.ones(3), False
     return np.median(np.array(estimates), axis=0), True
@@ -501,18 +503,14 @@ def split_samples(lt: Lumitexels, held: np.ndarray) -> tuple[Lumitexels, Lumitex
     if held.shape != (lt.n_samples,):
         raise ValueError(f"held must have shape ({lt.n_samples},), got {held.shape}")
     keep = np.flatnonzero(np.bincount(lt.texel[~held], minlength=lt.n_texels) > 0)
-    remap = -np.ones(lt.n_texels, np.int64)
-    remap[keep] = np.arange(len(keep))
+    sub = lt.subset(keep)
+    h = held[np.isin(lt.texel, keep)]  # subset keeps the samples' order
+    return select_samples(sub, ~h), select_samples(sub, h)
 
-    def part(mask: np.ndarray) -> Lumitexels:
-        mask = mask & (remap[lt.texel] >= 0)
-        kw = {}
-        for name in ("position", "normal", "best_view", "pixel"):
-            kw[name] = getattr(lt, name)[keep]
-        kw["texel"] = remap[lt.texel[mask]]
-        for name in ("view", "wi", "wo", "reflectance", "weight", "diffuse", "specular"):
-            v = getattr(lt, name)
-            kw[name] = None if v is None else v[mask]
-        return Lumitexels(**kw)
 
-    return part(~held), part(held)
+def select_samples(lt: Lumitexels, mask: np.ndarray) -> Lumitexels:
+    """``lt`` with only the samples where ``mask`` (S,) is true; the texels stay as they are."""
+    per_sample = {f: (None if getattr(lt, f) is None else getattr(lt, f)[mask])
+                  for f in ("texel", "view", "wi", "wo", "reflectance", "weight", "diffuse", "specular")}
+    return Lumitexels(position=lt.position, normal=lt.normal, best_view=lt.best_view, pixel=lt.pixel,
+                      **per_sample)

@@ -1,0 +1,30 @@
+"""``gonio demo``: the whole job on the simulated lab in one command (see :mod:`capture.demo`).
+
+Prints the folder it works in, a progress bar per stage, the methods table and the path of
+``report.html``. Exit status: 0 done; 1 a method failed.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from .cli_process import EXIT_FAILED, EXIT_OK, print_outcome, progress_bar
+
+
+def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 x 240 (under 3 minutes "
+                                    "on 2 cores) instead of the full demo."),
+         out: Path = typer.Option(None, "--out", help="Folder for the store and report.html (default: a "
+                                  "new temporary folder)."),
+         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
+    """Capture, calibrate and reconstruct on the simulated lab, then write report.html."""
+    from .demo import run_demo
+    console = Console()
+    bar, update = progress_bar(quiet)
+    with bar:
+        rep = run_demo(out, quick=quick, progress=update,
+                       say=lambda text: console.print(escape(text), highlight=False))
+    print_outcome(rep, console)
+    raise typer.Exit(EXIT_FAILED if any(m.status == "failed" for m in rep.methods) else EXIT_OK)

@@ -1,0 +1,119 @@
+"""``gonio process SESSION``: calibrate (if needed), reconstruct with every method, write the report.
+
+Runs :func:`capture.pipeline.process_session` with a progress bar, prints one row per method
+(stored, skipped with the reason, failed with the error; held-out relative RMS) and the path of
+the HTML report (``<session>-report.html`` beside the store, or ``--out``).
+
+Exit status: 0 every method that ran succeeded; 1 a method failed; 2 usage or store errors
+(unknown session, unreadable mesh or targets file); 3 the session cannot give reconstruction
+inputs (no measurement steps, a stage of the calibration missing: the message says which).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+from rich.table import Table
+
+from .cli_calibrate import _targets
+from .cli_session import STORE_OPTION, fail, open_store
+from .store import SessionNotFound
+
+EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS = 0, 1, 3
+
+
+def progress_bar(quiet: bool) -> tuple[Progress, callable]:
+    """A rich progress bar on stderr and the ``progress(stage, done, total)`` callable feeding it."""
+    bar = Progress(TextColumn("{task.fields[stage]:<12}"), BarColumn(), MofNCompleteColumn(),
+                   console=Console(stderr=True), transient=True, disable=quiet)
+    task = bar.add_task("process", total=1, stage="")
+
+    def update(stage: str, done: int, total: int) -> None:
+        bar.update(task, completed=done, total=max(total, 1), stage=stage)
+    return bar, update
+
+
+def print_outcome(rep, console: Console) -> None:
+    """The methods table and the report path."""
+    table = Table(title=f"reconstruction of session {escape(rep.session)}")
+    for col in ("method", "status", "s", "held-out rel. RMS", "vs truth", "note"):
+        table.add_column(col, overflow="fold")
+    colour = {"ok": "green", "done": "cyan", "skipped": "yellow", "failed": "red"}
+    for m in rep.methods:
+        f = m.figures
+        table.add_row(m.method, f"[{colour[m.status]}]{m.status}[/]", f"{m.seconds:.1f}",
+                      f"{f['held_out_rel_rms']:.3f}" if "held_out_rel_rms" in f else "",
+                      f"{f['truth_rel_rms']:.3f}" if "truth_rel_rms" in f else "",
+                      escape(m.reason or "; ".join(m.warnings)))
+    console.print(table)
+    console.print(f"report: {escape(str(rep.report_path))}", highlight=False)
+
+
+def process(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
+            store: str = STORE_OPTION,
+            methods: str = typer.Option(None, "--methods", help="Comma-separated methods to run "
+                                        "(default: lambertian,lensch,sharing,passive)."),
+            mesh: Path = typer.Option(None, "--mesh", help="The object's mesh (any format trimesh "
+                                      "reads), object frame = lab frame at turntable reading 0, mm."),
+            targets: Path = typer.Option(None, "--targets", help="TOML file of the lab's targets "
+                                         "(LabTargets fields), for a calibration run here."),
+            demo_lab: bool = typer.Option(False, "--demo-lab", help="The session was captured in the "
+                                          "simulated demo lab: take the mesh, targets, gray-card pose and "
+                                          "ground truth from it."),
+            force: bool = typer.Option(False, "--force", help="Re-run the calibration and every method "
+                                       "even when stored."),
+            out: Path = typer.Option(None, "--out", help="Report file (default: <session>-report.html "
+                                     "beside the store)."),
+            as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
+            quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
+    """Reconstruct a captured session with every method its captures allow and write the report."""
+    from .methods import DEFAULT_METHODS, METHODS
+    from .pipeline import process_session
+    from .process import ProcessError, load_mesh
+    names = DEFAULT_METHODS if not methods else tuple(m.strip() for m in methods.split(",") if m.strip())
+    unknown = [m for m in names if m not in METHODS]
+    if unknown:
+        raise fail(f"--methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
+    kw = {}
+    if mesh is not None:
+        try:
+            kw["mesh"] = load_mesh(mesh)
+        except ProcessError as exc:
+            raise fail(str(exc)) from None
+    elif not demo_lab:
+        raise fail("--mesh FILE is needed: the object's mesh (or --demo-lab for a demo-lab session)")
+    if targets is not None:
+        kw["targets"] = _targets(targets)
+    console = Console()
+    with open_store(store) as st:
+        try:
+            st.session(session)
+        except SessionNotFound as exc:
+            raise fail(str(exc)) from None
+        if demo_lab:
+            from .demo_lab import demo_lab_for, fitter_mesh
+            lab = demo_lab_for(st, session)
+            kw = {"mesh": fitter_mesh(lab.object), "targets": lab.targets(), "gray_card": lab.gray_card_pose(),
+                  "truth": lab.truth(), **kw}
+        report_path = out if out is not None else Path(st.root).resolve().parent / f"{session}-report.html"
+        bar, update = progress_bar(quiet)
+        with bar:
+            try:
+                rep = process_session(st, session, methods=names, force=force, progress=update,
+                                      report_path=report_path, **kw)
+            except ProcessError as exc:
+                bar.stop()
+                typer.secho(f"cannot process: {exc}", err=True, fg=typer.colors.YELLOW)
+                raise typer.Exit(EXIT_NO_INPUTS) from None
+    failed = any(m.status == "failed" for m in rep.methods)
+    if as_json:
+        typer.echo(json.dumps({"session": session, "report": str(rep.report_path), "timings": rep.timings,
+                               "inputs": rep.inputs, "calibration_truth": rep.calibration_truth,
+                               "methods": [vars(m) for m in rep.methods]}, indent=2, default=str))
+    else:
+        print_outcome(rep, console)
+    raise typer.Exit(EXIT_FAILED if failed else EXIT_OK)

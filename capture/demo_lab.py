@@ -1,0 +1,179 @@
+"""The simulated lab the demo captures: scenes per target, the lab's target sizes, and the truth.
+
+:class:`DemoLab` is the camera's frame source: it renders the scene of whatever target the
+runner asked the operator to set up (``prepare_target``), all through one camera, sensor and lamp:
+
+==============  ==============================================================================
+``object``      the object (default: the four-material bunny, :func:`sims.objects.make_object`)
+``lens_cap``    dark frames
+``checkerboard``  a 10 x 7 ChArUco of 28 mm squares standing on the turntable (fills much of
+                the frame: a turntable sweep otherwise only sees the image centre)
+``spheres``     three 25 mm chrome balls on a bar before a lit white backdrop, lamp behind a
+                120 mm diffuser (Lensch et al. 2003 Sec. 4.1)
+``gray_card``   the 18 % card standing on the turntable
+``mirror_probe``  a chrome ball under the Grace Cathedral probe, lamp off
+``passive``     the object under that probe, lamp off (passive reflectometry)
+==============  ==============================================================================
+
+:meth:`DemoLab.targets` states these targets as the calibration reads them
+(:class:`capture.calibrate.LabTargets`), :meth:`DemoLab.gray_card_pose` the card's pose, and
+:meth:`DemoLab.truth` the ground truth the report compares against. Frames: the sims' world
+frame, which is the calibration's lab frame (origin on the turntable axis at the platter, +z up,
++x towards the camera), mm.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from reconstruct.brdf import BRDF, Lambertian
+from reconstruct.camera import CameraModel
+from reconstruct.raycast import Mesh, Plane
+from reconstruct.render import SceneObject
+from sims.objects import GroundTruthObject, make_object
+from sims.targets import CHROME_REFLECTANCE, CharucoTarget, GrayCard
+from sims.world import (LIGHT_INTENSITY, SimWorld, Target, board_on_turntable, default_camera,
+                        light_position, spheres_target, standing_pose)
+
+from .calibrate import LabTargets
+from .process import GrayCardPose
+
+#: the demo's calibration board (fills much of the 320 x 240 frame)
+BOARD = CharucoTarget(squares=(10, 7), square_mm=28.0, marker_mm=21.0)
+SPHERE_RADIUS_MM = 25.0
+#: the lamp's diffuser radius as the spheres see it: its highlight spans a few pixels
+SPHERES_LAMP_RADIUS_MM = 60.0
+
+
+def _backdrop() -> Target:
+    """A white matte board behind the sphere row facing the camera: the spheres show as dark
+    discs against it."""
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = (0, 1, 0), (0, 0, 1), (1, 0, 0), (-400, 0, 150)
+    obj = SceneObject(Plane((1200.0, 700.0), pose), Lambertian(0.8), "backdrop")
+    return Target("backdrop", lambda ang: [obj], lambda ang: np.zeros((0, 3)), False)
+
+
+@dataclass(frozen=True)
+class DemoTruth:
+    """What the simulated lab really is (for the report's truth columns).
+
+    ``camera`` the true camera (lab -> camera pose), ``object`` the object with its true
+    materials, ``light_intensity`` the lamp's (renderer units / sr, RGB), ``sensor_dn_per_radiance``
+    (3,) the camera's DN/s per unit of renderer radiance at the image centre (so calibrated
+    intensities in DN/s mm^2 compare with the truth)."""
+
+    camera: CameraModel
+    object: GroundTruthObject
+    light_intensity: np.ndarray
+    sensor_dn_per_radiance: np.ndarray
+
+    @staticmethod
+    def light_position(light: dict[str, Any]) -> np.ndarray:
+        """True lab position (mm) of a step's commanded light ``{azimuth_deg, elevation_deg}``."""
+        return light_position(light["azimuth_deg"], light["elevation_deg"])
+
+    def materials(self, points: np.ndarray) -> tuple[np.ndarray, tuple[BRDF, ...]]:
+        """True material id per object-frame point (N, 3) mm and the materials by id."""
+        from sims.objects import MULTI_MATERIALS, region_ids
+        if self.object.name != "multi":
+            raise ValueError(f"no per-point material truth for object {self.object.name!r}")
+        return region_ids(points, self.object.height_mm), MULTI_MATERIALS
+
+
+class DemoLab:
+    """Frame source of the demo's simulated camera (see the module docstring).
+
+    Parameters
+    ----------
+    width, height : int
+        Camera resolution (the fast lab's 320 x 240 by default).
+    object : str or GroundTruthObject
+        What stands on the turntable.
+    seed : int
+        Sensor-noise seed (each scene draws from its own stream).
+    """
+
+    def __init__(self, width: int = 320, height: int = 240, *, object: str | GroundTruthObject = "multi",
+                 seed: int = 0) -> None:
+        self.camera = default_camera(width, height)
+        self.object = make_object(object) if isinstance(object, str) else object
+        cam = self.camera
+        self.worlds = {
+            "object": SimWorld(self.object, camera=cam, seed=seed + 1),
+            "lens_cap": SimWorld.for_capture("dark", camera=cam, seed=seed + 2),
+            "checkerboard": SimWorld(None, camera=cam, targets=[board_on_turntable(BOARD)], supersample=2,
+                                     seed=seed + 3),
+            "spheres": SimWorld(None, camera=cam, targets=[self._spheres(), _backdrop()],
+                                light_radius_mm=SPHERES_LAMP_RADIUS_MM, supersample=2, seed=seed + 4),
+            "gray_card": SimWorld.for_capture("graycard", camera=cam, seed=seed + 5),
+            "mirror_probe": SimWorld.for_capture("probe", None, camera=cam, seed=seed + 6),
+            "passive": SimWorld.for_capture("passive", self.object, camera=cam, seed=seed + 7),
+        }
+        self.current = self.worlds["object"]
+
+    @staticmethod
+    def _spheres() -> Target:
+        return spheres_target("chrome", count=3, radius_mm=SPHERE_RADIUS_MM, spacing_mm=90.0,
+                              start_mm=(-120.0, -90.0, 110.0))
+
+    def __call__(self, state) -> bytes:
+        return self.current.frame_source(state)
+
+    def prepare_target(self, target: str, step=None) -> None:
+        """``Runner(prepare_target=...)``: the simulated operator sets up ``target``."""
+        if target not in self.worlds:
+            raise ValueError(f"the demo lab has no scene for target {target!r}; it has {', '.join(self.worlds)}")
+        self.current = self.worlds[target]
+
+    # -- what the lab states about itself ---------------------------------------------------------
+    def targets(self) -> LabTargets:
+        """The lab's calibration targets as :func:`capture.calibrate.calibrate_session` reads them."""
+        height = float(board_on_turntable(BOARD).points_world(0.0).mean(axis=0)[2])
+        return LabTargets(charuco_squares=BOARD.squares, charuco_square_mm=BOARD.square_mm,
+                          charuco_marker_mm=BOARD.marker_mm, sphere_radius_mm=SPHERE_RADIUS_MM,
+                          sphere_reflectance=CHROME_REFLECTANCE, charuco_centre_height_mm=height,
+                          sphere_centres_mm=tuple(map(tuple, self._spheres().points_world(0.0))))
+
+    @staticmethod
+    def gray_card_pose() -> GrayCardPose:
+        """Centre and printed-side normal of the card at turntable reading 0 (lab frame)."""
+        w, h = GrayCard().size_mm
+        pose = standing_pose(h / 2 + 10.0)
+        return GrayCardPose(tuple(pose[:3, 3]), tuple(-pose[:3, 2]))
+
+    def truth(self, fnumber: float = 8.0, iso: float = 100.0) -> DemoTruth:
+        """The ground truth; ``fnumber`` / ``iso`` the camera settings the captures used."""
+        sensor = self.worlds["object"].sensor
+        # camera equation at the principal point (no vignetting): DN/s per unit radiance
+        dn = (np.asarray(sensor.quantum_efficiency) * np.pi / (4.0 * fnumber ** 2) * sensor.photon_flux
+              * sensor.pixel_pitch_um ** 2 / sensor.e_per_dn(iso))
+        return DemoTruth(camera=self.camera, object=self.object,
+                         light_intensity=np.broadcast_to(np.asarray(LIGHT_INTENSITY, float), (3,)).copy(),
+                         sensor_dn_per_radiance=dn)
+
+
+def demo_lab_for(store, session: str) -> DemoLab:
+    """The demo lab a stored session was captured in, at the resolution of its frames."""
+    from .calibrate import decode_raw
+    frames = store.frames(store.session(session).id)
+    if not frames:
+        raise ValueError(f"session {session!r} has no frames")
+    h, w = decode_raw(store.read_object(frames[0].sha256)).data.shape
+    return DemoLab(w, h)
+
+
+def fitter_mesh(obj: GroundTruthObject) -> trimesh.Trimesh:
+    """The mesh a fitter is given for a simulated object: its (smooth) triangle mesh in the
+    object frame. An object whose rendered geometry carries detail the mesh lacks states the
+    smooth one as ``fitter_mesh``."""
+    smooth = getattr(obj, "fitter_mesh", None)
+    if smooth is not None:
+        return smooth
+    meshes = [p.surface for p in obj.parts if isinstance(p.surface, Mesh)]
+    if not meshes:
+        raise ValueError(f"object {obj.name!r} has no triangle mesh; give one with --mesh")
+    return trimesh.util.concatenate([m.mesh.copy().apply_transform(m.transform) for m in meshes])

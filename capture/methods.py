@@ -1,0 +1,212 @@
+"""The reconstruction methods as the pipeline runs them: one adapter per method, one result shape.
+
+Each adapter takes the session's training lumitexels (and the rest of
+:class:`capture.process.ProcessInputs`) and returns a :class:`Fitted`: a per-sample predictor
+(reflectance ``f_r cos theta_i`` of any lumitexels on the same texels, so held-out samples score
+the model), the arrays to store, the parameters it ran with and its headline figures. An adapter
+raises :class:`MethodSkipped` with the reason when the captures do not allow the method or its
+code is not installed, so ``gonio process`` can say which methods it skipped and why.
+
+``lambertian`` is the reference every method must beat: one albedo per texel (closed-form least
+squares of ``r = albedo / pi * cos theta_i``), the model a photograph without a reflectance
+capture implies.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from reconstruct.brdf import BRDF, Lambertian
+from reconstruct.lumitexels import Lumitexels
+
+from .process import ProcessInputs
+
+__all__ = ["METHODS", "DEFAULT_METHODS", "Fitted", "MethodSkipped", "fit_method"]
+
+
+class MethodSkipped(Exception):
+    """The method cannot run on this session (the message says why)."""
+
+
+@dataclass
+class Fitted:
+    """A fitted model, as the pipeline stores, scores and reports it.
+
+    Attributes
+    ----------
+    predict : callable(Lumitexels) -> ndarray of shape (S, 3)
+        Predicted reflectance ``f_r cos theta_i`` of each sample (texels index the training
+        lumitexels' texels).
+    brdf : callable(ndarray of int) -> BRDF
+        The recovered BRDF of the given texels (per-texel parameters, local frame of the
+        texel's normal), for BRDF slices.
+    arrays : dict of str -> ndarray
+        What is stored with the result (per-texel parameters, labels, normals ...).
+    params : dict
+        The options the method ran with.
+    figures : dict
+        Headline numbers of the method's own report (JSON-able).
+    warnings : list of str
+        What a reader must know (e.g. passive reflectometry's adequacy warnings).
+    normals : ndarray of shape (T, 3) or None
+        Refined normals in the object frame, where the method fits them.
+    """
+
+    predict: Callable[[Lumitexels], np.ndarray]
+    brdf: Callable[[np.ndarray], BRDF]
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    params: dict[str, Any] = field(default_factory=dict)
+    figures: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    normals: np.ndarray | None = None
+
+
+def _module(name: str, attr: str, method: str):
+    """The reconstruction module ``name`` if it offers ``attr``, else skip ``method``."""
+    try:
+        mod = importlib.import_module(name)
+    except ModuleNotFoundError:
+        raise MethodSkipped(f"{method}: {name} is not part of this gonio yet") from None
+    if not hasattr(mod, attr):
+        raise MethodSkipped(f"{method}: {name} has no {attr} yet")
+    return mod
+
+
+# -- reference: one albedo per texel ------------------------------------------------------------
+def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+    cos = train.wi[:, 2].astype(np.float64)
+    w = train.weight.astype(np.float64)
+    num = np.stack([np.bincount(train.texel, w * cos * train.reflectance[:, c], train.n_texels)
+                    for c in range(3)], axis=1)
+    den = np.bincount(train.texel, w * cos * cos, train.n_texels)[:, None]
+    albedo = np.pi * num / np.maximum(den, 1e-12)
+    model = Lambertian(np.maximum(albedo, 0.0))
+
+    def predict(lt: Lumitexels) -> np.ndarray:
+        return albedo[lt.texel] / np.pi * np.maximum(lt.wi[:, 2:3], 0.0)
+
+    return Fitted(predict, lambda t: model.take(np.asarray(t)), arrays={"albedo": albedo.astype(np.float32)},
+                  params={"model": "Lambertian albedo per texel (least squares of r = albedo/pi cos)"},
+                  figures={"median_albedo": [round(float(v), 4) for v in np.median(albedo, axis=0)]})
+
+
+# -- Lensch et al. 2003 -------------------------------------------------------------------------
+def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+    mod = _module("reconstruct.lensch", "fit_svbrdf_lumitexels", "lensch")
+    fit = mod.fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress)
+    per_texel = fit.brdf if callable(getattr(fit, "brdf", None)) else fit.texel_brdf
+    normals = getattr(fit, "normals", None)
+
+    def predict(lt: Lumitexels) -> np.ndarray:
+        wi, wo = _reframe(lt, normals)
+        return per_texel(lt.texel).evaluate(wi, wo) * np.maximum(wi[:, 2:3], 0.0)
+
+    rms = {k: float(v) for k, v in dict(getattr(fit, "rms", {})).items()}
+    arrays = {"labels": np.asarray(fit.labels)}
+    if normals is not None:
+        arrays["normals_local"] = np.asarray(normals, np.float32)
+    if getattr(fit, "weights", None) is not None:
+        arrays["weights"] = np.asarray(fit.weights, np.float32)
+    return Fitted(predict, per_texel, arrays=arrays,
+                  params={"n_materials": "auto", "fit_normals": True, "rng": rng},
+                  figures={"materials": len(fit.materials), "table_ii_rms": rms},
+                  normals=_to_object(train, normals))
+
+
+def _reframe(lt: Lumitexels, normals: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Sample directions in the frame of each texel's fitted normal (given in the texel's
+    local frame of the mesh normal); unchanged without fitted normals."""
+    if normals is None:
+        return lt.wi, lt.wo
+    from reconstruct.frames import tangent_frames, to_local
+    frames = tangent_frames(np.asarray(normals, float))[lt.texel]
+    return to_local(lt.wi, frames), to_local(lt.wo, frames)
+
+
+def _to_object(lt: Lumitexels, normals_local: np.ndarray | None) -> np.ndarray | None:
+    """Local-frame normals (T, 3) -> object frame, through each texel's mesh frame."""
+    if normals_local is None:
+        return None
+    from reconstruct.frames import tangent_frames
+    F = tangent_frames(lt.normal)                    # (T, 3, 3): rows t, b, n
+    return np.einsum("tij,ti->tj", F, np.asarray(normals_local, float))
+
+
+# -- Zickler et al. 2005 ------------------------------------------------------------------------
+def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+    if train.diffuse is None or train.specular is None:
+        raise MethodSkipped("sharing: no polarized frames (the dichromatic model needs parallel and "
+                            "crossed captures of each pose)")
+    mod = _module("reconstruct.sharing", "fit_spatial", "sharing")
+    xy = _surface_xy(train.position)
+    brdf = train.brdf_values()
+    cos = np.maximum(train.wi[:, 2:3], 1e-6)
+    fit = mod.fit_spatial(xy[train.texel], train.wi, train.wo, brdf, texel=train.texel,
+                          diffuse=train.diffuse / cos, specular=train.specular / cos, rng=rng,
+                          progress=progress)
+    per_texel = fit.brdf if callable(getattr(fit, "brdf", None)) else fit.texel_brdf
+
+    def predict(lt: Lumitexels) -> np.ndarray:
+        return per_texel(lt.texel).evaluate(lt.wi, lt.wo) * np.maximum(lt.wi[:, 2:3], 0.0)
+
+    return Fitted(predict, per_texel, arrays={"xy": xy.astype(np.float32)},
+                  params={"surface_xy": "object-frame azimuth/height about the turntable axis", "rng": rng},
+                  figures={k: v for k, v in dict(getattr(fit, "figures", {})).items()})
+
+
+def _surface_xy(position: np.ndarray) -> np.ndarray:
+    """A 2-D surface parameter for the spatial RBF: arc length around the turntable axis and
+    height, mm (a cylindrical map: the turntable's natural one)."""
+    r = np.linalg.norm(position[:, :2], axis=1)
+    return np.stack([np.arctan2(position[:, 1], position[:, 0]) * max(float(np.median(r)), 1.0),
+                     position[:, 2]], axis=1)
+
+
+# -- Romeiro et al. 2008 ------------------------------------------------------------------------
+def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+    p = inputs.passive
+    if p is None:
+        why = "; ".join(n for n in inputs.notes if "passive" in n) or \
+            "no passive capture (add [[calibration]] kind = \"passive\": lamp off, room lit)"
+        raise MethodSkipped(f"passive: {why}")
+    mod = _module("reconstruct.passive", "passive_reflectometry", "passive")
+    fit = mod.passive_reflectometry(p.image, p.normals, p.mask, p.environment, view_dirs=p.view_dirs,
+                                    rng=rng, progress=progress)
+    brdf = fit.brdf
+
+    def predict(lt: Lumitexels) -> np.ndarray:
+        return brdf.evaluate(lt.wi, lt.wo) * np.maximum(lt.wi[:, 2:3], 0.0)
+
+    adequacy = getattr(fit, "adequacy", None)
+    warnings = list(getattr(adequacy, "warnings", []) or [])
+    return Fitted(predict, lambda t: brdf, arrays={"bivariate": np.asarray(getattr(brdf, "values", np.zeros(0)))},
+                  params={"grid": list(getattr(brdf, "shape", ())) or None, "rng": rng},
+                  figures={"prior": str(getattr(fit, "prior", "")),
+                           "effective_rank": getattr(adequacy, "effective_rank", None)},
+                  warnings=warnings + ["passive reflectometry recovers one homogeneous BRDF: on a "
+                                       "multi-material object it is an average"])
+
+
+METHODS: dict[str, Callable[..., Fitted]] = {"lambertian": _lambertian, "lensch": _lensch,
+                                             "sharing": _sharing, "passive": _passive}
+#: what ``gonio process`` runs without --methods (the reference first)
+DEFAULT_METHODS = ("lambertian", "lensch", "sharing", "passive")
+
+
+def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int = 0,
+               progress: Callable[[int, int], None] | None = None) -> Fitted:
+    """Run method ``name`` (one of :data:`METHODS`) on the training lumitexels.
+
+    Raises
+    ------
+    MethodSkipped
+        The session's captures do not allow it, or its code is not installed (says which).
+    ValueError
+        ``name`` is not a method.
+    """
+    if name not in METHODS:
+        raise ValueError(f"methods: unknown {name!r}; known: {', '.join(METHODS)}")
+    return METHODS[name](train, inputs, rng=rng, progress=progress)

@@ -1,0 +1,376 @@
+"""``gonio process``: a captured session -> calibration -> every method -> stored results -> report.
+
+:func:`process_session` runs, in order: the calibration (when none is stored, or ``force``), the
+reconstruction inputs (:mod:`capture.process`), the lumitexels over the object's mesh with the
+held-out samples split off, then each requested method (:mod:`capture.methods`). Every method's
+model is scored on the held-out lights (relative RMS of predicted against captured reflectance)
+and stored with :meth:`capture.store.Store.add_reconstruction`: its figures and parameters, the
+ids of the frames and calibrations it used, the code version, and its arrays (``model.npz``) and
+report pictures (``report.npz``) as content-addressed objects. A method already stored for the
+session is skipped unless ``force``.
+
+With a :class:`capture.demo_lab.DemoTruth` (the simulated lab's ground truth) the figures gain
+truth columns: calibration errors (focal length, lights, lamp intensity), the inputs' own error
+(measured reflectance against the true ``f_r cos``: what calibration and noise leave) and each
+model's error against the truth on the held-out samples.
+"""
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import trimesh
+
+from reconstruct.lumitexels import Lumitexels, View
+
+from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
+from .methods import DEFAULT_METHODS, METHODS, Fitted, MethodSkipped, fit_method
+from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
+                      read_calibration, select_samples, session_inputs)
+from .store import Store
+
+__all__ = ["MethodOutcome", "ProcessReport", "process_session", "relative_rms", "SLICE_THETA_I_DEG"]
+
+#: incidence angle of the BRDF slices the report draws (in the plane of incidence), degrees
+SLICE_THETA_I_DEG = 30.0
+#: texels per material whose recovered BRDFs are averaged into a slice
+SLICE_TEXELS = 200
+
+
+def relative_rms(predicted: np.ndarray, measured: np.ndarray) -> float:
+    """``sqrt(sum (p - m)^2 / sum m^2)`` over all samples and channels (NaN when empty)."""
+    m = np.asarray(measured, float)
+    if m.size == 0:
+        return float("nan")
+    return float(np.sqrt(np.sum((np.asarray(predicted, float) - m) ** 2) / max(np.sum(m ** 2), 1e-300)))
+
+
+@dataclass
+class MethodOutcome:
+    """One method's run: ``status`` ``ok`` (fitted and stored now), ``done`` (stored before),
+    ``skipped`` (reason) or ``failed`` (error)."""
+
+    method: str
+    status: str
+    reason: str = ""
+    figures: dict[str, Any] = field(default_factory=dict)
+    result_id: int | None = None
+    seconds: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass
+class ProcessReport:
+    """What :func:`process_session` did: calibration stages (stage, status, reason, figures),
+    the inputs' counts, each method's outcome, stage timings (s) and, with truth, the
+    calibration's errors against it."""
+
+    session: str
+    calibration: list[dict[str, Any]] = field(default_factory=list)
+    inputs: dict[str, Any] = field(default_factory=dict)
+    methods: list[MethodOutcome] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    calibration_truth: dict[str, Any] = field(default_factory=dict)
+    report_path: Path | None = None
+
+    def method(self, name: str) -> MethodOutcome:
+        for m in self.methods:
+            if m.method == name:
+                return m
+        raise KeyError(f"no method {name!r} in this run")
+
+
+class _Clock:
+    def __init__(self, report: ProcessReport, progress) -> None:
+        self.report, self.progress = report, progress
+
+    def stage(self, name: str):
+        clock = self
+
+        class _Timer:
+            def __enter__(self):
+                if clock.progress is not None:
+                    clock.progress(name, 0, 1)
+                self.t = time.perf_counter()
+
+            def __exit__(self, *exc):
+                clock.report.timings[name] = round(clock.report.timings.get(name, 0.0)
+                                                   + time.perf_counter() - self.t, 3)
+        return _Timer()
+
+    def sub(self, name: str) -> Callable[[int, int], None] | None:
+        if self.progress is None:
+            return None
+        return lambda done, total: self.progress(name, done, total)
+
+
+def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFAULT_METHODS,
+                    mesh: trimesh.Trimesh | None = None, targets: LabTargets | None = None,
+                    gray_card: GrayCardPose | None = None, truth=None, force: bool = False, rng: int = 0,
+                    progress: Callable[[str, int, int], None] | None = None,
+                    report_path: str | Path | None = None) -> ProcessReport:
+    """Calibrate (if needed), build the inputs, run and store each method, write the report.
+
+    Parameters
+    ----------
+    store, session
+        The captured session.
+    methods : sequence of str
+        Names from :data:`capture.methods.METHODS`; each is run if the captures allow it.
+    mesh : trimesh.Trimesh
+        The object's mesh in the object frame (the lab frame at turntable reading 0), mm.
+    targets : LabTargets, optional
+        The lab's calibration targets (for a calibration run here).
+    gray_card : GrayCardPose, optional
+        The card's pose, for the lamp's absolute intensity.
+    truth : capture.demo_lab.DemoTruth, optional
+        Ground truth of a simulated session (adds truth columns).
+    force : bool
+        Re-run the calibration and every method even when stored.
+    rng : int
+        Seed handed to the methods.
+    progress : callable(stage, done, total), optional
+        Stage name and progress within it.
+    report_path : path, optional
+        Where to write the HTML report (default: ``<session>-report.html`` beside the store).
+
+    Raises
+    ------
+    ValueError
+        An unknown method name, or no mesh.
+    capture.process.ProcessError
+        The session cannot give inputs (no measurement steps, lights not calibrated ...).
+    """
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
+    if mesh is None:
+        raise ValueError("mesh: the object's mesh is needed (gonio process --mesh FILE)")
+    info = store.session(session)
+    rep = ProcessReport(session)
+    clock = _Clock(rep, progress)
+    with clock.stage("calibration"):
+        rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
+    cal = read_calibration(store, session, gray_card=gray_card)
+    if truth is not None:
+        rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
+    with clock.stage("inputs"):
+        inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=clock.sub("inputs"))
+    with clock.stage("lumitexels"):
+        train, held = lumitexels_with_held_out(mesh, inputs, progress=clock.sub("lumitexels"))
+    truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
+    rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
+                  "polarization_separated": inputs.separated, "texels": train.n_texels,
+                  "training_samples": train.n_samples, "held_out_samples": held.n_samples,
+                  "light_source": cal.light_source, "absolute_units": cal.absolute,
+                  "passive_capture": inputs.passive is not None, "notes": inputs.notes}
+    if truth_r is not None:
+        rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(held.reflectance if held.n_samples else
+                                                               train.reflectance, truth_r[1] if held.n_samples
+                                                               else truth_r[0])
+    stored = {r["kind"]: r["id"] for r in store.results(info.id, "reconstruction")}
+    for name in methods:
+        if name in stored and not force:
+            rep.methods.append(MethodOutcome(name, "done", f"stored before (result {stored[name]}); --force "
+                                                           "re-runs it", result_id=stored[name]))
+            continue
+        started = time.perf_counter()
+        with clock.stage(name):
+            outcome = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
+                                  clock.sub(name))
+        outcome.seconds = round(time.perf_counter() - started, 3)
+        rep.methods.append(outcome)
+    from .report_html import write_html_report
+    with clock.stage("report"):
+        rep.report_path = write_html_report(store, session, rep, truth=truth,
+                                            path=report_path or Path(store.root).resolve().parent / f"{session}-report.html")
+    return rep
+
+
+def _calibration(store: Store, session: str, targets, force: bool, progress) -> list[dict[str, Any]]:
+    info = store.session(session)
+    stored = [r for r in store.results(info.id, "calibration")]
+    if stored and not force:
+        return [{"stage": r["kind"], "status": "stored", "reason": f"result {r['id']}", "figures": {}}
+                for r in stored]
+    try:
+        report = calibrate_session(store, session, targets=targets, measurement_hdr=False,
+                                   progress=None if progress is None else (lambda label, i, n: progress(i, n)))
+    except NothingToCalibrate as exc:
+        return [{"stage": "calibration", "status": "skipped", "reason": str(exc), "figures": {}}]
+    return [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
+             "seconds": s.seconds} for s in report.stages]
+
+
+# -- one method ---------------------------------------------------------------------------------
+def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, held: Lumitexels,
+                inputs: ProcessInputs, truth, truth_r, rng: int, progress) -> MethodOutcome:
+    try:
+        fit = fit_method(name, train, inputs, rng=rng, progress=progress)
+    except MethodSkipped as exc:
+        return MethodOutcome(name, "skipped", str(exc))
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}")
+    figures = dict(fit.figures)
+    figures["training_rel_rms"] = relative_rms(fit.predict(train), train.reflectance)
+    if held.n_samples:
+        figures["held_out_rel_rms"] = relative_rms(fit.predict(held), held.reflectance)
+    if truth_r is not None:
+        scored = held if held.n_samples else train
+        figures["truth_rel_rms"] = relative_rms(fit.predict(scored), truth_r[1] if held.n_samples else truth_r[0])
+    if fit.normals is not None:
+        figures["normal_change_deg"] = float(np.degrees(np.median(np.arccos(np.clip(
+            np.einsum("ij,ij->i", fit.normals, train.normal), -1, 1)))))
+    pictures = _pictures(fit, train, held, inputs, truth)
+    result = {"figures": figures, "warnings": fit.warnings,
+              "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
+                         "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
+                         "training_samples": train.n_samples, "held_out_samples": held.n_samples}}
+    rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
+                                   input_frames=inputs.view_frames,
+                                   artifacts={"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)})
+    return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings)
+
+
+def _npz(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **{k: np.asarray(v) for k, v in arrays.items()})
+    return buf.getvalue()
+
+
+# -- truth --------------------------------------------------------------------------------------
+def _truth_reflectance(truth, train: Lumitexels, held: Lumitexels) -> tuple[np.ndarray, np.ndarray] | None:
+    """True ``f_r cos`` of every training and held-out sample (mesh normals: the simulated
+    object's own), in the calibration's units when it is absolute (1/sr)."""
+    try:
+        ids, materials = truth.materials(train.position)
+    except ValueError:
+        return None
+
+    def of(lt: Lumitexels) -> np.ndarray:
+        out = np.zeros((lt.n_samples, 3))
+        tid = ids[lt.texel]
+        for k, m in enumerate(materials):
+            s = tid == k
+            if s.any():
+                out[s] = m.evaluate(lt.wi[s], lt.wo[s]) * lt.wi[s, 2:3]
+        return out
+
+    return of(train), of(held)
+
+
+def calibration_against_truth(store: Store, session: str, cal: SessionCalibration, truth) -> dict[str, Any]:
+    """The calibration's errors against the simulation: focal length (%), principal point (px),
+    camera centre (mm), each light (mm, % of its distance from the lab origin, direction deg)
+    and the lamp intensity (% against the truth times the sensor's DN per radiance)."""
+    K, Kt = cal.camera.K, truth.camera.K
+    out: dict[str, Any] = {
+        "focal_error_pct": [100 * float(K[i, i] / Kt[i, i] - 1) for i in (0, 1)],
+        "principal_point_error_px": [float(K[0, 2] - Kt[0, 2]), float(K[1, 2] - Kt[1, 2])],
+        "camera_centre_error_mm": float(np.linalg.norm(cal.camera.center - truth.camera.center)),
+        "light_source": cal.light_source}
+    steps = {i: d for i, d, _ in store.steps(store.session(session).id)}
+    rows, seen = [], set()
+    for s, p in sorted(cal.lights_mm.items()):
+        light = steps[s].get("light")
+        if not light or "azimuth_deg" not in light or _key(light) in seen:
+            continue
+        seen.add(_key(light))
+        t = truth.light_position(light)
+        d = float(np.linalg.norm(t))
+        cosang = float(p @ t / (np.linalg.norm(p) * d))
+        rows.append({"azimuth_deg": light["azimuth_deg"], "elevation_deg": light["elevation_deg"],
+                     "error_mm": float(np.linalg.norm(p - t)), "distance_error_pct": 100 * float(np.linalg.norm(p) / d - 1),
+                     "direction_error_deg": float(np.degrees(np.arccos(np.clip(cosang, -1, 1))))})
+    out["lights"] = rows
+    if rows:
+        out["max_light_distance_error_pct"] = max(abs(r["distance_error_pct"]) for r in rows)
+        out["max_light_direction_error_deg"] = max(r["direction_error_deg"] for r in rows)
+        out["max_light_error_pct_of_distance"] = max(100 * r["error_mm"] / float(np.linalg.norm(
+            truth.light_position(r))) for r in rows)
+    if cal.absolute:
+        expected = truth.light_intensity * truth.sensor_dn_per_radiance
+        out["intensity_error_pct"] = (100 * (cal.light_intensity / expected - 1)).tolist()
+    return out
+
+
+def _key(light: dict) -> tuple:
+    return round(light["azimuth_deg"], 3), round(light["elevation_deg"], 3)
+
+
+# -- pictures for the report --------------------------------------------------------------------
+def _splat(lt: Lumitexels, values: np.ndarray, view: View) -> np.ndarray:
+    """Per-sample values drawn at their texels' pixels in ``view`` (H, W, C), NaN elsewhere;
+    one-pixel holes between texels filled from their neighbours (normalised 3 x 3 box)."""
+    import cv2
+    cam = view.camera
+    pw = lt.position[lt.texel] @ view.object_to_world[:3, :3].T + view.object_to_world[:3, 3]
+    px = np.rint(cam.project(pw)).astype(int)
+    inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] < cam.height)
+    px, values = px[inside], np.asarray(values, np.float64)[inside]
+    C = values.shape[1]
+    acc = np.zeros((cam.height, cam.width, C))
+    cnt = np.zeros((cam.height, cam.width))
+    np.add.at(acc, (px[:, 1], px[:, 0]), values)
+    np.add.at(cnt, (px[:, 1], px[:, 0]), 1.0)
+    hit = cnt > 0
+    acc_b = cv2.blur(acc.astype(np.float32), (3, 3))
+    cnt_b = cv2.blur(cnt.astype(np.float32), (3, 3))
+    fill = (~hit) & (cnt_b > 0.3)
+    out = np.full((cam.height, cam.width, C), np.nan)
+    out[hit] = acc[hit] / cnt[hit, None]
+    out[fill] = acc_b[fill] / cnt_b[fill, None]
+    return out.astype(np.float32)
+
+
+def _radiance(lt: Lumitexels, r: np.ndarray, view: View) -> np.ndarray:
+    """Reflectance ``f_r cos`` of samples -> radiance in ``view`` (``r I / d^2``)."""
+    T = view.object_to_world
+    pw = lt.position[lt.texel] @ T[:3, :3].T + T[:3, 3]
+    d2 = np.sum((np.asarray(view.light_position, float) - pw) ** 2, axis=1)
+    return r * np.broadcast_to(np.asarray(view.light_intensity, float), (3,)) / d2[:, None]
+
+
+def _pictures(fit: Fitted, train: Lumitexels, held: Lumitexels, inputs: ProcessInputs, truth) -> dict[str, np.ndarray]:
+    """Arrays the report draws: the first held-out view captured / predicted (radiance), BRDF
+    slices (recovered, and true per material with truth) and the normal map."""
+    out: dict[str, np.ndarray] = {}
+    if held.n_samples:
+        k0 = int(held.view.min())
+        view = inputs.held_out[k0 - len(inputs.views)]
+        sub = select_samples(held, held.view == k0)
+        out["heldout_captured"] = _splat(sub, _radiance(sub, sub.reflectance, view), view)
+        out["heldout_predicted"] = _splat(sub, _radiance(sub, fit.predict(sub), view), view)
+    theta = np.radians(np.linspace(-85, 85, 69))
+    ti = np.radians(SLICE_THETA_I_DEG)
+    wi = np.tile([-np.sin(ti), 0.0, np.cos(ti)], (len(theta), 1))
+    wo = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], axis=1)  # +theta: the mirror side
+    out["slice_theta_o_deg"] = np.degrees(theta)
+    rng = np.random.default_rng(0)
+    groups = {"all": np.arange(train.n_texels)}
+    if truth is not None:
+        try:
+            ids, materials = truth.materials(train.position)
+            groups = {f"m{k}": np.flatnonzero(ids == k) for k in range(len(materials))}
+            for k, m in enumerate(materials):
+                out[f"slice_true_m{k}"] = m.evaluate(wi, wo)
+        except ValueError:
+            pass
+    for g, texels in groups.items():
+        if len(texels) == 0:
+            continue
+        pick = rng.choice(texels, min(SLICE_TEXELS, len(texels)), replace=False)
+        model = fit.brdf(np.repeat(pick, len(theta)))
+        f = model.evaluate(np.tile(wi, (len(pick), 1)), np.tile(wo, (len(pick), 1)))
+        out[f"slice_fit_{g}"] = np.median(f.reshape(len(pick), len(theta), 3), axis=0)
+    if fit.normals is not None and inputs.views:
+        view = inputs.views[0]
+        first = select_samples(train, train.view == 0)
+        R = view.object_to_world[:3, :3]
+        out["normals_mesh"] = _splat(first, train.normal[first.texel] @ R.T, view)
+        out["normals_fitted"] = _splat(first, fit.normals[first.texel] @ R.T, view)
+    return out

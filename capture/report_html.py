@@ -1,0 +1,263 @@
+"""The session report: one self-contained HTML file (every picture an embedded PNG).
+
+:func:`write_html_report` draws what :func:`capture.pipeline.process_session` did from the store
+(the plan, the frames' capture times, the stored reconstructions and their ``report.npz``
+pictures) and the run's :class:`capture.pipeline.ProcessReport` (calibration stages, timings,
+truth comparisons). Each section says in plain words what its pictures show, for a reader who has
+never heard of the papers. Without ground truth the truth columns are left out.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .store import Store
+
+__all__ = ["write_html_report", "METHOD_NOTES"]
+
+#: what each method is, in one paragraph a newcomer can read
+METHOD_NOTES = {
+    "lambertian": "The reference: every surface point gets one colour (an albedo) and is assumed "
+                  "perfectly matte, as a plain photograph would suggest. Any real reflectance method "
+                  "must predict the held-out lights better than this.",
+    "lensch": "Lensch et al. 2003: the object is made of a few basic materials (found by clustering "
+              "the measurements); every point's reflectance is a non-negative mix of them, and each "
+              "point's surface normal is refined so that bumps the mesh lacks reappear.",
+    "sharing": "Zickler et al. 2005 (reflectance sharing): neighbouring points lend each other their "
+               "measurements, so a smooth interpolation over position and angle predicts each point's "
+               "reflectance from very few images; diffuse and specular parts come apart by polarization.",
+    "passive": "Romeiro et al. 2008 (passive reflectometry): one image of the object lit only by the room, "
+               "whose light is known from a mirror-ball photograph, gives one reflectance function for the "
+               "whole object (it assumes a single material).",
+}
+
+
+def _png(fig) -> str:
+    import matplotlib.pyplot as plt
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _img(uri: str, alt: str) -> str:
+    return f'<img src="{uri}" alt="{html.escape(alt)}">'
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        if not np.isfinite(v):
+            return "–"
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items())
+    return html.escape(str(v))
+
+
+def _table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> str:
+    if not rows:
+        return "<p><em>none</em></p>"
+    cols = columns or list(dict.fromkeys(k for r in rows for k in r))
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
+    body = "".join("<tr>" + "".join(f"<td>{_fmt(r.get(c, ''))}</td>" for c in cols) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _tonemap(img: np.ndarray, scale: float) -> np.ndarray:
+    """Linear radiance -> display RGB: exposure ``scale``, sRGB-like gamma; NaN -> white."""
+    out = np.clip(np.nan_to_num(img / scale, nan=1.0), 0, 1) ** (1 / 2.2)
+    return out
+
+
+# -- sections -----------------------------------------------------------------------------------
+def _timeline(store: Store, session_id: int) -> str:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    frames = store.frames(session_id)
+    if not frames:
+        return ""
+    steps = {i: d for i, d, _ in store.steps(session_id)}
+    t0 = min(f.captured_at for f in frames)
+    fig, ax = plt.subplots(figsize=(8, 2.6))
+    kinds = sorted({steps[f.step]["kind"] for f in frames})
+    for k, kind in enumerate(kinds):
+        ts = [f.captured_at - t0 for f in frames if steps[f.step]["kind"] == kind]
+        ax.plot(ts, [k] * len(ts), "|", ms=12, label=kind)
+    ax.set_yticks(range(len(kinds)), kinds)
+    ax.set_xlabel("time since the first frame (s)")
+    ax.set_title("capture timeline: every frame, by kind of step")
+    return _img(_png(fig), "capture timeline")
+
+
+def _held_out_figure(pics: dict[str, np.ndarray]) -> str:
+    import matplotlib.pyplot as plt
+    cap, pred = pics["heldout_captured"], pics["heldout_predicted"]
+    scale = float(np.nanpercentile(cap, 99.5)) or 1.0
+    err = np.linalg.norm(np.nan_to_num(pred - cap), axis=2) / max(float(np.nanmean(np.linalg.norm(cap, axis=2))), 1e-12)
+    err[np.isnan(cap).any(axis=2)] = np.nan
+    ys, xs = np.nonzero(~np.isnan(cap).any(axis=2))
+    crop = (slice(max(ys.min() - 4, 0), ys.max() + 5), slice(max(xs.min() - 4, 0), xs.max() + 5)) if len(ys) else \
+        (slice(None), slice(None))
+    fig, axes = plt.subplots(1, 3, figsize=(10, 3.6))
+    axes[0].imshow(_tonemap(cap, scale)[crop])
+    axes[0].set_title("captured (held-out light)")
+    axes[1].imshow(_tonemap(pred, scale)[crop])
+    axes[1].set_title("predicted by the model")
+    im = axes[2].imshow(err[crop], cmap="magma", vmin=0, vmax=1)
+    axes[2].set_title("|error| / mean radiance")
+    fig.colorbar(im, ax=axes[2], fraction=0.046)
+    for a in axes:
+        a.axis("off")
+    return _img(_png(fig), "held-out capture, prediction and error")
+
+
+def _slices_figure(pics: dict[str, np.ndarray], theta_i: float) -> str:
+    import matplotlib.pyplot as plt
+    fits = sorted(k for k in pics if k.startswith("slice_fit_"))
+    if not fits:
+        return ""
+    theta = pics["slice_theta_o_deg"]
+    fig, axes = plt.subplots(1, len(fits), figsize=(3.2 * len(fits), 3), squeeze=False)
+    for ax, key in zip(axes[0], fits):
+        g = key.removeprefix("slice_fit_")
+        for c, col in enumerate("rgb"):
+            ax.semilogy(theta, np.maximum(pics[key][:, c], 1e-4), col + "-", lw=1.5)
+            if f"slice_true_{g}" in pics:
+                ax.semilogy(theta, np.maximum(pics[f"slice_true_{g}"][:, c], 1e-4), col + "--", lw=1)
+        ax.axvline(theta_i, color="gray", lw=0.5)
+        ax.set_title(f"material {g}" if g != "all" else "all points")
+        ax.set_xlabel("viewing angle θo (°)")
+    axes[0][0].set_ylabel("BRDF f_r (1/sr)")
+    fig.suptitle(f"reflectance in the plane of incidence, light at θi = {theta_i:g}° "
+                 "(solid: recovered, dashed: true)", fontsize=9)
+    return _img(_png(fig), "BRDF slices")
+
+
+def _normals_figure(pics: dict[str, np.ndarray]) -> str:
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(7, 3.4))
+    for ax, key, title in ((axes[0], "normals_mesh", "mesh normals"), (axes[1], "normals_fitted", "fitted normals")):
+        ax.imshow(np.nan_to_num((pics[key] + 1) / 2, nan=1.0).clip(0, 1))
+        ax.set_title(title)
+        ax.axis("off")
+    return _img(_png(fig), "normal maps")
+
+
+def _calibration_section(rep, truth) -> str:
+    parts = ["<h2>2. Calibration</h2>",
+             "<p>Before anything can be measured, the rig measures itself from its own calibration "
+             "captures: the camera's lens (from a printed board), where the turntable's axis is, where "
+             "the lamp was for every capture (from its reflections in mirror balls), the lamp's "
+             "brightness (from an 18 % gray card) and the room's light (from a mirror ball).</p>",
+             _table([{"stage": c["stage"], "status": c["status"], "figures": c.get("figures", {}),
+                      "note": c.get("reason", "")} for c in rep.calibration])]
+    ct = rep.calibration_truth
+    if ct:
+        parts.append("<h3>Against the simulation's ground truth</h3>"
+                     "<p>Targets of the calibration: light position within 0.5 % of its distance and "
+                     "0.25° in direction, focal length within 0.2 %.</p>")
+        parts.append(_table([{"focal length error (%)": ct["focal_error_pct"],
+                              "principal point error (px)": ct["principal_point_error_px"],
+                              "camera centre error (mm)": ct["camera_centre_error_mm"],
+                              "lamp intensity error (%)": ct.get("intensity_error_pct", "relative units"),
+                              "lights from": ct["light_source"]}]))
+        parts.append(_table(ct.get("lights", []), ["azimuth_deg", "elevation_deg", "error_mm",
+                                                    "distance_error_pct", "direction_error_deg"]))
+    return "\n".join(parts)
+
+
+def _method_section(i: int, outcome, stored: dict | None, pics: dict[str, np.ndarray] | None) -> str:
+    from .pipeline import SLICE_THETA_I_DEG
+    name = outcome.method
+    parts = [f"<h3>{i}. {html.escape(name)}</h3>", f"<p>{html.escape(METHOD_NOTES.get(name, ''))}</p>"]
+    if outcome.status in ("skipped", "failed"):
+        parts.append(f"<p class='{outcome.status}'><b>{outcome.status}</b>: {html.escape(outcome.reason)}</p>")
+        return "\n".join(parts)
+    figures = (stored or {}).get("result", {}).get("figures", outcome.figures)
+    rows = [{"measure": k, "value": v} for k, v in figures.items() if k != "table_ii_rms"]
+    parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
+                 "the captures under lights it never saw; <b>truth_rel_rms</b>: the same against the "
+                 "true reflectance (simulation only).</p>" + _table(rows))
+    if figures.get("table_ii_rms"):
+        parts.append("<p>Lensch Table II: the RMS fitting error after each stage (single average BRDF, "
+                     "per cluster, projection, PFA, normal fitting) — it should fall from left to right.</p>"
+                     + _table([figures["table_ii_rms"]]))
+    warnings = (stored or {}).get("result", {}).get("warnings", outcome.warnings)
+    if warnings:
+        parts.append("<ul class='warn'>" + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul>")
+    if pics:
+        if "heldout_captured" in pics:
+            parts.append("<p>Left: a capture under a light the model never saw; middle: the model's "
+                         "prediction for the same light; right: their difference (dark is good).</p>"
+                         + _held_out_figure(pics))
+        s = _slices_figure(pics, SLICE_THETA_I_DEG)
+        if s:
+            parts.append("<p>How much light the surface reflects towards each viewing angle when lit from "
+                         f"{SLICE_THETA_I_DEG:g}° (the peak near +{SLICE_THETA_I_DEG:g}° is the highlight).</p>" + s)
+        if "normals_fitted" in pics:
+            parts.append("<p>Surface orientation as colour (red: x, green: y, blue: z): the mesh's normals and "
+                         "the normals the method recovered from the shading.</p>" + _normals_figure(pics))
+    return "\n".join(parts)
+
+
+_CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
+table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;font-size:90%}
+th{background:#eee}img{max-width:100%}.skipped{color:#866}.failed{color:#b00}.warn{color:#a60}"""
+
+
+def write_html_report(store: Store, session: str, rep, *, truth=None, path: str | Path) -> Path:
+    """Write the session's report (HTML with embedded PNGs) to ``path`` and return it."""
+    import matplotlib
+    matplotlib.use("Agg")
+    info = store.session(session)
+    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+    prog = store.progress(info.id)
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>gonio: {html.escape(session)}</title>"
+             f"<style>{_CSS}</style></head><body>",
+             f"<h1>gonio report: {html.escape(session)}</h1>",
+             "<p>gonio measured how this object reflects light: a turntable turned it, a lamp on an arm lit "
+             "it from many directions, a camera photographed it through a rotating polarizer at several "
+             "exposures, and the rig calibrated itself from its own captures. Reconstruction methods then "
+             "recovered the object's reflectance; each is judged by predicting captures under lights it "
+             "was never shown." + (" This session comes from the simulated lab, so every figure is also "
+                                   "compared with the ground truth." if truth is not None else "") + "</p>"]
+    headline = [{"method": m.method, "status": m.status,
+                 "held-out rel. RMS": (stored.get(m.method, {}).get("result", {}).get("figures", m.figures)
+                                       .get("held_out_rel_rms", float("nan"))),
+                 **({"vs truth rel. RMS": stored.get(m.method, {}).get("result", {}).get("figures", m.figures)
+                     .get("truth_rel_rms", float("nan"))} if truth is not None else {})}
+                for m in rep.methods]
+    parts.append("<h2>Summary</h2>" + _table(headline))
+    plan = info.plan
+    parts.append("<h2>1. The plan and the capture</h2>"
+                 f"<p>{prog.steps_done} of {prog.steps_total} steps, {prog.frames_stored} frames "
+                 f"({prog.bytes_stored / 1e6:.1f} MB).</p>"
+                 f"<pre>{html.escape(json.dumps(plan, indent=1)[:4000])}</pre>" + _timeline(store, info.id))
+    parts.append(_calibration_section(rep, truth))
+    parts.append("<h2>3. Reconstruction inputs</h2><p>Every measurement is resampled onto points of the "
+                 "object's surface (\"lumitexels\"): per point, the directions to the lamp and the camera "
+                 "and how much light came back. Held-out lights are kept aside for scoring.</p>"
+                 + _table([rep.inputs]))
+    parts.append("<h2>4. Methods</h2>")
+    for i, m in enumerate(rep.methods, 1):
+        pics = None
+        r = stored.get(m.method)
+        if r is not None and "report.npz" in r["artifacts"]:
+            with np.load(io.BytesIO(store.read_object(r["artifacts"]["report.npz"]))) as z:
+                pics = {k: z[k] for k in z.files}
+        parts.append(_method_section(i, m, r, pics))
+    parts.append("<h2>5. Timings</h2>" + _table([{"stage": k, "seconds": v} for k, v in rep.timings.items()]))
+    parts.append("</body></html>")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(parts), encoding="utf-8")
+    return path
