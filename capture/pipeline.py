@@ -17,6 +17,7 @@ model's error against the truth on the held-out samples.
 from __future__ import annotations
 
 import io
+import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -76,6 +77,12 @@ class ProcessReport:
     timings: dict[str, float] = field(default_factory=dict)
     calibration_truth: dict[str, Any] = field(default_factory=dict)
     report_path: Path | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """Everything but the pictures, JSON-able (written beside the HTML as ``.json``)."""
+        return {"session": self.session, "calibration": self.calibration, "inputs": self.inputs,
+                "calibration_truth": self.calibration_truth, "timings": self.timings,
+                "methods": [asdict(m) for m in self.methods], "report": str(self.report_path)}
 
     def method(self, name: str) -> MethodOutcome:
         for m in self.methods:
@@ -158,37 +165,49 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     cal = read_calibration(store, session, gray_card=gray_card)
     if truth is not None:
         rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
-    with clock.stage("inputs"):
-        inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=clock.sub("inputs"))
-    with clock.stage("lumitexels"):
-        train, held = lumitexels_with_held_out(mesh, inputs, progress=clock.sub("lumitexels"))
-    truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
-    rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
-                  "polarization_separated": inputs.separated, "texels": train.n_texels,
-                  "training_samples": train.n_samples, "held_out_samples": held.n_samples,
-                  "light_source": cal.light_source, "absolute_units": cal.absolute,
-                  "passive_capture": inputs.passive is not None, "notes": inputs.notes}
-    if truth_r is not None:
-        rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(held.reflectance if held.n_samples else
-                                                               train.reflectance, truth_r[1] if held.n_samples
-                                                               else truth_r[0])
-    stored = {r["kind"]: r["id"] for r in store.results(info.id, "reconstruction")}
-    for name in methods:
-        if name in stored and not force:
-            rep.methods.append(MethodOutcome(name, "done", f"stored before (result {stored[name]}); --force "
-                                                           "re-runs it", result_id=stored[name]))
-            continue
-        started = time.perf_counter()
-        with clock.stage(name):
-            outcome = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                  clock.sub(name))
-        outcome.seconds = round(time.perf_counter() - started, 3)
-        rep.methods.append(outcome)
+    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+    todo = [m for m in methods if force or m not in stored]
+    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
+                                 figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
+                                 warnings=stored[m]["result"].get("warnings", []))
+                for m in methods if m not in todo}
+    if outcomes:
+        rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
+    if todo:
+        with clock.stage("inputs"):
+            inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=clock.sub("inputs"))
+        with clock.stage("lumitexels"):
+            train, held = lumitexels_with_held_out(mesh, inputs, progress=clock.sub("lumitexels"))
+        truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
+        rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
+                      "polarization_separated": inputs.separated, "texels": train.n_texels,
+                      "training_samples": train.n_samples, "held_out_samples": held.n_samples,
+                      "light_source": cal.light_source, "absolute_units": cal.absolute,
+                      "passive_capture": inputs.passive is not None, "notes": inputs.notes}
+        if truth_r is not None:
+            scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
+            rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
+            rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
+                scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
+        for name in todo:
+            started = time.perf_counter()
+            with clock.stage(name):
+                outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
+                                             rep.inputs, clock.sub(name))
+            outcomes[name].seconds = round(time.perf_counter() - started, 3)
+    rep.methods = [outcomes[m] for m in methods]
     from .report_html import write_html_report
     with clock.stage("report"):
         rep.report_path = write_html_report(store, session, rep, truth=truth,
                                             path=report_path or Path(store.root).resolve().parent / f"{session}-report.html")
+    rep.report_path.with_suffix(".json").write_text(json.dumps(rep.summary(), indent=1, default=_jsonable))
     return rep
+
+
+def _jsonable(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    return str(obj)
 
 
 def _calibration(store: Store, session: str, targets, force: bool, progress) -> list[dict[str, Any]]:
@@ -208,7 +227,8 @@ def _calibration(store: Store, session: str, targets, force: bool, progress) -> 
 
 # -- one method ---------------------------------------------------------------------------------
 def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, held: Lumitexels,
-                inputs: ProcessInputs, truth, truth_r, rng: int, progress) -> MethodOutcome:
+                inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
+                progress) -> MethodOutcome:
     try:
         fit = fit_method(name, train, inputs, rng=rng, progress=progress)
     except MethodSkipped as exc:
@@ -229,7 +249,8 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
     result = {"figures": figures, "warnings": fit.warnings,
               "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
                          "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
-                         "training_samples": train.n_samples, "held_out_samples": held.n_samples}}
+                         "training_samples": train.n_samples, "held_out_samples": held.n_samples},
+              "inputs_summary": summary}
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames,
                                    artifacts={"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)})

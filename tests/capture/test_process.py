@@ -1,0 +1,245 @@
+"""A session captured in the simulated demo lab -> reconstruction inputs -> stored results.
+
+One small session (320 x 240, two turntable angles, four lights and one held-out light, parallel
+and crossed analyser) is captured through the real drivers and DNG files, then calibrated. The
+inputs and the pipeline are checked against the simulation's ground truth: the sensor's camera
+equation for the lamp's intensity, the true materials for the measured reflectance, the plan for
+what is held out.
+"""
+from __future__ import annotations
+
+import base64
+import json
+import re
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from capture.cli import app
+from capture.demo_lab import DemoLab, fitter_mesh
+from capture.pipeline import process_session, relative_rms
+from capture.plan import Plan
+from capture.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, read_calibration,
+                             session_inputs)
+from capture.rigs import open_rig
+from capture.runner import Runner, create_session
+from capture.store import Store
+
+PLAN = {
+    "name": "proc", "turntable": {"angles_deg": [0, 180]},
+    "light": {"azimuth_deg": [-50, 0, 50], "elevation_deg": [30, 60], "held_out_deg": [[25, 40]]},
+    "polarizer": {"angles_deg": [0, 90]},
+    "exposure": {"base_s": 0.005, "stops": [0]},
+    "calibration": [
+        {"kind": "dark", "frames": 2},
+        {"kind": "checkerboard", "exposure_s": 0.02,
+         "turntable_angles_deg": [300, 310, 320, 330, 340, 350, 0, 10, 20, 30, 40, 50, 60]},
+        {"kind": "spheres", "lights": "grid"},
+        {"kind": "gray_card", "lights": "first"},
+    ],
+}
+
+
+@pytest.fixture(scope="module")
+def captured(tmp_path_factory):
+    root = tmp_path_factory.mktemp("proc")
+    lab = DemoLab()
+    store = Store(root / "store", durable=False)
+    with open_rig("sim", fast=True, home=True, frame_source=lab) as opened:
+        create_session(store, Plan.from_dict(PLAN), opened.rig, name="proc", reserve_bytes=0)
+        assert Runner(opened.rig, store, "proc", reserve_bytes=0, prepare_target=lab.prepare_target).run() == "done"
+    from capture.calibrate import calibrate_session
+    calibrate_session(store, "proc", targets=lab.targets(), measurement_hdr=False)
+    yield store, lab, root
+    store.close()
+
+
+@pytest.fixture(scope="module")
+def inputs(captured):
+    store, lab, _ = captured
+    mesh = fitter_mesh(lab.object)
+    cal = read_calibration(store, "proc", gray_card=lab.gray_card_pose())
+    inp = session_inputs(store, "proc", calibration=cal, mesh=mesh)
+    train, held = lumitexels_with_held_out(mesh, inp)
+    return cal, inp, train, held
+
+
+def test_lamp_intensity_from_the_gray_card_matches_the_camera_equation(inputs, captured):
+    cal, *_ = inputs
+    store, lab, _ = captured
+    truth = lab.truth()
+    assert cal.absolute and cal.light_source == "positioner"
+    expected = truth.light_intensity * truth.sensor_dn_per_radiance
+    # the card's photometry given the calibrated light: I ~ d^2 / cos at the card, so with the
+    # true light's d and cos the estimate must match the camera equation (seen: -1 %; the card's
+    # 10 % spread of fall-off and vignetting about its median)
+    steps = {i: d for i, d, _ in store.steps(store.session("proc").id)}
+    card = next(i for i, d in steps.items() if d["kind"] == "gray_card")
+    c, n = np.array(lab.gray_card_pose().centre_mm), np.array(lab.gray_card_pose().normal)
+
+    def d2_over_cos(light):
+        v = light - c
+        return float(v @ v) / float(n @ v / np.linalg.norm(v))
+
+    conditional = cal.light_intensity * d2_over_cos(truth.light_position(steps[card]["light"])) \
+        / d2_over_cos(cal.lights_mm[card])
+    np.testing.assert_allclose(conditional, expected, rtol=0.04)
+    # end to end it carries the light's calibration error (seen: -11.7 %: the arm model fitted to
+    # five 320 x 240 lights puts this one 35 mm close)
+    np.testing.assert_allclose(cal.light_intensity, expected, rtol=0.15)
+
+
+def test_views_carry_the_calibrated_pose_light_and_camera(inputs, captured):
+    cal, inp, *_ = inputs
+    store, lab, _ = captured
+    steps = {i: d for i, d, _ in store.steps(store.session("proc").id)}
+    truth = lab.truth()
+    assert len(inp.views) == 2 * 6 and len(inp.held_out) == 2 and inp.separated
+    for view, ids in zip([*inp.views, *inp.held_out], [*inp.view_steps, *inp.held_out_steps]):
+        spec = steps[ids[0]]
+        assert {steps[i]["polarizer_deg"] for i in ids} == {0.0, 90.0}   # parallel + crossed -> one view
+        a = np.radians(spec["turntable_deg"])
+        angle = np.degrees(np.arctan2(view.object_to_world[1, 0], view.object_to_world[0, 0]))
+        assert abs((angle - spec["turntable_deg"] + 180) % 360 - 180) < 0.5, (angle, a)
+        true_light = truth.light_position(spec["light"])
+        # seen: up to 5.0 % of the distance: three 25 mm balls at 320 x 240 (~40 px wide) and an
+        # arm model over seven lights
+        assert np.linalg.norm(view.light_position - true_light) < 0.07 * np.linalg.norm(true_light), spec["light"]
+    # seen: 0.9 % focal length, 10 px principal point at 320 x 240
+    assert cal.camera.K[0, 0] == pytest.approx(truth.camera.K[0, 0], rel=0.015)
+
+
+def test_measured_reflectance_matches_the_true_materials(inputs, captured):
+    _, _, train, _ = inputs
+    truth = captured[1].truth()
+    ids, materials = truth.materials(train.position)
+    tid = ids[train.texel]
+    for k, m in enumerate(materials):
+        s = tid == k
+        true_r = m.evaluate(train.wi[s], train.wo[s]) * train.wi[s, 2:3]
+        ratio = train.reflectance[s].sum(axis=1) / np.maximum(true_r.sum(axis=1), 1e-9)
+        # the typical sample within 10 % of the truth (seen: +0.7..+7.5 %, most on the gold, whose
+        # highlights move with the light's 2-5 % calibration error); the pooled error is dominated
+        # by highlights and silhouettes at 320 x 240
+        assert abs(np.median(ratio) - 1) < 0.10, (k, np.median(ratio))
+        # polarization: the diffuse (2 x crossed) samples against the body reflection
+        true_d = m.diffuse_part().evaluate(train.wi[s], train.wo[s]) * train.wi[s, 2:3]
+        if true_d.sum() > 0.2 * true_r.sum():
+            dr = train.diffuse[s].sum(axis=1) / np.maximum(true_d.sum(axis=1), 1e-9)
+            assert abs(np.median(dr) - 1) < 0.08, (k, np.median(dr))
+
+
+def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
+    _, inp, train, held = inputs
+    store = captured[0]
+    steps = {i: d for i, d, _ in store.steps(store.session("proc").id)}
+    flagged = {i for i, d in steps.items() if d.get("held_out")}
+    assert {i for ids in inp.held_out_steps for i in ids} == flagged and len(flagged) == 4
+    assert not flagged & {i for ids in inp.view_steps for i in ids}
+    n = len(inp.views)
+    assert train.view.max() < n and held.view.min() >= n and held.n_samples > 1000
+    # same texels: every held-out sample's texel has training samples
+    assert np.all(np.bincount(train.texel, minlength=train.n_texels)[held.texel] > 0)
+    assert held.n_texels == train.n_texels
+
+
+@pytest.fixture(scope="module")
+def processed(captured, tmp_path_factory):
+    store, lab, _ = captured
+    kw = dict(mesh=fitter_mesh(lab.object), gray_card=lab.gray_card_pose(), truth=lab.truth(),
+              report_path=tmp_path_factory.mktemp("report") / "r.html")
+    return process_session(store, "proc", methods=["lambertian", "lensch", "sharing"], **kw), kw
+
+
+def test_process_stores_scored_results_with_provenance(processed, captured, inputs):
+    store, lab, _ = captured
+    rep, _ = processed
+    lam = rep.method("lambertian")
+    assert lam.status == "ok" and rep.calibration[0]["status"] == "stored"
+    # honest scores: a matte model cannot predict highlights; it is still far better than nothing
+    assert 0.2 < lam.figures["held_out_rel_rms"] < 0.95
+    r = next(x for x in store.results(store.session("proc").id, "reconstruction") if x["id"] == lam.result_id)
+    assert r["code_version"].startswith("gonio ") and r["kind"] == "lambertian"
+    frames = {f.id: f for f in store.frames(store.session("proc").id)}
+    assert r["input_frames"] and set(r["input_frames"]) <= set(frames)
+    assert {frames[i].step for i in r["input_frames"]} >= {i for ids in r["result"]["inputs"]["held_out_views"]
+                                                          for i in ids}
+    assert set(r["result"]["inputs"]["calibration_ids"]) >= {"intrinsics", "turntable", "gray_card"}
+    import io
+    model = np.load(io.BytesIO(store.read_object(r["artifacts"]["model.npz"])))
+    train = inputs[2]
+    assert model["albedo"].shape == (train.n_texels, 3)
+    # the matte material's albedo (Oren-Nayar, sigma 0.35: its mean response is 0.87-1.0 x albedo)
+    ids, materials = lab.truth().materials(train.position)
+    np.testing.assert_allclose(np.median(model["albedo"][ids == 1], axis=0), materials[1].albedo, rtol=0.2)
+    for name in ("lensch", "sharing"):  # not landed in this tree yet, or landed: never a crash
+        assert rep.method(name).status in ("ok", "skipped"), rep.method(name).reason
+
+
+def test_process_skips_what_is_stored_unless_forced(processed, captured):
+    store, _, _ = captured
+    rep, kw = processed
+    lam = rep.method("lambertian")
+    again = process_session(store, "proc", methods=["lambertian"], **kw)
+    assert again.method("lambertian").status == "done" and again.method("lambertian").result_id == lam.result_id
+    assert again.method("lambertian").figures["held_out_rel_rms"] == lam.figures["held_out_rel_rms"]
+    assert "inputs" not in again.timings and again.inputs["texels"] == rep.inputs["texels"]
+    forced = process_session(store, "proc", force=True, methods=["lambertian"], **kw)
+    assert forced.method("lambertian").status == "ok" and forced.method("lambertian").result_id > lam.result_id
+    assert {c["stage"] for c in forced.calibration} >= {"intrinsics", "lights", "gray_card"}   # re-calibrated
+    assert forced.method("lambertian").figures["held_out_rel_rms"] == pytest.approx(
+        lam.figures["held_out_rel_rms"], rel=1e-6)
+
+
+def test_report_is_one_self_contained_file(processed):
+    rep, _ = processed
+    text = rep.report_path.read_text()
+    srcs = re.findall(r'src="([^"]*)"', text)
+    assert len(srcs) >= 3 and not re.search(r'(href|src)="(?!data:)', text)
+    for s in srcs:
+        assert s.startswith("data:image/png;base64,")
+        assert base64.b64decode(s.split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
+    for heading in ("The plan and the capture", "Calibration", "Against the simulation's ground truth",
+                    "Methods", "Timings"):
+        assert heading in text
+    summary = rep.report_path.with_suffix(".json")
+    assert summary.is_file() and '"lambertian"' in summary.read_text()
+
+
+def test_relative_rms_closed_form():
+    m = np.array([[1.0, 2.0, 2.0]])
+    assert relative_rms(m * 1.1, m) == pytest.approx(0.1)
+    assert np.isnan(relative_rms(np.zeros((0, 3)), np.zeros((0, 3))))
+
+
+def test_uncalibrated_session_says_which_stage_is_missing(tmp_path):
+    store = Store(tmp_path / "s", durable=False)
+    with open_rig("sim", fast=True, frame_source=DemoLab()) as opened:
+        create_session(store, Plan.from_dict({"light": {"azimuth_deg": [0], "elevation_deg": [30]}}),
+                       opened.rig, name="bare", reserve_bytes=0)
+    with pytest.raises(MissingCalibration, match="no stored intrinsics calibration"):
+        read_calibration(store, "bare")
+    assert issubclass(MissingCalibration, ProcessError)
+
+
+def test_cli_process(captured, tmp_path):
+    store, _, root = captured
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--demo-lab", "-q",
+                                 "--methods", "lambertian,passive", "--out", str(tmp_path / "p.html"), "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output)
+    status = {m["method"]: m for m in out["methods"]}
+    assert status["lambertian"]["status"] in ("ok", "done")
+    assert status["passive"]["status"] == "skipped" and "no passive capture" in status["passive"]["reason"]
+    assert (tmp_path / "p.html").is_file() and out["report"].endswith("p.html")
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--demo-lab", "-q",
+                                 "--methods", "lambertian"])
+    assert r.exit_code == 0 and "lambertian" in r.output and "proc-report.html" in r.output
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--methods", "phong"])
+    assert r.exit_code == 2 and "unknown phong" in r.output
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store")])
+    assert r.exit_code == 2 and "--mesh FILE is needed" in r.output
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--mesh",
+                                 str(tmp_path / "none.ply")])
+    assert r.exit_code == 2 and "none.ply" in r.output
