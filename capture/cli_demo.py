@@ -25,6 +25,6 @@ def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 
     bar, update = progress_bar(quiet)
     with bar:
         rep = run_demo(out, quick=quick, progress=update,
-                       say=lambda text: console.print(escape(text), highlight=False))
+                       say=lambda text: console.print(escape(text), highlight=False, soft_wrap=True))
     print_outcome(rep, console)
     raise typer.Exit(EXIT_FAILED if any(m.status == "failed" for m in rep.methods) else EXIT_OK)

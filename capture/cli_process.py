@@ -49,7 +49,7 @@ def print_outcome(rep, console: Console) -> None:
                       f"{f['truth_rel_rms']:.3f}" if "truth_rel_rms" in f else "",
                       escape(m.reason or "; ".join(m.warnings)))
     console.print(table)
-    console.print(f"report: {escape(str(rep.report_path))}", highlight=False)
+    console.print(f"report: {escape(str(rep.report_path))}", highlight=False, soft_wrap=True)
 
 
 def process(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),

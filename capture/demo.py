@@ -65,7 +65,7 @@ def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
     ProcessReport
         With ``report_path`` the written ``report.html``.
     """
-    out = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="gonio-demo-"))
+    out = (Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="gonio-demo-"))).resolve()
     out.mkdir(parents=True, exist_ok=True)
     settings = demo_plan(quick)
     plan = Plan.from_toml(settings.plan)

@@ -152,7 +152,42 @@ def _normals_figure(pics: dict[str, np.ndarray]) -> str:
     return _img(_png(fig), "normal maps")
 
 
-def _calibration_section(rep, truth) -> str:
+def _lights_figure(rows: list[dict[str, Any]]) -> str:
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3))
+    labels = [f"{r['azimuth_deg']:g}/{r['elevation_deg']:g}" for r in rows]
+    x = np.arange(len(rows))
+    axes[0].bar(x, [r["distance_error_pct"] for r in rows])
+    axes[0].axhline(0.5, color="r", lw=0.8)
+    axes[0].axhline(-0.5, color="r", lw=0.8)
+    axes[0].set_ylabel("distance error (%)")
+    axes[1].bar(x, [r["direction_error_deg"] for r in rows])
+    axes[1].axhline(0.25, color="r", lw=0.8)
+    axes[1].set_ylabel("direction error (°)")
+    for a in axes:
+        a.set_xticks(x, labels, rotation=60, fontsize=7)
+        a.set_xlabel("light azimuth/elevation (°)")
+    fig.suptitle("calibrated lamp positions against the truth (red: the calibration's targets)", fontsize=9)
+    return _img(_png(fig), "light calibration errors")
+
+
+def _environment_figure(store: Store, session_id: int) -> str:
+    import matplotlib.pyplot as plt
+    probe = [r for r in store.results(session_id, "calibration") if r["kind"] == "environment_map"]
+    if not probe or "environment.npz" not in probe[-1]["artifacts"]:
+        return ""
+    with np.load(io.BytesIO(store.read_object(probe[-1]["artifacts"]["environment.npz"]))) as z:
+        env, weight = z["env"], z["weight"]
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    img = _tonemap(env, float(np.percentile(env, 99)) or 1.0) * np.clip(weight, 0, 1)[..., None]
+    ax.imshow(img, extent=(0, 360, -90, 90))  # column 0: azimuth 0 (+x, towards the camera)
+    ax.set_xlabel("azimuth (°, lab frame)")
+    ax.set_ylabel("elevation (°)")
+    ax.set_title("the room's light from the mirror-ball photograph (black: not seen)")
+    return _img(_png(fig), "environment map")
+
+
+def _calibration_section(rep, truth, store: Store, session_id: int) -> str:
     parts = ["<h2>2. Calibration</h2>",
              "<p>Before anything can be measured, the rig measures itself from its own calibration "
              "captures: the camera's lens (from a printed board), where the turntable's axis is, where "
@@ -172,6 +207,12 @@ def _calibration_section(rep, truth) -> str:
                               "lights from": ct["light_source"]}]))
         parts.append(_table(ct.get("lights", []), ["azimuth_deg", "elevation_deg", "error_mm",
                                                     "distance_error_pct", "direction_error_deg"]))
+        if ct.get("lights"):
+            parts.append(_lights_figure(ct["lights"]))
+    env = _environment_figure(store, session_id)
+    if env:
+        parts.append("<p>The room's light as the mirror ball saw it, unwrapped to a map of directions: "
+                     "passive reflectometry explains the object's appearance by this light alone.</p>" + env)
     return "\n".join(parts)
 
 
@@ -242,7 +283,7 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
                  f"<p>{prog.steps_done} of {prog.steps_total} steps, {prog.frames_stored} frames "
                  f"({prog.bytes_stored / 1e6:.1f} MB).</p>"
                  f"<pre>{html.escape(json.dumps(plan, indent=1)[:4000])}</pre>" + _timeline(store, info.id))
-    parts.append(_calibration_section(rep, truth))
+    parts.append(_calibration_section(rep, truth, store, info.id))
     parts.append("<h2>3. Reconstruction inputs</h2><p>Every measurement is resampled onto points of the "
                  "object's surface (\"lumitexels\"): per point, the directions to the lamp and the camera "
                  "and how much light came back. Held-out lights are kept aside for scoring.</p>"
