@@ -31,7 +31,7 @@ from .events import Event, EventKind
 from .plan import Estimate, MotionModel, Plan, PlanError, Step
 from .rigs import OpenedRig, open_rig
 from .runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
-from .store import StoreError
+from .store import StoreError, check_session_name
 
 HELP = """Plan, run and resume capture sessions.
 
@@ -271,6 +271,11 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
 
     Exit status: 0 done, 3 paused, 4 aborted, 2 error (nothing captured).
     """
+    if session is not None:
+        try:  # before the store or the rig is touched
+            check_session_name(session, "--session")
+        except StoreError as exc:
+            raise fail(str(exc)) from None
     p = _load_plan(plan_file)
     st = open_store(store, create=True)
     with st:

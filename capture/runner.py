@@ -30,7 +30,7 @@ from rig.errors import Disconnected
 from .events import Event, EventBus, EventKind
 from .metering import MeteringError, meter
 from .plan import Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff
-from .store import SessionInfo, Store, StoreFull
+from .store import SessionInfo, Store, StoreFull, check_session_name, safe_name_from
 
 #: free space kept in reserve on the store's disk, bytes
 DEFAULT_RESERVE_BYTES = 1 << 30
@@ -71,7 +71,8 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
     Parameters
     ----------
     name : str, optional
-        Session name; default ``<plan name or 'session'>-YYYYmmdd-HHMMSS``.
+        Session name (see :func:`~capture.store.check_session_name`); default
+        ``<plan name made safe, or 'session'>-YYYYmmdd-HHMMSS``.
     plan_path : str, optional
         The plan file, remembered so ``resume`` can check it is unchanged.
     operator : str, optional
@@ -86,6 +87,8 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
     RunnerError
         The store's disk lacks room for the plan's estimated frames.
     """
+    if name is not None:
+        check_session_name(name)  # before any work: a bad name is the cheapest error
     if rig is not None:
         plan.check_rig(rig)
     steps = plan.steps(rig)
@@ -97,7 +100,7 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
         raise RunnerError(f"not enough disk space in {store.root}: the plan needs about "
                           f"{estimate.bytes / 1e9:.2f} GB{assumed} (+{reserve_bytes / 1e9:.2f} GB "
                           f"reserve), {free / 1e9:.2f} GB are free")
-    name = name or f"{plan.name or 'session'}-{time.strftime('%Y%m%d-%H%M%S')}"
+    name = name or f"{safe_name_from(plan.name or 'session')}-{time.strftime('%Y%m%d-%H%M%S')}"
     return store.create_session(name, plan=plan.to_dict(), plan_hash=plan.hash,
                                 steps=[s.to_dict() for s in steps], plan_path=plan_path,
                                 operator=plan.operator if operator is None else operator,
