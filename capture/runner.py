@@ -19,6 +19,7 @@ Control from another thread (the CLI's Ctrl-C handler, a TUI button): :meth:`Run
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from dataclasses import dataclass
@@ -221,7 +222,22 @@ class Runner:
         return events
 
     def _set_state(self, state: str) -> None:
-        self.store.set_state(self._session.id, state, self._take_events())
+        events = self._take_events()
+        try:
+            self.store.set_state(self._session.id, state, events)
+        except BaseException:
+            self._pending[:0] = events  # not recorded: keep them for the next write
+            raise
+
+    def _finish(self, state: str) -> None:
+        """Record the final state; on a full disk give up the store's space reserve to record
+        it, and failing even that leave it for ``resume`` (it shows as interrupted)."""
+        try:
+            self._set_state(state)
+        except StoreFull:
+            self.store.release_reserve()
+            with contextlib.suppress(StoreFull):
+                self._set_state(state)
 
     # -- the run ------------------------------------------------------------------------------
     def run(self) -> str:
@@ -251,14 +267,21 @@ class Runner:
             try:
                 self._run_steps(resumed=info.state != "planned")
             except _Stop as stop:
-                self._set_state(stop.state)
+                self._finish(stop.state)
                 return stop.state
+            except StoreFull as exc:  # any other write (state, events, rig snapshot) met a full disk
+                self._stop_rig()
+                self._emit(EventKind.LOW_DISK, str(exc))
+                self._emit(EventKind.PAUSED, "paused: the disk is full; free space, then: gonio "
+                           f"capture resume {self.name}", **self._counters)
+                self._finish("paused")
+                return "paused"
             except BaseException as exc:
                 # a bug or KeyboardInterrupt: never leave the session marked running
                 self._stop_rig()
                 self._emit(EventKind.FAULT, f"unexpected error: {exc!r}", error=type(exc).__name__)
                 self._emit(EventKind.PAUSED, "paused after an unexpected error")
-                self._set_state("paused")
+                self._finish("paused")
                 raise
         return "done"
 

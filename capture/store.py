@@ -49,6 +49,9 @@ STATES = ("planned", "running", "paused", "done", "aborted")
 _TMP_PREFIX = ".tmp-"
 #: free space below which an SQLite I/O error is taken for a full disk, bytes
 FULL_BELOW_BYTES = 1 << 20
+#: disk space a writer holds back to record a pause when the disk fills, bytes
+RESERVE_BYTES = 1 << 20
+RESERVE_NAME = "space-reserve"
 
 
 class StoreError(Exception):
@@ -671,11 +674,36 @@ class Store:
                 except BlockingIOError:
                     pass
                 fcntl.flock(wfd, fcntl.LOCK_SH)  # converts the exclusive lock if we held it
+                self._keep_reserve()
                 yield removed
             finally:
                 os.close(wfd)
         finally:
             os.close(sfd)
+
+    def _keep_reserve(self) -> None:
+        """Hold :data:`RESERVE_BYTES` of disk in ``locks/space-reserve`` while writing (best
+        effort), so that on a full disk :meth:`release_reserve` frees room to record the pause."""
+        path = self.root / "locks" / RESERVE_NAME
+        with contextlib.suppress(OSError):
+            if not path.is_file() or path.stat().st_size < RESERVE_BYTES:
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
+                try:
+                    os.posix_fallocate(fd, 0, RESERVE_BYTES)
+                except OSError:
+                    os.ftruncate(fd, 0)  # no room for it: better none than a partial one
+                    raise
+                finally:
+                    os.close(fd)
+
+    def release_reserve(self) -> bool:
+        """Delete the space reserve (the disk is full); True if there was one. The next
+        :meth:`writer` takes it again once there is room."""
+        try:
+            (self.root / "locks" / RESERVE_NAME).unlink()
+        except FileNotFoundError:
+            return False
+        return True
 
     # -- sessions -----------------------------------------------------------------------------
     def create_session(self, name: str, *, plan: dict[str, Any], plan_hash: str,
@@ -996,6 +1024,7 @@ class Store:
         frame_ids = sorted(set(int(i) for i in input_frames))
         blobs = {name: (hashlib.sha256(blob).hexdigest(), blob)
                  for name, blob in (artifacts or {}).items()}
+        version = code_version()  # may run git: never while holding the database's write lock
         with self._writing():
             for sha, blob in blobs.values():
                 self._ensure_object(blob, sha)
@@ -1014,7 +1043,7 @@ class Store:
                 cur = db.execute("INSERT INTO results (session_id, category, kind, created, params_json, "
                                  "result_json, input_frames_json, code_version) VALUES (?,?,?,?,?,?,?,?)",
                                  (session_id, category, kind, time.time(), _dumps(params or {}),
-                                  _dumps(result), _dumps(frame_ids), code_version()))
+                                  _dumps(result), _dumps(frame_ids), version))
                 rid = cur.lastrowid
                 db.executemany("INSERT INTO result_objects (result_id, name, sha256, size) VALUES (?,?,?,?)",
                                [(rid, n, sha, size) for n, (sha, size) in stored.items()])
