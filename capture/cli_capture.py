@@ -20,6 +20,7 @@ from typing import Any, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -116,8 +117,9 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         if opened is not None:
             opened.close()
     c = Console(width=140, highlight=False)
-    c.print(f"plan [bold]{p.name or plan_file.stem}[/] ({plan_file}), hash {p.hash[:12]}")
-    c.print(f"rig: {rig} (limits checked, device speeds)" if rig else
+    c.print(f"plan [bold]{escape(p.name or plan_file.stem)}[/] ({escape(str(plan_file))}), "
+            f"hash {p.hash[:12]}")
+    c.print(f"rig: {escape(rig)} (limits checked, device speeds)" if rig else
             "rig: none given (limits not checked, default speeds)")
     c.print(f"steps {est.steps}, frames {est.frames}, data {human_bytes(est.bytes)}, time "
             f"{human_time(est.seconds)} (motion {human_time(est.motion_s)}, exposure "
@@ -128,14 +130,14 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
     for s in expanded:
         by_kind[s.kind] += 1
         frames_by_kind[s.kind] += s.frames
-    c.print("by kind: " + ", ".join(f"{k} {n} step{'s' if n > 1 else ''} / {frames_by_kind[k]} frames"
+    c.print("by kind: " + ", ".join(f"{escape(k)} {n} step{'s' if n > 1 else ''} / {frames_by_kind[k]} frames"
                                     for k, n in by_kind.items()))
     if steps:
         table = Table()
         for col in ("#", "kind", "target", "turntable", "light", "polarizer", "exposures (s)", "repeats"):
             table.add_column(col)
         for s in expanded:
-            table.add_row(str(s.index), s.kind, s.target,
+            table.add_row(str(s.index), escape(s.kind), escape(s.target),
                           "-" if s.turntable_deg is None else f"{s.turntable_deg:g}°",
                           _light_text(s.light), "-" if s.polarizer_deg is None else f"{s.polarizer_deg:g}°",
                           ", ".join(f"{t:g}" for t in s.exposures_s), str(s.repeats))
@@ -166,15 +168,15 @@ class _ProgressView:
             fields = dict(frames=f"{d['frames_done']}/{d['frames_total']} frames",
                           eta=f"ETA {human_time(d.get('eta_s'))}")
             if self.task is None:
-                self.task = self.progress.add_task(e.session, total=d["steps_total"],
+                self.task = self.progress.add_task(escape(e.session), total=d["steps_total"],
                                                    completed=d["steps_done"], **fields)
             self.progress.update(self.task, completed=d["steps_done"], **fields)
         if e.kind in (EventKind.RETRY, EventKind.FAULT, EventKind.LOW_DISK):
-            self.progress.console.print(f"[yellow]{e.kind.value}[/] {e.device or ''} {e.message}",
-                                        highlight=False)
+            self.progress.console.print(f"[yellow]{e.kind.value}[/] {escape(e.device or '')} "
+                                        f"{escape(e.message)}", highlight=False)
         elif e.kind in (EventKind.TARGET, EventKind.NOTE, EventKind.METERED, EventKind.PAUSED,
                         EventKind.ABORTED):
-            self.progress.console.print(f"{e.kind.value}: {e.message}", highlight=False)
+            self.progress.console.print(f"{e.kind.value}: {escape(e.message)}", highlight=False)
 
 
 def _target_handler(opened: OpenedRig, yes: bool):
@@ -284,7 +286,9 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
             try:
                 info = create_session(st, p, opened.rig, name=session, operator=operator,
                                       plan_path=str(plan_file.resolve()))
-            except (PlanError, RunnerError, StoreError) as exc:
+            except PlanError as exc:
+                raise fail(f"{plan_file}: {exc}") from None
+            except (RunnerError, StoreError) as exc:
                 raise fail(str(exc)) from None
             todo = [Step.from_dict(d) for _, d, _ in st.steps(info.id)]
             est = MotionModel.from_rig(opened.rig).estimate(todo)

@@ -72,6 +72,15 @@ USB_BYTES_PER_S = 35e6
 DEFAULT_FRAME_OVERHEAD_S = 0.2 + DEFAULT_FRAME_BYTES / USB_BYTES_PER_S
 
 
+#: caps on a plan, counted before anything is expanded: values past them are surely typos (a
+#: 10^9-step plan once ran until memory ran out); split a bigger measurement into sessions
+MAX_VALUES = 100_000        # values in one list or range
+MAX_STEPS = 200_000         # steps of a whole plan
+MAX_FRAMES = 1_000_000      # frames of a whole plan
+MAX_REPEATS = 1_000         # repeats, and frames of one calibration step
+MAX_STOPS = 64              # exposures in a bracket
+
+
 class PlanError(ValueError):
     """The plan is malformed or unreachable; the message names the field and the reason."""
 
@@ -704,7 +713,19 @@ def _validate(p: Plan) -> None:
     """Rig-independent checks (also run on Python-built plans)."""
     if not _is_int(p.repeats) or p.repeats < 1:
         raise PlanError(f"repeats = {p.repeats!r} must be a whole number >= 1")
+    if p.repeats > MAX_REPEATS:
+        raise PlanError(f"repeats = {p.repeats} is more than {MAX_REPEATS}: surely a mistake")
     e = p.exposure
+    if len(e.stops) > MAX_STOPS:
+        raise PlanError(f"exposure.stops has {len(e.stops)} stops; more than {MAX_STOPS} is "
+                        "surely a mistake")
+    if p.light is not None and p.light.xyz_mm is not None and len(p.light.xyz_mm) > MAX_VALUES:
+        raise PlanError(f"light.xyz_mm has {len(p.light.xyz_mm)} points; more than {MAX_VALUES} "
+                        "is surely a mistake")
+    for i, c in enumerate(p.calibration):
+        if c.frames is not None and c.frames > MAX_REPEATS:
+            raise PlanError(f"calibration[{i}].frames = {c.frames} is more than {MAX_REPEATS}: "
+                            "surely a mistake")
     if not (_is_num(e.base_s) and e.base_s > 0 and math.isfinite(e.base_s)):
         raise PlanError(f"exposure.base_s = {_fmt(e.base_s)} must be a positive number of seconds")
     if not e.stops:
@@ -757,6 +778,28 @@ def _validate(p: Plan) -> None:
     if not measuring and not p.calibration:
         raise PlanError("the plan captures nothing: give turntable, light or polarizer values, "
                         "or a [[calibration]] capture")
+    steps, frames = _count(p)
+    if steps > MAX_STEPS or frames > MAX_FRAMES:
+        raise PlanError(f"the plan has {steps:,} steps and {frames:,} frames; the caps are "
+                        f"{MAX_STEPS:,} steps and {MAX_FRAMES:,} frames per session (split the "
+                        "measurement into several sessions, or check the ranges for a typo)")
+
+
+def _count(p: Plan) -> tuple[int, int]:
+    """Steps and frames of ``p`` by arithmetic (what :meth:`Plan.steps` would expand), so a plan
+    far too big is refused before anything is expanded."""
+    measure = [len(p.turntable_deg), len(p.polarizer_deg), p.light.count if p.light else 0]
+    steps = math.prod(n for n in measure if n) if any(measure) else 0
+    frames = steps * len(p.exposure.stops) * p.repeats
+    for c in p.calibration:
+        _, default_frames, default_lights = CALIBRATION_KINDS.get(c.kind, (None, 1, "none"))
+        angles = (len(c.turntable_angles_deg) if c.turntable_angles_deg is not None else
+                  8 if c.kind == "checkerboard" and p.turntable_deg else 1)
+        lights = (c.lights or default_lights) == "grid" and p.light is not None and p.light.count or 1
+        steps += angles * lights
+        frames += angles * lights * (1 if c.exposure_s is not None else len(p.exposure.stops)) \
+            * (c.frames or default_frames)
+    return steps, frames
 
 
 def _no_duplicates(values: Sequence[Any], where: str) -> None:
@@ -817,13 +860,16 @@ def _numbers(v: Any, where: str) -> tuple[float, ...]:
         if step == 0 or (stop - start) * step < 0:
             raise PlanError(f"{where}: step {step:g} never goes from {start:g} to {stop:g}")
         n = math.floor((stop - start) / step + 1e-9) + 1
-        if n > 100_000:
-            raise PlanError(f"{where}: the range has {n} values; more than 100000 is surely a mistake")
+        if n > MAX_VALUES:
+            raise PlanError(f"{where}: the range has {n} values; more than {MAX_VALUES} is surely "
+                            "a mistake")
         return tuple(round(start + k * step, 9) for k in range(n))
     if not isinstance(v, list):
         raise PlanError(f"{where} must be a list of numbers or {{start, stop, step}}, got {_tname(v)}")
     if not v:
         raise PlanError(f"{where} is empty; give at least one value")
+    if len(v) > MAX_VALUES:
+        raise PlanError(f"{where} has {len(v)} values; more than {MAX_VALUES} is surely a mistake")
     for i, x in enumerate(v):
         if not _is_num(x):
             raise PlanError(f"{where}[{i}] must be a number, got {_tname(x)}")

@@ -139,7 +139,7 @@ class SessionPane(Vertical):
                   path: str | None = None) -> None:
         """Fill the steps table; ``steps`` as ``(index, step dict, done)``; ``path`` is the
         plan file, if any."""
-        self.query_one("#plan-summary", Static).update(summary)
+        self.query_one("#plan-summary", Static).update(Text(summary))  # user text: no markup
         if path:
             self.query_one("#plan-path", Input).value = path
         table = self.query_one("#steps", DataTable)
@@ -158,7 +158,7 @@ class SessionPane(Vertical):
         for name, state, progress in rows:
             style = {"running": "green", "paused": "yellow", "interrupted": "bold yellow",
                      "aborted": "red"}.get(state, "")
-            table.add_row(name, Text(state, style=style), progress, key=name)
+            table.add_row(Text(name), Text(state, style=style), progress, key=name)
 
     @property
     def selected_session(self) -> str | None:
@@ -269,7 +269,7 @@ class SessionPane(Vertical):
 
     def show_alert(self, message: str) -> None:
         alert = self.query_one("#alert", Static)
-        alert.update(message)
+        alert.update(Text(message))
         alert.display = True
 
     def clear_alert(self) -> None:
