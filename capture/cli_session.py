@@ -239,7 +239,8 @@ def verify(name: str = typer.Argument(..., help="Session name."), store: str = S
     for label, items in (("missing", report.missing), ("corrupt", report.corrupt),
                          ("orphaned", report.orphans)):
         for item in items:
-            typer.secho(f"{label}: {item}", fg=typer.colors.RED)
+            uses = "; ".join(report.where.get(item, []))
+            typer.secho(f"{label}: {item}" + (f" ({uses})" if uses else ""), fg=typer.colors.RED)
     for step in report.incomplete_steps:
         typer.secho(f"incomplete: step {step} is marked done but has the wrong number of frames",
                     fg=typer.colors.RED)

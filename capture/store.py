@@ -330,6 +330,8 @@ class VerifyReport:
     corrupt: list[str] = field(default_factory=list)
     orphans: list[str] = field(default_factory=list)
     incomplete_steps: list[int] = field(default_factory=list)
+    #: sha256 -> where the session uses it (``step 3 frame 1 ...``, ``result dark #2 ...``)
+    where: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -1184,11 +1186,32 @@ class Store:
             report.checked += 1
             if progress is not None:
                 progress(i + 1, len(shas))
+        bad = report.missing + report.corrupt
+        if bad:
+            report.where = self._uses(info.id, bad)
         # with a writer running, an unreferenced file younger than a minute may be a frame between
         # its rename and its commit: not reported
         min_age = 60.0 if self.writer_active() else 0.0
         report.orphans = [str(p.relative_to(self.root)) for p in self.orphans(min_age_s=min_age)]
         return report
+
+    def _uses(self, session_id: int, shas: list[str]) -> dict[str, list[str]]:
+        """Where session ``session_id`` uses each of ``shas``: its frames and result artifacts."""
+        marks = ",".join("?" * len(shas))
+        with self._read() as db:
+            frames = db.execute(f"SELECT sha256, step, bracket_index, repeat, filename FROM frames "
+                                f"WHERE session_id = ? AND sha256 IN ({marks}) ORDER BY step, "
+                                "repeat, bracket_index", (session_id, *shas)).fetchall()
+            arts = db.execute(f"SELECT o.sha256, r.kind, r.id, o.name FROM result_objects o JOIN "
+                              f"results r ON r.id = o.result_id WHERE r.session_id = ? AND "
+                              f"o.sha256 IN ({marks}) ORDER BY r.id", (session_id, *shas)).fetchall()
+        where: dict[str, list[str]] = {}
+        for sha, step, b, r, name in frames:
+            where.setdefault(sha, []).append(f"step {step} frame {b} of the bracket, repeat {r} "
+                                             f"({name})")
+        for sha, kind, rid, name in arts:
+            where.setdefault(sha, []).append(f"result {kind} #{rid} artifact {name}")
+        return where
 
     def free_bytes(self) -> int:
         """Free space on the disk holding the store, bytes."""
