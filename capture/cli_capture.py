@@ -12,11 +12,13 @@ interrupted step is re-done on resume). Exit status: 0 done, 3 paused, 4 aborted
 """
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
 import threading
 from collections import Counter
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Iterator, Optional
 
 import typer
 from rich.console import Console
@@ -195,8 +197,25 @@ def _target_handler(opened: OpenedRig, yes: bool):
     return ask
 
 
-def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
-    """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly."""
+@contextlib.contextmanager
+def _ctrl_c_counted() -> Iterator[list[int]]:
+    """While a session runs and until the rig is closed, Ctrl-C only appends to the yielded list
+    (a handler that never raises): a second one landing anywhere, even while the first is being
+    handled or the rig closes, stops motion instead of killing gonio with SIGINT."""
+    interrupts: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield interrupts
+        return
+    restore = signal.signal(signal.SIGINT, lambda *_: interrupts.append(1))
+    try:
+        yield interrupts
+    finally:
+        signal.signal(signal.SIGINT, restore)
+
+
+def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]) -> None:
+    """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly;
+    ``interrupts`` is :func:`_ctrl_c_counted`'s list."""
     columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("steps"), TextColumn("{task.fields[frames]}"), TimeElapsedColumn(),
                TextColumn("{task.fields[eta]}")]
@@ -214,22 +233,23 @@ def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
     with Progress(*columns, console=Console(stderr=True), transient=False,
                   disable=quiet) as progress:
         runner.bus.subscribe(_ProgressView(progress))
+        handled = 0
         worker = threading.Thread(target=work, name="gonio-runner", daemon=True)
         worker.start()
-        interrupts = 0
-        # wait on an Event, not Thread.join: a KeyboardInterrupt inside join() can leave the
-        # thread looking finished while it still runs (a known CPython pitfall)
         while not finished.is_set():
             try:
-                finished.wait(0.2)
-            except KeyboardInterrupt:
-                interrupts += 1
-                if interrupts == 1:
+                finished.wait(0.1)
+            except KeyboardInterrupt:  # not on the main thread: no handler of ours
+                interrupts.append(1)
+            while handled < len(interrupts):
+                handled += 1
+                if handled == 1:
                     progress.console.print("[yellow]pausing after the current step[/] "
                                            "(Ctrl-C again to stop motion now)")
                     runner.request_pause()
-                else:
-                    progress.console.print("[yellow]stopping now[/]; the interrupted step will be re-done")
+                elif handled == 2:
+                    progress.console.print("[yellow]stopping now[/]; the interrupted step will "
+                                           "be re-done")
                     runner.request_pause(now=True)
         worker.join()
     if "error" in outcome:
@@ -282,7 +302,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
     st = open_store(store, create=True)
     with st:
         opened = _open_rig(rig, fast)
-        with opened:
+        with _ctrl_c_counted() as interrupts, opened:
             try:
                 info = create_session(st, p, opened.rig, name=session, operator=operator,
                                       plan_path=str(plan_file.resolve()))
@@ -297,7 +317,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
             typer.echo(_frame_size_text(est, True, running=True))
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
-            _execute(runner, store, quiet)
+            _execute(runner, store, quiet, interrupts)
 
 
 @_command
@@ -339,7 +359,7 @@ def resume(name: str = typer.Argument(..., help="Session name."),
             typer.secho(f"note: plan file {path} is gone; resuming from the plan stored with "
                         "the session", fg=typer.colors.YELLOW)
         opened = _open_rig(rig, fast)
-        with opened:
+        with _ctrl_c_counted() as interrupts, opened:
             try:
                 Plan.from_dict(info.plan).check_rig(opened.rig)
             except PlanError as exc:
@@ -350,5 +370,5 @@ def resume(name: str = typer.Argument(..., help="Session name."),
                        f"{human_bytes(est.bytes)} and {human_time(est.seconds)}")
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
-            _execute(runner, store, quiet)
+            _execute(runner, store, quiet, interrupts)
 

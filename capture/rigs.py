@@ -19,8 +19,12 @@ from pathlib import Path
 from typing import Any
 
 from rig import Axis, Rig, load_config, wait_all
-from rig.rig import ROLES
+from rig.rig import ROLES, ConfigError
 from sims.lab import SimLab
+
+
+#: the driver that speaks each simulated device's protocol (what ``port = "sim"`` serves)
+SIM_DRIVERS = {"turntable": "zaber", "positioner": "grbl", "polarizer": "elliptec", "camera": "ptp"}
 
 
 @dataclass
@@ -77,6 +81,12 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
     else:
         cfg = load_config(spec)
         sim_roles = [role for role, section in cfg.items() if role in ROLES and section.get("port") == "sim"]
+        where = "rig config" if isinstance(spec, dict) else str(spec)
+        for role in sim_roles:
+            if cfg[role]["driver"] != SIM_DRIVERS[role]:
+                raise ConfigError(f"{where}: [{role}] driver = {cfg[role]['driver']!r} with port = "
+                                  f"'sim': the simulated {role} speaks the {SIM_DRIVERS[role]!r} "
+                                  f"protocol; write driver = {SIM_DRIVERS[role]!r}, or a real port")
         if sim_roles:
             if "positioner" in sim_roles and "kinematics" in cfg["positioner"]:
                 lab_options.setdefault("kinematics", _kinematics_table(cfg["positioner"]["kinematics"]))
