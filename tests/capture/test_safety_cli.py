@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sqlite3
 
+import pytest
 from typer.testing import CliRunner
 
 from capture.cli_session import app as session_app
@@ -57,3 +58,31 @@ def test_verify_names_the_step_and_frame_of_a_bad_file(tmp_path):
     path.unlink()
     r = cli.invoke(session_app, ["verify", "ok", "--store", str(tmp_path / "st")])
     assert r.exit_code == 1 and f"missing: {f.sha256} (step 0 frame 0" in r.output
+
+
+@pytest.mark.asyncio
+async def test_the_console_shows_names_and_plan_text_literally(tmp_path):
+    from textual.widgets import DataTable
+    from textual.widgets._data_table import default_cell_formatter
+
+    from capture.tui import GonioApp
+
+    _hostile_store(tmp_path / "st")
+    app = GonioApp("sim", tmp_path / "st", fast=True)
+    app.animation_level = "none"
+    async with app.run_test(size=(80, 24)) as pilot:
+        await pilot.press("2")
+        sessions = app.query_one("#sessions", DataTable)
+        for _ in range(100):
+            if sessions.row_count == 2:
+                break
+            await pilot.pause(0.05)
+        # what the table draws: a plain str cell would be parsed as markup ("[bold]n" -> "n")
+        shown = [default_cell_formatter(sessions.get_cell(key, "session")).plain
+                 for key in ("ok", "[bold]n")]
+        assert shown == ["ok", "[bold]n"]
+        app.session_pane.show_plan([], f"{HOSTILE}: 1 steps")
+        app.session_pane.show_alert("[/red] device said [bold]")
+        await pilot.pause()
+        assert str(app.query_one("#plan-summary").render()) == f"{HOSTILE}: 1 steps"
+        assert app.session_pane.alert_text == "[/red] device said [bold]"
