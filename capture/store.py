@@ -440,7 +440,10 @@ class Store:
         self.objects = self.root / "objects"
         self._lock = threading.RLock()
         self._cleanup: Callable[[], None] | None = None
-        self._db = self._connect()
+        try:
+            self._db = self._connect()
+        except sqlite3.Error as exc:  # e.g. gonio.sqlite is a folder, or unreadable
+            raise StoreError(f"cannot open {self.db_path}: {exc}") from None
         try:
             self._prepare()
         except BaseException:
@@ -501,7 +504,8 @@ class Store:
             self._db.execute("PRAGMA foreign_keys = ON")
             self._migrate()
         except sqlite3.Error as exc:
-            raise self._translate(exc) from None
+            error = self._translate(exc)
+            raise (StoreError(f"cannot open {self.db_path}: {exc}") if error is exc else error) from None
 
     def _translate(self, exc: sqlite3.Error) -> Exception:
         """An SQLite error as the store error that says what to do, or ``exc`` itself."""
