@@ -625,6 +625,9 @@ def _parse(data: Any) -> Plan:
             pts = lt["xyz_mm"]
             if not isinstance(pts, list):
                 raise PlanError(f"light.xyz_mm must be a list of [x, y, z] points in mm, got {_tname(pts)}")
+            if len(pts) > MAX_VALUES:  # before converting them all
+                raise PlanError(f"light.xyz_mm has {len(pts)} points; more than {MAX_VALUES} is "
+                                "surely a mistake")
             for i, p in enumerate(pts):
                 if not (isinstance(p, list) and len(p) == 3 and all(_is_num(x) for x in p)):
                     raise PlanError(f"light.xyz_mm[{i}] must be [x, y, z] (three numbers, mm), got {p!r}")
@@ -721,7 +724,7 @@ def _validate(p: Plan) -> None:
                         "surely a mistake")
     if p.light is not None and p.light.xyz_mm is not None and len(p.light.xyz_mm) > MAX_VALUES:
         raise PlanError(f"light.xyz_mm has {len(p.light.xyz_mm)} points; more than {MAX_VALUES} "
-                        "is surely a mistake")
+                        "is surely a mistake")  # a plan built in Python
     for i, c in enumerate(p.calibration):
         if c.frames is not None and c.frames > MAX_REPEATS:
             raise PlanError(f"calibration[{i}].frames = {c.frames} is more than {MAX_REPEATS}: "

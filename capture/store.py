@@ -419,6 +419,19 @@ class Store:
         stored frame survives power loss. False keeps the write order (a killed process still
         leaves a consistent store) but not power-loss durability: for scratch stores and tests.
         Default: True unless the environment sets ``GONIO_STORE_DURABLE=0``.
+    readonly : bool, optional
+        Open the database without writing to it (``mode=ro``: no migration, no pragmas; write
+        methods raise :class:`StoreError`), for commands that only read: they then work on a
+        full disk and leave a foreign file alone.
+
+    Raises
+    ------
+    StoreDamaged
+        ``gonio.sqlite`` is damaged, or empty while ``objects/`` holds frame files.
+    ForeignDatabase
+        ``gonio.sqlite`` is another program's SQLite database.
+    StoreFull
+        The disk is full and the database cannot be opened for writing.
 
     Notes
     -----

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sqlite3
+import time
 
 import pytest
 from typer.testing import CliRunner
@@ -73,9 +74,8 @@ async def test_the_console_shows_names_and_plan_text_literally(tmp_path):
     async with app.run_test(size=(80, 24)) as pilot:
         await pilot.press("2")
         sessions = app.query_one("#sessions", DataTable)
-        for _ in range(100):
-            if sessions.row_count == 2:
-                break
+        deadline = time.monotonic() + 30  # the list is read in a worker: slow on a loaded machine
+        while sessions.row_count != 2 and time.monotonic() < deadline:
             await pilot.pause(0.05)
         # what the table draws: a plain str cell would be parsed as markup ("[bold]n" -> "n")
         shown = [default_cell_formatter(sessions.get_cell(key, "session")).plain

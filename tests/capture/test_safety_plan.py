@@ -69,6 +69,8 @@ def test_capture_run_names_the_plan_file_in_its_errors(tmp_path):
     p = tmp_path / "far.toml"
     p.write_text('[turntable]\nangles_deg = [0]\n[light]\nazimuth_deg = [0]\nelevation_deg = [88]\n'
                  '[exposure]\nbase_s = 0.01\n')
-    r = CliRunner().invoke(capture_app, ["run", str(p), "--rig", "sim", "--store",
+    rig = tmp_path / "rig.toml"  # one simulated device: quick to start
+    rig.write_text('[turntable]\ndriver = "zaber"\nport = "sim"\n')
+    r = CliRunner().invoke(capture_app, ["run", str(p), "--rig", str(rig), "--store",
                                          str(tmp_path / "st"), "--quiet"])
-    assert r.exit_code == 2 and f"{p}: light.elevation_deg[0] = 88" in " ".join(r.output.split())
+    assert r.exit_code == 2 and f"{p}: light is given but the rig has no positioner" in " ".join(r.output.split())
