@@ -498,12 +498,19 @@ class SimWorld:
                            object_pose=turntable_pose(st.turntable_deg), expected=expected)
 
 
-def lab_frame_source(fast: bool = True, object: GroundTruthObject | str | None = "sphere"):
-    """The default frame source of :class:`sims.lab.SimLab`: a :class:`SimWorld` with ``object``
-    on the turntable, its ground-truth camera at 320 x 240 in ``fast`` mode (tests: ~0.1 s per
-    frame) or the full 1200 x 800 otherwise. Returns its bound :meth:`SimWorld.frame_source`."""
+def lab_world(fast: bool = True, object: GroundTruthObject | str | None = "sphere") -> "SimWorld":
+    """The simulated lab's default scene: a :class:`SimWorld` with ``object`` on the turntable,
+    its ground-truth camera at 320 x 240 in ``fast`` mode (tests: ~0.1 s per frame) or the full
+    1200 x 800 otherwise. Its :meth:`SimWorld.frame_source` feeds the camera simulator and its
+    :meth:`SimWorld.prepare_target` stages each scene target."""
     camera = default_camera(320, 240) if fast else default_camera()
-    return SimWorld(object, camera=camera).frame_source
+    return SimWorld(object, camera=camera)
+
+
+def lab_frame_source(fast: bool = True, object: GroundTruthObject | str | None = "sphere"):
+    """The default frame source of :class:`sims.lab.SimLab`: :func:`lab_world`'s bound
+    :meth:`SimWorld.frame_source`."""
+    return lab_world(fast, object).frame_source
 
 
 def supersampled_camera(camera: CameraModel, s: int) -> CameraModel:
