@@ -51,13 +51,25 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+#: The scene targets: what stands in front of the camera for a step, and what the operator does
+#: to set it up. One vocabulary: a calibration kind is named after its target, and the simulated
+#: lab (``sims.world.SimWorld.set_scene``) stages a scene under the same name.
+SCENE_TARGETS = {
+    "object": "put the object on the turntable",
+    "dark": "put the lens cap on",
+    "checkerboard": "put the checkerboard target on the turntable",
+    "spheres": "put the calibration spheres on the turntable",
+    "gray_card": "put the gray card on the turntable",
+    "mirror_probe": "put the mirror sphere on the turntable",
+}
+
 CALIBRATION_KINDS = {
-    # kind: (scene target the operator sets up, default frames, default light use)
-    "dark": ("lens_cap", 5, "none"),
-    "checkerboard": ("checkerboard", 1, "first"),
-    "spheres": ("spheres", 1, "grid"),
-    "gray_card": ("gray_card", 1, "grid"),
-    "mirror_probe": ("mirror_probe", 1, "none"),
+    # kind (= its scene target): (default frames, default light use)
+    "dark": (5, "none"),
+    "checkerboard": (1, "first"),
+    "spheres": (1, "grid"),
+    "gray_card": (1, "grid"),
+    "mirror_probe": (1, "none"),
 }
 
 #: motion model defaults where a device's describe() gives none (speed unit/s, accel unit/s^2)
@@ -326,7 +338,7 @@ class Plan:
         return None
 
     def _calibration_steps(self, c: Calibration) -> list["Step"]:
-        target, default_frames, default_lights = CALIBRATION_KINDS[c.kind]
+        default_frames, default_lights = CALIBRATION_KINDS[c.kind]
         frames = c.frames or default_frames
         lights = c.lights or default_lights
         if c.exposure_s is not None:
@@ -346,7 +358,7 @@ class Plan:
         pol = None if c.kind == "dark" or not self.polarizer_deg else self.polarizer_deg[0]
         out = []
         for a, lt in _serpentine([angles, light_list]):
-            out.append(Step(index=0, kind=c.kind, target=target,
+            out.append(Step(index=0, kind=c.kind, target=c.kind,
                             turntable_deg=None if c.kind == "dark" else a,
                             light=None if c.kind == "dark" else lt, polarizer_deg=pol,
                             exposures_s=exposures, repeats=frames, iso=self.exposure.iso,
@@ -371,7 +383,7 @@ class Step:
     kind : str
         ``measure`` or a calibration kind (``dark``, ``checkerboard`` ...).
     target : str
-        What must be in front of the camera (``object``, ``lens_cap``, ``checkerboard`` ...).
+        What must be in front of the camera: a key of :data:`SCENE_TARGETS`.
     turntable_deg, polarizer_deg : float or None
         Axis targets, degrees (None: leave where it is).
     light : dict or None

@@ -31,7 +31,7 @@ def home_every_axis(rig: Rig) -> str:
 
 def target_handler(opened: OpenedRig, ask: Callable[[str, Step], None], *,
                    prompt: bool | None = None) -> Callable[[str, Step], None] | None:
-    """Who sets up the scene a step needs (``object``, ``lens_cap``, ``checkerboard`` ...), as
+    """Who sets up the scene a step needs (``object``, ``dark``, ``checkerboard`` ...), as
     in ``gonio capture run``: the opened rig's ``prepare_target`` where it has one (a simulated
     camera), else the operator is asked (``ask``). ``prompt`` True / False forces asking / not asking."""
     if prompt is None:

@@ -106,7 +106,7 @@ def test_mirror_probe_matches_simulated_environment():
     from calibration.probe import latlong_directions, mirror_sphere_to_latlong_perspective
     from sims.targets import CHROME_REFLECTANCE
 
-    world = sims_world.SimWorld.for_capture("probe")
+    world = sims_world.SimWorld.for_capture("mirror_probe")
     rad = world.radiance({})
     cam = world.camera
     centre = cam.R @ world.targets[0].points_world(0.0)[0] + cam.t

@@ -70,14 +70,14 @@ class SceneSwitch:
         self.camera = default_camera(W, H)
         self.worlds = {
             "object": SimWorld("sphere", camera=self.camera, seed=1),
-            "lens_cap": SimWorld.for_capture("dark", camera=self.camera, seed=2),
+            "dark": SimWorld.for_capture("dark", camera=self.camera, seed=2),
             "checkerboard": SimWorld(None, camera=self.camera, targets=[board_on_turntable(BOARD)],
                                      supersample=2, seed=3),
             # a 120 mm diffuser: its highlight on a 25 mm ball spans a few pixels at 320 x 240
             "spheres": SimWorld(None, camera=self.camera, targets=[SPHERES, _backdrop()],
                                 light_radius_mm=60.0, seed=4),
-            "gray_card": SimWorld.for_capture("graycard", camera=self.camera, seed=6),
-            "mirror_probe": SimWorld.for_capture("probe", None, camera=self.camera, seed=5),
+            "gray_card": SimWorld.for_capture("gray_card", camera=self.camera, seed=6),
+            "mirror_probe": SimWorld.for_capture("mirror_probe", None, camera=self.camera, seed=5),
         }
         self.current = self.worlds["object"]
 
