@@ -46,10 +46,12 @@ import hashlib
 import itertools
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
+
+from rig.motion import move_time_s
+from rig.tomlfile import read_toml
 
 #: The scene targets: what stands in front of the camera for a step, and what the operator does
 #: to set it up. One vocabulary: a calibration kind is named after its target, and the simulated
@@ -207,14 +209,7 @@ class Plan:
     def from_toml(cls, path: str | Path) -> "Plan":
         """Read and validate a plan file (errors name the file and the field)."""
         path = Path(path)
-        if not path.is_file():
-            raise PlanError(f"plan file {path} does not exist")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise PlanError(f"{path}: not valid TOML: {exc}") from None
-        except UnicodeDecodeError:
-            raise PlanError(f"{path}: not a text file") from None
+        data = read_toml(path, error=PlanError, what="plan file")
         try:
             return cls.from_dict(data)
         except PlanError as exc:
@@ -496,11 +491,7 @@ class MotionModel:
 
     def move_s(self, role: str, distance: float) -> float:
         """Time of one trapezoidal move of ``distance`` (device units), seconds."""
-        v, a = self.speeds[role]
-        d = abs(distance)
-        if d == 0:
-            return 0.0
-        return d / v + v / a if d > v * v / a else 2.0 * math.sqrt(d / a)
+        return move_time_s(distance, *self.speeds[role])
 
     def step_move_s(self, prev: Step | None, step: Step) -> float:
         """Time to go from ``prev`` to ``step``: axes move together, so the slowest counts."""

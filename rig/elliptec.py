@@ -32,10 +32,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from .device import Axis, reading
-from .errors import (DeviceBusy, DeviceError, DeviceTimeout, Disconnected, LimitError, NotHomed,
+from .errors import (DeviceBusy, DeviceError, DeviceTimeout, LimitError, NotHomed,
                      ProtocolError, RigError)
 from .status import MoveStatus
-from .transport import SerialTransport
+from .transport import SerialDriver, SerialTransport
 
 BAUDRATE = 9600
 TERMINATOR = b"\r\n"
@@ -232,7 +232,7 @@ def encode_info(info: DeviceInfo, address: str = "0") -> bytes:
 
 
 # -- driver -----------------------------------------------------------------------------------
-class ElliptecRotator(Axis):
+class ElliptecRotator(SerialDriver, Axis):
     """ELL14 rotation mount as an :class:`~rig.device.Axis` in degrees.
 
     The mount rotates without end; targets in ``limits`` (-360..360 degrees) are wrapped into
@@ -306,17 +306,10 @@ class ElliptecRotator(Axis):
                               device=self.name)
         self.info = info
         self._check_ok(self._exchange("gs"), "status at connect")
-
-    def close(self) -> None:
-        self.transport.close()
-
-    @property
-    def connected(self) -> bool:
-        return self.transport.is_open and self.info is not None
+        self._connected = True
 
     def _require_info(self) -> DeviceInfo:
-        if self.info is None or not self.transport.is_open:
-            raise Disconnected("not connected; call connect() first", device=self.name)
+        self._require()
         return self.info
 
     # -- exchanges ----------------------------------------------------------------------------
