@@ -460,7 +460,6 @@ def test_default_sim_session_locates_lights_from_known_sphere_positions(tmp_path
         assert np.linalg.norm(p - t) < 3 * np.linalg.norm(row["std_mm"]), (p, t, row["std_mm"])
 
 
-@pytest.mark.slow
 def test_default_sim_session_full_resolution_lights_within_12_percent(tmp_path):
     """The default lab at the sim camera's full 1200 x 800 (~65-90 s on two cores): every light
     is seen in the six balls, its direction from the ball row within 1.5 deg and its distance

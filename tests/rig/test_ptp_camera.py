@@ -262,7 +262,6 @@ def test_built_from_rig_config_with_usb_backend():
     assert sim.session_id == 0
 
 
-@pytest.mark.slow
 def test_get_object_throughput_24mp():
     from sims.dng import write_dng
     raw = np.random.default_rng(0).integers(512, 15000, size=(4000, 6000), dtype=np.uint16)
