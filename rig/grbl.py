@@ -516,17 +516,8 @@ class GrblPositioner(SerialDriver, LightPositioner):
         deadline = time.monotonic() + timeout
         moved = False
         grace = time.monotonic() + 0.25  # GRBL may report Idle for a moment before the block starts
-        failures = 0
         while True:
-            try:
-                st = self.status()
-            except (ProtocolError, DeviceTimeout):
-                # a status poll is idempotent: line noise or one lost report must not fail the move
-                failures += 1
-                if failures > self.poll_retries:
-                    raise
-                continue
-            failures = 0
+            st = self._poll(self.status)
             if st.state == "Alarm":
                 raise GrblAlarm(self.last_alarm, device=self.name)
             if st.state == "Idle":

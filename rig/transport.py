@@ -13,10 +13,13 @@ import select
 import termios
 import threading
 import time
+from typing import Callable, TypeVar
 
 import serial
 
-from .errors import DeviceTimeout, Disconnected
+from .errors import DeviceTimeout, Disconnected, ProtocolError
+
+T = TypeVar("T")
 
 log = logging.getLogger("gonio.rig.wire")
 
@@ -229,6 +232,7 @@ class SerialDriver:
 
     transport: SerialTransport
     name: str
+    poll_retries: int = 2
     _connected: bool = False
 
     def close(self) -> None:
@@ -244,3 +248,15 @@ class SerialDriver:
         """Raise ``Disconnected`` unless ``connect()`` succeeded and the port is still open."""
         if not self.connected:
             raise Disconnected("not connected; call connect() first", device=self.name)
+
+    def _poll(self, request: Callable[[], T]) -> T:
+        """``request()``, an idempotent status poll, retried up to ``self.poll_retries`` more
+        times on line noise or a lost reply, which must not fail a move."""
+        failures = 0
+        while True:
+            try:
+                return request()
+            except (ProtocolError, DeviceTimeout):
+                failures += 1
+                if failures > self.poll_retries:
+                    raise

@@ -654,17 +654,8 @@ class ZaberRotaryStage(SerialDriver, Axis):
 
     def _wait_idle(self, target_deg: float | None, timeout: float) -> float:
         deadline = time.monotonic() + timeout
-        failures = 0
         while True:
-            try:
-                msg = self.request("")
-            except (ProtocolError, DeviceTimeout):
-                # a poll is idempotent: line noise or one lost reply must not fail the move
-                failures += 1
-                if failures > self.poll_retries:
-                    raise
-                continue
-            failures = 0
+            msg = self._poll(lambda: self.request(""))
             if not msg.busy:
                 break
             if time.monotonic() > deadline:
