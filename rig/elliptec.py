@@ -400,7 +400,7 @@ class ElliptecRotator(SerialDriver, Axis):
     def position(self) -> float:
         """Read-back angle in degrees, [0, 360). Waits for a running move to finish (the port
         is busy with it until its ``PO`` reply)."""
-        self._require_info()
+        self._require()
         return self._pulses_to_deg(parse_position(self._query("gp", "PO"), device=self.name))
 
     def move_to(self, value: float) -> MoveStatus:
@@ -445,7 +445,7 @@ class ElliptecRotator(SerialDriver, Axis):
 
     def home(self, clockwise: bool = True) -> MoveStatus:
         """Start the homing run (``ho``); ``homed`` becomes True when it ends at 0 degrees."""
-        self._require_info()
+        self._require()
 
         def _home() -> float:
             angle = self._run_motion("ho", "0" if clockwise else "1", "homing")
@@ -457,7 +457,7 @@ class ElliptecRotator(SerialDriver, Axis):
 
     def stop(self) -> None:
         """Stop motion now (``st``). A running move's status then ends at the stop position."""
-        self._require_info()
+        self._require()
         motion = self._motion
         if motion is not None and not motion.done:
             # the move thread holds the port waiting for PO; write past it and let it eat the GS
@@ -468,7 +468,7 @@ class ElliptecRotator(SerialDriver, Axis):
 
     def status_code(self) -> int:
         """The device's ``gs`` status code (0 = OK, 9 = busy, see :data:`STATUS`)."""
-        self._require_info()
+        self._require()
         return parse_status(self._exchange("gs"), device=self.name)
 
     def read(self) -> dict[str, dict[str, Any]]:
