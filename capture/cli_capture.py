@@ -184,10 +184,8 @@ class _ProgressView:
 def _target_handler(opened: OpenedRig, yes: bool):
     """Who sets up each calibration target: the simulated scene (``--rig sim``), the operator
     (real rig, interactive terminal, no ``--yes``), or nobody (a ``target`` line is printed)."""
-    if opened.lab is not None:
-        # the lab's default frame source is a bound SimWorld.frame_source; its world swaps scenes
-        world = getattr(opened.lab.frame_source, "__self__", None)
-        return getattr(world, "prepare_target", None)
+    if opened.prepare_target is not None:
+        return opened.prepare_target
     if yes or not sys.stdin.isatty():
         return None
 

@@ -46,18 +46,32 @@ import hashlib
 import itertools
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from rig.motion import move_time_s
+from rig.tomlfile import read_toml
+
+#: The scene targets: what stands in front of the camera for a step, and what the operator does
+#: to set it up. One vocabulary: a calibration kind is named after its target, and the simulated
+#: lab (``sims.world.SimWorld.set_scene``) stages a scene under the same name.
+SCENE_TARGETS = {
+    "object": "put the object on the turntable",
+    "dark": "put the lens cap on",
+    "checkerboard": "put the checkerboard target on the turntable",
+    "spheres": "put the calibration spheres on the turntable",
+    "gray_card": "put the gray card on the turntable",
+    "mirror_probe": "put the mirror sphere on the turntable",
+}
+
 CALIBRATION_KINDS = {
-    # kind: (scene target the operator sets up, default frames, default light use)
-    "dark": ("lens_cap", 5, "none"),
-    "checkerboard": ("checkerboard", 1, "first"),
-    "spheres": ("spheres", 1, "grid"),
-    "gray_card": ("gray_card", 1, "grid"),
-    "mirror_probe": ("mirror_probe", 1, "none"),
+    # kind (= its scene target): (default frames, default light use)
+    "dark": (5, "none"),
+    "checkerboard": (1, "first"),
+    "spheres": (1, "grid"),
+    "gray_card": (1, "grid"),
+    "mirror_probe": (1, "none"),
 }
 
 #: motion model defaults where a device's describe() gives none (speed unit/s, accel unit/s^2)
@@ -204,14 +218,7 @@ class Plan:
     def from_toml(cls, path: str | Path) -> "Plan":
         """Read and validate a plan file (errors name the file and the field)."""
         path = Path(path)
-        if not path.is_file():
-            raise PlanError(f"plan file {path} does not exist")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise PlanError(f"{path}: not valid TOML: {exc}") from None
-        except UnicodeDecodeError:
-            raise PlanError(f"{path}: not a text file") from None
+        data = read_toml(path, error=PlanError, what="plan file")
         try:
             return cls.from_dict(data)
         except PlanError as exc:
@@ -335,7 +342,7 @@ class Plan:
         return None
 
     def _calibration_steps(self, c: Calibration) -> list["Step"]:
-        target, default_frames, default_lights = CALIBRATION_KINDS[c.kind]
+        default_frames, default_lights = CALIBRATION_KINDS[c.kind]
         frames = c.frames or default_frames
         lights = c.lights or default_lights
         if c.exposure_s is not None:
@@ -355,7 +362,7 @@ class Plan:
         pol = None if c.kind == "dark" or not self.polarizer_deg else self.polarizer_deg[0]
         out = []
         for a, lt in _serpentine([angles, light_list]):
-            out.append(Step(index=0, kind=c.kind, target=target,
+            out.append(Step(index=0, kind=c.kind, target=c.kind,
                             turntable_deg=None if c.kind == "dark" else a,
                             light=None if c.kind == "dark" else lt, polarizer_deg=pol,
                             exposures_s=exposures, repeats=frames, iso=self.exposure.iso,
@@ -380,7 +387,7 @@ class Step:
     kind : str
         ``measure`` or a calibration kind (``dark``, ``checkerboard`` ...).
     target : str
-        What must be in front of the camera (``object``, ``lens_cap``, ``checkerboard`` ...).
+        What must be in front of the camera: a key of :data:`SCENE_TARGETS`.
     turntable_deg, polarizer_deg : float or None
         Axis targets, degrees (None: leave where it is).
     light : dict or None
@@ -493,11 +500,7 @@ class MotionModel:
 
     def move_s(self, role: str, distance: float) -> float:
         """Time of one trapezoidal move of ``distance`` (device units), seconds."""
-        v, a = self.speeds[role]
-        d = abs(distance)
-        if d == 0:
-            return 0.0
-        return d / v + v / a if d > v * v / a else 2.0 * math.sqrt(d / a)
+        return move_time_s(distance, *self.speeds[role])
 
     def step_move_s(self, prev: Step | None, step: Step) -> float:
         """Time to go from ``prev`` to ``step``: axes move together, so the slowest counts."""
@@ -795,7 +798,7 @@ def _count(p: Plan) -> tuple[int, int]:
     steps = math.prod(n for n in measure if n) if any(measure) else 0
     frames = steps * len(p.exposure.stops) * p.repeats
     for c in p.calibration:
-        _, default_frames, default_lights = CALIBRATION_KINDS.get(c.kind, (None, 1, "none"))
+        default_frames, default_lights = CALIBRATION_KINDS.get(c.kind, (1, "none"))
         angles = (len(c.turntable_angles_deg) if c.turntable_angles_deg is not None else
                   8 if c.kind == "checkerboard" and p.turntable_deg else 1)
         lights = (c.lights or default_lights) == "grid" and p.light is not None and p.light.count or 1

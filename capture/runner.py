@@ -30,7 +30,7 @@ from rig.errors import Disconnected
 
 from .events import Event, EventBus, EventKind
 from .metering import MeteringError, meter
-from .plan import Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff
+from .plan import SCENE_TARGETS, Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff
 from .store import SessionInfo, Store, StoreFull, check_session_name, safe_name_from
 
 #: free space kept in reserve on the store's disk, bytes
@@ -153,7 +153,7 @@ class Runner:
     reserve_bytes : int
         Free space to keep on the store's disk; below it the session pauses (``low_disk``).
     prepare_target : callable(target, step), optional
-        Called when the scene must change (``checkerboard``, ``lens_cap``, ``object`` ...) before
+        Called when the scene must change (``checkerboard``, ``dark``, ``object`` ...) before
         the first step needing it, e.g. to prompt the operator or tell a simulator. Without it a
         ``target`` event is emitted and the runner carries on.
     home : bool
@@ -378,12 +378,7 @@ class Runner:
             raise _Stop("paused", msg)
 
     def _change_target(self, step: Step) -> None:
-        msg = {"object": "put the object on the turntable", "lens_cap": "put the lens cap on",
-               "checkerboard": "put the checkerboard target on the turntable",
-               "spheres": "put the calibration spheres on the turntable",
-               "gray_card": "put the gray card on the turntable",
-               "mirror_probe": "put the mirror sphere on the turntable"}.get(step.target,
-                                                                            f"set up {step.target}")
+        msg = SCENE_TARGETS.get(step.target, f"set up {step.target}")
         self._emit(EventKind.TARGET, msg, step=step.index, target=step.target, kind=step.kind)
         if self.prepare_target is not None:
             self.prepare_target(step.target, step)

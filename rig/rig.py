@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import importlib
 import inspect
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .device import Axis, Camera, Device, LightPositioner
 from .errors import RigError
+from .tomlfile import read_toml
 
 #: driver name -> "module:Class"; each class has ``from_config(name, section, **context)``
 DRIVERS: dict[str, str] = {
@@ -57,14 +57,8 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
     if isinstance(source, dict):
         cfg = source
     else:
-        path = Path(source)
-        where = str(path)
-        if not path.is_file():
-            raise ConfigError(f"rig file {path} does not exist")
-        try:
-            cfg = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+        where = str(source)
+        cfg = read_toml(source, error=ConfigError, what="rig file")
     for role, section in cfg.items():
         if role == "rig":  # free metadata: name, notes
             continue

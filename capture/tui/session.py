@@ -19,6 +19,7 @@ from textual.screen import ModalScreen
 from textual.widgets import DataTable, Input, Label, ProgressBar, Static
 
 from ..events import Event, EventKind
+from ..plan import SCENE_TARGETS
 from .devices import light_direction
 
 #: store states a session can be resumed from ("running" in the store but not here: a crash)
@@ -330,13 +331,7 @@ class TargetScreen(ModalScreen[bool]):
         with Vertical(id="target-box"):
             yield Label(Text(f"Step {self.step} needs: {self.target.replace('_', ' ')}",
                              style="bold"))
-            yield Label(f"{TARGET_TEXT.get(self.target, 'set up ' + self.target)}, then press "
+            yield Label(f"{SCENE_TARGETS.get(self.target, 'set up ' + self.target)}, then press "
                         "enter. Escape pauses the session instead.")
 
 
-#: what the operator does for each scene target of a plan
-TARGET_TEXT = {"object": "put the object on the turntable", "lens_cap": "put the lens cap on",
-               "checkerboard": "put the checkerboard target on the turntable",
-               "spheres": "put the calibration spheres on the turntable",
-               "gray_card": "put the gray card on the turntable",
-               "mirror_probe": "put the mirror sphere on the turntable"}
