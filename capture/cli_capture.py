@@ -270,8 +270,8 @@ def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]
 def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         rig: str = typer.Option(..., "--rig", help=RIG_HELP),
         store: str = STORE_OPTION,
-        session: Optional[str] = typer.Option(None, "--session", help="Session name (default: "
-                                              "<plan name>-<date>-<time>)."),
+        session: Optional[str] = typer.Option(None, "--session", help="Session name: letters, digits, "
+                                              "'_', '.', '-' (default: <plan name>-<date>-<time>)."),
         operator: Optional[str] = typer.Option(None, help="Operator (overrides the plan's)."),
         fast: bool = typer.Option(True, help="Simulated devices move instantly."),
         home: bool = typer.Option(True, help="Home axes that report not homed before starting."),

@@ -38,7 +38,8 @@ A store is a folder that 'gonio capture run --store DIR' writes: DIR/gonio.sqlit
 their plans and steps, frames with what the devices reported, events and faults, calibration
 and reconstruction results) and DIR/objects/ (the frame files, named by their SHA-256).
 --store defaults to $GONIO_STORE or ./gonio-store and also opens an exported .tar, .tar.gz or
-.zip. Reading is safe while a session is being recorded.
+.zip. Reading is safe while a session is being recorded, and list, show, verify and export
+never write the database (they work on a full disk).
 
 Exit status: 0 ok; 1 'verify' found missing, corrupt or orphaned files; 2 error (no such store
 or session).
