@@ -5,7 +5,7 @@ runner asked the operator to set up (``prepare_target``), all through one camera
 
 ==============  ==============================================================================
 ``object``      the object (default: the four-material bunny, :func:`sims.objects.make_object`)
-``lens_cap``    dark frames
+``dark``        dark frames (lens cap on)
 ``checkerboard``  a 10 x 7 ChArUco of 28 mm squares standing on the turntable (fills much of
                 the frame: a turntable sweep otherwise only sees the image centre)
 ``spheres``     three 25 mm chrome balls on a bar before a lit white backdrop, lamp behind a
@@ -104,13 +104,13 @@ class DemoLab:
         cam = self.camera
         self.worlds = {
             "object": SimWorld(self.object, camera=cam, seed=seed + 1),
-            "lens_cap": SimWorld.for_capture("dark", camera=cam, seed=seed + 2),
+            "dark": SimWorld.for_capture("dark", camera=cam, seed=seed + 2),
             "checkerboard": SimWorld(None, camera=cam, targets=[board_on_turntable(BOARD)], supersample=2,
                                      seed=seed + 3),
             "spheres": SimWorld(None, camera=cam, targets=[self._spheres(), _backdrop()],
                                 light_radius_mm=SPHERES_LAMP_RADIUS_MM, supersample=2, seed=seed + 4),
-            "gray_card": SimWorld.for_capture("graycard", camera=cam, seed=seed + 5),
-            "mirror_probe": SimWorld.for_capture("probe", None, camera=cam, seed=seed + 6),
+            "gray_card": SimWorld.for_capture("gray_card", camera=cam, seed=seed + 5),
+            "mirror_probe": SimWorld.for_capture("mirror_probe", None, camera=cam, seed=seed + 6),
             "passive": SimWorld.for_capture("passive", self.object, camera=cam, seed=seed + 7),
         }
         self.current = self.worlds["object"]

@@ -70,14 +70,14 @@ class SceneSwitch:
         self.camera = default_camera(W, H)
         self.worlds = {
             "object": SimWorld("sphere", camera=self.camera, seed=1),
-            "lens_cap": SimWorld.for_capture("dark", camera=self.camera, seed=2),
+            "dark": SimWorld.for_capture("dark", camera=self.camera, seed=2),
             "checkerboard": SimWorld(None, camera=self.camera, targets=[board_on_turntable(BOARD)],
                                      supersample=2, seed=3),
             # a 120 mm diffuser: its highlight on a 25 mm ball spans a few pixels at 320 x 240
             "spheres": SimWorld(None, camera=self.camera, targets=[SPHERES, _backdrop()],
                                 light_radius_mm=60.0, seed=4),
-            "gray_card": SimWorld.for_capture("graycard", camera=self.camera, seed=6),
-            "mirror_probe": SimWorld.for_capture("probe", None, camera=self.camera, seed=5),
+            "gray_card": SimWorld.for_capture("gray_card", camera=self.camera, seed=6),
+            "mirror_probe": SimWorld.for_capture("mirror_probe", None, camera=self.camera, seed=5),
         }
         self.current = self.worlds["object"]
 
@@ -460,7 +460,6 @@ def test_default_sim_session_locates_lights_from_known_sphere_positions(tmp_path
         assert np.linalg.norm(p - t) < 3 * np.linalg.norm(row["std_mm"]), (p, t, row["std_mm"])
 
 
-@pytest.mark.slow
 def test_default_sim_session_full_resolution_lights_within_12_percent(tmp_path):
     """The default lab at the sim camera's full 1200 x 800 (~65-90 s on two cores): every light
     is seen in the six balls, its direction from the ball row within 1.5 deg and its distance
