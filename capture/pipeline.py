@@ -364,7 +364,7 @@ def _pictures(fit: Fitted, train: Lumitexels, held: Lumitexels, inputs: ProcessI
         k0 = int(held.view.min())
         view = inputs.held_out[k0 - len(inputs.views)]
         sub = select_samples(held, held.view == k0)
-        out["heldout_captured"] = _splat(sub, _radiance(sub, sub.reflectance, view), view)
+        out["heldout_captured"] = np.asarray(view.radiance, np.float32)   # the capture itself
         out["heldout_predicted"] = _splat(sub, _radiance(sub, fit.predict(sub), view), view)
     theta = np.radians(np.linspace(-85, 85, 69))
     ti = np.radians(SLICE_THETA_I_DEG)

@@ -492,7 +492,12 @@ def lumitexels_with_held_out(mesh: trimesh.Trimesh | Surface, inputs: ProcessInp
     dropped from both. Returns ``(train, held_out)``; ``held_out`` has no samples when the
     plan held no light out.
     """
-    lt = assemble_lumitexels(mesh, [*inputs.views, *inputs.held_out], progress=progress)
+    views = [*inputs.views, *inputs.held_out]
+    # the depth/shadow-edge rejection box: 5 px at 1200 px wide (the assembly's default), at
+    # least 3: at 320 x 240 a 5 px box dropped 40 % more samples for the same accuracy
+    width = views[0].camera.width
+    lt = assemble_lumitexels(mesh, views, reject_filter_px=max(3, int(round(5 * width / 1200)) | 1),
+                             progress=progress)
     return split_samples(lt, lt.view >= len(inputs.views))
 
 

@@ -101,15 +101,17 @@ def _timeline(store: Store, session_id: int) -> str:
 def _held_out_figure(pics: dict[str, np.ndarray]) -> str:
     import matplotlib.pyplot as plt
     cap, pred = pics["heldout_captured"], pics["heldout_predicted"]
-    scale = float(np.nanpercentile(cap, 99.5)) or 1.0
-    err = np.linalg.norm(np.nan_to_num(pred - cap), axis=2) / max(float(np.nanmean(np.linalg.norm(cap, axis=2))), 1e-12)
-    err[np.isnan(cap).any(axis=2)] = np.nan
-    ys, xs = np.nonzero(~np.isnan(cap).any(axis=2))
+    on = ~np.isnan(pred).any(axis=2)          # pixels of surface points the model predicts
+    scale = float(np.percentile(cap[on], 99.5)) if on.any() else 1.0
+    err = np.linalg.norm(np.nan_to_num(pred - cap), axis=2) / max(float(np.mean(np.linalg.norm(cap[on], axis=1)))
+                                                                  if on.any() else 1.0, 1e-12)
+    err[~on] = np.nan
+    ys, xs = np.nonzero(on)
     crop = (slice(max(ys.min() - 4, 0), ys.max() + 5), slice(max(xs.min() - 4, 0), xs.max() + 5)) if len(ys) else \
         (slice(None), slice(None))
     fig, axes = plt.subplots(1, 3, figsize=(10, 3.6))
     axes[0].imshow(_tonemap(cap, scale)[crop])
-    axes[0].set_title("captured (held-out light)")
+    axes[0].set_title("captured under a held-out light")
     axes[1].imshow(_tonemap(pred, scale)[crop])
     axes[1].set_title("predicted by the model")
     im = axes[2].imshow(err[crop], cmap="magma", vmin=0, vmax=1)
