@@ -17,12 +17,23 @@ def tui(rig: str = typer.Option("sim", "--rig",
                                    help="Session store directory (created if missing)."),
         plan: Optional[Path] = typer.Option(None, "--plan", help="Open this plan file at start."),
         fast: bool = typer.Option(False, help="Simulated devices move instantly."),
-        poll: float = typer.Option(0.25, help="Device table refresh period, seconds.")) -> None:
+        poll: float = typer.Option(0.25, help="Device table refresh period, seconds."),
+        mesh: Optional[Path] = typer.Option(None, "--mesh", help="The object's mesh, for processing "
+                                            "sessions (P on the Session tab)."),
+        demo_lab: bool = typer.Option(False, "--demo-lab", help="Process sessions of the simulated demo "
+                                      "lab (mesh, targets and truth from it).")) -> None:
     """Devices (jog, home, stop, camera test shot), sessions (plan, start, pause, resume, abort,
     progress), preview with histograms, and the event log. Press F1 inside for the keys."""
     if poll <= 0:
         raise typer.BadParameter(f"must be > 0 seconds, got {poll}", param_hint="--poll")
     if plan is not None and not plan.is_file():
         raise typer.BadParameter(f"plan file {plan} does not exist", param_hint="--plan")
+    process_options: dict = {"demo_lab": demo_lab}
+    if mesh is not None:
+        from .process import ProcessError, load_mesh
+        try:
+            process_options["mesh"] = load_mesh(mesh)
+        except ProcessError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--mesh") from None
     from .tui import GonioApp  # Textual loads only for this command
-    GonioApp(rig, store, fast=fast, poll_s=poll, plan=plan).run()
+    GonioApp(rig, store, fast=fast, poll_s=poll, plan=plan, process_options=process_options).run()

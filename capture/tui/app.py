@@ -127,6 +127,22 @@ class SessionEnded(Message):
         self.state, self.error = state, error
 
 
+class ProcessProgress(Message):
+    """``gonio process`` of ``session`` reached ``stage`` (``done`` of ``total``)."""
+
+    def __init__(self, session: str, stage: str, done: int, total: int) -> None:
+        super().__init__()
+        self.session, self.stage, self.done, self.total = session, stage, done, total
+
+
+class ProcessEnded(Message):
+    """Processing ``session`` finished with ``report`` (a ``ProcessReport``) or ``error``."""
+
+    def __init__(self, session: str, report: Any = None, error: BaseException | None = None) -> None:
+        super().__init__()
+        self.session, self.report, self.error = session, report, error
+
+
 class TargetCancelled(RunnerError):
     """The operator cancelled a scene-change prompt; the runner pauses the session."""
 
@@ -171,8 +187,12 @@ class GonioApp(App[None]):
     def __init__(self, rig: str = "sim", store: str | Path = "gonio-store", *, fast: bool = False,
                  poll_s: float = 0.25, plan: str | Path | None = None,
                  sim_options: dict[str, dict[str, Any]] | None = None,
-                 prompt_targets: bool | None = None, **runner_options: Any) -> None:
+                 prompt_targets: bool | None = None, process_options: dict[str, Any] | None = None,
+                 **runner_options: Any) -> None:
         super().__init__()
+        #: what ``process`` needs besides the session: ``mesh`` (trimesh) or ``demo_lab`` True
+        self.process_options = dict(process_options or {})
+        self.processing: str | None = None   # the session being processed
         self.rig_spec = rig
         self.store_dir = Path(store)
         self.fast = fast
@@ -511,6 +531,17 @@ class GonioApp(App[None]):
                 self.notify("the rig is not connected yet", severity="warning", markup=False)
             else:
                 self._start_session(None if op == "new" else (request.name or ""))
+        elif op == "process":
+            if self.store is None or not request.name:
+                self.notify("select a session in the sessions table first", severity="warning", markup=False)
+            elif self.processing is not None:
+                self.notify(f"already processing {self.processing}", severity="warning", markup=False)
+            elif self.runner_active and self.runner is not None and self.session_pane.session_name == request.name:
+                self.notify("the session is still being captured", severity="warning", markup=False)
+            else:
+                self.processing = request.name
+                self.log_line(logging.INFO, "console", f"processing {request.name}")
+                self._process(request.name)
         elif self.runner is None:
             self.notify("no session is open", severity="warning", markup=False)
         elif op == "pause" and self.runner_active:
@@ -587,6 +618,37 @@ class GonioApp(App[None]):
         self.session_pane.state = message.state
         self.open_store()  # refresh the session list
         self.poll_devices()
+
+    @work(thread=True, exclusive=True, group="process")
+    def _process(self, session: str) -> None:
+        """``gonio process`` on ``session`` (calibration if needed, every method, the report)."""
+        def progress(stage: str, done: int, total: int) -> None:
+            self.post_message(ProcessProgress(session, stage, done, total))
+        try:
+            report = backend.process(self.store, session, progress=progress, **self.process_options)
+        except Exception as exc:  # noqa: BLE001 - shown to the operator, the console goes on
+            self.post_message(ProcessEnded(session, error=exc))
+            return
+        self.post_message(ProcessEnded(session, report))
+
+    @_while_attached
+    def on_process_progress(self, message: ProcessProgress) -> None:
+        self.session_pane.show_processing(message.session, message.stage, message.done, message.total)
+
+    @_while_attached
+    def on_process_ended(self, message: ProcessEnded) -> None:
+        self.processing = None
+        if message.error is not None:
+            self.log_line(logging.ERROR, "console", f"processing {message.session} failed: {message.error}")
+            self.notify(f"processing {message.session} failed: {message.error}", severity="error",
+                        timeout=15, markup=False)
+            self.session_pane.show_processing(message.session, f"failed: {message.error}", 0, 0)
+            return
+        rep = message.report
+        headline = backend.headline(rep)
+        self.session_pane.show_processed(message.session, str(rep.report_path), headline)
+        self.log_line(logging.INFO, "console", f"{message.session} processed: report {rep.report_path}")
+        self.notify(f"report: {rep.report_path}", title=f"{message.session} processed", markup=False)
 
     @_while_attached
     def on_runner_event(self, message: RunnerEvent) -> None:

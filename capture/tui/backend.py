@@ -117,3 +117,39 @@ def make_runner(rig: Rig, store: Store, *, plan: Plan | None = None, plan_path: 
     todo = [Step.from_dict(d) for _, d, done in steps if not done]
     summary = _summary(MotionModel.from_rig(rig).estimate(todo), f"{info.name} (to do)")
     return Runner(rig, store, info, **runner_options), steps, summary
+
+
+def process(store: Store, session: str, *, progress: Callable[[str, int, int], None] | None = None,
+            mesh: Any = None, demo_lab: bool = False) -> Any:
+    """``gonio process`` on ``session``: ``mesh`` (the object's, trimesh) or ``demo_lab`` (a
+    session of the simulated demo lab: mesh, targets and truth from it). Returns the
+    :class:`capture.pipeline.ProcessReport`."""
+    from ..pipeline import process_session
+    kw: dict[str, Any] = {}
+    if demo_lab:
+        from ..demo_lab import demo_lab_for, fitter_mesh
+        lab = demo_lab_for(store, session)
+        kw = {"mesh": fitter_mesh(lab.object), "targets": lab.targets(), "gray_card": lab.gray_card_pose(),
+              "truth": lab.truth()}
+    if mesh is not None:
+        kw["mesh"] = mesh
+    if "mesh" not in kw:
+        raise ValueError("processing needs the object's mesh: start the console with --mesh FILE "
+                         "(or --demo-lab for sessions of the simulated demo lab)")
+    return process_session(store, session, progress=progress, **kw)
+
+
+def headline(report: Any) -> list[tuple[str, str, str]]:
+    """Per method ``(name, status, figure)``: the held-out relative RMS (and against the truth
+    where known), or why it was skipped."""
+    rows = []
+    for m in report.methods:
+        f = m.figures
+        if "held_out_rel_rms" in f:
+            figure = f"held-out rel. RMS {f['held_out_rel_rms']:.3f}"
+            if "truth_rel_rms" in f:
+                figure += f", vs truth {f['truth_rel_rms']:.3f}"
+        else:
+            figure = m.reason
+        rows.append((m.method, m.status, figure))
+    return rows

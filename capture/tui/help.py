@@ -42,6 +42,7 @@ HELP = """\
 | `p` | pause / resume the running session |
 | `a` `a` | abort the session: `a` twice within 5 s (motion stops; the steps done stay in the store, but an aborted session cannot be resumed) |
 | `r` | resume the interrupted session selected in the list (or the latest one) |
+| `P` | process the selected session: calibration if needed, every method, the HTML report; progress, the report's path and each method's held-out error appear below the progress bar |
 
 **Preview** shows the last frame (2x2-binned raw, sRGB) and one histogram per exposure of the
 bracket, with the percentage of pixels clipped at the white level or crushed at the black level.

@@ -76,7 +76,8 @@ def describe_step(step: dict[str, Any]) -> dict[str, str]:
 
 class SessionRequest(Message):
     """The operator asked for a session action: ``open`` (``path``), ``new``, ``pause``,
-    ``resume``, ``abort``, ``resume_interrupted`` (``name``: the selected session or None)."""
+    ``resume``, ``abort``, ``resume_interrupted`` or ``process`` (``name``: the selected session
+    or None)."""
 
     def __init__(self, op: str, *, path: str | None = None, name: str | None = None) -> None:
         super().__init__()
@@ -92,6 +93,7 @@ class SessionPane(Vertical):
         Binding("p", "toggle_pause", "Pause/resume"),
         Binding("a", "abort", "Abort (a a)"),
         Binding("r", "resume_interrupted", "Resume interrupted"),
+        Binding("P", "process", "Process"),
     ]
 
     #: "idle", "running", "paused", "done", "aborted"
@@ -116,6 +118,7 @@ class SessionPane(Vertical):
             yield ProgressBar(total=1, show_eta=False, id="progress")  # not None: no idle animation
             yield Label("", id="progress-text")
         yield Static("", id="current-step")
+        yield Static("", id="processing")
         yield Static("", id="alert")
         with Horizontal(id="session-body"):
             steps = DataTable(id="steps", cursor_type="row", zebra_stripes=True)
@@ -134,6 +137,7 @@ class SessionPane(Vertical):
 
     def on_mount(self) -> None:
         self.query_one("#alert").display = False
+        self.query_one("#processing").display = False
 
     # -- state in -----------------------------------------------------------------------------
     def show_plan(self, steps: list[tuple[int, dict, bool]], summary: str,
@@ -268,6 +272,26 @@ class SessionPane(Vertical):
                       Text(event.message, style="red"), action)
         table.move_cursor(row=table.row_count - 1)
 
+    def show_processing(self, session: str, stage: str, done: int, total: int) -> None:
+        """``gonio process`` progress of ``session``: the stage and how far it is."""
+        box = self.query_one("#processing", Static)
+        box.update(Text(f"processing {session}: {stage} {done}/{total}", style="bold"))
+        box.display = True
+
+    def show_processed(self, session: str, report: str, headline: list[tuple[str, str, str]]) -> None:
+        """The finished processing: the report's path and per method ``(name, status, figure)``
+        (the held-out relative RMS, or why it was skipped)."""
+        lines = [f"{session} processed; report: {report}"]
+        lines += [f"  {name}: {status} {figure}" for name, status, figure in headline]
+        box = self.query_one("#processing", Static)
+        box.update(Text("\n".join(lines)))
+        box.display = True
+
+    @property
+    def processing_text(self) -> str | None:
+        box = self.query_one("#processing", Static)
+        return str(box.render()) if box.display else None
+
     def show_alert(self, message: str) -> None:
         alert = self.query_one("#alert", Static)
         alert.update(Text(message))
@@ -314,6 +338,9 @@ class SessionPane(Vertical):
 
     def action_resume_interrupted(self) -> None:
         self.post_message(SessionRequest("resume_interrupted", name=self.selected_session))
+
+    def action_process(self) -> None:
+        self.post_message(SessionRequest("process", name=self.selected_session))
 
 
 class TargetScreen(ModalScreen[bool]):

@@ -243,3 +243,35 @@ def test_cli_process(captured, tmp_path):
     r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--mesh",
                                  str(tmp_path / "none.ply")])
     assert r.exit_code == 2 and "none.ply" in r.output
+
+
+@pytest.mark.asyncio
+async def test_console_processes_the_selected_session(captured):
+    """Session tab: P starts ``process`` on the selected session; its progress, the report's
+    path and each method's headline error appear (checked against the store's results)."""
+    import time
+    from textual.widgets import DataTable
+    from capture.tui import GonioApp
+    from sims.ptp_sim import placeholder_frame
+    store, _, root = captured
+    app = GonioApp("sim", root / "store", fast=True, process_options={"demo_lab": True},
+                   sim_options={"camera": {"frame_source": placeholder_frame}})
+    app.animation_level = "none"
+    async with app.run_test(size=(80, 24)) as pilot:
+        await pilot.press("2")
+        sessions = app.query_one("#sessions", DataTable)
+        deadline = time.monotonic() + 20
+        while sessions.row_count == 0 and time.monotonic() < deadline:
+            await pilot.pause(0.05)
+        sessions.focus()
+        await pilot.press("P")
+        deadline = time.monotonic() + 120
+        while "processed" not in (app.session_pane.processing_text or "") and time.monotonic() < deadline:
+            await pilot.pause(0.1)
+        text = app.session_pane.processing_text or ""
+        assert "proc processed; report:" in text, text
+        assert "proc-report.html" in text
+        stored = {r["kind"]: r for r in store.results(store.session("proc").id, "reconstruction")}
+        rms = stored["lambertian"]["result"]["figures"]["held_out_rel_rms"]
+        assert f"lambertian: done held-out rel. RMS {rms:.3f}" in text
+        assert "passive: skipped" in text
