@@ -94,10 +94,8 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         except SessionNotFound as exc:
             raise fail(str(exc)) from None
         if demo_lab:
-            from .demo_lab import demo_lab_for, fitter_mesh
-            lab = demo_lab_for(st, session)
-            kw = {"mesh": fitter_mesh(lab.object), "targets": lab.targets(), "gray_card": lab.gray_card_pose(),
-                  "truth": lab.truth(), **kw}
+            from .demo_lab import demo_lab_for
+            kw = {**demo_lab_for(st, session).process_options(), **kw}
         report_path = out if out is not None else Path(st.root).resolve().parent / f"{session}-report.html"
         bar, update = progress_bar(quiet)
         with bar:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .demo_lab import DemoLab, fitter_mesh
+from .demo_lab import DemoLab
 from .events import EventKind
 from .pipeline import ProcessReport, process_session
 from .plan import Plan
@@ -87,8 +87,7 @@ def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
                 raise RuntimeError(f"the demo capture ended {state}; see `gonio session show {name} "
                                    f"--store {store.root}`")
         say("processing: calibration, reconstruction inputs, methods, report")
-        return process_session(store, name, mesh=fitter_mesh(lab.object), targets=lab.targets(),
-                               gray_card=lab.gray_card_pose(), truth=lab.truth(), progress=progress,
-                               report_path=out / "report.html")
+        return process_session(store, name, progress=progress, report_path=out / "report.html",
+                               **lab.process_options())
     finally:
         store.close()

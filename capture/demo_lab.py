@@ -145,6 +145,12 @@ class DemoLab:
         pose = standing_pose(h / 2 + 10.0)
         return GrayCardPose(tuple(pose[:3, 3]), tuple(-pose[:3, 2]))
 
+    def process_options(self) -> dict[str, Any]:
+        """What :func:`capture.pipeline.process_session` takes from this lab: the fitter's
+        ``mesh``, the ``targets``, the ``gray_card`` pose and the ``truth``."""
+        return {"mesh": fitter_mesh(self.object), "targets": self.targets(),
+                "gray_card": self.gray_card_pose(), "truth": self.truth()}
+
     def truth(self, fnumber: float = 8.0, iso: float = 100.0) -> DemoTruth:
         """The ground truth; ``fnumber`` / ``iso`` the camera settings the captures used."""
         sensor = self.worlds["object"].sensor

@@ -127,10 +127,8 @@ def process(store: Store, session: str, *, progress: Callable[[str, int, int], N
     from ..pipeline import process_session
     kw: dict[str, Any] = {}
     if demo_lab:
-        from ..demo_lab import demo_lab_for, fitter_mesh
-        lab = demo_lab_for(store, session)
-        kw = {"mesh": fitter_mesh(lab.object), "targets": lab.targets(), "gray_card": lab.gray_card_pose(),
-              "truth": lab.truth()}
+        from ..demo_lab import demo_lab_for
+        kw = demo_lab_for(store, session).process_options()
     if mesh is not None:
         kw["mesh"] = mesh
     if "mesh" not in kw:
