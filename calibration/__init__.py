@@ -9,13 +9,13 @@ Modules (one function per calibration step; each validates its input first and r
 - :mod:`calibration.lights` — chrome/steel spheres: highlights, light directions and positions,
   Lensch's collinear spheres, positioner kinematics
 - :mod:`calibration.polarization` — diffuse/specular separation
+- :mod:`calibration.raw` — the one raw-file decoder (``read_raw``), Bayer channels, demosaic
 - :mod:`calibration.hdr` — raw and 8-bit HDR merging, float32 TIFF / EXR output
 - :mod:`calibration.radiometry` — flat field / vignetting, gray card, 1/r² normalisation
 - :mod:`calibration.probe` — mirror-sphere light probes to world lat-long maps
 """
 from .errors import CalibrationError, DegenerateFit, InvalidInput, TargetNotFound, TooFewViews
-from .hdr import (HDRImage, RawMosaic, master_frame, merge_ldr, merge_raw_brackets, read_raw,
-                  recover_response, write_hdr)
+from .hdr import HDRImage, master_frame, merge_ldr, merge_raw_brackets, recover_response, write_hdr
 from .intrinsics import IntrinsicsResult, RejectedView, calibrate_intrinsics, corner_coverage, detect_all
 from .lights import (Highlight, PointLight, PositionerModel, SphereImage, detect_sphere, find_highlight,
                      fit_positioner_model, light_direction_orthographic, locate_collinear_spheres,
@@ -23,6 +23,7 @@ from .lights import (Highlight, PointLight, PositionerModel, SphereImage, detect
 from .polarization import PolarizationFit, Separation, fit_polarization, separate_parallel_crossed
 from .probe import (Probe, latlong_directions, merge_probes, mirror_sphere_to_latlong,
                     mirror_sphere_to_latlong_perspective)
+from .raw import RawMosaic, cfa_channels, demosaic_bilinear, read_raw
 from .radiometry import (GrayCard, VignettingModel, apply_flat, fit_vignetting, flat_field_gain,
                          gray_card_scale, normalize_irradiance)
 from .targets import (TargetDetection, as_points2d, chessboard_object_points, detect_charuco,
@@ -39,7 +40,7 @@ __all__ = [
     "light_direction_orthographic", "sphere_center_from_silhouette", "reflect_highlight",
     "triangulate_point_light", "locate_collinear_spheres", "fit_positioner_model",
     "Separation", "PolarizationFit", "separate_parallel_crossed", "fit_polarization",
-    "RawMosaic", "HDRImage", "read_raw", "master_frame", "merge_raw_brackets", "recover_response", "merge_ldr",
+    "RawMosaic", "read_raw", "cfa_channels", "demosaic_bilinear", "HDRImage", "master_frame", "merge_raw_brackets", "recover_response", "merge_ldr",
     "write_hdr",
     "VignettingModel", "GrayCard", "flat_field_gain", "fit_vignetting", "apply_flat", "gray_card_scale",
     "normalize_irradiance",

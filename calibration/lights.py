@@ -82,18 +82,6 @@ class PointLight:
     directions: np.ndarray
 
 
-def _image_2d(image, arg_name: str) -> np.ndarray:
-    img = _validate.image(image, arg_name)
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        img = img[..., :3].astype(np.float64).mean(axis=2)
-    if img.ndim != 2:
-        raise InvalidInput(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
-    img = img.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(img)):
-        raise InvalidInput(f"{arg_name} contains NaN or infinite values")
-    return img
-
-
 def detect_sphere(mask, *, threshold: float | None = None, frame: str | None = None) -> SphereImage:
     """Find a sphere's silhouette (the largest blob) in a mask or an image.
 
@@ -117,7 +105,7 @@ def detect_sphere(mask, *, threshold: float | None = None, frame: str | None = N
     TargetNotFound
         No blob of at least 50 pixels.
     """
-    img = _image_2d(mask, "mask")
+    img = _validate.gray(mask, "mask")
     if threshold is not None and not np.isfinite(threshold):
         raise InvalidInput(f"threshold must be finite, got {threshold!r}", argument="threshold")
     level = 0.5 * img.max() if threshold is None else float(threshold)
@@ -173,7 +161,7 @@ def find_highlight(image, sphere: SphereImage | None = None, *, saturation: floa
     TargetNotFound
         No pixel above the background inside the search region.
     """
-    img = _image_2d(image, "image")
+    img = _validate.gray(image, "image")
     if sphere is not None:
         _sphere(sphere)
     if saturation is not None:

@@ -57,6 +57,10 @@ def as_points2d(points, *, arg_name: str = "points") -> np.ndarray:
     return arr
 
 
+#: Rec. 601 luma weights (R, G, B)
+_LUMA = (0.299, 0.587, 0.114)
+
+
 def to_gray_u8(image, *, arg_name: str = "image") -> np.ndarray:
     """An 8-bit grey view of ``image`` (H, W) or (H, W, 3) RGB, any dtype, for the detectors.
 
@@ -64,15 +68,9 @@ def to_gray_u8(image, *, arg_name: str = "image") -> np.ndarray:
     radiometry).
     """
     img = _validate.image(image, arg_name)
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        img = img[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
-    elif img.ndim != 2:
-        raise InvalidInput(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
-    if img.dtype == np.uint8:
+    if img.dtype == np.uint8 and img.ndim == 2:
         return img
-    img = img.astype(np.float32)
-    if not np.all(np.isfinite(img)):
-        raise InvalidInput(f"{arg_name} contains NaN or infinite values")
+    img = _validate.gray(img, arg_name, weights=_LUMA, dtype=np.float32)
     top = float(img.max())
     if top <= 0:
         return np.zeros(img.shape, np.uint8)

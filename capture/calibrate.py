@@ -20,7 +20,7 @@ error (naming the frame) and the others continue. Bad data never raises: only an
 session (:class:`SessionNotFound`) and a session with nothing to calibrate
 (:class:`NothingToCalibrate`) do.
 
-Images: the camera's raw bytes -> rawpy mosaic -> :func:`calibration.hdr.merge_raw_brackets`
+Images: the camera's raw bytes -> :func:`calibration.raw.read_raw` -> :func:`calibration.hdr.merge_raw_brackets`
 in the mosaic domain (master dark of the same exposure, else the black level; unclipped samples
 weighted by inverse variance with the read noise measured on the darks) -> bilinear demosaic.
 Radiance unit: DN per second, camera RGB, float32 H x W x 3. Calibration steps' images stay in
@@ -55,10 +55,10 @@ from typing import Any, Callable
 
 import cv2
 import numpy as np
-import rawpy
 
 from calibration.errors import CalibrationError, TargetNotFound
-from calibration.hdr import RawMosaic, master_frame, merge_raw_brackets
+from calibration.hdr import master_frame, merge_raw_brackets
+from calibration.raw import RawMosaic, demosaic_bilinear, read_raw
 from calibration.intrinsics import calibrate_intrinsics
 from calibration.probe import merge_probes, mirror_sphere_to_latlong
 from calibration.radiometry import gray_card_scale
@@ -73,8 +73,7 @@ from .plan import CALIBRATION_KINDS
 from .store import FrameRecord, SessionNotFound, Store, StoreError
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
-           "NothingToCalibrate", "calibrate_session", "decode_raw", "cfa_channels", "demosaic_bilinear",
-           "SessionNotFound"]
+           "NothingToCalibrate", "calibrate_session", "SessionNotFound"]
 
 #: stage names, in the order they run
 STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "polarization",
@@ -227,54 +226,7 @@ class _Skip(Exception):
     """Internal: the stage lacks its inputs (the message says which)."""
 
 
-# -- raw decoding, demosaic ---------------------------------------------------------------------
-def decode_raw(data: bytes, *, frame: str = "frame") -> RawMosaic:
-    """Decode a camera raw file's bytes (DNG or any LibRaw format) into a
-    :class:`calibration.hdr.RawMosaic` (the in-memory twin of :func:`calibration.hdr.read_raw`).
-
-    Raises
-    ------
-    ValueError
-        LibRaw cannot read the bytes (names ``frame``), or the file is not an RGB Bayer raw.
-    """
-    try:
-        with rawpy.imread(io.BytesIO(data)) as raw:
-            mosaic = raw.raw_image_visible.copy()
-            black = np.asarray(raw.black_level_per_channel, np.float32)[raw.raw_colors_visible]
-            desc = raw.color_desc.decode()
-            pattern = raw.raw_pattern
-            bayer = pattern is not None and pattern.shape == (2, 2)
-            cfa = "".join(desc[c] for c in pattern.ravel()) if bayer else ""
-            white = float(raw.white_level)
-    except (rawpy.LibRawError, OSError) as exc:
-        raise ValueError(f"{frame}: not a readable raw file ({type(exc).__name__}: {exc})") from None
-    if len(cfa) != 4 or set(cfa) - set("RGB"):
-        raise ValueError(f"{frame}: colour filter {cfa!r} is not a 2x2 RGB Bayer pattern")
-    return RawMosaic(mosaic, black, white, cfa)
-
-
-def cfa_channels(cfa: str, shape: tuple[int, int]) -> np.ndarray:
-    """Channel index (0 R, 1 G, 2 B) of every photosite for a row-major 2x2 ``cfa`` like 'RGGB'."""
-    tile = np.array(["RGB".index(c) for c in cfa], np.uint8).reshape(2, 2)
-    h, w = shape
-    return np.tile(tile, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
-
-
-_BILINEAR = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32)
-
-
-def demosaic_bilinear(mosaic: np.ndarray, colors: np.ndarray) -> np.ndarray:
-    """Bilinear demosaic for any 2x2 Bayer layout: each channel keeps its own samples and
-    averages its nearest neighbours elsewhere (normalised convolution). -> (H, W, 3) float32."""
-    out = np.empty(mosaic.shape + (3,), np.float32)
-    for c in range(3):
-        m = (colors == c).astype(np.float32)
-        num = cv2.filter2D(mosaic * m, -1, _BILINEAR, borderType=cv2.BORDER_REFLECT)
-        den = cv2.filter2D(m, -1, _BILINEAR, borderType=cv2.BORDER_REFLECT)
-        out[..., c] = np.where(m > 0, mosaic, num / np.maximum(den, 1e-6))
-    return out
-
-
+# -- images ------------------------------------------------------------------------------------
 def _display(img: np.ndarray) -> np.ndarray:
     """Grey view of a linear image scaled so its 99.5th percentile is 1 (for target detection:
     hot pixels and highlights do not crush the contrast)."""
@@ -310,7 +262,7 @@ class _Context:
         return [f.id for s in steps for f in self.frames[s]]
 
     def raw(self, f: FrameRecord) -> RawMosaic:
-        return decode_raw(self.store.read_object(f.sha256), frame=f"frame {f.id} (step {f.step})")
+        return read_raw(self.store.read_object(f.sha256), name=f"frame {f.id} (step {f.step})")
 
     @property
     def read_noise(self) -> float:
@@ -328,7 +280,7 @@ class _Context:
         darks = np.stack([raws[0].black_level if d is None else d for d in found])
         hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
                                  white_level=raws[0].white_level, read_noise_dn=self.read_noise, darks=darks)
-        img = demosaic_bilinear(hdr.radiance, cfa_channels(raws[0].cfa, hdr.radiance.shape))
+        img = demosaic_bilinear(hdr.radiance, raws[0].channels)
         pos = hdr.radiance[~hdr.saturated & (hdr.radiance > 0)]
         dr = float(np.log2(pos.max() / max(np.percentile(pos, 1), 1e-12))) if pos.size else 0.0
         return img, {"step": step, "kind": self.steps[step]["kind"], "frames": len(frames),
