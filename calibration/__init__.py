@@ -14,7 +14,7 @@ Modules (one function per calibration step; each validates its input first and r
 - :mod:`calibration.radiometry` — flat field / vignetting, gray card, 1/r² normalisation
 - :mod:`calibration.probe` — mirror-sphere light probes to world lat-long maps
 """
-from .errors import CalibrationError, DegenerateFit, InvalidInput, TargetNotFound, TooFewViews
+from .errors import CalibrationError, DegenerateFit, InvalidInput, NotConverged, TargetNotFound, TooFewViews
 from .hdr import HDRImage, master_frame, merge_ldr, merge_raw_brackets, recover_response, write_hdr
 from .intrinsics import IntrinsicsResult, RejectedView, calibrate_intrinsics, corner_coverage, detect_all
 from .lights import (Highlight, PointLight, PositionerModel, SphereImage, detect_sphere, find_highlight,
@@ -31,7 +31,7 @@ from .targets import (TargetDetection, as_points2d, chessboard_object_points, de
 from .turntable import TurntableFit, fit_turntable
 
 __all__ = [
-    "CalibrationError", "DegenerateFit", "InvalidInput", "TargetNotFound", "TooFewViews",
+    "CalibrationError", "DegenerateFit", "InvalidInput", "NotConverged", "TargetNotFound", "TooFewViews",
     "TargetDetection", "as_points2d", "chessboard_object_points", "detect_chessboard", "detect_charuco",
     "make_charuco_board",
     "IntrinsicsResult", "RejectedView", "calibrate_intrinsics", "corner_coverage", "detect_all",

@@ -14,9 +14,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
-from . import _validate
+from . import _fit, _validate
 from .errors import DegenerateFit, InvalidInput, TargetNotFound, TooFewViews
 
 __all__ = [
@@ -455,6 +454,10 @@ class PositionerModel:
         1-sigma of (cx, cy, cz, radius, az offset, el offset), mm / deg.
     residuals_mm : ndarray of shape (N,)
         Distance of each measured position from the model, mm.
+    fit_status : int
+        ``scipy.optimize.least_squares`` status (1-4: converged).
+    fit_message : str
+        The solver's termination message.
     """
 
     centre_mm: np.ndarray
@@ -463,6 +466,8 @@ class PositionerModel:
     elevation_offset_deg: float
     param_std: np.ndarray
     residuals_mm: np.ndarray
+    fit_status: int = 1
+    fit_message: str = ""
 
     @property
     def rms_mm(self) -> float:
@@ -479,7 +484,8 @@ def _arm(p, az, el):
     return p[:3] + p[3] * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1)
 
 
-def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> PositionerModel:
+def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm, *,
+                         max_evaluations: int | None = None) -> PositionerModel:
     """Fit arm kinematics (centre, radius, azimuth/elevation offsets) to measured positions.
 
     Parameters
@@ -490,6 +496,8 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
     positions_mm : array_like of shape (N, 3)
         Light positions measured for those poses (e.g. :func:`triangulate_point_light`,
         mapped to the world frame), mm.
+    max_evaluations : int, optional
+        Residual evaluations the fit may use (scipy's default when None).
 
     Returns
     -------
@@ -502,6 +510,8 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
         Fewer than 3 poses (6 parameters, 3 coordinates each).
     DegenerateFit
         The poses do not span both angles (the offsets are then undetermined).
+    NotConverged
+        The fit stopped before converging.
     """
     az = _validate.array(azimuth_deg, "azimuth_deg").ravel()
     el = _validate.array(elevation_deg, "elevation_deg").ravel()
@@ -522,7 +532,8 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
     r0 = float(np.mean(np.linalg.norm(d0, axis=1)))
     a_off = np.degrees(np.angle(np.mean(np.exp(1j * (np.arctan2(d0[:, 1], d0[:, 0]) - np.radians(az))))))
     e_off = float(np.mean(np.degrees(np.arcsin(np.clip(d0[:, 2] / max(r0, 1e-9), -1, 1))) - el))
-    sol = least_squares(lambda p: (_arm(p, az, el) - X).ravel(), np.r_[c0, r0, a_off, e_off], method="lm")
+    sol = _fit.solve(lambda p: (_arm(p, az, el) - X).ravel(), np.r_[c0, r0, a_off, e_off],
+                     what="positioner arm fit", max_evaluations=max_evaluations, method="lm")
     J = sol.jac
     dof = max(sol.fun.size - 6, 1)
     try:
@@ -532,4 +543,4 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
     p = sol.x
     res = np.linalg.norm((_arm(p, az, el) - X), axis=1)
     return PositionerModel(p[:3], float(p[3]), float((p[4] + 180) % 360 - 180), float(p[5]),
-                           np.sqrt(np.diag(cov)), res)
+                           np.sqrt(np.diag(cov)), res, int(sol.status), str(sol.message))

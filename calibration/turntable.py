@@ -20,9 +20,8 @@ from typing import Sequence
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
-from . import _validate
+from . import _fit, _validate
 from .errors import DegenerateFit, InvalidInput, TooFewViews
 from .targets import TargetDetection
 
@@ -73,6 +72,10 @@ class TurntableFit:
         1-sigma angular uncertainty of the axis direction, deg.
     angles_known : bool
         Whether turntable readings were given (else ``view_angles_deg`` are free fits).
+    fit_status : int
+        ``scipy.optimize.least_squares`` status of the bundle adjustment (1-4: converged).
+    fit_message : str
+        The solver's termination message.
     """
 
     axis_camera: np.ndarray
@@ -86,6 +89,8 @@ class TurntableFit:
     rms_px: float
     axis_std_deg: float
     angles_known: bool
+    fit_status: int = 1
+    fit_message: str = ""
 
     def platter_angle_deg(self, reading_deg) -> np.ndarray:
         """Platter angle ``phi`` (deg) for turntable readings (deg)."""
@@ -104,7 +109,7 @@ class TurntableFit:
 
 
 def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_deg=None, *,
-                  fit_scale: bool = False) -> TurntableFit:
+                  fit_scale: bool = False, max_evaluations: int | None = None) -> TurntableFit:
     """Fit the turntable axis, the angle model and the object pose from target views.
 
     Each view is solved with ``cv2.solvePnP``; the relative rotations give an initial axis
@@ -126,6 +131,8 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
         Turntable readings of the views, deg. Without them each view's angle is fitted.
     fit_scale : bool
         Also fit the reading-to-angle scale (needs ``angles_deg``).
+    max_evaluations : int, optional
+        Residual evaluations the bundle adjustment may use (scipy's default when None).
 
     Returns
     -------
@@ -133,6 +140,8 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
 
     Raises
     ------
+    NotConverged
+        The bundle adjustment stopped before converging.
     TooFewViews
         Fewer than 3 views (2 with known angles).
     DegenerateFit
@@ -221,7 +230,8 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
             out.append(fx * (X[:, :2] / X[:, 2:3] - norm[i]))
         return np.concatenate(out).ravel()
 
-    sol = least_squares(residuals, x0, method="lm", x_scale="jac")
+    sol = _fit.solve(residuals, x0, what="turntable bundle adjustment", max_evaluations=max_evaluations,
+                     method="lm", x_scale="jac")
     ax, cc, R0, t0, ph = unpack(sol.x)
     res = sol.fun.reshape(-1, 2)
     counts = np.array([len(o) for o in obj])
@@ -252,4 +262,4 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
                         angle_offset_deg=float(offset), view_angles_deg=np.degrees(ph),
                         target_in_world=target_in_world, per_view_rms_px=per_view,
                         rms_px=float(np.sqrt(np.mean(np.sum(res ** 2, 1)))), axis_std_deg=axis_std,
-                        angles_known=known)
+                        angles_known=known, fit_status=int(sol.status), fit_message=str(sol.message))

@@ -518,6 +518,7 @@ def _stage_turntable(ctx: _Context, rep: CalibrationReport):
     camera_lab = -R_lab.T @ t_lab
     result = {"axis_camera": fit.axis_camera, "origin_camera_mm": fit.origin_camera, "R_ref": fit.R_ref,
               "angle_scale": fit.angle_scale, "angle_offset_deg": fit.angle_offset_deg,
+              "fit_status": fit.fit_status, "fit_message": fit.fit_message,
               "readings_deg": readings, "view_angles_deg": fit.view_angles_deg,
               "per_view_rms_px": fit.per_view_rms_px, "rms_px": fit.rms_px,
               "axis_std_deg": fit.axis_std_deg,
@@ -785,6 +786,7 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
     result = {"centre_lab_mm": model.centre_mm, "radius_mm": model.radius_mm,
               "azimuth_offset_deg": model.azimuth_offset_deg,
               "elevation_offset_deg": model.elevation_offset_deg, "param_std": model.param_std,
+              "fit_status": model.fit_status, "fit_message": model.fit_message,
               "residuals_mm": model.residuals_mm, "rms_mm": model.rms_mm, "step_lights": per_step}
     figures = {"rms_mm": round(model.rms_mm, 2), "radius_mm": round(model.radius_mm, 1),
                "el_offset_deg": round(model.elevation_offset_deg, 2), "steps_with_light": len(per_step)}

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.errors import DegenerateFit, TargetNotFound, TooFewViews
+from calibration.errors import DegenerateFit, NotConverged, TargetNotFound, TooFewViews
 from calibration.lights import (detect_sphere, find_highlight, fit_positioner_model,
                                 light_direction_orthographic, locate_collinear_spheres,
                                 reflect_highlight, sphere_center_from_silhouette,
@@ -168,6 +168,9 @@ def test_positioner_model_recovers_kinematics():
     assert np.linalg.norm(m.position(45.0, 20.0) - (truth["c"] + truth["r"] * np.array(
         [np.cos(np.radians(18.8)) * np.cos(np.radians(47.5)), np.cos(np.radians(18.8)) * np.sin(np.radians(47.5)),
          np.sin(np.radians(18.8))]))) < 3.0
+    assert 1 <= m.fit_status <= 4 and m.fit_message  # converged, with scipy's reason
+    with pytest.raises(NotConverged, match="positioner arm fit did not converge"):
+        fit_positioner_model(az, el, X_meas, max_evaluations=2)
     with pytest.raises(TooFewViews):
         fit_positioner_model(az[:2], el[:2], X[:2])
     with pytest.raises(ValueError, match="positions_mm"):
