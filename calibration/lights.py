@@ -10,7 +10,7 @@ least-squares intersection of the reflected rays).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -32,19 +32,28 @@ class SphereImage:
     Attributes
     ----------
     center_px : ndarray of shape (2,)
-        Centroid of the silhouette (x, y), pixels.
+        Centre of the sphere's image (x, y), pixels (:func:`detect_sphere`: of its outline's
+        ellipse).
     radius_px : float
-        Radius of the equal-area circle, pixels.
-    ellipse : tuple
-        ``cv2.fitEllipse`` result ``((cx, cy), (major, minor), angle_deg)`` of the outline.
+        Radius, pixels (:func:`detect_sphere`: of the circle with the ellipse's area).
+    ellipse : tuple or None
+        ``cv2.fitEllipse`` result ``((cx, cy), (d1, d2), angle_deg)`` of the outline; None when
+        the geometry was given rather than detected.
     edge_px : ndarray of shape (N, 2)
-        Outline points (boundary-pixel centres pushed half a pixel outward), pixels.
+        Outline points (boundary-pixel centres pushed half a pixel outward), pixels; empty when
+        the geometry was given.
     """
 
     center_px: np.ndarray
     radius_px: float
-    ellipse: tuple
-    edge_px: np.ndarray
+    ellipse: tuple | None = None
+    edge_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center_px", _validate.array(self.center_px, "center_px", shape=(2,)))
+        object.__setattr__(self, "radius_px", _validate.positive(self.radius_px, "radius_px"))
+        edge = np.zeros((0, 2)) if self.edge_px is None else self.edge_px
+        object.__setattr__(self, "edge_px", _validate.array(edge, "edge_px", shape=(-1, 2)))
 
 
 @dataclass(frozen=True)
@@ -81,47 +90,112 @@ class PointLight:
     directions: np.ndarray
 
 
+#: a sphere's outline is a circle, or an ellipse of at most this eccentricity under perspective
+#: (minor / major axis; 0.75 is a sphere 40 deg off a wide lens' axis)
+MIN_SPHERE_AXIS_RATIO = 0.75
+#: outline points may stray from the fitted ellipse by this fraction of the radius (rms)
+MAX_SPHERE_OUTLINE_RMS = 0.03
+#: the filled outline must cover this fraction of its ellipse (a convex, unbroken silhouette)
+MIN_SPHERE_FILL = 0.9
+
+
 def detect_sphere(mask, *, threshold: float | None = None, frame: str | None = None) -> SphereImage:
-    """Find a sphere's silhouette (the largest blob) in a mask or an image.
+    """Find a sphere's silhouette (the largest blob) in a mask or an image, from its outline.
+
+    The centre and radius come from an ellipse fitted to the blob's *outer* outline, not from
+    its pixel moments: a mirror sphere reflects dark parts of the room as holes in the blob,
+    which bias moments but leave the outline intact.
 
     Parameters
     ----------
     mask : ndarray of shape (H, W) or (H, W, 3)
-        Boolean mask, or an image where the sphere is brighter than the background.
+        Boolean mask, or an image where the sphere is brighter than the background (its
+        colour channels are averaged).
     threshold : float, optional
-        Level separating sphere from background (default: half the maximum).
+        Level separating sphere from background. Default: Otsu's threshold of the image (of
+        its logarithm for a float or 16-bit image, so a dim ball under a bright highlight still
+        separates); 0.5 for a boolean mask.
     frame : str, optional
-        Frame name for the error message.
+        Frame name for the error messages.
 
     Returns
     -------
     SphereImage
-        Centre from the blob's moments and radius from its area (both unbiased for a
-        digitised disc), plus an ellipse fit of the outline.
+        ``center_px`` and ``ellipse`` from the outline's ellipse fit; ``radius_px`` the radius
+        of the circle of the ellipse's area, pixels; ``edge_px`` the outline points.
 
     Raises
     ------
     TargetNotFound
-        No blob of at least 50 pixels.
+        No blob of at least 50 pixels, or the largest blob is not a credible sphere: it
+        touches the image border, its outline is not an ellipse of axis ratio >=
+        :data:`MIN_SPHERE_AXIS_RATIO` within :data:`MAX_SPHERE_OUTLINE_RMS` of its radius, or it
+        fills less than :data:`MIN_SPHERE_FILL` of that ellipse. The message says which.
     """
     img = _validate.gray(mask, "mask")
     if threshold is not None and not np.isfinite(threshold):
         raise InvalidInput(f"threshold must be finite, got {threshold!r}", argument="threshold")
-    level = 0.5 * img.max() if threshold is None else float(threshold)
+    level = _sphere_threshold(img, np.asarray(mask).dtype) if threshold is None else float(threshold)
     binary = (img > level).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     if n < 2 or stats[1:, cv2.CC_STAT_AREA].max() < 50:
-        raise TargetNotFound("no sphere silhouette (blob of >= 50 px above the threshold)", frame=frame)
+        raise TargetNotFound(f"no sphere silhouette (blob of >= 50 px above the threshold {level:.4g})",
+                             frame=frame)
     k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    blob = (labels == k).astype(np.uint8)
-    m = cv2.moments(blob, binaryImage=True)
-    centre = np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
-    contours, _ = cv2.findContours(blob, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    pts = max(contours, key=len).reshape(-1, 2).astype(np.float64)
-    outward = pts - centre
+    x, y, bw, bh = stats[k, :4]
+    h, w = img.shape
+    if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
+        raise TargetNotFound(f"the largest blob above the threshold {level:.4g} touches the image border: "
+                             "not a whole sphere (mask it, or give a threshold)", frame=frame)
+    contours, _ = cv2.findContours((labels == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = max(contours, key=len)
+    pts = outline.reshape(-1, 2).astype(np.float64)
+    # boundary-pixel centres lie half a pixel inside the edge: push them out
+    inner = pts.mean(axis=0)
+    outward = pts - inner
     pts = pts + 0.5 * outward / np.maximum(np.linalg.norm(outward, axis=1, keepdims=True), 1e-9)
     ellipse = cv2.fitEllipse(pts.astype(np.float32))
-    return SphereImage(centre, float(np.sqrt(m["m00"] / np.pi)), ellipse, pts)
+    (cx, cy), (d1, d2), angle = ellipse
+    a, b = max(d1, d2) / 2, min(d1, d2) / 2
+    radius = float(np.sqrt(a * b))
+    ratio = b / a if a > 0 else 0.0
+    # outline scatter about the ellipse: normalised radius in the ellipse's own axes
+    t = np.radians(angle)
+    rel = pts - [cx, cy]
+    u = rel @ np.array([np.cos(t), np.sin(t)]) / max(d1 / 2, 1e-9)
+    v = rel @ np.array([-np.sin(t), np.cos(t)]) / max(d2 / 2, 1e-9)
+    rms = float(np.sqrt(np.mean((np.hypot(u, v) - 1) ** 2))) * radius
+    fill = cv2.contourArea(outline) / max(np.pi * a * b, 1e-9)
+    why = []
+    if ratio < MIN_SPHERE_AXIS_RATIO:
+        why.append(f"its outline's axis ratio is {ratio:.2f} (< {MIN_SPHERE_AXIS_RATIO})")
+    if rms > max(MAX_SPHERE_OUTLINE_RMS * radius, 1.0):
+        why.append(f"its outline strays {rms:.1f} px rms from an ellipse (> {100 * MAX_SPHERE_OUTLINE_RMS:.0f}% "
+                   f"of the {radius:.1f} px radius)")
+    if fill < MIN_SPHERE_FILL:
+        why.append(f"it fills {100 * fill:.0f}% of its ellipse (< {100 * MIN_SPHERE_FILL:.0f}%)")
+    if why:
+        raise TargetNotFound(f"the largest blob above the threshold {level:.4g} is not a credible sphere: "
+                             + "; ".join(why) + " (mask the sphere, or give a threshold)", frame=frame)
+    return SphereImage(np.array([cx, cy], float), radius, ellipse, pts)
+
+
+def _sphere_threshold(img: np.ndarray, dtype) -> float:
+    """Default sphere / background level: 0.5 for masks, Otsu's for 8-bit images, Otsu's on
+    the logarithm for float or 16-bit ones (a highlight thousands of times brighter than the
+    ball would otherwise take the whole upper class)."""
+    if dtype == bool:
+        return 0.5
+    lo, hi = float(img.min()), float(img.max())
+    if hi <= lo:
+        return hi
+    if dtype == np.uint8:
+        return float(cv2.threshold(img.astype(np.uint8), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[0])
+    floor = max(float(np.percentile(img, 1)), lo) if lo < 0 else lo
+    span = np.log1p(np.maximum(img - floor, 0) / max(hi - floor, 1e-30) * 1e4)
+    u8 = np.round(span / span.max() * 255).astype(np.uint8)
+    t = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[0]
+    return float(floor + np.expm1(t / 255 * span.max()) / 1e4 * (hi - floor))
 
 
 def find_highlight(image, sphere: SphereImage | None = None, *, saturation: float | None = None,

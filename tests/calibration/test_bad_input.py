@@ -31,7 +31,8 @@ CASES = [
     ("angles_deg", lambda: c.fit_turntable([DET] * 3, K, angles_deg=[0, np.nan, 20])),
     ("mask", lambda: c.detect_sphere(np.zeros((0, 0)))),
     ("rel_threshold", lambda: c.find_highlight(np.ones((10, 10)), rel_threshold=2)),
-    ("sphere.radius_px", lambda: c.find_highlight(np.ones((10, 10)), c.SphereImage(np.zeros(2), -1.0, None, None))),
+    ("radius_px", lambda: c.SphereImage(np.zeros(2), -1.0)),
+    ("sphere", lambda: c.find_highlight(np.ones((10, 10)), (np.zeros(2), 5.0))),
     ("highlight_xy", lambda: c.light_direction_orthographic([1, 2, 3], SPH)),
     ("K", lambda: c.sphere_center_from_silhouette(
         c.SphereImage(np.array([50.0, 50]), 20.0, None, np.random.default_rng(2).random((30, 2)) * 100), NAN_K)),

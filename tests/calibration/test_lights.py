@@ -227,3 +227,61 @@ def test_point_light_covariance_includes_centre_noise():
                      for _ in range(300)])
     # Monte Carlo scatter vs the linearised covariance: total variance within 30 %
     assert 0.7 < np.trace(np.cov(errs.T)) / np.trace(pl.covariance_mm2) < 1.3
+
+
+def _dim_mirror_ball(rng, centre=(150.3, 120.7), radius=60.0, size=(300, 260), ss=4):
+    """A dim mirror ball (reflected room ~0.08) with dark reflections as holes, a highlight 600x
+    brighter, on a darker noisy background; the disc is supersampled ``ss`` x ``ss``."""
+    w, h = size
+    yy, xx = (np.indices((h * ss, w * ss)) + 0.5) / ss - 0.5
+    inside = (xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 < radius ** 2
+    img = np.where(inside, 0.08, 0.01).reshape(h, ss, w, ss).mean(axis=(1, 3))
+    for _ in range(8):  # dark reflections: holes well inside the disc
+        r, a = rng.uniform(0, 0.7) * radius, rng.uniform(0, 2 * np.pi)
+        cx, cy = centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)
+        img[(np.indices((h, w))[1] - cx) ** 2 + (np.indices((h, w))[0] - cy) ** 2 < (0.15 * radius) ** 2] = 0.002
+    hx, hy = centre[0] - 0.3 * radius, centre[1] - 0.2 * radius
+    img[(np.indices((h, w))[1] - hx) ** 2 + (np.indices((h, w))[0] - hy) ** 2 < 9] = 50.0
+    return img + rng.normal(0, 0.002, img.shape)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_dim_mirror_ball_centre_from_its_outline(seed):
+    rng = np.random.default_rng(seed)
+    centre, radius = np.array([150.3 + seed, 120.7 - seed]), 55.0 + 3 * seed
+    img = _dim_mirror_ball(rng, centre, radius)
+    sph = detect_sphere(img)  # default threshold: the highlight is 600x the ball
+    assert np.linalg.norm(sph.center_px - centre) < 0.3
+    assert abs(sph.radius_px - radius) < 0.5
+    # a user-given threshold inside the ball's range: the holes do not move the centre
+    sph = detect_sphere(img, threshold=0.04)
+    assert np.linalg.norm(sph.center_px - centre) < 0.3
+
+
+def test_a_blob_that_is_not_a_sphere_is_refused():
+    img = np.zeros((200, 200))
+    img[40:160, 60:90] = 1.0  # a bar: axis ratio 0.25
+    with pytest.raises(TargetNotFound, match="bar.png: .*not a credible sphere.*axis ratio"):
+        detect_sphere(img, frame="bar.png")
+    img = np.zeros((200, 200))
+    img[:, :100] = 1.0  # background half: open to the border
+    with pytest.raises(TargetNotFound, match="touches the image border"):
+        detect_sphere(img)
+
+
+@pytest.mark.realdata
+def test_uw_chrome_photo_without_mask_is_found_or_refused(shared_data):
+    """On a real, dim mirror-sphere photo (no mask) the sphere is either found where its mask
+    says, or refused with the reason: never a centre tens of pixels off without an error."""
+    from PIL import Image
+    root = shared_data / "uw-photometric-stereo" / "chrome"
+    truth = detect_sphere(np.asarray(Image.open(root / "chrome.mask.tga")))
+    for i in range(12):
+        img = np.asarray(Image.open(root / f"chrome.{i}.tga")).astype(np.float32)
+        for threshold in (None, 2.0, 8.0):
+            try:
+                sph = detect_sphere(img, threshold=threshold, frame=f"chrome.{i}")
+            except TargetNotFound as exc:
+                assert f"chrome.{i}" in str(exc)
+                continue
+            assert np.linalg.norm(sph.center_px - truth.center_px) < 2.0, (i, threshold, sph.center_px)
