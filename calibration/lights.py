@@ -21,7 +21,8 @@ from .errors import DegenerateFit, InvalidInput, TargetNotFound, TooFewViews
 __all__ = [
     "SphereImage", "Highlight", "PointLight", "PositionerModel",
     "detect_sphere", "find_highlight", "light_direction_orthographic", "sphere_center_from_silhouette",
-    "reflect_highlight", "triangulate_point_light", "locate_collinear_spheres", "fit_positioner_model",
+    "reflect_highlight", "closest_point_to_lines", "triangulate_point_light", "locate_collinear_spheres",
+    "fit_positioner_model",
 ]
 
 
@@ -393,11 +394,26 @@ def reflect_highlight(highlight_xy, center_mm, radius_mm, K, dist=None) -> tuple
     return X, 2 * np.sum(n * v, axis=1, keepdims=True) * n - v
 
 
-def _closest_point(P, L):
-    """Least-squares point nearest to lines P + s L (unit L); returns point and the 3x3 system."""
-    proj = np.eye(3) - L[:, :, None] * L[:, None, :]
-    A = proj.sum(axis=0)
-    return np.linalg.solve(A, np.einsum("mij,mj->i", proj, P)), A
+def closest_point_to_lines(P, L) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares point nearest to the lines ``P + s L``, for one or a batch of line sets.
+
+    Parameters
+    ----------
+    P : ndarray of shape (..., M, 3)
+        A point on each line.
+    L : ndarray of shape (..., M, 3)
+        Unit direction of each line.
+
+    Returns
+    -------
+    X : ndarray of shape (..., 3)
+        The point minimising the summed squared distances to the M lines.
+    A : ndarray of shape (..., 3, 3)
+        The normal matrix ``sum(I - L L^T)`` (singular when the lines are parallel).
+    """
+    proj = np.eye(3) - L[..., :, None] * L[..., None, :]
+    A = proj.sum(axis=-3)
+    return np.linalg.solve(A, np.einsum("...mij,...mj->...i", proj, P)[..., None])[..., 0], A
 
 
 def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, *,
@@ -449,14 +465,14 @@ def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, 
     if np.linalg.eigvalsh(A)[0] < 1e-6 * len(h):
         raise DegenerateFit("the reflected rays are nearly parallel: spread the spheres further apart "
                             "or move the light closer")
-    pos = _closest_point(P, L)[0]
+    pos = closest_point_to_lines(P, L)[0]
     J = np.empty((3, h.size))
     eps = 1e-3
     for k in range(h.size):  # 2M tiny solves; each re-reflects all rays
         hp = h.copy().ravel()
         hp[k] += eps
         Pk, Lk = reflect_highlight(hp.reshape(-1, 2), centers_mm, radius_mm, K, dist)
-        J[:, k] = (_closest_point(Pk, Lk)[0] - pos) / eps
+        J[:, k] = (closest_point_to_lines(Pk, Lk)[0] - pos) / eps
     cov = sigma_px ** 2 * J @ J.T
     if sigma_center_mm > 0:
         C = np.asarray(centers_mm, float).reshape(-1, 3)
@@ -465,7 +481,7 @@ def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, 
             Ck = C.copy().ravel()
             Ck[k] += eps
             Pk, Lk = reflect_highlight(h, Ck.reshape(-1, 3), radius_mm, K, dist)
-            Jc[:, k] = (_closest_point(Pk, Lk)[0] - pos) / eps
+            Jc[:, k] = (closest_point_to_lines(Pk, Lk)[0] - pos) / eps
         cov = cov + sigma_center_mm ** 2 * Jc @ Jc.T
     diff = pos - P
     resid = np.linalg.norm(diff - np.sum(diff * L, axis=1, keepdims=True) * L, axis=1)

@@ -61,17 +61,21 @@ def as_points2d(points, *, arg_name: str = "points") -> np.ndarray:
 _LUMA = (0.299, 0.587, 0.114)
 
 
-def to_gray_u8(image, *, arg_name: str = "image") -> np.ndarray:
+def to_gray_u8(image, *, white_percentile: float = 100.0, arg_name: str = "image") -> np.ndarray:
     """An 8-bit grey view of ``image`` (H, W) or (H, W, 3) RGB, any dtype, for the detectors.
 
-    Float or 16-bit images are scaled by their own maximum (detectors need contrast, not
-    radiometry).
+    Non-8-bit images are scaled so their ``white_percentile`` percentile maps to 255 (detectors
+    need contrast, not radiometry; below 100 hot pixels and highlights of a linear HDR image
+    do not crush the rest).
     """
     img = _validate.image(image, arg_name)
     if img.dtype == np.uint8 and img.ndim == 2:
         return img
+    if not 0 < white_percentile <= 100:
+        raise InvalidInput(f"white_percentile must be in (0, 100], got {white_percentile!r}",
+                           argument="white_percentile")
     img = _validate.gray(img, arg_name, weights=_LUMA, dtype=np.float32)
-    top = float(img.max())
+    top = float(img.max() if white_percentile == 100 else np.percentile(img, white_percentile))
     if top <= 0:
         return np.zeros(img.shape, np.uint8)
     scale = 255.0 / top if top > 255 or img.dtype.kind == "f" else 1.0

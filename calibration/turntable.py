@@ -15,7 +15,7 @@ is ``R(reading) = R_ref @ Rz(phi)``, ``t(reading) = t_ref``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import cv2
@@ -25,7 +25,7 @@ from . import _fit, _validate
 from .errors import DegenerateFit, InvalidInput, TooFewViews
 from .targets import TargetDetection
 
-__all__ = ["TurntableFit", "fit_turntable"]
+__all__ = ["TurntableFit", "fit_turntable", "consistent_corner_order", "lab_frame"]
 
 
 def _rot(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -263,3 +263,71 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
                         target_in_world=target_in_world, per_view_rms_px=per_view,
                         rms_px=float(np.sqrt(np.mean(np.sum(res ** 2, 1)))), axis_std_deg=axis_std,
                         angles_known=known, fit_status=int(sol.status), fit_message=str(sol.message))
+
+
+def consistent_corner_order(detections: Sequence[TargetDetection], K, dist=None) -> list[TargetDetection]:
+    """Chessboard views renumbered to one corner order (for :func:`fit_turntable`).
+
+    A chessboard's corner order is ambiguous by a half turn in its plane (OpenCV may start at
+    either end), so each view takes the order whose board x axis (``cv2.solvePnP``) agrees with
+    the first view's. Views with corner ids (ChArUco) are returned as they are.
+
+    Parameters
+    ----------
+    detections : sequence of TargetDetection
+        Views of one board.
+    K, dist : camera matrix (3, 3) and OpenCV distortion.
+
+    Returns
+    -------
+    list of TargetDetection
+    """
+    K, dist = _validate.camera(K, dist)
+    out, ref = [], None
+    for k, d in enumerate(detections):  # a few views; one solvePnP each
+        if not isinstance(d, TargetDetection):
+            raise InvalidInput(f"detections[{k}] must be a TargetDetection, got {type(d).__name__}",
+                               argument=f"detections[{k}]")
+        if d.ids is None:
+            ok, rvec, _ = cv2.solvePnP(d.object_points, d.image_points, K, dist)
+            if not ok:
+                raise DegenerateFit(f"{d.frame or f'detections[{k}]'}: no board pose (solvePnP failed)")
+            x_axis = cv2.Rodrigues(rvec)[0][:, 0]
+            if ref is None:
+                ref = x_axis
+            elif float(x_axis @ ref) < 0:
+                d = replace(d, image_points=d.image_points[::-1].copy())
+        out.append(d)
+    return out
+
+
+def lab_frame(fit: TurntableFit, grid_centre_mm, centre_height_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lab frame from a turntable fit: fixed in the room, origin on the axis at the platter
+    surface, +z up the axis, +x horizontal from the axis towards the camera, +y = z x x.
+
+    Parameters
+    ----------
+    fit : TurntableFit
+    grid_centre_mm : array_like of shape (3,)
+        A point of the board, board frame, mm (e.g. the centre of its corner grid).
+    centre_height_mm : float
+        That point's height above the platter, mm (what the images cannot tell).
+
+    Returns
+    -------
+    R : ndarray of shape (3, 3)
+        Lab-to-camera rotation.
+    t : ndarray of shape (3,)
+        Lab origin in the camera frame, mm (``X_cam = R @ X_lab + t``).
+    """
+    if not isinstance(fit, TurntableFit):
+        raise InvalidInput(f"fit must be a TurntableFit, got {type(fit).__name__}", argument="fit")
+    g = _validate.array(grid_centre_mm, "grid_centre_mm", shape=(3,))
+    height = float(_validate.array(centre_height_mm, "centre_height_mm", shape=()))
+    R_tw, t_tw = fit.target_in_world
+    centre_z = float((R_tw @ g + t_tw)[2])
+    # +x towards the camera: the camera centre's azimuth in the fit's frame
+    cam = -fit.R_ref.T @ fit.origin_camera
+    psi = np.arctan2(cam[1], cam[0])
+    Rz = np.array([[np.cos(psi), -np.sin(psi), 0.0], [np.sin(psi), np.cos(psi), 0.0], [0.0, 0.0, 1.0]])
+    return fit.R_ref @ Rz, fit.origin_camera + (centre_z - height) * fit.axis_camera

@@ -350,10 +350,8 @@ def test_session_without_calibration_captures(tmp_path):
     assert r.exit_code == 3 and "no calibration captures" in r.output
 
 
-def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
-    """A checkerboard step whose frame is not a raw file: hdr reports it (naming the frame) and
-    merges the other steps; intrinsics finds no board in the stand-in frames and says where;
-    the turntable skips for want of intrinsics; dark runs regardless."""
+def _bad_session(tmp_path) -> Store:
+    """Darks and three checkerboard steps of stand-in frames; step 3's frame is not a raw file."""
     from sims.ptp_sim import placeholder_frame
     store = Store(tmp_path / "s", durable=False)
     plan = Plan.from_dict({"turntable": {"angles_deg": [0]}, "exposure": {"base_s": 0.01},
@@ -370,6 +368,15 @@ def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
             store.add_frame(sid, idx, 0, rep, data=data, filename="f.dng", format="dng",
                             exposure_requested_s=0.01, exposure_s=0.01, positions={"turntable_deg": 0.0},
                             completes_step=rep == step["repeats"] - 1)
+    return store
+
+
+def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
+    """A checkerboard step whose frame is not a raw file: hdr reports it (naming the frame) and
+    merges the other steps; intrinsics finds no board in the stand-in frames and says where;
+    the turntable skips for want of intrinsics; dark runs regardless."""
+    store = _bad_session(tmp_path)
+    sid = store.session("bad").id
     report = calibrate_session(store, "bad")
     bad_frame = store.frames(sid, step=3)[0].id
     assert report.stage("dark").status == "ok"
@@ -381,6 +388,20 @@ def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
     assert f"frame {store.frames(sid, step=1)[0].id} (step 1)" in intr.reason
     assert report.stage("turntable").status == "skipped" and "intrinsics" in report.stage("turntable").reason
     assert report.stage("lights").reason == "no spheres captures in this session"
+    store.close()
+
+
+def test_a_programming_error_in_a_stage_raises(tmp_path, monkeypatch):
+    """Only bad data fails a stage: a bug (here a ValueError that is no CalibrationError, as a
+    wrong numpy call would raise) must surface, not be reported as a failed stage."""
+    import capture.calibrate as cal
+
+    def broken(*args, **kwargs):
+        raise ValueError("operands could not be broadcast together")
+    monkeypatch.setattr(cal, "master_frame", broken)
+    store = _bad_session(tmp_path)
+    with pytest.raises(ValueError, match="operands could not be broadcast"):
+        calibrate_session(store, "bad")
     store.close()
 
 
