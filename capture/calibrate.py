@@ -87,8 +87,10 @@ MIN_COVERAGE_FULL_MODEL = 0.5
 MAX_ARM_RMS_FRACTION = 0.1
 #: poses (turntable angle x light) the polarization check separates, spread over the session
 POLARIZATION_POSES = 4
-#: lat-long environment map height (width is twice), pixels
-PROBE_HEIGHT = 64
+#: least lat-long environment map height (width is twice), pixels; a larger sphere image keeps
+#: its own resolution (one map row per pixel of sphere radius: the reflection sweeps 180 deg
+#: of elevation over the radius)
+MIN_PROBE_HEIGHT = 128
 #: the simulated lab's steel-ball row (``sims.world.spheres_target``: six 1-inch balls 40 mm
 #: apart along +y, 120 mm above the platter, 80 mm behind the axis), lab frame, mm
 SIM_SPHERE_CENTRES_MM = tuple((-80.0, y, 120.0) for y in (-100.0, -60.0, -20.0, 20.0, 60.0, 100.0))
@@ -803,24 +805,23 @@ def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("mirror_probe")
     # the room is fixed in the lab: map it in the lab frame when the turntable gave one
     R, frame = (ctx.lab.R, "lab") if ctx.lab is not None else (np.eye(3), "camera")
-    probes, rows = [], []
-    for s in steps:
-        name = f"frame {ctx.frames[s][0].id} (step {s})"
-        sphere = find_mirror_sphere(ctx.hdr[s], frame=name)
-        centre, radius = sphere.center_px, sphere.radius_px
-        probes.append(mirror_sphere_to_latlong(ctx.hdr[s], centre, radius, R, height=PROBE_HEIGHT))
-        rows.append({"step": s, "centre_px": centre, "radius_px": radius})
+    spheres = {s: find_mirror_sphere(ctx.hdr[s], frame=f"frame {ctx.frames[s][0].id} (step {s})") for s in steps}
+    height = max(MIN_PROBE_HEIGHT, int(np.ceil(max(sp.radius_px for sp in spheres.values()))))
+    probes = [mirror_sphere_to_latlong(ctx.hdr[s], sp.center_px, sp.radius_px, R, height=height)
+              for s, sp in spheres.items()]
+    rows = [{"step": s, "centre_px": sp.center_px, "radius_px": sp.radius_px} for s, sp in spheres.items()]
     probe = merge_probes(probes)
     buf = io.BytesIO()
-    np.savez_compressed(buf, env=probe.env, weight=probe.weight)
+    np.savez_compressed(buf, env=probe.env, weight=probe.weight, mask=probe.valid)
     rep.plots["probe"] = {"env": probe.env, "weight": probe.weight}
-    result = {"frame": frame, "height": PROBE_HEIGHT, "views": rows,
+    result = {"frame": frame, "height": height, "views": rows,
               "valid_fraction": float(probe.valid.mean()), "mean_rgb": probe.env[probe.valid].mean(axis=0),
-              "artifacts": "environment.npz: env (H, 2H, 3) DN/s lat-long, weight (H, 2H)"}
+              "artifacts": "environment.npz: env (H, 2H, 3) DN/s lat-long, weight (H, 2H) in [0, 1] "
+                           "(0 in the blind cone behind the sphere), mask (H, 2H) bool: weight > 0"}
     figures = {"views": len(rows), "frame": frame, "valid_pct": round(100 * float(probe.valid.mean()), 1),
                "sphere_radius_px": round(rows[0]["radius_px"], 1)}
     artifacts = {"environment.npz": buf.getvalue()}
-    return StageOutput(result, figures, ctx.frame_ids(steps), artifacts, {"height": PROBE_HEIGHT})
+    return StageOutput(result, figures, ctx.frame_ids(steps), artifacts, {"height": height})
 
 
 _RUNNERS: dict[str, Callable[[_Context, CalibrationReport], StageOutput]] = {
