@@ -91,60 +91,84 @@ POLARIZATION_POSES = 4
 #: its own resolution (one map row per pixel of sphere radius: the reflection sweeps 180 deg
 #: of elevation over the radius)
 MIN_PROBE_HEIGHT = 128
-#: the simulated lab's steel-ball row (``sims.world.spheres_target``: six 1-inch balls 40 mm
-#: apart along +y, 120 mm above the platter, 80 mm behind the axis), lab frame, mm
-SIM_SPHERE_CENTRES_MM = tuple((-80.0, y, 120.0) for y in (-100.0, -60.0, -20.0, 20.0, 60.0, 100.0))
 _CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
                       | cv2.CALIB_FIX_K3)
+
+
+_BOARD_FIELDS = {"chessboard": ("chessboard_inner", "chessboard_square_mm", "chessboard_centre_height_mm"),
+                 "charuco": ("charuco_squares", "charuco_square_mm", "charuco_marker_mm",
+                             "charuco_centre_height_mm")}
 
 
 @dataclass(frozen=True)
 class LabTargets:
     """The lab's physical calibration targets (what the pipeline looks for), millimetres.
 
-    Defaults are the simulated lab's capture scenes (``sims.world.SimWorld.for_capture``): a
-    9 x 6 inner-corner chessboard of 15 mm squares, a 7 x 5 ChArUco of 22 mm squares with 16 mm
-    DICT_5X5_100 markers, 1-inch steel bearing balls. A real lab states its own (``gonio calibrate
-    --targets FILE``): the board's square size sets the metric scale of the turntable frame.
+    A real lab states its own (``gonio calibrate --targets FILE``, a TOML file of these field
+    names): the board's square size sets the metric scale of the turntable frame. The simulated
+    lab's come from the simulator itself (:meth:`simulated`). A board is given by all of its
+    fields or none; at least one board is needed.
     """
 
-    chessboard_inner: tuple[int, int] = (9, 6)
-    chessboard_square_mm: float = 15.0
-    charuco_squares: tuple[int, int] = (7, 5)
-    charuco_square_mm: float = 22.0
-    charuco_marker_mm: float = 16.0
+    chessboard_inner: tuple[int, int] | None = None
+    chessboard_square_mm: float | None = None
+    #: height above the platter of the centre of the board's corner grid, mm (puts the lab
+    #: origin on the platter; a 180-degree ambiguous chessboard has the same centre either way)
+    chessboard_centre_height_mm: float | None = None
+    charuco_squares: tuple[int, int] | None = None
+    charuco_square_mm: float | None = None
+    charuco_marker_mm: float | None = None
+    charuco_centre_height_mm: float | None = None
     charuco_dictionary: str = "DICT_5X5_100"
-    sphere_radius_mm: float = 12.7
+    #: radius of the light-calibration spheres, mm (None: no lights stage)
+    sphere_radius_mm: float | None = None
     #: mirror reflectance of the spheres (chrome ~0.65, bearing steel ~0.55): their limb shows
     #: the backdrop times this, which places the silhouette threshold
     sphere_reflectance: float = 0.55
-    gray_card_albedo: float = 0.18
     #: centres of the light-calibration spheres in the lab frame (module docstring), mm; empty
     #: or None: find them from their silhouettes (needs a lit backdrop behind the spheres)
-    sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = SIM_SPHERE_CENTRES_MM
-    #: height above the platter of the centre of the board's corner grid, mm (puts the lab
-    #: origin on the platter; a 180-degree ambiguous chessboard has the same centre either way)
-    chessboard_centre_height_mm: float = 72.5
-    charuco_centre_height_mm: float = 75.0
+    sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = None
+    gray_card_albedo: float = 0.18
     #: cv2.CALIB_* flags for the intrinsics fit (k3 fixed: a turntable-only board sweep
     #: covers the image centre, where k3 is not observable)
     intrinsics_flags: int = cv2.CALIB_FIX_K3
 
+    @classmethod
+    def simulated(cls, **overrides) -> "LabTargets":
+        """The targets of the simulated lab's capture scenes, as the simulator states them
+        (:func:`sims.world.capture_targets`), with ``overrides`` (field names) applied."""
+        from sims.world import capture_targets
+        return cls(**{**capture_targets(), **overrides})
+
+    def has_board(self, kind: str) -> bool:
+        """Whether the ``'chessboard'`` or ``'charuco'`` board is described."""
+        return getattr(self, _BOARD_FIELDS[kind][0]) is not None
+
     def __post_init__(self) -> None:
+        for kind, names in _BOARD_FIELDS.items():
+            given = [getattr(self, n) is not None for n in names]
+            if any(given) and not all(given):
+                raise ValueError(f"LabTargets: the {kind} needs all of {', '.join(names)}; missing "
+                                 f"{', '.join(n for n, g in zip(names, given) if not g)}")
+        if not any(self.has_board(k) for k in _BOARD_FIELDS):
+            raise ValueError("LabTargets: describe at least one board (chessboard_* or charuco_* fields)")
         for name in ("chessboard_square_mm", "charuco_square_mm", "charuco_marker_mm", "sphere_radius_mm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"LabTargets.{name} must be > 0 mm, got {getattr(self, name)!r}")
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"LabTargets.{name} must be > 0 mm, got {value!r}")
         if not 0 < self.sphere_reflectance < 1:
             raise ValueError(f"LabTargets.sphere_reflectance must be in (0, 1), "
                              f"got {self.sphere_reflectance!r}")
         if not 0 < self.gray_card_albedo <= 1:
             raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
         for name in ("chessboard_centre_height_mm", "charuco_centre_height_mm"):
-            if not np.isfinite(getattr(self, name)):
-                raise ValueError(f"LabTargets.{name} must be a finite number of mm, "
-                                 f"got {getattr(self, name)!r}")
+            value = getattr(self, name)
+            if value is not None and not np.isfinite(value):
+                raise ValueError(f"LabTargets.{name} must be a finite number of mm, got {value!r}")
         centres = self.sphere_centres_mm
         if centres is not None and len(centres):
+            if self.sphere_radius_mm is None:
+                raise ValueError("LabTargets.sphere_centres_mm needs sphere_radius_mm")
             try:
                 arr = np.asarray(centres, dtype=float)
             except (TypeError, ValueError):
@@ -450,16 +474,18 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
 def _detector(ctx: _Context):
     t = ctx.targets
     board = make_charuco_board(t.charuco_squares, t.charuco_square_mm, t.charuco_marker_mm,
-                               t.charuco_dictionary)
+                               t.charuco_dictionary) if t.has_board("charuco") else None
 
     def detect(img, frame):
         # ChArUco first: its corner ids stay consistent as the board turns (the turntable fit
         # needs that); a plain chessboard otherwise
-        try:
-            return detect_charuco(img, board, frame=frame), "charuco"
-        except TargetNotFound:
-            found = detect_chessboard(img, t.chessboard_inner, t.chessboard_square_mm, frame=frame)
-            return found, "chessboard"
+        if board is not None:
+            try:
+                return detect_charuco(img, board, frame=frame), "charuco"
+            except TargetNotFound:
+                if not t.has_board("chessboard"):
+                    raise
+        return detect_chessboard(img, t.chessboard_inner, t.chessboard_square_mm, frame=frame), "chessboard"
     return detect
 
 
@@ -597,6 +623,8 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("spheres")
     intr = _need(ctx.intrinsics, "intrinsics", "camera matrix")
     K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
+    if radius is None:
+        raise _Skip("LabTargets states no sphere_radius_mm (the light-calibration spheres)")
     images = [ctx.hdr[s] for s in steps]
     first = f"frame {ctx.frames[steps[0]][0].id} (step {steps[0]})"
     known = ctx.targets.sphere_centres_mm is not None
@@ -868,7 +896,8 @@ def calibrate_session(store: Store, session_name: str, *,
         Called before each stage with its name (``index`` 0-based of ``total`` stages), during
         the long hdr stage with ``'hdr k/n steps'``, and once with ``('done', total, total)``.
     targets : LabTargets, optional
-        Physical targets (board geometry, sphere radius, card albedo); default :class:`LabTargets`.
+        Physical targets (board geometry, sphere radius, card albedo); default: the simulated
+        lab's (:meth:`LabTargets.simulated`).
     stages : tuple of str
         Subset of :data:`STAGES` to run (later stages skip when an earlier one they need is
         left out).
@@ -895,7 +924,7 @@ def calibrate_session(store: Store, session_name: str, *,
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
         raise ValueError(f"stages: unknown {unknown}; known: {', '.join(STAGES)}")
-    ctx = _Context(store, session_name, targets or LabTargets(), measurement_hdr)
+    ctx = _Context(store, session_name, targets or LabTargets.simulated(), measurement_hdr)
     if not ctx.frames:
         raise NothingToCalibrate(f"session {session_name!r} has no stored frames yet; capture it first "
                                  f"(gonio capture run / resume)")

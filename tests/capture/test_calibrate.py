@@ -235,24 +235,30 @@ def test_lab_frame_matches_the_sim_world(session):
     assert _angle_deg(R[:, 2], camera.R[:, 2]) < 1.5
 
 
-def test_lab_targets_sphere_centres_validation():
-    t = LabTargets(sphere_centres_mm=[[0, 0, 100], [0, 60, 100]])  # TOML lists
+def test_lab_targets_validation():
+    t = LabTargets.simulated(sphere_centres_mm=[[0, 0, 100], [0, 60, 100]])  # TOML lists
     assert t.sphere_centres_mm == ((0.0, 0.0, 100.0), (0.0, 60.0, 100.0))
-    assert LabTargets(sphere_centres_mm=[]).sphere_centres_mm is None  # silhouettes instead
-    assert len(LabTargets().sphere_centres_mm) == 6
+    assert LabTargets.simulated(sphere_centres_mm=[]).sphere_centres_mm is None  # silhouettes instead
     with pytest.raises(ValueError, match="sphere_centres_mm must hold >= 2"):
-        LabTargets(sphere_centres_mm=[[0, 0, 100]])
+        LabTargets.simulated(sphere_centres_mm=[[0, 0, 100]])
     with pytest.raises(ValueError, match="less than a sphere's diameter"):
-        LabTargets(sphere_centres_mm=[[0, 0, 100], [0, 10, 100]])
+        LabTargets.simulated(sphere_centres_mm=[[0, 0, 100], [0, 10, 100]])
+    # a real lab states its own: no board, or half a board, is an error naming the fields
+    with pytest.raises(ValueError, match="at least one board"):
+        LabTargets()
+    with pytest.raises(ValueError, match="missing chessboard_centre_height_mm"):
+        LabTargets(chessboard_inner=(9, 6), chessboard_square_mm=20.0)
 
 
-def test_default_sphere_positions_are_the_sim_rows():
-    from sims.targets import Checkerboard
-    assert np.allclose(LabTargets().sphere_centres_mm, spheres_target("steel").points_world(0.0))
-    board = board_on_turntable(Checkerboard(square_mm=15.0, margin_mm=10.0))
-    assert LabTargets().chessboard_centre_height_mm == pytest.approx(board.points_world(0.0).mean(axis=0)[2])
-    board = board_on_turntable(CharucoTarget(square_mm=22.0, marker_mm=16.0))
-    assert LabTargets().charuco_centre_height_mm == pytest.approx(board.points_world(0.0).mean(axis=0)[2])
+def test_simulated_targets_come_from_the_sim_scenes():
+    """LabTargets.simulated() reads the simulator's own targets: the boards and balls the sim
+    captures render (their corner grids' centres and ball centres from the scene objects)."""
+    t = LabTargets.simulated()
+    worlds = {k: SimWorld.for_capture(k) for k in ("checkerboard", "charuco", "spheres")}
+    np.testing.assert_allclose(t.sphere_centres_mm, worlds["spheres"].targets[0].points_world(0.0))
+    for kind, height in (("checkerboard", t.chessboard_centre_height_mm), ("charuco", t.charuco_centre_height_mm)):
+        assert height == pytest.approx(worlds[kind].targets[0].points_world(0.0).mean(axis=0)[2])
+    assert worlds["checkerboard"].targets[0].spec.inner_corners == t.chessboard_inner
 
 
 def test_positioner_model_gives_every_measurement_step_a_light(session):
