@@ -129,9 +129,9 @@ class LabTargets:
     #: or None: find them from their silhouettes (needs a lit backdrop behind the spheres)
     sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = None
     gray_card_albedo: float = 0.18
-    #: cv2.CALIB_* flags for the intrinsics fit (k3 fixed: a turntable-only board sweep
-    #: covers the image centre, where k3 is not observable)
-    intrinsics_flags: int = cv2.CALIB_FIX_K3
+    #: cv2.CALIB_* flags for the intrinsics fit; with k3 free the fit fixes it at 0 when the
+    #: views do not determine it (a turntable-only board sweep covers only the image centre)
+    intrinsics_flags: int = 0
 
     @classmethod
     def simulated(cls, **overrides) -> "LabTargets":
@@ -533,7 +533,8 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
               "K_std": res.K_std, "dist_std": res.dist_std, "per_view_rms_px": res.per_view_rms_px,
               "views": res.frames, "rejected": [asdict(r) for r in res.rejected],
               "not_found": missing, "target": kinds[0], "coverage": res.coverage,
-              "coverage_fraction": res.coverage_fraction, "model": model, "flags": flags}
+              "coverage_fraction": res.coverage_fraction, "model": model, "flags": flags,
+              "distortion_note": res.model_note}
     figures = {"rms_px": round(res.rms_px, 3), "fx_px": round(float(res.K[0, 0]), 2),
                "fy_px": round(float(res.K[1, 1]), 2), "cx_px": round(float(res.K[0, 2]), 2),
                "cy_px": round(float(res.K[1, 2]), 2), "views": len(res.frames),
