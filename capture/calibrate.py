@@ -15,13 +15,15 @@ code version)::
     gray_card   absolute scale from the 18 % card
     mirror_probe  lat-long environment map from mirror-sphere captures (lab frame)
 
-A stage whose inputs are missing is *skipped* with the reason; a stage that fails records the
-error (naming the frame) and the others continue. Bad data never raises: only an unknown
+This module only orchestrates: the image analysis is ``calibration``'s. A stage whose inputs
+are missing is *skipped* with the reason; a stage that bad data fails (a
+:class:`~calibration.errors.CalibrationError`, a :class:`StageDataError`, a store error) records
+the error (naming the frame) and the others continue. Bad data never raises: only an unknown
 session (:class:`SessionNotFound`) and a session with nothing to calibrate
-(:class:`NothingToCalibrate`) do.
+(:class:`NothingToCalibrate`) do; any other exception is a bug and propagates.
 
-Images: the camera's raw bytes -> :func:`calibration.raw.read_raw` -> :func:`calibration.hdr.merge_raw_brackets`
-in the mosaic domain (master dark of the same exposure, else the black level; unclipped samples
+Images: the camera's raw bytes -> :func:`calibration.raw.read_raw` ->
+:func:`calibration.hdr.merge_raw_brackets` in the mosaic domain (master dark of the same exposure, else the black level; unclipped samples
 weighted by inverse variance with the read noise measured on the darks) -> bilinear demosaic.
 Radiance unit: DN per second, camera RGB, float32 H x W x 3. Calibration steps' images stay in
 memory during a run; measurement steps are merged for their figures and dropped (the
@@ -37,12 +39,12 @@ room) are reported in the lab and camera frames; the object frame at turntable r
 the lab frame turned about +z by the platter angle (``TurntableFit.platter_angle_deg``) plus
 the fit's angle at the first board view.
 
-Lights: with :attr:`LabTargets.sphere_centres_mm` (default: the simulated lab's row of steel
-balls) the spheres' centres come from the lab frame (Lensch et al. 2003 Sec. 4.1: spheres of
+Lights: with :attr:`LabTargets.sphere_centres_mm` the spheres' centres come from the lab frame (Lensch et al. 2003 Sec. 4.1: spheres of
 known radius and position); without them, from their silhouettes against a lit backdrop. Each
 light is the least-squares intersection of the rays reflected at the highlights
 (:func:`calibration.lights.triangulate_point_light`); of the bright spots on each ball (the lamp,
-and the lamp again through a neighbouring ball) the combination whose rays meet best is used.
+and the lamp again through a neighbouring ball) the combination whose rays meet best is used
+(:func:`calibration.spheres.pick_lamp_highlights`).
 Expose the spheres short enough that the lamp's image does not clip.
 """
 from __future__ import annotations
