@@ -202,6 +202,11 @@ def test_uw_chrome_sphere_light_directions(shared_data):
     print(f"UW chrome: angular difference to lights.txt mean {ang.mean():.2f}°, max {ang.max():.2f}°")
     # the course reference itself differs from an independent re-derivation by 3° mean, 8° worst
     assert ang.mean() < 4.0 and ang.max() < 10.0
+    # the same in one call, as a new user would make it
+    from calibration.spheres import light_directions_from_sphere
+    imgs = [np.asarray(Image.open(root / "chrome" / f"chrome.{i}.tga")) for i in range(12)]
+    one = light_directions_from_sphere(imgs, mask, names=[f"chrome.{i}" for i in range(12)])
+    np.testing.assert_allclose(one.directions, dirs, atol=1e-12)
 
 
 def test_point_light_covariance_includes_centre_noise():
