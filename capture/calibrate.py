@@ -336,7 +336,6 @@ class _Context:
         self.intrinsics: IntrinsicsResult | None = None
         self.detections: dict[int, TargetDetection] = {}    # checkerboard step -> corners
         self.detector: str | None = None                    # 'charuco' or 'chessboard'
-        self.turntable: TurntableFit | None = None
         self.lab: LabFrame | None = None
         self.lights: list[MeasuredLight] | None = None
         self.positioner: PositionerModel | None = None
@@ -491,7 +490,7 @@ def _detector(ctx: _Context):
     return detect
 
 
-def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
+def _stage_intrinsics(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("checkerboard")
     detect = _detector(ctx)
     dets, kinds, det_steps, missing = [], [], [], []
@@ -564,7 +563,7 @@ def _lab_frame(fit: TurntableFit, targets: LabTargets, detector: str) -> LabFram
     return LabFrame(*lab_frame(fit, grid_centre, height))
 
 
-def _stage_turntable(ctx: _Context, rep: CalibrationReport):
+def _stage_turntable(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     if not ctx.steps_of("checkerboard"):
         raise _Skip("no checkerboard captures in this session")
     intr = _need(ctx.intrinsics, "intrinsics", "camera matrix")
@@ -578,7 +577,6 @@ def _stage_turntable(ctx: _Context, rep: CalibrationReport):
     fit = fit_turntable([dets_by_step[s] for s in steps], intr.K, intr.dist, angles_deg=readings)
     ctx.lab = _lab_frame(fit, ctx.targets, ctx.detector)
     R_lab, t_lab = ctx.lab.R, ctx.lab.t_mm
-    ctx.turntable = fit
     rep.plots["turntable"] = {"readings_deg": np.array(readings), "per_view_rms_px": fit.per_view_rms_px,
                               "view_angles_deg": fit.view_angles_deg}
     tilt = float(np.degrees(np.arccos(abs(fit.axis_camera[1]))))
@@ -597,7 +595,8 @@ def _stage_turntable(ctx: _Context, rep: CalibrationReport):
     figures = {"rms_px": round(fit.rms_px, 3), "axis": [round(float(v), 4) for v in fit.axis_camera],
                "axis_std_deg": round(fit.axis_std_deg, 3), "axis_from_image_y_deg": round(tilt, 2),
                "views": len(steps), "camera_lab_mm": [round(float(v), 1) for v in camera_lab]}
-    return StageOutput(result, figures, ctx.frame_ids(steps), params={"angles_from": "frame read-backs turntable_deg"})
+    return StageOutput(result, figures, ctx.frame_ids(steps),
+                       params={"angles_from": "frame read-backs turntable_deg"})
 
 
 #: a sphere shows the lamp when its brightest pixel is at least this many times the frame's 99th

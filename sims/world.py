@@ -518,7 +518,8 @@ def capture_targets() -> dict[str, Any]:
             "charuco_squares": CAPTURE_CHARUCO.squares, "charuco_square_mm": CAPTURE_CHARUCO.square_mm,
             "charuco_marker_mm": CAPTURE_CHARUCO.marker_mm, "charuco_dictionary": CAPTURE_CHARUCO.dictionary,
             "charuco_centre_height_mm": float(charuco.points_world(0.0).mean(axis=0)[2]),
-            "sphere_radius_mm": balls.spec.radius_mm, "sphere_reflectance": CalibrationSphere(balls.spec.radius_mm, balls.spec.kind).reflectance,
+            "sphere_radius_mm": balls.spec.radius_mm,
+            "sphere_reflectance": CalibrationSphere(balls.spec.radius_mm, balls.spec.kind).reflectance,
             "sphere_centres_mm": tuple(map(tuple, balls.points_world(0.0).tolist())),
             "gray_card_albedo": gray_card_target().spec.albedo}
 
