@@ -31,8 +31,8 @@ EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
 
 def _targets(path: Path | None) -> LabTargets:
     """LabTargets from a TOML file of its field names (``sphere_radius_mm = 25.0`` ...)."""
-    if path is None:
-        return LabTargets()
+    if path is None:  # the simulated lab's targets, as the simulator states them
+        return LabTargets.simulated()
     try:
         data = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
@@ -54,7 +54,8 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                                        "(default: the folder holding the store)."),
               targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
                                            "targets (board size and height, sphere radius and lab "
-                                           "positions ...: LabTargets fields)."),
+                                           "positions ...: LabTargets fields); default: the "
+                                           "simulated lab's."),
               measurement_hdr: bool = typer.Option(True, "--measurement-hdr/--calibration-hdr-only",
                                                    help="Merge every measurement step's bracket too "
                                                    "(slow for big sessions) or only the calibration steps."),

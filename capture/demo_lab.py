@@ -164,11 +164,11 @@ class DemoLab:
 
 def demo_lab_for(store, session: str) -> DemoLab:
     """The demo lab a stored session was captured in, at the resolution of its frames."""
-    from .calibrate import decode_raw
+    from calibration.raw import read_raw
     frames = store.frames(store.session(session).id)
     if not frames:
         raise ValueError(f"session {session!r} has no frames")
-    h, w = decode_raw(store.read_object(frames[0].sha256)).data.shape
+    h, w = read_raw(store.read_object(frames[0].sha256)).data.shape
     return DemoLab(w, h)
 
 

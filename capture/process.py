@@ -40,13 +40,13 @@ import numpy as np
 import trimesh
 
 from calibration.hdr import merge_raw_brackets
+from calibration.raw import demosaic_bilinear, read_raw
 from calibration.polarization import separate_parallel_crossed
 from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
 from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
 from reconstruct.raycast import Mesh, Surface, first_hits
 
-from .calibrate import cfa_channels, decode_raw, demosaic_bilinear
 from .store import FrameRecord, Store
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
@@ -281,14 +281,13 @@ def merge_step(frames: _Frames, step: int) -> StepImage:
         t = f.exposure_s or f.exposure_requested_s
         if not t or t <= 0:
             raise ProcessError(f"frame {f.id} (step {step}) has no exposure time")
-        raws.append(decode_raw(frames.store.read_object(f.sha256), frame=f"frame {f.id} (step {step})"))
+        raws.append(read_raw(frames.store.read_object(f.sha256), name=f"frame {f.id} (step {step})"))
         ts.append(float(t))
     found = [frames.dark(t) for t in ts]
     darks = np.stack([raws[0].black_level if d is None else d for d in found])
     hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
                              white_level=raws[0].white_level, read_noise_dn=frames.read_noise, darks=darks)
-    colors = cfa_channels(raws[0].cfa, hdr.radiance.shape)
-    img = demosaic_bilinear(hdr.radiance, colors)
+    img = demosaic_bilinear(hdr.radiance, raws[0].channels)
     # a pixel is unusable where any photosite of its 3 x 3 demosaic neighbourhood clipped everywhere
     clipped = cv2.dilate(hdr.saturated.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     return StepImage(step, frames.steps[step], img, ~clipped, [f.id for f in recs])

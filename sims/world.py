@@ -380,10 +380,10 @@ class SimWorld:
         if kind == "object":
             return cls(object, **kwargs)
         kwargs.setdefault("supersample", cls.KIND_SUPERSAMPLE.get(kind, 1))
-        if kind == "checkerboard":  # sized to fit the default camera's view at any angle
-            return cls(None, targets=[board_on_turntable(Checkerboard(square_mm=15.0, margin_mm=10.0))], **kwargs)
+        if kind == "checkerboard":
+            return cls(None, targets=[board_on_turntable(CAPTURE_CHESSBOARD)], **kwargs)
         if kind == "charuco":
-            return cls(None, targets=[board_on_turntable(CharucoTarget(square_mm=22.0, marker_mm=16.0))], **kwargs)
+            return cls(None, targets=[board_on_turntable(CAPTURE_CHARUCO)], **kwargs)
         if kind == "chrome":
             return cls(None, targets=[sphere_target("chrome")], **kwargs)
         if kind == "spheres":
@@ -492,6 +492,32 @@ class SimWorld:
                            scene=self.scene(st), camera=self.camera,
                            light_position_mm=np.asarray(st.light_position_mm, float),
                            object_pose=turntable_pose(st.turntable_deg), expected=expected)
+
+
+#: the boards :meth:`SimWorld.for_capture` stands on the turntable (sized to fit the default
+#: camera's view at any angle)
+CAPTURE_CHESSBOARD = Checkerboard(square_mm=15.0, margin_mm=10.0)
+CAPTURE_CHARUCO = CharucoTarget(square_mm=22.0, marker_mm=16.0)
+
+
+def capture_targets() -> dict[str, Any]:
+    """What the calibration targets of :meth:`SimWorld.for_capture` are, for a calibration to look
+    for (mm, world frame = the lab frame: origin on the axis at the platter, +z up): the boards'
+    geometry and the height of their corner grids' centres, the steel-ball row's radius, mirror
+    reflectance and centres, the gray card's albedo. Keys are plain names a calibration's target
+    description can take as they are."""
+    chess, charuco = board_on_turntable(CAPTURE_CHESSBOARD), board_on_turntable(CAPTURE_CHARUCO)
+    balls = spheres_target("steel")
+    return {"chessboard_inner": CAPTURE_CHESSBOARD.inner_corners,
+            "chessboard_square_mm": CAPTURE_CHESSBOARD.square_mm,
+            "chessboard_centre_height_mm": float(chess.points_world(0.0).mean(axis=0)[2]),
+            "charuco_squares": CAPTURE_CHARUCO.squares, "charuco_square_mm": CAPTURE_CHARUCO.square_mm,
+            "charuco_marker_mm": CAPTURE_CHARUCO.marker_mm, "charuco_dictionary": CAPTURE_CHARUCO.dictionary,
+            "charuco_centre_height_mm": float(charuco.points_world(0.0).mean(axis=0)[2]),
+            "sphere_radius_mm": balls.spec.radius_mm,
+            "sphere_reflectance": CalibrationSphere(balls.spec.radius_mm, balls.spec.kind).reflectance,
+            "sphere_centres_mm": tuple(map(tuple, balls.points_world(0.0).tolist())),
+            "gray_card_albedo": gray_card_target().spec.albedo}
 
 
 def lab_world(fast: bool = True, object: GroundTruthObject | str | None = "sphere") -> "SimWorld":

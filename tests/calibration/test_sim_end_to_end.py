@@ -8,14 +8,14 @@ import functools
 import numpy as np
 import pytest
 
-sims_world = pytest.importorskip("sims.world")
-
-from calibration.hdr import merge_raw_brackets, read_raw  # noqa: E402
-from calibration.intrinsics import detect_all  # noqa: E402
-from calibration.lights import SphereImage, find_highlight, reflect_highlight  # noqa: E402
-from calibration.polarization import separate_parallel_crossed  # noqa: E402
-from calibration.targets import detect_charuco, make_charuco_board  # noqa: E402
-from calibration.turntable import fit_turntable  # noqa: E402
+import sims.world as sims_world
+from calibration.hdr import merge_raw_brackets
+from calibration.intrinsics import detect_all
+from calibration.lights import SphereImage, find_highlight, reflect_highlight
+from calibration.polarization import separate_parallel_crossed
+from calibration.raw import read_raw
+from calibration.targets import detect_charuco, make_charuco_board
+from calibration.turntable import fit_turntable
 
 
 def _angle_deg(u, v):
