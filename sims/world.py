@@ -369,8 +369,8 @@ class SimWorld:
     @classmethod
     def for_capture(cls, kind: str, object: GroundTruthObject | str | None = "sphere", **kwargs) -> "SimWorld":
         """The scene of one kind of capture: ``"object"`` (the object alone), ``"checkerboard"``
-        / ``"charuco"`` (a board standing on the turntable; 2 x 2 supersampled by default, since
-        one ray per pixel aliases the print's edges by ~0.25 px), ``"chrome"`` (one chrome sphere),
+        / ``"charuco"`` (:data:`CAPTURE_CHARUCO` standing on the turntable; 2 x 2 supersampled by
+        default, since one ray per pixel aliases the print's edges by ~0.25 px), ``"chrome"`` (one chrome sphere),
         ``"spheres"`` (Lensch's row of six steel spheres, beside the object), ``"gray_card"``,
         ``"mirror_probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"passive"``
         (the object under that probe, no lamp: passive reflectometry), ``"dark"`` (lens
@@ -380,9 +380,7 @@ class SimWorld:
         if kind == "object":
             return cls(object, **kwargs)
         kwargs.setdefault("supersample", cls.KIND_SUPERSAMPLE.get(kind, 1))
-        if kind == "checkerboard":
-            return cls(None, targets=[board_on_turntable(CAPTURE_CHESSBOARD)], **kwargs)
-        if kind == "charuco":
+        if kind in ("checkerboard", "charuco"):
             return cls(None, targets=[board_on_turntable(CAPTURE_CHARUCO)], **kwargs)
         if kind == "chrome":
             return cls(None, targets=[sphere_target("chrome")], **kwargs)
@@ -494,10 +492,15 @@ class SimWorld:
                            object_pose=turntable_pose(st.turntable_deg), expected=expected)
 
 
-#: the boards :meth:`SimWorld.for_capture` stands on the turntable (sized to fit the default
-#: camera's view at any angle)
+#: the board :meth:`SimWorld.for_capture` stands on the turntable for ``checkerboard`` (and
+#: ``charuco``) captures: a ChArUco, whose corner ids stay put as the board turns and which is
+#: found when partly outside the frame, large enough to cover much of the image and to tilt
+#: visibly as the turntable turns it through +-60 deg (a careful lab's board views; a 9 x 6
+#: chessboard of 15 mm squares was found in 3 of 13 such views at 320 x 240, and a bigger one
+#: flipped its corner order between views)
+CAPTURE_CHARUCO = CharucoTarget(squares=(10, 7), square_mm=28.0, marker_mm=21.0)
+#: a printed chessboard of the simulated lab (not in a capture scene: tests, ``gonio sim``)
 CAPTURE_CHESSBOARD = Checkerboard(square_mm=15.0, margin_mm=10.0)
-CAPTURE_CHARUCO = CharucoTarget(square_mm=22.0, marker_mm=16.0)
 
 
 def capture_targets() -> dict[str, Any]:
@@ -506,12 +509,9 @@ def capture_targets() -> dict[str, Any]:
     geometry and the height of their corner grids' centres, the steel-ball row's radius, mirror
     reflectance and centres, the gray card's albedo. Keys are plain names a calibration's target
     description can take as they are."""
-    chess, charuco = board_on_turntable(CAPTURE_CHESSBOARD), board_on_turntable(CAPTURE_CHARUCO)
+    charuco = board_on_turntable(CAPTURE_CHARUCO)
     balls = spheres_target("steel")
-    return {"chessboard_inner": CAPTURE_CHESSBOARD.inner_corners,
-            "chessboard_square_mm": CAPTURE_CHESSBOARD.square_mm,
-            "chessboard_centre_height_mm": float(chess.points_world(0.0).mean(axis=0)[2]),
-            "charuco_squares": CAPTURE_CHARUCO.squares, "charuco_square_mm": CAPTURE_CHARUCO.square_mm,
+    return {"charuco_squares": CAPTURE_CHARUCO.squares, "charuco_square_mm": CAPTURE_CHARUCO.square_mm,
             "charuco_marker_mm": CAPTURE_CHARUCO.marker_mm, "charuco_dictionary": CAPTURE_CHARUCO.dictionary,
             "charuco_centre_height_mm": float(charuco.points_world(0.0).mean(axis=0)[2]),
             "sphere_radius_mm": balls.spec.radius_mm,

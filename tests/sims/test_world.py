@@ -203,7 +203,7 @@ def test_set_scene_follows_the_runner_targets_and_comes_back():
     names = lambda: [o.name for o in world.scene().objects]  # noqa: E731
     home = names()
     world.prepare_target("checkerboard")
-    assert names()[0] == "checkerboard" and not any(n.startswith("sphere:") for n in names())
+    assert names()[0] == "charucotarget" and not any(n.startswith("sphere:") for n in names())
     world.prepare_target("mirror_probe")
     assert world.environment is not None and world.scene().lights == []
     world.prepare_target("dark")
