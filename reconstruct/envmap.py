@@ -107,6 +107,12 @@ class EnvironmentMap:
         d = pixel_directions(*self.shape)
         return d @ self.rotation  # map -> world: R^T applied to row vectors (a small grid)
 
+    def sources(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The map as distant sources, one per pixel: world directions (H*W, 3), radiance
+        (H*W, 3) and solid angles (H*W,) sr (for :func:`reconstruct.distant.shade_distant`)."""
+        return (self.directions().reshape(-1, 3), self.image.reshape(-1, 3).astype(np.float64),
+                self.solid_angles().reshape(-1))
+
     def to_pixel(self, dirs) -> np.ndarray:
         """Continuous pixel coordinates (x, y) of world directions (N, 3) -> (N, 2)."""
         d = linear_rows(self.rotation, _check_dirs(dirs))
