@@ -107,7 +107,7 @@ class PerPointInterpolant:
         return np.maximum(f, 0.0)
 
 
-def fit_per_point(point, wi, wo, brdf, *, n_points: int | None = None, m_w: float = 0.3,
+def fit_per_point(point, wi, wo, brdf, *, n_points: int | None = None, m_w: float = 0.5,
                   valid=None, min_cos: float = MIN_COS) -> PerPointInterpolant:
     """The "no sharing" baseline (Fig. 6): interpolate each point's own samples in (u, v, w).
 

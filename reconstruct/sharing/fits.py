@@ -122,7 +122,7 @@ class IsotropicFit:
                 + self.fit.report())
 
 
-def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w: float = 0.3, weight=None,
+def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w: float = 0.5, weight=None,
                   valid=None, min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
                   progress: Callable[[int, int], None] | None = None) -> IsotropicFit:
     """Homogeneous isotropic BRDF f(u, v, w) by greedy linear-RBF interpolation (Sect. 5, Eq. 5).
@@ -245,7 +245,7 @@ class SpatialFit:
 
 
 def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
-                m_xy: float = 0.3, m_w: float = 0.3, max_centers: int = 2000,
+                m_xy: float = 0.3, m_w: float = 0.5, max_centers: int = 2000,
                 single_image: bool | None = None, weight=None, valid=None,
                 min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
                 progress: Callable[[int, int], None] | None = None) -> SpatialFit:
