@@ -63,10 +63,11 @@ def fit_analytic(make: Callable[[np.ndarray], BRDF], x0, wi, wo, brdf, *, bounds
     return AnalyticFit(make(res.x), res.x, rms, bool(res.success), str(res.message))
 
 
-def fit_ward(wi, wo, brdf, **kwargs) -> AnalyticFit:
+def fit_ward(wi, wo, brdf, *, alphas=(0.05, 0.15, 0.4), **kwargs) -> AnalyticFit:
     """Isotropic Ward (Ward 1992): RGB rho_d, grey rho_s, alpha; ``kwargs`` as :func:`fit_analytic`.
 
-    Started from the data: rho_d from the low quartile of f_r, rho_s = 0.05, alpha = 0.2.
+    One start per roughness in ``alphas`` (the fit has local minima), the lowest residual wins;
+    rho_d starts at pi x the low quartile of f_r, rho_s at 0.05.
     """
     f = np.asarray(brdf, dtype=np.float64)
     good = np.isfinite(f).all(axis=-1) if f.ndim == 2 else np.zeros(0, bool)
@@ -75,9 +76,10 @@ def fit_ward(wi, wo, brdf, **kwargs) -> AnalyticFit:
     def make(p):
         return Ward(rho_d=p[:3], rho_s=p[3], alpha=p[4])
 
-    x0 = np.concatenate([np.clip(rho_d0, 0.0, 1.0), [0.05, 0.2]])
-    return fit_analytic(make, x0, wi, wo, brdf,
-                        bounds=([0, 0, 0, 0, 0.01], [np.inf, np.inf, np.inf, np.inf, 1.0]), **kwargs)
+    bounds = ([0, 0, 0, 0, 0.01], [np.inf, np.inf, np.inf, np.inf, 1.0])
+    fits = [fit_analytic(make, np.concatenate([np.clip(rho_d0, 0.0, 1.0), [0.05, a]]), wi, wo,
+                         brdf, bounds=bounds, **kwargs) for a in alphas]
+    return min(fits, key=lambda r: r.rms)
 
 
 @dataclass(frozen=True, eq=False)
