@@ -127,3 +127,10 @@ def test_hyperplane_samples_are_refused():
     x[:, 2] = 0.5  # all at one w: the w coefficient of the polynomial is undetermined
     with pytest.raises(SharingError, match="points lie in a 2-dimensional"):
         fit_rbf(x, np.ones(100))
+
+
+def test_duplicates_of_too_few_points_are_refused():
+    """Many samples, but only four distinct points: too few for a 3-D degree-1 polynomial."""
+    x = np.repeat(np.eye(3)[[0, 1, 2, 0]] + np.arange(4)[:, None] * 0.1, 50, axis=0)
+    with pytest.raises(SharingError, match="points: 4 distinct samples"):
+        fit_rbf(x, np.ones(len(x)))
