@@ -62,8 +62,8 @@ def _plot(path, title, xlabel, curves, hlines=()):
     fig, ax = plt.subplots(figsize=(6, 4))
     for label, (x, y) in curves.items():
         ax.plot(x, y, "o-", label=label)
-    for label, y, style in hlines:
-        ax.axhline(y, linestyle=style, color="gray", label=label)
+    for i, (label, y, style) in enumerate(hlines):
+        ax.axhline(y, linestyle=style, color=f"C{i + len(curves)}", label=label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("relative RMS radiance error")
     ax.set_yscale("log")
