@@ -264,16 +264,20 @@ def _pick_block(x, err, chosen_mask, centers_x, n_new, min_sep, spread=0.0):
           - 2.0 * cx @ centers_x.T)
     keep = d2.min(axis=1, initial=np.inf) >= min_sep ** 2
     cand, cx = cand[keep], cx[keep]
-    sep2 = max(min_sep, spread) ** 2
-    free = np.ones(len(cand), dtype=bool)
     picked: list[int] = []
-    for j in range(len(cand)):  # <= 8 n_new candidates, each step one vector operation
-        if not free[j]:
-            continue
-        picked.append(j)
-        if len(picked) == n_new:
-            break
-        free &= np.sum((cx - cx[j]) ** 2, axis=1) >= sep2
+    # first spread apart; if that leaves the block short, fill it in error order (else the
+    # rounds multiply: 72 instead of 9 for 2000 centres from 96k samples)
+    for sep in (max(min_sep, spread), min_sep):
+        free = np.ones(len(cand), dtype=bool)
+        for j in picked:
+            free &= np.sum((cx - cx[j]) ** 2, axis=1) >= sep ** 2
+        for j in range(len(cand)):  # <= 8 n_new candidates, each step one vector operation
+            if len(picked) == n_new:
+                break
+            if not free[j]:
+                continue
+            picked.append(j)
+            free &= np.sum((cx - cx[j]) ** 2, axis=1) >= sep ** 2
     return cand[np.asarray(picked, dtype=np.intp)]
 
 
@@ -286,7 +290,7 @@ def _typical_spacing(x: np.ndarray, m: int) -> float:
 
 def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000, tol=None,
             smoothing: float = 0.0, rng=0, progress: Callable[[int, int], None] | None = None,
-            initial_centers: int = 64, growth: float = 1.5, spread: float = 1.0,
+            initial_centers: int = 64, growth: float = 1.25, spread: float = 1.0,
             min_separation: float = 1e-6) -> RbfFit:
     """Greedy linear-RBF fit (Zickler et al. 2005 Eqs. 2-6; Carr et al. 2001 selection).
 
@@ -316,6 +320,8 @@ def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000,
         Size of the first, random set (plus the extreme sample of each axis).
     growth : float
         Each round adds ``(growth - 1) x`` the current centre count (a block), >= 1.05.
+        1.25 measured better than 1.5 (held-out sphere errors 4.3 -> 3.1 %, Cook-Torrance) at
+        about the same time.
     spread : float
         New centres of one block keep ``spread`` x the typical centre spacing (bounding-box
         volume / centre count, to the power 1/D) from each other, so a block covers several
