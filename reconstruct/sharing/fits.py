@@ -77,7 +77,7 @@ def _samples(wi, wo, valid, min_cos: float) -> _Samples:
     return _Samples(wi, wo, keep, wi[:, 2])
 
 
-def _check_w_spread(uvw: np.ndarray) -> bool:
+def _w_varies(uvw: np.ndarray) -> bool:
     return float(np.ptp(uvw[:, 2])) >= SINGLE_IMAGE_W_SPREAD
 
 
@@ -161,7 +161,7 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w: float = 0.5, we
     values = _values("brdf", brdf, len(s.wi), s.keep)
     w = _weight(s, weight)
     uvw = uvw_from_directions(s.wi[s.keep], s.wo[s.keep])
-    if not _check_w_spread(uvw):
+    if not _w_varies(uvw):
         raise SharingError("wi, wo: every sample has the same theta_d (one light/view pair), so "
                            "the w axis of (u, v, w) is not sampled; a homogeneous BRDF needs at "
                            "least two theta_d (use fit_spatial for the single-image case)")
@@ -319,7 +319,7 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
     w = _weight(s, weight)
     uvw = uvw_from_directions(s.wi, s.wo)
     if single_image is None:
-        single_image = not _check_w_spread(uvw[s.keep])
+        single_image = not _w_varies(uvw[s.keep])
     q = np.hstack([xy, uvw[:, :2] if single_image else uvw])
     scale = (m_xy, m_xy, 1.0, 1.0) + (() if single_image else (m_w,))
     k = s.keep
