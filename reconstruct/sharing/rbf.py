@@ -50,6 +50,11 @@ import scipy.linalg
 EVAL_BLOCK = 1 << 10
 
 
+#: candidates per new centre a greedy round considers (the worst POOL x block samples);
+#: 32 beat 8 (held-out error 6.8 -> 4.3 %, 100 px Cook-Torrance sphere, 1000 centres) and 128
+POOL = 32
+
+
 class SharingError(ValueError):
     """Bad input or an under-determined fit in reflectance sharing; the message names the argument."""
 
@@ -258,7 +263,7 @@ def _pick_block(x, err, chosen_mask, centers_x, n_new, min_sep, spread=0.0):
     cand = np.flatnonzero(~chosen_mask & (err > 0))
     if len(cand) == 0:
         return np.zeros(0, dtype=np.intp)
-    cand = cand[np.argsort(-err[cand], kind="stable")[:8 * n_new]]
+    cand = cand[np.argsort(-err[cand], kind="stable")[:POOL * n_new]]
     cx = x[cand]
     d2 = (np.sum(cx * cx, axis=1)[:, None] + np.sum(centers_x * centers_x, axis=1)[None]
           - 2.0 * cx @ centers_x.T)
@@ -271,7 +276,7 @@ def _pick_block(x, err, chosen_mask, centers_x, n_new, min_sep, spread=0.0):
         free = np.ones(len(cand), dtype=bool)
         for j in picked:
             free &= np.sum((cx - cx[j]) ** 2, axis=1) >= sep ** 2
-        for j in range(len(cand)):  # <= 8 n_new candidates, each step one vector operation
+        for j in range(len(cand)):  # <= POOL n_new candidates, each step one vector operation
             if len(picked) == n_new:
                 break
             if not free[j]:
