@@ -146,7 +146,8 @@ class RbfModel:
                 lhs[:b, d] = np.sum(xb * xb, axis=1)
                 lhs[:b, d + 1] = 1.0
                 dist = np.matmul(lhs[:b], self._gemm_rhs, out=buf[:b])
-                np.maximum(dist, 0.0, out=dist)  # rounding makes tiny squared distances < 0
+                # rounding makes tiny squared distances < 0; |.| fixes them ~2x faster than max
+                np.abs(dist, out=dist)
                 np.sqrt(dist, out=dist)
                 out[start:start + b] += dist @ lam
                 if progress is not None:
