@@ -210,17 +210,15 @@ class RbfFit:
 
 
 def _merge_duplicates(points, values, weight):
-    """Exact duplicate points -> one sample with the weighted mean value (and summed weight)."""
-    uniq, inverse, counts = np.unique(points, axis=0, return_inverse=True, return_counts=True)
+    """Exact duplicate points -> one sample with the weighted mean value (weights summed).
+    Weights are > 0 here (zero-weight samples are dropped first)."""
+    uniq, inverse = np.unique(points, axis=0, return_inverse=True)
     if len(uniq) == len(points):
         return points, values, weight, 0
     inverse = inverse.reshape(-1)
     wsum = np.bincount(inverse, weight, len(uniq))
-    mean_w = np.where(wsum > 0, wsum, 1.0)
-    vw = np.where(wsum[inverse, None] > 0, weight[:, None], 1.0 / counts[inverse, None])
-    merged = np.stack([np.bincount(inverse, vw[:, k] * values[:, k], len(uniq))
-                       for k in range(values.shape[1])], axis=1)
-    merged /= np.where(wsum > 0, mean_w, 1.0)[:, None]
+    merged = np.stack([np.bincount(inverse, weight * values[:, k], len(uniq))
+                       for k in range(values.shape[1])], axis=1) / wsum[:, None]
     return uniq, merged, wsum, len(points) - len(uniq)
 
 
@@ -248,12 +246,9 @@ def _solve(points, values, idx, scale, shift, smoothing) -> RbfModel:
     return RbfModel(points[idx].copy(), sol[:m], sol[m:], scale, shift)
 
 
-def _spanning_seed(x: np.ndarray, eligible: np.ndarray) -> list[int]:
+def _spanning_seed(x: np.ndarray) -> np.ndarray:
     """Extreme samples along each axis: they span the data's affine hull for the polynomial."""
-    idx = np.flatnonzero(eligible)
-    seeds = {int(idx[np.argmin(x[idx, k])]) for k in range(x.shape[1])}
-    seeds |= {int(idx[np.argmax(x[idx, k])]) for k in range(x.shape[1])}
-    return sorted(seeds)
+    return np.unique(np.concatenate([np.argmin(x, axis=0), np.argmax(x, axis=0)]))
 
 
 def _pick_block(x, err, chosen_mask, centers_x, n_new, min_sep, spread=0.0):
@@ -383,7 +378,7 @@ def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000,
                            "light and view: drop the constant coordinate)")
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     budget = min(max_centers, len(pts))
-    seed = _spanning_seed(x, np.ones(len(pts), bool))
+    seed = _spanning_seed(x)
     rest = np.setdiff1d(np.arange(len(pts)), seed)
     n_rand = max(0, min(initial_centers, budget) - len(seed))
     first = np.zeros(len(pts))
