@@ -33,10 +33,11 @@ from calibration.polarization import separate_parallel_crossed  # noqa: E402
 from reconstruct.brdf import CookTorrance, OrenNayar  # noqa: E402
 from reconstruct.distant import shade_distant  # noqa: E402
 from reconstruct.lensch import fit_lafortune  # noqa: E402
-from reconstruct.sharing import RbfModel, fit_isotropic, fit_rbf, fit_spatial, samples_from_images  # noqa: E402
+from reconstruct.sharing import (RbfModel, SpatialRbfBRDF, fit_isotropic, fit_rbf,  # noqa: E402
+                                 fit_spatial, samples_from_images)
 from reconstruct.sharing.baselines import fit_per_point, fit_ward  # noqa: E402
-from sims.distant_scenes import (RingHighlight, hemisphere_lights, ramp_material, render_distant,  # noqa: E402
-                                 stratified, theta_d_lights, visible_points)
+from sims.distant_scenes import (RingHighlight, hemisphere_lights, ramp_material,  # noqa: E402
+                                 render_distant, stratified, theta_d_lights, visible_points)
 
 MATERIALS = {
     "cook-torrance (Fresnel metal)": CookTorrance(kd=(0.1, 0.12, 0.3), f0=0.9, alpha=0.15),
@@ -97,9 +98,12 @@ def homogeneous(out: Path, size: int, counts, n_lobes: int) -> None:
         t0 = time.perf_counter()
         ward = fit_ward(s.wi, s.wo, s.brdf, valid=s.valid)
         t_ward = time.perf_counter() - t0
-        e_laf = rel_errors(render_distant(laf.model, size, test.directions).radiance, test.radiance)
-        e_ward = rel_errors(render_distant(ward.brdf, size, test.directions).radiance, test.radiance)
-        print(f"{name}: {fit.n_used} samples; RBF fit to {len(fit.fit.order)} centres {t_fit:.1f} s")
+        e_laf = rel_errors(render_distant(laf.model, size, test.directions).radiance,
+                           test.radiance)
+        e_ward = rel_errors(render_distant(ward.brdf, size, test.directions).radiance,
+                            test.radiance)
+        print(f"{name}: {fit.n_used} samples; RBF fit to {len(fit.fit.order)} centres "
+              f"{t_fit:.1f} s")
         for c, p, m in zip(used, pooled, median):
             print(f"   RBF {c:5d} centres: pooled {100 * p:6.2f} %, median {100 * m:6.2f} %")
         print(f"   Lafortune {n_lobes} lobes:  pooled {100 * e_laf[0]:6.2f} %, median "
@@ -131,7 +135,6 @@ def spatial(out: Path, size: int, counts, max_centers: int) -> None:
     curve = []
     used = [c for c in counts if c <= len(fit.fits["brdf"].order)]
     for c in used:
-        from reconstruct.sharing import SpatialRbfBRDF
         pred = render_distant(SpatialRbfBRDF(fit.fits["brdf"].refit(c), xy), size,
                               test.directions).radiance
         curve.append(rel_errors(pred, test.radiance))
@@ -173,17 +176,19 @@ def view_and_single_image(size: int, max_centers: int) -> None:
         truth = shade_distant(material.take(seen), normals[seen], light, np.ones(1), view_dirs=view)
         pred = shade_distant(fit.brdf.take(seen), normals[seen], light, np.ones(1), view_dirs=view)
         fixed = tr.radiance[2][seen]
-        print(f"   view moved {deg:2d} deg: predicted {100 * rel_errors(pred[None], truth[None])[0]:6.2f} %"
-              f" (the input view's image: {100 * rel_errors(fixed[None], truth[None])[0]:6.2f} %)")
+        e_pred = rel_errors(pred[None], truth[None])[0]
+        e_fixed = rel_errors(fixed[None], truth[None])[0]
+        print(f"   view moved {deg:2d} deg: predicted {100 * e_pred:6.2f} % (the input view's "
+              f"image: {100 * e_fixed:6.2f} %)")
     one = render_distant(material, size, theta_d_lights([0.3]))
     s1 = samples_from_images(one.normals, one.radiance, one.directions)
     fit1 = fit_spatial(xy[s1.point], s1.wi, s1.wo, s1.brdf, texel=s1.point, valid=s1.valid,
                        max_centers=max_centers)
     near = render_distant(material, size, theta_d_lights([0.25, 0.35]))
     pred = render_distant(fit1.brdf, size, near.directions).radiance
-    print(f"   one image ({fit1.mode}): input reproduced to "
-          f"{100 * rel_errors(render_distant(fit1.brdf, size, one.directions).radiance, one.radiance)[0]:.2f} %,"
-          f" theta_d +-0.05 rad: {100 * rel_errors(pred, near.radiance)[0]:.2f} %")
+    again = rel_errors(render_distant(fit1.brdf, size, one.directions).radiance, one.radiance)[0]
+    print(f"   one image ({fit1.mode}): input reproduced to {100 * again:.2f} %, "
+          f"theta_d +-0.05 rad: {100 * rel_errors(pred, near.radiance)[0]:.2f} %")
 
 
 def dichromatic(size: int, max_centers: int) -> None:
@@ -204,7 +209,8 @@ def dichromatic(size: int, max_centers: int) -> None:
     truth = render_distant(material, size, novel).radiance
     pred = render_distant(fit.brdf, size, novel).radiance
     p, m = rel_errors(pred, truth)
-    print(f"   {fit.mode}, {t_fit:.1f} s; 6 novel lights: pooled {100 * p:.2f} %, median {100 * m:.2f} %")
+    print(f"   {fit.mode}, {t_fit:.1f} s; 6 novel lights: pooled {100 * p:.2f} %, "
+          f"median {100 * m:.2f} %")
 
 
 def speed(n_samples: int, n_centers: int, n_eval: int) -> None:

@@ -127,7 +127,8 @@ def ramp_material(xy, ramp: RoughnessRamp | None = None, *, texture: bool = Fals
 
 @dataclass(frozen=True)
 class RingHighlight(BRDF):
-    """Lambertian plus an off-specular ring: f_r = kd / pi + ks exp(-((theta_h - theta_0) / width)^2).
+    """Lambertian plus an off-specular ring:
+    f_r = kd / pi + ks exp(-((theta_h - theta_0) / width)^2).
 
     The lobe peaks on a ring theta_h = theta_0 about the halfway-vector direction, not at the
     mirror direction: no Ward, Cook-Torrance or Lafortune lobe (all peak at theta_h = 0 or along
@@ -156,4 +157,5 @@ class RingHighlight(BRDF):
 
     def _evaluate(self, wi, wo):
         theta_h = halfway_difference(wi, wo)[0][:, None]
-        return rgb(self.kd) / np.pi + self.ks * np.exp(-((theta_h - self.theta_0) / self.width) ** 2)
+        ring = np.exp(-((theta_h - self.theta_0) / self.width) ** 2)
+        return rgb(self.kd) / np.pi + self.ks * ring

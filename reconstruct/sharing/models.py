@@ -1,4 +1,5 @@
-"""BRDF models backed by RBF interpolants: homogeneous (u, v, w) and spatially varying (x, y, u, v[, w]).
+"""BRDF models backed by RBF interpolants: homogeneous (u, v, w) and spatially varying
+(x, y, u, v[, w]).
 
 Both are ``reconstruct.brdf.BRDF`` models, so the renderer, ``reconstruct.distant`` and the
 report use them unchanged. Directions are local unit vectors (normal = +z); the angular

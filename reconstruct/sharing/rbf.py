@@ -7,15 +7,17 @@ The interpolant (Zickler et al. 2005, Eqs. 2-6) in d dimensions is
 with ``M = diag(scale)`` (Eq. 4: radially asymmetric basis functions) and the centres x_i a
 subset of the samples chosen greedily after Carr et al. 2001: fit the current centres, evaluate
 the residual at every sample (weighted, e.g. by cos theta_i so that it is a radiance residual),
-append the worst samples as a block of new centres, and repeat to a target accuracy or centre
+append the worst samples (kept apart from each other, so one block covers several error
+regions) as a block of new centres, and repeat to a target accuracy or centre
 count. The coefficients solve the symmetric indefinite system of Eq. 3,
 
     [Psi + rho I   P] [lambda]   [g]
     [P^T           0] [c     ] = [0],    Psi_ij = |x'_i - x'_j|,  P = [1, x'],
 
-directly (LU: scipy's symmetric-indefinite LDL^T path ran ~9x slower at 2000 centres). At the paper's sizes (<= a few thousand centres) a
-direct solve costs well under a second, so each round re-solves with the previous round's
-centres plus the new block (the centres carry over; there is no iterative solver to warm-start).
+directly (LU: scipy's symmetric-indefinite LDL^T path ran ~9x slower at 2000 centres). At the
+paper's sizes (<= a few thousand centres) a direct solve costs well under a second, so each
+round re-solves with the previous round's centres plus the new block (the centres carry over;
+there is no iterative solver to warm-start).
 
 Samples that coincide in the scaled space make the system singular (scipy's RBFInterpolator
 then returns coefficients ~1e16 without a word). Here exact duplicates are merged (weighted mean
@@ -56,7 +58,8 @@ POOL = 32
 
 
 class SharingError(ValueError):
-    """Bad input or an under-determined fit in reflectance sharing; the message names the argument."""
+    """Bad input or an under-determined fit in reflectance sharing; the message names the
+    argument."""
 
 
 def _finite_array(name: str, a, ndim: int, dtype=np.float64) -> np.ndarray:
@@ -354,7 +357,8 @@ def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000,
     if sc.shape != (d,) or np.any(sc <= 0):
         raise SharingError(f"scale must be ({d},) positive numbers, got {np.asarray(scale)!r}")
     if not (isinstance(max_centers, (int, np.integer)) and max_centers >= d + 2):
-        raise SharingError(f"max_centers must be an integer >= D + 2 = {d + 2}, got {max_centers!r}")
+        raise SharingError(f"max_centers must be an integer >= D + 2 = {d + 2}, "
+                           f"got {max_centers!r}")
     if tol is not None and not tol >= 0:
         raise SharingError(f"tol must be >= 0, got {tol!r}")
     if not smoothing >= 0:

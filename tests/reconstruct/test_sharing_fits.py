@@ -1,4 +1,5 @@
-"""reconstruct.sharing fits on the paper's synthetic problems (small sizes; paper scale: benchmarks/sharing.py).
+"""reconstruct.sharing fits on the paper's synthetic problems (small sizes; the paper's scale is
+in benchmarks/sharing.py).
 
 Ground truth is the deterministic render of the true material (sims.distant_scenes); errors
 are relative RMS radiance errors of held-out images, never values the fit produced itself.
