@@ -159,6 +159,11 @@ def test_dichromatic_fit_from_polarized_captures():
     assert fit.mode == "dichromatic"
     # the albedo is the per-texel median of the diffuse samples (Lambertian part: kd / pi)
     np.testing.assert_allclose(fit.albedo, material.kd / np.pi, rtol=0.02)
+    # points between texels take the nearest texel's albedo
+    near = fit.brdf_at(fit.texel_xy[:40] + 0.2 / size)
+    np.testing.assert_array_equal(near.diffuse.albedo,
+                                  fit.albedo[[np.argmin(np.linalg.norm(fit.texel_xy - p, axis=1))
+                                              for p in fit.texel_xy[:40] + 0.2 / size]])
     novel = np.array([[0.2, -0.15, -np.sqrt(1 - 0.2 ** 2 - 0.15 ** 2)]])
     truth = render_distant(material, size, novel).radiance
     pred = render_distant(fit.brdf, size, novel).radiance

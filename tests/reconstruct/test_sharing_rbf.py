@@ -61,8 +61,11 @@ def test_greedy_reaches_tolerance_and_residual_falls(seed):
     x = rng.random((2000, 3))
     y = _smooth(x)
     w = rng.uniform(0.2, 1.0, 2000)
-    fit = fit_rbf(x, y, weight=w, tol=5e-3, max_centers=1500, rng=seed)
+    calls = []
+    fit = fit_rbf(x, y, weight=w, tol=5e-3, max_centers=1500, rng=seed,
+                  progress=lambda done, total: calls.append((done, total)))
     assert fit.converged
+    assert [c[0] for c in calls] == list(fit.history[:, 0].astype(int))
     err = np.abs(fit.model(x) - y).max(axis=1) * w  # recomputed here, not the fit's history
     assert err.max() <= 5e-3
     rms = fit.history[:, 1]
