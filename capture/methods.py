@@ -142,27 +142,37 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
                             "crossed captures of each pose)")
     mod = _module("reconstruct.sharing", "fit_spatial", "sharing")
     xy = _surface_xy(train.position)
-    brdf = train.brdf_values()
     cos = np.maximum(train.wi[:, 2:3], 1e-6)
-    fit = mod.fit_spatial(xy[train.texel], train.wi, train.wo, brdf, texel=train.texel,
-                          diffuse=train.diffuse / cos, specular=train.specular / cos, rng=rng,
-                          progress=progress)
-    per_texel = fit.brdf if callable(getattr(fit, "brdf", None)) else fit.texel_brdf
+    fit = mod.fit_spatial(xy[train.texel], train.wi, train.wo, None, texel=train.texel,
+                          diffuse=train.diffuse / cos, specular=train.specular / cos,
+                          max_centers=SHARING_CENTERS, rng=rng, progress=progress)
+
+    def per_texel(t: np.ndarray) -> BRDF:
+        t = np.asarray(t)
+        return fit.brdf_at(fit.texel_xy[t], t)
 
     def predict(lt: Lumitexels) -> np.ndarray:
         return per_texel(lt.texel).evaluate(lt.wi, lt.wo) * np.maximum(lt.wi[:, 2:3], 0.0)
 
-    return Fitted(predict, per_texel, arrays={"xy": xy.astype(np.float32)},
-                  params={"surface_xy": "object-frame azimuth/height about the turntable axis", "rng": rng},
-                  figures={k: v for k, v in dict(getattr(fit, "figures", {})).items()})
+    return Fitted(predict, per_texel, arrays={"xy": xy.astype(np.float32),
+                                              "albedo": np.asarray(fit.albedo, np.float32)},
+                  params={"surface_xy": "azimuth about the turntable axis and height, scaled to [0, 1]",
+                          "max_centers": SHARING_CENTERS, "rng": rng},
+                  figures={"mode": fit.mode, "samples_used": fit.n_used, "samples_dropped": fit.n_dropped,
+                           "centres": {k: len(f.model.centers) for k, f in fit.fits.items()}})
+
+
+#: centre budget of each reflectance-sharing RBF (the paper: < 1000 suffice)
+SHARING_CENTERS = 1000
 
 
 def _surface_xy(position: np.ndarray) -> np.ndarray:
-    """A 2-D surface parameter for the spatial RBF: arc length around the turntable axis and
-    height, mm (a cylindrical map: the turntable's natural one)."""
-    r = np.linalg.norm(position[:, :2], axis=1)
-    return np.stack([np.arctan2(position[:, 1], position[:, 0]) * max(float(np.median(r)), 1.0),
-                     position[:, 2]], axis=1)
+    """A 2-D surface parameter for the spatial RBF, in [0, 1]^2 as the paper's: the azimuth about
+    the turntable axis and the height (a cylindrical map, the turntable's natural one; points
+    that share both, e.g. an ear in front of the head, share a parameter)."""
+    az = (np.arctan2(position[:, 1], position[:, 0]) + np.pi) / (2 * np.pi)
+    z = position[:, 2]
+    return np.stack([az, (z - z.min()) / max(float(np.ptp(z)), 1e-9)], axis=1)
 
 
 # -- Romeiro et al. 2008 ------------------------------------------------------------------------

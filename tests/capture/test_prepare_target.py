@@ -7,7 +7,7 @@ import io
 import numpy as np
 import rawpy
 
-from capture.cli_capture import _target_handler
+from capture.cli.capture import _target_handler
 from capture.rigs import open_rig
 from capture.tui.backend import target_handler
 from sims.ptp_sim import placeholder_frame

@@ -9,7 +9,7 @@ import time
 import pytest
 from typer.testing import CliRunner
 
-from capture.cli_session import app as session_app
+from capture.cli.session import app as session_app
 from capture.plan import Plan
 from capture.runner import create_session
 from capture.store import Store

@@ -9,8 +9,8 @@ import zipfile
 import pytest
 from typer.testing import CliRunner
 
-from capture.cli_capture import app as capture_app
-from capture.cli_session import app as session_app
+from capture.cli.capture import app as capture_app
+from capture.cli.session import app as session_app
 from capture.plan import Plan
 from capture.runner import create_session
 from capture.store import InvalidName, Store, check_session_name, safe_name_from

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from capture import plan as plan_mod
-from capture.cli_capture import app as capture_app
+from capture.cli.capture import app as capture_app
 from capture.plan import Plan, PlanError
 from capture_fakes import SMALL_PLAN
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from capture.cli_capture import app as capture_app
-from capture.cli_rig import app as rig_app
+from capture.cli.capture import app as capture_app
+from capture.cli.rig import app as rig_app
 from capture.rigs import open_rig, to_toml
 from capture.store import Store
 from capture_fakes import tolerant_sim_config

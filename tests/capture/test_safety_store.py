@@ -17,8 +17,8 @@ import pytest
 from typer.testing import CliRunner
 
 from capture import store as store_mod
-from capture.cli_capture import app as capture_app
-from capture.cli_session import app as session_app
+from capture.cli.capture import app as capture_app
+from capture.cli.session import app as session_app
 from capture.events import EventKind
 from capture.plan import Plan
 from capture.runner import Runner, create_session

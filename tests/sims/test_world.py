@@ -134,7 +134,7 @@ def test_capture_kinds_build_their_scenes():
 def test_one_vocabulary_of_scene_targets():
     """Every scene target a plan can name is a scene the simulated lab stages under that same
     name (no translation table), and ``gonio sim render --scene`` offers exactly these scenes."""
-    from capture.cli_sim import SCENES
+    from capture.cli.sim import SCENES
     from capture.plan import CALIBRATION_KINDS, SCENE_TARGETS
 
     assert set(CALIBRATION_KINDS) < set(SCENE_TARGETS) <= set(CAPTURE_KINDS)

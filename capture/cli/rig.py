@@ -21,7 +21,7 @@ from rich.table import Table
 from rig import RigError
 from rig.rig import ROLES
 
-from .rigs import home_all, open_rig, position_text, to_toml
+from ..rigs import home_all, open_rig, position_text, to_toml
 
 app = typer.Typer(name="rig", help="Check, home and simulate the measurement rig.", no_args_is_help=True)
 

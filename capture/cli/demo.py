@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from .cli_process import EXIT_FAILED, EXIT_OK, print_outcome, progress_bar
+from .process import EXIT_FAILED, EXIT_OK, print_outcome, progress_bar
 
 
 def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 x 240 (under 3 minutes "
@@ -20,7 +20,7 @@ def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 
                                   "new temporary folder)."),
          quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Capture, calibrate and reconstruct on the simulated lab, then write report.html."""
-    from .demo import run_demo
+    from ..demo import run_demo
     console = Console()
     bar, update = progress_bar(quiet)
     with bar:

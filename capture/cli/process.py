@@ -18,9 +18,9 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from .cli_calibrate import _targets
-from .cli_session import STORE_OPTION, fail, open_store
-from .store import SessionNotFound
+from ..store import SessionNotFound
+from .calibrate import _targets
+from .session import STORE_OPTION, fail, open_store
 
 EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS = 0, 1, 3
 
@@ -70,9 +70,9 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
             quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Reconstruct a captured session with every method its captures allow and write the report."""
-    from .methods import DEFAULT_METHODS, METHODS
-    from .pipeline import process_session
-    from .process import ProcessError, load_mesh
+    from ..methods import DEFAULT_METHODS, METHODS
+    from ..pipeline import process_session
+    from ..process import ProcessError, load_mesh
     names = DEFAULT_METHODS if not methods else tuple(m.strip() for m in methods.split(",") if m.strip())
     unknown = [m for m in names if m not in METHODS]
     if unknown:
@@ -94,7 +94,7 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         except SessionNotFound as exc:
             raise fail(str(exc)) from None
         if demo_lab:
-            from .demo_lab import demo_lab_for
+            from ..demo_lab import demo_lab_for
             kw = {**demo_lab_for(st, session).process_options(), **kw}
         report_path = out if out is not None else Path(st.root).resolve().parent / f"{session}-report.html"
         bar, update = progress_bar(quiet)

@@ -22,9 +22,9 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from .calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
-from .cli_session import STORE_OPTION, fail, open_store
-from .store import SessionNotFound, StoreError, check_session_name, inside
+from ..calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
+from .session import STORE_OPTION, fail, open_store
+from ..store import SessionNotFound, StoreError, check_session_name, inside
 
 EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
 
@@ -84,7 +84,7 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 progress.stop()
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NOTHING) from None
-        from .report import write_report  # here, not at the top: matplotlib would slow every gonio start
+        from ..report import write_report  # here, not at the top: matplotlib would slow every gonio start
         folder = out if out is not None else Path(st.root).resolve().parent
         try:  # a name from before names were checked may not be a safe file name
             png_path = inside(folder, f"{check_session_name(session)}-calibration.png")

@@ -30,7 +30,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from .store import Store, StoreError
+from ..store import Store, StoreError
 
 HELP = """List, inspect, verify and export recorded sessions.
 

@@ -28,13 +28,13 @@ from rich.table import Table
 
 from rig import RigError
 
-from .cli_session import (STORE_OPTION, display_state, fail, human_bytes, human_time, open_store,
+from .session import (STORE_OPTION, display_state, fail, human_bytes, human_time, open_store,
                           unwrap)
-from .events import Event, EventKind
-from .plan import Estimate, MotionModel, Plan, PlanError, Step
-from .rigs import OpenedRig, open_rig
-from .runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
-from .store import StoreError, check_session_name
+from ..events import Event, EventKind
+from ..plan import Estimate, MotionModel, Plan, PlanError, Step
+from ..rigs import OpenedRig, open_rig
+from ..runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
+from ..store import StoreError, check_session_name
 
 HELP = """Plan, run and resume capture sessions.
 
