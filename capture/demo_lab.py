@@ -4,7 +4,7 @@
 runner asked the operator to set up (``prepare_target``), all through one camera, sensor and lamp:
 
 ==============  ==============================================================================
-``object``      the object (default: the four-material bunny, :func:`sims.objects.make_object`)
+``object``      the object (default: the bumpy three-material sphere, else the four-material bunny)
 ``dark``        dark frames (lens cap on)
 ``checkerboard``  a 10 x 7 ChArUco of 28 mm squares standing on the turntable (fills much of
                 the frame: a turntable sweep otherwise only sees the image centre)
@@ -33,7 +33,7 @@ from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.camera import CameraModel
 from reconstruct.raycast import Mesh, Plane
 from reconstruct.render import SceneObject
-from sims.objects import GroundTruthObject, make_object
+from sims.objects import OBJECTS, GroundTruthObject, make_object
 from sims.targets import CHROME_REFLECTANCE, CharucoTarget, GrayCard
 from sims.world import (LIGHT_INTENSITY, SimWorld, Target, board_on_turntable, default_camera,
                         light_position, spheres_target, standing_pose)
@@ -78,10 +78,17 @@ class DemoTruth:
 
     def materials(self, points: np.ndarray) -> tuple[np.ndarray, tuple[BRDF, ...]]:
         """True material id per object-frame point (N, 3) mm and the materials by id."""
+        if hasattr(self.object, "material_at"):   # the bumpy object states its own truth
+            return self.object.material_at(points), tuple(self.object.materials)
         from sims.objects import MULTI_MATERIALS, region_ids
         if self.object.name != "multi":
             raise ValueError(f"no per-point material truth for object {self.object.name!r}")
         return region_ids(points, self.object.height_mm), MULTI_MATERIALS
+
+    def normals(self, points: np.ndarray) -> np.ndarray | None:
+        """True unit normals (N, 3) at object-frame points where the rendered surface has detail
+        the fitter's mesh lacks; None where the mesh is the truth."""
+        return self.object.normal_at(points) if hasattr(self.object, "normal_at") else None
 
 
 class DemoLab:
@@ -97,8 +104,10 @@ class DemoLab:
         Sensor-noise seed (each scene draws from its own stream).
     """
 
-    def __init__(self, width: int = 320, height: int = 240, *, object: str | GroundTruthObject = "multi",
+    def __init__(self, width: int = 320, height: int = 240, *, object: str | GroundTruthObject | None = None,
                  seed: int = 0) -> None:
+        if object is None:   # the multi-material object with detail its mesh lacks, where it exists
+            object = "bumpy" if "bumpy" in OBJECTS else "multi"
         self.camera = default_camera(width, height)
         self.object = make_object(object) if isinstance(object, str) else object
         cam = self.camera
@@ -147,9 +156,11 @@ class DemoLab:
 
     def process_options(self) -> dict[str, Any]:
         """What :func:`capture.pipeline.process_session` takes from this lab: the fitter's
-        ``mesh``, the ``targets``, the ``gray_card`` pose and the ``truth``."""
+        ``mesh``, the ``targets``, the ``gray_card`` pose, the probe ball's mirror reflectance
+        and the ``truth``."""
         return {"mesh": fitter_mesh(self.object), "targets": self.targets(),
-                "gray_card": self.gray_card_pose(), "truth": self.truth()}
+                "gray_card": self.gray_card_pose(), "probe_reflectance": CHROME_REFLECTANCE,
+                "truth": self.truth()}
 
     def truth(self, fnumber: float = 8.0, iso: float = 100.0) -> DemoTruth:
         """The ground truth; ``fnumber`` / ``iso`` the camera settings the captures used."""

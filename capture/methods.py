@@ -97,46 +97,24 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
 def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
     mod = _module("reconstruct.lensch", "fit_svbrdf_lumitexels", "lensch")
     fit = mod.fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress)
-    per_texel = fit.brdf if callable(getattr(fit, "brdf", None)) else fit.texel_brdf
-    normals = getattr(fit, "normals", None)
 
     def predict(lt: Lumitexels) -> np.ndarray:
-        wi, wo = _reframe(lt, normals)
-        return per_texel(lt.texel).evaluate(wi, wo) * np.maximum(wi[:, 2:3], 0.0)
+        return fit.predict(lt.texel, lt.wi, lt.wo)   # fitted normals applied
 
-    rms = {k: float(v) for k, v in dict(getattr(fit, "rms", {})).items()}
-    arrays = {"labels": np.asarray(fit.labels)}
-    if normals is not None:
-        arrays["normals_local"] = np.asarray(normals, np.float32)
-    if getattr(fit, "weights", None) is not None:
-        arrays["weights"] = np.asarray(fit.weights, np.float32)
-    return Fitted(predict, per_texel, arrays=arrays,
-                  params={"n_materials": "auto", "fit_normals": True, "rng": rng},
-                  figures={"materials": len(fit.materials), "table_ii_rms": rms},
-                  normals=_to_object(train, normals))
-
-
-def _reframe(lt: Lumitexels, normals: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Sample directions in the frame of each texel's fitted normal (given in the texel's
-    local frame of the mesh normal); unchanged without fitted normals."""
-    if normals is None:
-        return lt.wi, lt.wo
-    from reconstruct.frames import tangent_frames, to_local
-    frames = tangent_frames(np.asarray(normals, float))[lt.texel]
-    return to_local(lt.wi, frames), to_local(lt.wo, frames)
-
-
-def _to_object(lt: Lumitexels, normals_local: np.ndarray | None) -> np.ndarray | None:
-    """Local-frame normals (T, 3) -> object frame, through each texel's mesh frame."""
-    if normals_local is None:
-        return None
-    from reconstruct.frames import tangent_frames
-    F = tangent_frames(lt.normal)                    # (T, 3, 3): rows t, b, n
-    return np.einsum("tij,ti->tj", F, np.asarray(normals_local, float))
+    flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight))}
+    arrays = {"labels": np.asarray(fit.labels), "weights": np.asarray(fit.weights, np.float32)}
+    if fit.normals is not None:
+        arrays["normals"] = np.asarray(fit.normals, np.float32)
+    return Fitted(predict, fit.brdf, arrays=arrays,
+                  params={"n_materials": "from the data", "fit_normals": True, "rng": rng},
+                  figures={"materials": fit.n_materials, "table_ii_rms": dict(fit.rms),
+                           "table_ii_relative_rms": dict(fit.relative_rms), "flagged_texels": flags},
+                  normals=None if fit.normals is None else np.asarray(fit.normals, float))
 
 
 # -- Zickler et al. 2005 ------------------------------------------------------------------------
-def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
+             max_centers: int = 1000) -> Fitted:
     if train.diffuse is None or train.specular is None:
         raise MethodSkipped("sharing: no polarized frames (the dichromatic model needs parallel and "
                             "crossed captures of each pose)")
@@ -145,7 +123,7 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
     cos = np.maximum(train.wi[:, 2:3], 1e-6)
     fit = mod.fit_spatial(xy[train.texel], train.wi, train.wo, None, texel=train.texel,
                           diffuse=train.diffuse / cos, specular=train.specular / cos,
-                          max_centers=SHARING_CENTERS, rng=rng, progress=progress)
+                          max_centers=max_centers, rng=rng, progress=progress)
 
     def per_texel(t: np.ndarray) -> BRDF:
         t = np.asarray(t)
@@ -157,13 +135,9 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
     return Fitted(predict, per_texel, arrays={"xy": xy.astype(np.float32),
                                               "albedo": np.asarray(fit.albedo, np.float32)},
                   params={"surface_xy": "azimuth about the turntable axis and height, scaled to [0, 1]",
-                          "max_centers": SHARING_CENTERS, "rng": rng},
+                          "max_centers": max_centers, "rng": rng},
                   figures={"mode": fit.mode, "samples_used": fit.n_used, "samples_dropped": fit.n_dropped,
                            "centres": {k: len(f.model.centers) for k, f in fit.fits.items()}})
-
-
-#: centre budget of each reflectance-sharing RBF (the paper: < 1000 suffice)
-SHARING_CENTERS = 1000
 
 
 def _surface_xy(position: np.ndarray) -> np.ndarray:
@@ -184,20 +158,23 @@ def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
         raise MethodSkipped(f"passive: {why}")
     mod = _module("reconstruct.passive", "passive_reflectometry", "passive")
     fit = mod.passive_reflectometry(p.image, p.normals, p.mask, p.environment, view_dirs=p.view_dirs,
-                                    rng=rng, progress=progress)
+                                    environment_weight=p.environment_weight, rng=rng, progress=progress)
     brdf = fit.brdf
 
     def predict(lt: Lumitexels) -> np.ndarray:
         return brdf.evaluate(lt.wi, lt.wo) * np.maximum(lt.wi[:, 2:3], 0.0)
 
-    adequacy = getattr(fit, "adequacy", None)
-    warnings = list(getattr(adequacy, "warnings", []) or [])
-    return Fitted(predict, lambda t: brdf, arrays={"bivariate": np.asarray(getattr(brdf, "values", np.zeros(0)))},
-                  params={"grid": list(getattr(brdf, "shape", ())) or None, "rng": rng},
-                  figures={"prior": str(getattr(fit, "prior", "")),
-                           "effective_rank": getattr(adequacy, "effective_rank", None)},
-                  warnings=warnings + ["passive reflectometry recovers one homogeneous BRDF: on a "
-                                       "multi-material object it is an average"])
+    ad = fit.adequacy
+    return Fitted(predict, lambda t: brdf,
+                  arrays={"bivariate": np.asarray(brdf.table, np.float32), "lambertian": np.asarray(fit.lambertian)},
+                  params={"grid": list(np.asarray(brdf.table).shape[:2]), "rng": rng},
+                  figures={"prior": fit.prior, "residual": np.asarray(fit.residual).tolist(),
+                           "effective_rank": int(ad.effective_rank), "condition": float(ad.condition),
+                           "observations": int(ad.n_observations),
+                           "poorly_observed": {k: float(v) for k, v in ad.poorly_observed.items()}},
+                  warnings=[*dict.fromkeys([*fit.warnings, *ad.warnings]),
+                            "passive reflectometry recovers one BRDF for the whole object: on a "
+                            "multi-material object it is their average"])
 
 
 METHODS: dict[str, Callable[..., Fitted]] = {"lambertian": _lambertian, "lensch": _lensch,
@@ -207,8 +184,10 @@ DEFAULT_METHODS = ("lambertian", "lensch", "sharing", "passive")
 
 
 def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int = 0,
-               progress: Callable[[int, int], None] | None = None) -> Fitted:
-    """Run method ``name`` (one of :data:`METHODS`) on the training lumitexels.
+               progress: Callable[[int, int], None] | None = None, **options: Any) -> Fitted:
+    """Run method ``name`` (one of :data:`METHODS`) on the training lumitexels; ``options`` are
+    the method's own (``sharing``: ``max_centers``, default 1000 per RBF, the paper's "< 1000
+    suffice").
 
     Raises
     ------
@@ -219,4 +198,4 @@ def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int 
     """
     if name not in METHODS:
         raise ValueError(f"methods: unknown {name!r}; known: {', '.join(METHODS)}")
-    return METHODS[name](train, inputs, rng=rng, progress=progress)
+    return METHODS[name](train, inputs, rng=rng, progress=progress, **options)

@@ -26,6 +26,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import trimesh
 
+from reconstruct.frames import tangent_frames, to_local, to_world
 from reconstruct.lumitexels import Lumitexels, View
 
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
@@ -117,7 +118,9 @@ class _Clock:
 
 def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFAULT_METHODS,
                     mesh: trimesh.Trimesh | None = None, targets: LabTargets | None = None,
-                    gray_card: GrayCardPose | None = None, truth=None, force: bool = False, rng: int = 0,
+                    gray_card: GrayCardPose | None = None, probe_reflectance: float = 1.0, truth=None,
+                    force: bool = False, rng: int = 0,
+                    method_options: dict[str, dict[str, Any]] | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     report_path: str | Path | None = None) -> ProcessReport:
     """Calibrate (if needed), build the inputs, run and store each method, write the report.
@@ -134,12 +137,16 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         The lab's calibration targets (for a calibration run here).
     gray_card : GrayCardPose, optional
         The card's pose, for the lamp's absolute intensity.
+    probe_reflectance : float
+        The mirror probe's reflectance (divided out of the environment map).
     truth : capture.demo_lab.DemoTruth, optional
         Ground truth of a simulated session (adds truth columns).
     force : bool
         Re-run the calibration and every method even when stored.
     rng : int
         Seed handed to the methods.
+    method_options : dict of str -> dict, optional
+        Per method, its own options (:func:`capture.methods.fit_method`).
     progress : callable(stage, done, total), optional
         Stage name and progress within it.
     report_path : path, optional
@@ -162,7 +169,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     clock = _Clock(rep, progress)
     with clock.stage("calibration"):
         rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
-    cal = read_calibration(store, session, gray_card=gray_card)
+    cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
     if truth is not None:
         rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
     stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
@@ -193,7 +200,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             started = time.perf_counter()
             with clock.stage(name):
                 outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                             rep.inputs, clock.sub(name))
+                                             rep.inputs, clock.sub(name), (method_options or {}).get(name, {}))
             outcomes[name].seconds = round(time.perf_counter() - started, 3)
     rep.methods = [outcomes[m] for m in methods]
     from .report_html import write_html_report
@@ -228,9 +235,9 @@ def _calibration(store: Store, session: str, targets, force: bool, progress) -> 
 # -- one method ---------------------------------------------------------------------------------
 def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, held: Lumitexels,
                 inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
-                progress) -> MethodOutcome:
+                progress, options: dict[str, Any]) -> MethodOutcome:
     try:
-        fit = fit_method(name, train, inputs, rng=rng, progress=progress)
+        fit = fit_method(name, train, inputs, rng=rng, progress=progress, **options)
     except MethodSkipped as exc:
         return MethodOutcome(name, "skipped", str(exc))
     except (ValueError, np.linalg.LinAlgError) as exc:
@@ -243,8 +250,11 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
         scored = held if held.n_samples else train
         figures["truth_rel_rms"] = relative_rms(fit.predict(scored), truth_r[1] if held.n_samples else truth_r[0])
     if fit.normals is not None:
-        figures["normal_change_deg"] = float(np.degrees(np.median(np.arccos(np.clip(
-            np.einsum("ij,ij->i", fit.normals, train.normal), -1, 1)))))
+        figures["normal_change_deg"] = _median_angle_deg(fit.normals, train.normal)
+        true_n = truth.normals(train.position) if truth is not None else None
+        if true_n is not None:   # detail the mesh lacks: the fitted normals should recover it
+            figures["normal_error_mesh_deg"] = _median_angle_deg(train.normal, true_n)
+            figures["normal_error_fitted_deg"] = _median_angle_deg(fit.normals, true_n)
     pictures = _pictures(fit, train, held, inputs, truth)
     result = {"figures": figures, "warnings": fit.warnings,
               "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
@@ -255,6 +265,11 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
                                    input_frames=inputs.view_frames,
                                    artifacts={"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)})
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings)
+
+
+def _median_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Median angle (deg) between rows of unit vectors (N, 3)."""
+    return float(np.degrees(np.median(np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1, 1)))))
 
 
 def _npz(arrays: dict[str, np.ndarray]) -> bytes:
@@ -272,13 +287,19 @@ def _truth_reflectance(truth, train: Lumitexels, held: Lumitexels) -> tuple[np.n
     except ValueError:
         return None
 
+    true_n = truth.normals(train.position)
+
     def of(lt: Lumitexels) -> np.ndarray:
+        wi, wo = lt.wi, lt.wo
+        if true_n is not None:   # the sample's directions about the true (detailed) normal
+            mesh_f, true_f = tangent_frames(lt.normal)[lt.texel], tangent_frames(true_n)[lt.texel]
+            wi, wo = to_local(to_world(wi, mesh_f), true_f), to_local(to_world(wo, mesh_f), true_f)
         out = np.zeros((lt.n_samples, 3))
         tid = ids[lt.texel]
         for k, m in enumerate(materials):
             s = tid == k
             if s.any():
-                out[s] = m.evaluate(lt.wi[s], lt.wo[s]) * lt.wi[s, 2:3]
+                out[s] = m.evaluate(wi[s], wo[s]) * np.maximum(wi[s, 2:3], 0.0)
         return out
 
     return of(train), of(held)
@@ -394,4 +415,7 @@ def _pictures(fit: Fitted, train: Lumitexels, held: Lumitexels, inputs: ProcessI
         R = view.object_to_world[:3, :3]
         out["normals_mesh"] = _splat(first, train.normal[first.texel] @ R.T, view)
         out["normals_fitted"] = _splat(first, fit.normals[first.texel] @ R.T, view)
+        true_n = truth.normals(train.position) if truth is not None else None
+        if true_n is not None:
+            out["normals_true"] = _splat(first, true_n[first.texel] @ R.T, view)
     return out

@@ -139,8 +139,13 @@ def _need(results: dict, kind: str, stage: str, why: str) -> dict[str, Any]:
     return results[kind]
 
 
-def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | None = None) -> SessionCalibration:
+def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | None = None,
+                     probe_reflectance: float = 1.0) -> SessionCalibration:
     """Collect the session's stored calibration into a :class:`SessionCalibration`.
+
+    ``gray_card`` is the card's pose (for the lamp's intensity); ``probe_reflectance`` the probe
+    ball's mirror reflectance, divided out of the environment map (a chrome ball returns ~65 %:
+    without it a passive BRDF comes out 1/0.65 too bright).
 
     Raises
     ------
@@ -162,7 +167,10 @@ def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | No
     env, weight = None, None
     if "environment_map" in res and "environment.npz" in res["environment_map"]["artifacts"]:
         with np.load(io.BytesIO(store.read_object(res["environment_map"]["artifacts"]["environment.npz"]))) as z:
-            env, weight = EnvironmentMap(np.maximum(z["env"], 0.0)), np.asarray(z["weight"])
+            if not 0 < probe_reflectance <= 1:
+                raise ValueError(f"probe_reflectance must be in (0, 1], got {probe_reflectance!r}")
+            env = EnvironmentMap(np.maximum(z["env"], 0.0) / probe_reflectance)
+            weight = np.asarray(z["weight"])
     return SessionCalibration(camera=camera, angle_scale=float(tt.get("angle_scale", 1.0)), lights_mm=lights,
                               light_source=source, light_intensity=intensity, absolute=absolute,
                               environment=env, environment_weight=weight, ids=ids)

@@ -146,8 +146,10 @@ def _slices_figure(pics: dict[str, np.ndarray], theta_i: float) -> str:
 
 def _normals_figure(pics: dict[str, np.ndarray]) -> str:
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(7, 3.4))
-    for ax, key, title in ((axes[0], "normals_mesh", "mesh normals"), (axes[1], "normals_fitted", "fitted normals")):
+    panels = [(k, t) for k, t in (("normals_mesh", "mesh normals"), ("normals_fitted", "fitted normals"),
+                                  ("normals_true", "true normals")) if k in pics]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.5 * len(panels), 3.4), squeeze=False)
+    for ax, (key, title) in zip(axes[0], panels):
         ax.imshow(np.nan_to_num((pics[key] + 1) / 2, nan=1.0).clip(0, 1))
         ax.set_title(title)
         ax.axis("off")
