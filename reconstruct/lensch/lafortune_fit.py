@@ -14,10 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import nnls
 
 from ..brdf import Lafortune
-from .lm import covariance, levenberg_marquardt
+from .lm import covariance, levenberg_marquardt, nnls_batched
 
 
 class LafortuneFitError(ValueError):
@@ -205,7 +204,9 @@ def initial_params(t, z, cos_i, reflectance, weight, n_lobes: int) -> np.ndarray
     sw = np.sqrt(weight)[:, None]
     cols = [cos_i / np.pi] + [np.maximum(cos_mirror, 0.0) ** N * cos_i for N in _START_EXPONENTS]
     A = np.stack(cols, axis=1) * sw
-    amps = np.array([nnls(A, reflectance[:, c] * sw[:, 0])[0] for c in range(3)])  # (3, 1 + K)
+    rw = reflectance * sw
+    G = A.T @ A
+    amps, _ = nnls_batched(np.broadcast_to(G, (3,) + G.shape), rw.T @ A, np.sum(rw * rw, axis=0))
     energy = (amps[:, 1:] * A[:, 1:].mean(axis=0)).sum(axis=0)
     order = np.argsort(-energy, kind="stable")
     chosen = np.sort(order[:n_lobes])
