@@ -180,7 +180,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
                normals=None, fit_normals: bool = False, pfa: bool = False, rng=0, progress=None,
                weight=None, noise: str = "absolute", max_materials: int = 12,
                cluster_texels: int = 4000, fit_texels: int = 20000, min_samples: int = 3,
-               chunk_texels: int = 100_000) -> SvbrdfFit:
+               normal_rounds: int = 2, chunk_texels: int = 100_000) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
     Parameters
@@ -219,6 +219,10 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         Most texels per cluster for the final fit of its BRDF.
     min_samples : int
         Texels with fewer samples are flagged ``too_few_samples`` and keep their mesh normal.
+    normal_rounds : int
+        Rounds of normal fitting -> refit of the cluster BRDFs -> projection (Sec. 9: "can be
+        iterated"); the first round's BRDFs were fitted with the mesh normals, whose errors
+        broaden the lobes, so a second round sharpens both.
     chunk_texels : int
         Texels per chunk of the per-texel steps.
 
@@ -243,7 +247,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     offsets = np.concatenate([[0], np.cumsum(counts)])
     t, z = lobe_geometry(wi, wo)
     cos_i = wi[:, 2]
-    stages = 4 + int(pfa) + 3 * int(fit_normals)
+    stages = 3 + int(pfa) + 2 * normal_rounds * int(fit_normals)
     stage = 0
 
     def tick():
@@ -301,32 +305,34 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     normals_local = normals_out = None
     if fit_normals:  # Sec. 9, then refit the clusters' BRDFs in the new frames and project again
         normals_local = np.tile([0.0, 0.0, 1.0], (T, 1))
-        for c in _chunks(T, chunk_texels):
-            s = slice(offsets[c.start], offsets[c.stop])
-            nl, wts, _, _ = fit_normals_chunk(tx[s] - c.start, wi[s], wo[s], r[s], w[s], labels[c],
-                                              weights[c], basis, size, min_samples=min_samples)
-            normals_local[c] = nl
-        tick()
-        frames = tangent_frames(normals_local)[tx]
-        wi, wo = normalize(to_local(wi, frames)), normalize(to_local(wo, frames))
-        t, z = lobe_geometry(wi, wo)
-        # a sample the tilted normal puts below the horizon is predicted dark (model 0)
-        visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-        cos_i = np.where(visible, wi[:, 2], 0.0)
-        fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels,
-                      rng, keep=visible)
-        mats = np.stack([f.channel_params for f in fits])
-        basis, size = make_bases(mats, similar)
-        tick()
-        if pfa:
-            basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
-        weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels)
+        wi0, wo0 = wi, wo  # the samples in the mesh normals' frames
+        for _ in range(normal_rounds):
+            tilt = np.tile([0.0, 0.0, 1.0], (T, 1))  # relative to the current normals
+            for c in _chunks(T, chunk_texels):
+                s = slice(offsets[c.start], offsets[c.stop])
+                tilt[c] = fit_normals_chunk(tx[s] - c.start, wi[s], wo[s], r[s], w[s], labels[c],
+                                            weights[c], basis, size, min_samples=min_samples)[0]
+            normals_local = normalize(to_world(tilt, tangent_frames(normals_local)))
+            tick()
+            frames = tangent_frames(normals_local)[tx]
+            wi, wo = normalize(to_local(wi0, frames)), normalize(to_local(wo0, frames))
+            t, z = lobe_geometry(wi, wo)
+            # a sample the tilted normal puts below the horizon is predicted dark (model 0)
+            visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+            cos_i = np.where(visible, wi[:, 2], 0.0)
+            fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels, rng,
+                          keep=visible, texels=_confident(errors))
+            mats = np.stack([f.channel_params for f in fits])
+            basis, size = make_bases(mats, similar)
+            if pfa:
+                basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
+            weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels)
+            tick()
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
             normals_out = to_world(normals_local, tangent_frames(np.asarray(normals, float)))
         else:
             normals_out = normals_local
-        tick()
 
     materials = tuple(model_of(m) for m in mats)
     rel = {k: None if v is None else v / max(np.sqrt(sq_total / n_res), 1e-300) for k, v in rms.items()}
@@ -389,14 +395,20 @@ def _some(members, limit, rng):
     return np.sort(rng.choice(members, limit, replace=False)) if len(members) > limit else members
 
 
-def _confident(errors, ratio: float = 1.5):
-    """Texels whose best cluster fits clearly better than the runner-up (second error > ``ratio``
-    x the best): a texel that two materials explain alike (no highlight, or borderline) would
-    pull a material's fit toward its neighbour if it happens to be mislabelled."""
-    if len(errors) < 2:
-        return np.ones(errors.shape[1], bool)
-    two = np.partition(errors, 1, axis=0)[:2]
-    return two[1] > ratio * two[0]
+def _confident(errors, ratio: float = 1.5, outlier: float = 3.0):
+    """Texels a material's fit can trust, (T,) bool: the best cluster fits clearly better than
+    the runner-up (second error > ``ratio`` x the best; a texel two materials explain alike would
+    pull a fit toward the wrong one if mislabelled), and the best error is within ``outlier`` x
+    its cluster's median (a texel whose normal is off shows its highlight in the wrong place)."""
+    best = errors.min(axis=0)
+    labels = errors.argmin(axis=0)
+    median = np.array([np.median(best[labels == k]) if np.any(labels == k) else 0.0
+                       for k in range(len(errors))])
+    ok = best <= outlier * median[labels]
+    if len(errors) >= 2:
+        two = np.partition(errors, 1, axis=0)[:2]
+        ok &= two[1] > ratio * two[0]
+    return ok
 
 
 def _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, limit, rng, keep=None, texels=None):
