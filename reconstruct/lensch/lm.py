@@ -77,7 +77,7 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
     converged = np.zeros(B, bool)
     n_iter = np.zeros(B, np.int64)
     active = everyone.copy()
-    rA, JA = r, J
+    rA, JA = r.copy(), J.copy()
     for _ in range(max_iter):
         if len(active) == 0:
             break
@@ -105,8 +105,8 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
         converged[active[done]] = True
         keep = ~done
         # the next iteration linearises at the current point of the items still iterating
-        rA = np.where(better[:, None], r_new, rA)[keep]
-        JA = np.where(better[:, None, None], J_new, JA)[keep]
+        rA[better], JA[better] = r_new[better], J_new[better]
+        rA, JA = rA[keep], JA[keep]
         active = active[keep]
     return LMResult(x=x, cost=cost, jac=jac, converged=converged, n_iter=n_iter)
 
