@@ -158,3 +158,30 @@ def noisy_views(obj, poses: list[tuple[float, np.ndarray]], camera, *, light_int
         if progress is not None:
             progress(k + 1, len(poses))
     return views
+
+
+def turntable_capture(obj, *, width: int = 160, n_angles: int = 6, light_distance_mm: float = 600.0,
+                      rng=0, progress=None) -> tuple[list, list]:
+    """Noisy views of ``obj`` for reflectance fitting: a fixed camera on the +x side, the turntable
+    at ``n_angles`` angles, six lights per angle (azimuths -50..70 deg, elevations 10..50 deg
+    about the object's centre), plus two held-out frames at other angles and light positions.
+
+    Returns (fitting views, held-out views), each a list of ``reconstruct.lumitexels.View``.
+    The camera is ``width`` x 3/4 ``width`` pixels framing the object (11 deg field of view).
+    """
+    from reconstruct.camera import CameraModel
+
+    centre = np.array([0.0, 0.0, obj.height_mm / 2])
+    camera = CameraModel.look_at(centre + [500.0, 0.0, 210.0], centre, width=width,
+                                 height=width * 3 // 4, fov_deg=11.0)
+
+    def light(az, el):
+        a, e = np.radians(az), np.radians(el)
+        return centre + light_distance_mm * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    lights = [(-50, 20), (-20, 50), (0, 25), (25, 10), (45, 45), (70, 25)]
+    angles = np.arange(n_angles) * 360.0 / n_angles
+    poses = [(a, light(az, el)) for a in angles for az, el in lights]
+    held = [(angles[0] + 180.0 / n_angles, light(10, 35)), (angles[n_angles // 2] + 180.0 / n_angles,
+                                                             light(-35, 15))]
+    views = noisy_views(obj, poses + held, camera, rng=rng, progress=progress)
+    return views[:len(poses)], views[len(poses):]

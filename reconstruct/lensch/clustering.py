@@ -5,8 +5,9 @@ texel (0..T-1) they belong to; clusters are per-channel Lafortune parameter arra
 
 Beyond the paper, the number of materials can be decided from the data (``n_materials=None``):
 each texel's samples are dealt into two halves; a split is kept only if labelling the texels by
-their error on one half lowers the error on the *other* half, by more than ``min_gain`` of the
-parent's error and by more than ``z_min`` standard errors over texels. Noise alone gives no
+their error on one half lowers the error on the *other* half: the mean over texels of the bounded
+relative gain (E_parent - E_child) / (E_parent + E_child) must exceed ``min_gain`` and ``z_min``
+standard errors. Noise alone gives no
 held-out gain (a texel labelled by noise is as likely to get the worse model), so splits that only
 chase noise are refused, while two materials that differ in any way the samples see (colour,
 exponent, or only the lobe's shape C_x/C_z) give a clear gain.
@@ -164,23 +165,28 @@ class _Clusterer:
 
     def held_out_gain(self, parent: LafortuneFit, f1: LafortuneFit, f2: LafortuneFit,
                       members: np.ndarray) -> tuple[float, float]:
-        """Relative held-out error decrease of a split and its z-score over texels."""
+        """Held-out gain of a split and its z-score over texels.
+
+        Per texel, labelled by its error on one half of its samples, the gain on the other half is
+        g = (E_parent - E_child) / (E_parent + E_child), in [-1, 1]: bounded, so a few texels whose
+        highlight sits in the wrong place (a bump the mesh lacks) cannot outweigh the rest, as
+        they would in a mean of raw errors. Both ways round, averaged.
+        """
         h0 = self.smp.half_errors(parent.channel_params, s=self.s)[:, members]
         h1 = self.smp.half_errors(f1.channel_params, s=self.s)[:, members]
         h2 = self.smp.half_errors(f2.channel_params, s=self.s)[:, members]
-        counts = [np.bincount(self.smp.texel, self.smp.half == h, minlength=self.smp.n_texels)[members]
-                  for h in (0, 1)]
+        counts = [np.bincount(self.smp.texel, (self.smp.half == h) * self.smp.w,
+                              minlength=self.smp.n_texels)[members] for h in (0, 1)]
         both = (counts[0] > 0) & (counts[1] > 0)
         gains = []
         for a, b in ((0, 1), (1, 0)):  # label by one half, score on the other, both ways
-            pick1 = h1[a] < h2[a]
-            gains.append(h0[b] - np.where(pick1, h1[b], h2[b]))
-        gain = (gains[0] + gains[1])[both] / 2
+            child = np.where(h1[a] < h2[a], h1[b], h2[b])
+            gains.append((h0[b] - child) / np.maximum(h0[b] + child, 1e-300))
+        gain = ((gains[0] + gains[1]) / 2)[both]
         if len(gain) < 2:
             return 0.0, 0.0
-        base = max(float(((h0[0] + h0[1]) / 2)[both].mean()), 1e-300)
         z = gain.mean() / max(gain.std(ddof=1) / np.sqrt(len(gain)), 1e-300)
-        return float(gain.mean() / base), float(z)
+        return float(gain.mean()), float(z)
 
     def recluster(self, fits: list, labels: np.ndarray, *, max_rounds: int = 10, tol: float = 0.005):
         """Global reclustering (Eq. 10): every texel to its best cluster, refit, repeat."""
@@ -240,7 +246,7 @@ def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int 
             gain, z = cl.held_out_gain(fits[k], f1, f2, members)
             ok = n_materials is not None or (gain > min_gain and z > z_min)
             history.append(f"cluster {k} ({len(members)} texels) -> {first.sum()} + {(~first).sum()}: "
-                           f"held-out gain {100 * gain:.2f} %, z = {z:.1f} "
+                           f"held-out gain {gain:.3f}, z = {z:.1f} "
                            f"{'kept' if ok else 'refused'}")
             if not ok:
                 refused.add(key)

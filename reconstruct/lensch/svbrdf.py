@@ -118,6 +118,21 @@ class SvbrdfFit:
             return a.transpose(1, 3, 0, 2).reshape(-1, len(texels), 3)
         return Lafortune(rho_d=rho, cx=lobes(cx), cz=lobes(cz), n=lobes(N))
 
+    def predict(self, texel, wi, wo) -> np.ndarray:
+        """Reflectance f_r cos(theta_i) (S, 3) the fit predicts for samples of its texels.
+
+        ``texel`` (S,), ``wi`` / ``wo`` (S, 3) in the texels' *input* local frames (as the fit was
+        given them); fitted normals, when present, are applied (point-based rendering of the
+        recovered SVBRDF and normal map, as the paper displays its results, Sec. 10).
+        """
+        texel = np.asarray(texel, np.int64)
+        wi = np.asarray(wi, float)
+        wo = np.asarray(wo, float)
+        if self.normals_local is not None:
+            frames = tangent_frames(self.normals_local)[texel]
+            wi, wo = to_local(wi, frames), to_local(wo, frames)
+        return self.brdf(texel).evaluate(wi, wo) * np.maximum(wi[:, 2:3], 0.0)
+
     def report(self) -> str:
         cols = "  ".join(f"{k}={'-' if v is None else f'{v:.4g}'}" for k, v in self.rms.items())
         rel = "  ".join(f"{k}={'-' if v is None else f'{v:.4f}'}" for k, v in self.relative_rms.items())
