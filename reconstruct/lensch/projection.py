@@ -128,8 +128,8 @@ def cluster_errors(t, z, cos_i, reflectance, weight, texel, n_texels, materials)
                      for m in materials])
 
 
-def pfa_refine(basis_k: np.ndarray, texel, t, z, cos_i, reflectance, weight, *, rounds: int = 3,
-               max_iter: int = 30) -> np.ndarray:
+def pfa_refine(basis_k: np.ndarray, texel, t, z, cos_i, reflectance, weight, *, rounds: int = 2,
+               max_iter: int = 15) -> np.ndarray:
     """Principal function analysis of one cluster's basis (Eq. 13): fit all B basis BRDFs at once
     to the cluster's samples, re-projecting the texels into the current basis each round.
 
