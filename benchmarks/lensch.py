@@ -108,19 +108,33 @@ def bumpy_object(width: int, png: str | None):
 
 
 def _normal_png(path, lt, true_n, fitted, camera):
-    """Mesh, fitted and true normals of the texels made in view 0, as RGB = (n + 1) / 2."""
+    """The relief the mesh lacks, for the texels made in view 0: each normal's tilt from the mesh
+    normal (its x, y in the texel's local frame, x 4, as red / green), true and fitted, and the
+    angular error left after fitting."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     sel = lt.best_view == 0
     px = np.round(lt.pixel[sel]).astype(int)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
-    for ax, (name, n) in zip(axes, (("mesh normals (fitter's input)", lt.normal),
-                                    ("fitted normals (Sec. 9)", fitted), ("true normals", true_n))):
+    frames = tangent_frames(lt.normal[sel])
+
+    def relief(n):
+        local = to_local(n[sel], frames)
         img = np.ones((camera.height, camera.width, 3))
-        img[px[:, 1], px[:, 0]] = (n[sel] + 1) / 2
-        ax.imshow(img)
-        ax.set_title(name)
+        img[px[:, 1], px[:, 0]] = np.clip(np.stack([0.5 + 4 * local[:, 0], 0.5 + 4 * local[:, 1],
+                                                    np.full(len(local), 0.5)], 1), 0, 1)
+        return img
+    err = np.full((camera.height, camera.width), np.nan)
+    err[px[:, 1], px[:, 0]] = np.degrees(np.arccos(np.clip(np.sum(fitted[sel] * true_n[sel], 1), -1, 1)))
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    axes[0].imshow(relief(true_n))
+    axes[0].set_title("true relief (tilt from the mesh normal)")
+    axes[1].imshow(relief(fitted))
+    axes[1].set_title("fitted normals (Sec. 9)")
+    im = axes[2].imshow(err, cmap="magma", vmin=0, vmax=8)
+    axes[2].set_title("angle fitted vs true (deg)")
+    fig.colorbar(im, ax=axes[2], fraction=0.04)
+    for ax in axes:
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
