@@ -190,3 +190,17 @@ def test_bad_input_names_the_argument():
         fit_svbrdf(*args, normals=np.ones((3, 3)))
     with pytest.raises(SvbrdfError, match="n_materials"):
         fit_svbrdf(*args, n_materials=0)
+
+
+def test_a_cluster_that_never_shows_its_highlight_is_flagged_not_invented():
+    """Only samples > 25 deg from the mirror direction of an N = 80 lobe: the diffuse part is
+    measured, the lobe is not; every texel is flagged and the fit says so in its covariance."""
+    m = Lafortune.phong(rho_d=(0.3, 0.3, 0.3), rho_s=1.0, exponent=80.0)
+    d = synthetic_samples((m,), 300, mirror_fraction=0.0, rng=3)
+    off = np.sum(d.wi * (d.wo * [-1, -1, 1]), axis=1) < np.cos(np.radians(25))
+    fit = fit_svbrdf(d.texel[off], d.wi[off], d.wo[off], d.reflectance[off])
+    assert fit.n_materials == 1 and fit.no_highlight.all()
+    np.testing.assert_allclose(fit.materials[0].rho_d, 0.3, rtol=0.01)
+    std = np.sqrt(np.diag(fit.material_covariance[0]))
+    n_std = std[9:12] / np.ravel(fit.materials[0].n)  # relative uncertainty of the exponents
+    assert np.all(std[:3] < 0.01) and np.max(n_std) > 0.05
