@@ -78,7 +78,8 @@ def synthetic_samples(materials: tuple[BRDF, ...], n_texels: int, *, samples_per
     az = 2 * np.pi * np.arange(n_views) / n_views
     el = np.radians(50.0)
     views = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(n_views, np.sin(el))], 1)
-    normal = _random_hemisphere(rng, n_texels, np.tile([0.0, 0.0, 1.0], (n_texels, 1)), np.cos(np.radians(40)))
+    up = np.tile([0.0, 0.0, 1.0], (n_texels, 1))
+    normal = _random_hemisphere(rng, n_texels, up, np.cos(np.radians(40)))
     spread = max(int(round(samples_per_texel)) - 4, 0)
     counts = rng.integers(samples_per_texel - spread, samples_per_texel + spread + 1, n_texels)
     texel = np.repeat(np.arange(n_texels), counts)
@@ -177,7 +178,8 @@ def turntable_capture(obj, *, width: int = 160, n_angles: int = 6, light_distanc
 
     def light(az, el):
         a, e = np.radians(az), np.radians(el)
-        return centre + light_distance_mm * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        return centre + light_distance_mm * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a),
+                                                      np.sin(e)])
     lights = [(-50, 20), (-20, 50), (0, 25), (25, 10), (45, 45), (70, 25)]
     angles = np.arange(n_angles) * 360.0 / n_angles
     poses = [(a, light(az, el)) for a in angles for az, el in lights]

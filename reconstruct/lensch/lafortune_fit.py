@@ -126,7 +126,8 @@ class LafortuneFit:
         independently, so cross-channel blocks are zero.
     names : tuple of str
     rms : float
-        Root mean square of the (weighted; with ``noise="relative"``: relative) residual f_r cos(theta_i) - reflectance over samples
+        Root mean square of the (weighted; with ``noise="relative"``: relative) residual
+        f_r cos(theta_i) - reflectance over samples
         and channels, 1/sr.
     n_samples : int
         Samples used.

@@ -298,12 +298,12 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     sq_total = float(np.sum(w[:, None] * r ** 2))
     n_res = 3 * float(w.sum())
     rms = dict.fromkeys(RMS_COLUMNS)
-    single = clus.single.channel_params
-    rms["single"] = _rms(sum(cluster_residuals(*_chunk(c, offsets, tx, t, z, cos_i, r, w),
-                                               np.zeros(c.stop - c.start, np.int64), single[None]).sum()
-                             for c in _chunks(T, chunk_texels)), n_res)
-    rms["cluster"] = _rms(sum(cluster_residuals(*_chunk(c, offsets, tx, t, z, cos_i, r, w),
-                                                labels[c], mats).sum() for c in _chunks(T, chunk_texels)), n_res)
+
+    def residual(labels_, materials_):  # sum of squares of the texels' cluster BRDFs, by chunks
+        return sum(cluster_residuals(*_chunk(c, offsets, tx, t, z, cos_i, r, w), labels_[c],
+                                     materials_).sum() for c in _chunks(T, chunk_texels))
+    rms["single"] = _rms(residual(np.zeros(T, np.int64), clus.single.channel_params[None]), n_res)
+    rms["cluster"] = _rms(residual(labels, mats), n_res)
 
     # Sec. 8: bases and projection
     similar = _most_similar(errors, labels, len(mats))
