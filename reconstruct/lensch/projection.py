@@ -69,7 +69,8 @@ def basis_values(t, z, cos_i, texel, labels, basis, basis_size) -> np.ndarray:
     return A
 
 
-def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_size):
+def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_size, *,
+                  prior: float = 0.0):
     """Non-negative projection of a chunk of texels into their clusters' bases (Eqs. 11-12).
 
     Parameters
@@ -86,6 +87,11 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         Cluster of each texel.
     basis, basis_size
         From :func:`make_bases`.
+    prior : float
+        Weight of a ridge pulling each texel's weights towards (1, 0, ..., 0) (its cluster's
+        BRDF), relative to the mean diagonal of its normal equations: keeps texels whose samples
+        do not constrain the variants (no highlight seen) from extrapolating. 0: the paper's
+        plain non-negative least squares.
 
     Returns
     -------
@@ -106,6 +112,15 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
     h = np.stack([np.bincount(texel, np.einsum("sc,sc->s", A[:, i], r), minlength=n)
                   for i in range(B)], axis=1)
     rr = np.bincount(texel, np.einsum("sc,sc->s", r, r), minlength=n)
+    if prior > 0:
+        lam = prior * np.einsum("nbb->n", G) / B
+        G = G + lam[:, None, None] * np.eye(B)
+        h = h.copy()
+        h[:, 0] += lam
+        t_, cost = nnls_batched(G, h, rr + lam)
+        data = rr - 2 * np.einsum("nb,nb->n", t_, h - lam[:, None] * np.eye(B)[0]) + \
+            np.einsum("nb,nbc,nc->n", t_, G - lam[:, None, None] * np.eye(B), t_)
+        return t_, np.maximum(data, 0.0)
     return nnls_batched(G, h, rr)
 
 

@@ -195,7 +195,8 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
                normals=None, fit_normals: bool = False, pfa: bool = False, rng=0, progress=None,
                weight=None, noise: str = "absolute", max_materials: int = 12,
                cluster_texels: int = 4000, fit_texels: int = 20000, min_samples: int = 3,
-               normal_rounds: int = 2, chunk_texels: int = 100_000) -> SvbrdfFit:
+               normal_rounds: int = 2, weight_prior: float = 0.0,
+               chunk_texels: int = 100_000) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
     Parameters
@@ -238,6 +239,9 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         Rounds of normal fitting -> refit of the cluster BRDFs -> projection (Sec. 9: "can be
         iterated"); the first round's BRDFs were fitted with the mesh normals, whose errors
         broaden the lobes, so a second round sharpens both.
+    weight_prior : float
+        Ridge on the projection weights towards the cluster's BRDF (see
+        :func:`~reconstruct.lensch.projection.project_chunk`); 0 = the paper's projection.
     chunk_texels : int
         Texels per chunk of the per-texel steps.
 
@@ -308,12 +312,14 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     # Sec. 8: bases and projection
     similar = _most_similar(errors, labels, len(mats))
     basis, size = make_bases(mats, similar)
-    weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels)
+    weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
+                                 weight_prior)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
     if pfa:
         basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
-        weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels)
+        weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
+                                 weight_prior)
         rms["pfa"] = _rms(sse.sum(), n_res)
         tick()
 
@@ -341,7 +347,8 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
             basis, size = make_bases(mats, similar)
             if pfa:
                 basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
-            weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels)
+            weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
+                                 weight_prior)
             tick()
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
@@ -456,12 +463,12 @@ def _most_similar(errors, labels, K):
     return similar
 
 
-def _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk):
+def _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk, prior=0.0):
     weights = np.zeros((T, basis.shape[1]))
     sse = np.zeros(T)
     for c in _chunks(T, chunk):
         ct, ctt, cz, cc, cr, cw = _chunk(c, offsets, tx, t, z, cos_i, r, w)
-        weights[c], sse[c] = project_chunk(ct, ctt, cz, cc, cr, cw, labels[c], basis, size)
+        weights[c], sse[c] = project_chunk(ct, ctt, cz, cc, cr, cw, labels[c], basis, size, prior=prior)
     return weights, sse
 
 
