@@ -466,7 +466,7 @@ def _adequacy(L, n, v, d, E, omega, grid, residual, irr):
     rank = int(np.sum(sv > 1e-3 * sv[0]))
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     # coverage against a uniform sky of the same total light, on (a subset of) the normals
-    sub = slice(None, None, max(1, len(n) // 1000))
+    sub = slice(None, None, max(1, len(n) // 300))
     vs = v if v.ndim == 1 else v[sub]
     white_d = _fibonacci_sphere(16384)
     white = lighting_matrix(n[sub], white_d, np.ones((len(white_d), 3)),

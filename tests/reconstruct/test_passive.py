@@ -23,7 +23,7 @@ def grace(shared_data):
                                rotation=CAMERA_TO_PROBE).resized(32)
 
 
-def sphere_image(brdf, env, size=64):
+def sphere_image(brdf, env, size=48):
     normals, mask = sphere_normals(size)
     image = np.zeros(normals.shape)
     image[mask] = shade_distant(brdf, normals[mask], *env.sources())
@@ -64,6 +64,25 @@ def test_lambertian_sphere_comes_back_constant(grace):
     assert fit.converged and fit.residual.max() < 1e-3
 
 
+@pytest.mark.parametrize("truth, prior, bound, vs_flat", [
+    (OrenNayar([0.6, 0.55, 0.4], 0.4), "diffuse", 0.16, 1.05),
+    (CookTorrance([0.3, 0.2, 0.1], 0.04, 0.1), "glossy", 0.40, 0.5),
+])
+def test_recovers_a_material_from_one_image(grace, truth, prior, bound, vs_flat):
+    """One 48 x 48 sphere image under Grace (32 x 64 texels): the right prior wins, and the
+    Eq. 1 error against the true 3-D BRDF is below ``bound`` and ``vs_flat`` x that of the
+    best constant (Lambertian) BRDF. Measured: glossy Cook-Torrance 29.5 % (its bivariate
+    reduction: 6.9 %; the best constant: more than twice that); Oren-Nayar 11.9 %, no better
+    than the best
+    constant (12.0 %; reduction 2.5 %): its brightening towards retro-reflection at grazing
+    angles lies where one orthographic view observes nothing (see ``Adequacy``)."""
+    fit = passive_reflectometry(*sphere_image(truth, grace), grace)
+    assert fit.prior == prior
+    err = bivariate_error(fit.brdf, truth, shape=(45, 45, 90))
+    flat = bivariate_error(Lambertian(fit.lambertian * np.pi), truth, shape=(45, 45, 90))
+    assert err < bound and err < vs_flat * flat, (err, flat)
+
+
 def test_bivariate_error_closed_forms():
     """Eq. 1: 0 for the truth itself; exactly 0.1 for a Lambertian 10 % too bright."""
     truth = OrenNayar(0.5, 0.3)
@@ -97,10 +116,10 @@ def test_few_point_sources_warn(grace):
     normals, mask = sphere_normals(48)
     image = np.zeros(normals.shape)
     image[mask] = shade_distant(CookTorrance(0.3, 0.04, 0.2), normals[mask], *env)
-    with pytest.warns(PassiveWarning, match="point-like sources"):
-        fit = passive_reflectometry(image, normals, mask, env)
-    assert fit.adequacy.effective_sources < 3.01
-    assert fit.adequacy.effective_rank < 0.5 * 32 * 32
+    with pytest.warns(PassiveWarning, match="3 point-like sources"):
+        fit = passive_reflectometry(image, normals, mask, env, grid=(16, 16))
+    assert fit.adequacy.effective_sources == 3
+    assert fit.adequacy.effective_rank < 0.5 * 16 * 16
 
 
 def test_rotated_probe_warns(grace):
@@ -110,7 +129,7 @@ def test_rotated_probe_warns(grace):
     turn = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # camera frame, about y
     rotated = EnvironmentMap(grace.image, CAMERA_TO_PROBE @ turn)
     with pytest.warns(PassiveWarning, match="residual"):
-        passive_reflectometry(image, normals, mask, rotated)
+        passive_reflectometry(image, normals, mask, rotated, grid=(16, 16))
 
 
 def test_too_few_normals_is_an_error(grace):
