@@ -73,9 +73,8 @@ def test_recovers_a_material_from_one_image(grace, truth, prior, bound, vs_flat)
     Eq. 1 error against the true 3-D BRDF is below ``bound`` and ``vs_flat`` x that of the
     best constant (Lambertian) BRDF. Measured: glossy Cook-Torrance 29.5 % (its bivariate
     reduction: 6.9 %; the best constant: more than twice that); Oren-Nayar 11.9 %, no better
-    than the best
-    constant (12.0 %; reduction 2.5 %): its brightening towards retro-reflection at grazing
-    angles lies where one orthographic view observes nothing (see ``Adequacy``)."""
+    than the best constant (12.0 %; reduction 2.5 %): its brightening towards retro-reflection
+    at grazing angles lies where one orthographic view observes nothing (see ``Adequacy``)."""
     fit = passive_reflectometry(*sphere_image(truth, grace), grace)
     assert fit.prior == prior
     err = bivariate_error(fit.brdf, truth, shape=(45, 45, 90))
