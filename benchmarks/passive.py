@@ -21,12 +21,18 @@ Usage: ``python benchmarks/passive.py [--out DIR] [--env-height 64] [--size 100]
 """
 from __future__ import annotations
 
-import argparse
-import time
+import os
+
+# One BLAS thread: on this project's shared 2-core machines a threaded 1024 x 1024 Cholesky
+# took 3-6 s (threads spin-waiting on each other) against 0.07 s single-threaded.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
 import warnings
 from pathlib import Path
 
-import numpy as np
+import numpy as np  # noqa: E402
 
 from reconstruct.brdf import Bivariate, CookTorrance, Lafortune, Lambertian, OrenNayar, Ward
 from reconstruct.distant import shade_distant, sphere_normals

@@ -84,7 +84,7 @@ class Adequacy:
     Attributes
     ----------
     singular_values : ndarray (n_t n_s,)
-        Of the luminance lighting matrix, scaled by the mean irradiance and sqrt(rows),
+        Of the green channel's lighting matrix, scaled by the mean irradiance and sqrt(rows),
         descending (BRDF units: 1/sr of f give 1/sr of radiance / irradiance).
     effective_rank : int
         Singular values above 1e-3 of the largest.
@@ -301,8 +301,9 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         D = p.difference_operators()
         R = lam * (D.T @ D)
         f = np.empty((n_t * n_s, 3))
+        free = None  # the channels share most of their active set: each starts from the last
         for c in range(3):
-            f[:, c], ok = _nnls_quadratic(G[c] + R, h[c])
+            f[:, c], ok, free = _nnls_quadratic(G[c] + R, h[c], free)
             converged &= ok
         res = np.array([np.linalg.norm(A[c] @ f[:, c] - b[c]) / np.linalg.norm(b[c])
                         for c in range(3)])
@@ -313,7 +314,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     for name, res in residuals.items():
         if res.mean() < PRIOR_MARGIN * residuals[best].mean():
             best = name
-    adequacy = _adequacy(L, n, v, d, E, omega, (n_t, n_s), residuals[best], irr)
+    adequacy = _adequacy(L, G[1], n, v, d, E, omega, (n_t, n_s), residuals[best])
     for w in adequacy.warnings:
         warnings.warn(w, PassiveWarning, stacklevel=2)
     return PassiveFit(Bivariate(solutions[best].reshape(n_t, n_s, 3)), residuals[best], best,
@@ -421,7 +422,7 @@ def _priors(prior, two_priors, grid):
 
 # -- the solve -----------------------------------------------------------------------------------
 
-def _nnls_quadratic(Q, h, *, max_iter=200):
+def _nnls_quadratic(Q, h, free=None, *, max_iter=200):
     """argmin_{x >= 0} x^T Q x / 2 - h^T x for symmetric positive definite ``Q`` (n, n).
 
     Block principal pivoting (Kim and Park 2011, after Judice and Pires 1994): solve the
@@ -429,10 +430,11 @@ def _nnls_quadratic(Q, h, *, max_iter=200):
     the KKT conditions (a negative free value, a negative gradient at a bound) to the other set,
     and fall back to one exchange at a time (the largest index) when a block exchange does not
     reduce the violations for three rounds, which guarantees termination. A BRDF is positive
-    over most of its domain, so a few rounds of O(n^3 / 3) suffice. Returns (x, converged).
+    over most of its domain, so a few rounds of O(n^3 / 3) suffice. ``free`` (n,) bool: the
+    starting free set (default all). Returns (x, converged, final free set).
     """
     n = len(h)
-    free = np.ones(n, bool)
+    free = np.ones(n, bool) if free is None else free.copy()
     tol = 1e-12 * max(float(np.abs(h).max()), 1e-300)
     best, backup = n + 1, 3
     x = np.zeros(n)
@@ -444,7 +446,7 @@ def _nnls_quadratic(Q, h, *, max_iter=200):
         bad = (free & (x < -tol)) | (~free & (g < -tol))
         count = int(bad.sum())
         if count == 0:
-            return x, True
+            return x, True, free
         if count < best:
             best, backup = count, 3
             free ^= bad
@@ -453,16 +455,16 @@ def _nnls_quadratic(Q, h, *, max_iter=200):
             free ^= bad
         else:
             free[np.flatnonzero(bad)[-1]] ^= True
-    return np.maximum(x, 0.0), False
+    return np.maximum(x, 0.0), False, free
 
 
 # -- adequacy ------------------------------------------------------------------------------------
 
-def _adequacy(L, n, v, d, E, omega, grid, residual, irr):
+def _adequacy(L, gram_green, n, v, d, E, omega, grid, residual):
+    """``gram_green``: L^T L of the green channel (scaled as in the solve), whose singular
+    values stand for the luminance's (green carries 72 % of it) without another product."""
     n_t, n_s = grid
-    lum = np.tensordot(LUMINANCE, L.astype(np.float64), axes=1)          # (N, nodes)
-    lum *= 1.0 / (LUMINANCE @ irr * np.sqrt(len(n)))
-    sv = np.sqrt(np.clip(np.linalg.eigvalsh(lum.T @ lum)[::-1], 0, None))
+    sv = np.sqrt(np.clip(np.linalg.eigvalsh(gram_green)[::-1], 0, None))
     rank = int(np.sum(sv > 1e-3 * sv[0]))
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     # coverage against a uniform sky of the same total light, on (a subset of) the normals
@@ -472,7 +474,7 @@ def _adequacy(L, n, v, d, E, omega, grid, residual, irr):
     white = lighting_matrix(n[sub], white_d, np.ones((len(white_d), 3)),
                             np.full(len(white_d), 4 * np.pi / len(white_d)), view_dirs=vs,
                             grid=grid)[1].astype(np.float64).sum(axis=0)
-    seen = lum.sum(axis=0)
+    seen = LUMINANCE @ L.sum(axis=1, dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
         coverage = (seen / seen.sum()) / (white / white.sum())
     coverage[white <= 1e-9 * white.max()] = np.nan

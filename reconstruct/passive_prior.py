@@ -24,6 +24,9 @@ from .brdf import BRDF, Bivariate, CookTorrance, Lafortune, Lambertian, OrenNaya
 from .passive_lighting import check_grid
 
 PRIOR_KINDS = ("diffuse", "glossy")
+#: phi_d samples per node when reducing a library member: a derivative variance needs no more
+#: (64 changes the learned variances by <= 1.5 %, median 1e-14, and costs 4x the time).
+PRIOR_PHI_SAMPLES = 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,7 +79,8 @@ def learn_prior(brdfs, grid=(32, 32), *, name: str = "custom", floor: float = 1e
     ----------
     brdfs : sequence of BRDF or Bivariate
         Isotropic materials; each is reduced with ``Bivariate.from_brdf`` at ``grid`` (a
-        ``Bivariate`` of that grid is used as it is). Each colour channel counts as a sample.
+        ``Bivariate`` of that grid is used as it is; ``PRIOR_PHI_SAMPLES`` phi_d samples per
+        node). Each colour channel counts as a sample.
     grid : (int, int)
         (n_t, n_s) nodes.
     name : str
@@ -105,7 +109,7 @@ def learn_prior(brdfs, grid=(32, 32), *, name: str = "custom", floor: float = 1e
         if isinstance(b, Bivariate) and b.table.shape[:2] == (n_t, n_s):
             tables.append(b.table)
         else:
-            tables.append(Bivariate.from_brdf(b, n_t, n_s).table)
+            tables.append(Bivariate.from_brdf(b, n_t, n_s, n_phi=PRIOR_PHI_SAMPLES).table)
     t = np.moveaxis(np.stack(tables), -1, 1).reshape(-1, n_t, n_s)  # channels as samples
     var_s = np.var(np.diff(t, axis=2), axis=0)
     var_t = np.var(np.diff(t, axis=1), axis=0)
@@ -137,7 +141,11 @@ def prior_library(kind: str) -> list[BRDF]:
     raise ValueError(f"kind must be one of {PRIOR_KINDS}, got {kind!r}")
 
 
-@lru_cache(maxsize=8)
 def default_prior(kind: str, grid=(32, 32)) -> SmoothnessPrior:
-    """``learn_prior(prior_library(kind), grid)``, cached (a few seconds to learn)."""
-    return learn_prior(prior_library(kind), grid, name=kind)
+    """``learn_prior(prior_library(kind), grid)``, cached per (kind, grid) (seconds to learn)."""
+    return _default_prior(kind, *check_grid(grid))
+
+
+@lru_cache(maxsize=8)
+def _default_prior(kind: str, n_t: int, n_s: int) -> SmoothnessPrior:
+    return learn_prior(prior_library(kind), (n_t, n_s), name=kind)
