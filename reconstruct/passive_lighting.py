@@ -19,6 +19,9 @@ occluded (exact for convex objects).
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -67,7 +70,7 @@ def check_sources(directions, radiance, solid_angle):
 
 
 def lighting_matrix(normals, directions, radiance, solid_angle, *, view_dirs=(0.0, 0.0, -1.0),
-                    grid=(32, 32), progress=None) -> np.ndarray:
+                    grid=(32, 32), workers=None, progress=None) -> np.ndarray:
     """Lighting matrix L, per colour channel, of distant sources seen by surface points.
 
     Parameters
@@ -85,8 +88,10 @@ def lighting_matrix(normals, directions, radiance, solid_angle, *, view_dirs=(0.
         camera looking along +z (OpenCV camera frame).
     grid : (int, int)
         Nodes (n_t, n_s) of the bivariate table (``reconstruct.brdf.Bivariate``).
+    workers : int, optional
+        Threads (default: the CPU count, at most 4); every chunk of normals is independent.
     progress : callable, optional
-        ``progress(done, total)`` in normals, after each chunk.
+        ``progress(done, total)`` in normals, after each chunk (in order).
 
     Returns
     -------
@@ -119,7 +124,8 @@ def lighting_matrix(normals, directions, radiance, solid_angle, *, view_dirs=(0.
     uv_const = (v[0] @ d[lit].T).astype(np.float32) if constant_view else None
     n32, v32, nv32 = n.astype(np.float32), v.astype(np.float32), nv.astype(np.float32)
     step = max(1, CHUNK_PAIRS // max(int(lit.sum()), 1))
-    for start in range(0, len(n), step):
+
+    def chunk(start):
         sl = slice(start, min(start + step, len(n)))
         m = sl.stop - sl.start
         cos_i = n32[sl] @ dT                                  # (m, K) n . u
@@ -135,8 +141,13 @@ def lighting_matrix(normals, directions, radiance, solid_angle, *, view_dirs=(0.
         acc[:, 1:] += corners[2].reshape(m, n_t, n_s, 3)[:, :-1]
         acc[:, 1:, 1:] += corners[3].reshape(m, n_t, n_s, 3)[:, :-1, :-1]
         out[:, sl] = np.moveaxis(acc, -1, 0).reshape(3, m, n_nodes)
-        if progress is not None:
-            progress(sl.stop, len(n))
+        return sl.stop
+
+    # numpy's ufuncs and scipy's sparse kernels release the GIL: chunks run on threads
+    with ThreadPoolExecutor(max_workers=workers or min(os.cpu_count() or 1, 4)) as pool:
+        for done in pool.map(chunk, range(0, len(n), step)):
+            if progress is not None:
+                progress(done, len(n))
     return out
 
 
