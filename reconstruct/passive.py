@@ -43,6 +43,9 @@ __all__ = ["passive_reflectometry", "PassiveFit", "Adequacy", "PassiveInputError
 #: Regularisation weight of Eq. 6 for the normalised data term (tuned once, on materials and
 #: an environment outside the test and benchmark sets: see docs/architecture.md).
 LAMBDA = 1e-6
+#: Maps with more texels are area-averaged to 2 x 181^2 (~65,000: the paper's 32,000 directions
+#: per visible hemisphere); the lighting matrix costs time linear in the texel count.
+MAX_TEXELS = 65536
 #: A prior later in the list (less smooth: "glossy" after "diffuse") wins only with a residual
 #: below this fraction of the current best. The paper keeps the lowest residual, but a weaker
 #: prior always fits the data a little better, and on a matte material it does so by
@@ -222,7 +225,8 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         The object's pixels that may be used (no background, no clipped or invalid pixels).
     environment : EnvironmentMap or (directions (K, 3), radiance (K, 3), solid_angle (K,))
         Distant illumination in the normals' frame; a map is used texel by texel (its own
-        resolution and ``rotation``); arrays are sources as for ``lighting_matrix``.
+        resolution and ``rotation``; above ``MAX_TEXELS`` area-averaged down to it); arrays are
+        sources as for ``lighting_matrix``.
     view_dirs : ndarray (H, W, 3) or (3,), optional
         Unit directions from the surface to the camera; default (0, 0, -1) (orthographic
         camera looking along +z, OpenCV camera frame).
@@ -363,6 +367,16 @@ def _check_image_inputs(image, normals, mask, view_dirs):
 
 def _sources(environment, weight):
     if isinstance(environment, EnvironmentMap):
+        H, W = environment.shape
+        if weight is not None and np.shape(weight) != (H, W) and np.size(weight) != H * W:
+            raise PassiveInputError(f"environment_weight must have the map's shape {(H, W)}, "
+                                    f"got {np.shape(weight)}")
+        if H * W > MAX_TEXELS:  # a high-resolution probe: area-average it (keeps the flux)
+            height = int(np.sqrt(MAX_TEXELS / 2))
+            if weight is not None:
+                w3 = np.repeat(np.asarray(weight, np.float32).reshape(H, W, 1), 3, axis=2)
+                weight = EnvironmentMap(np.clip(w3, 0, 1)).resized(height).image[..., 0]
+            environment = environment.resized(height)
         d, E, omega = environment.sources()
     else:
         try:
