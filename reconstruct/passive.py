@@ -123,7 +123,8 @@ class Adequacy:
         regions = ", ".join(f"{k}: {v:.0%}" for k, v in self.poorly_observed.items())
         lines = [f"observations {self.n_observations}, rank {self.effective_rank}/"
                  f"{len(self.singular_values)}, condition {self.condition:.3g}, sources "
-                 f"carrying 95 % of the light {self.effective_sources}", f"poorly observed: {regions}"]
+                 f"carrying 95 % of the light {self.effective_sources}",
+                 f"poorly observed: {regions}"]
         return "\n".join(lines + [f"warning: {w}" for w in self.warnings])
 
 
@@ -292,7 +293,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
                                 f"finite, non-negative radiance)")
     total = len(n) + len(priors)
     report = None if progress is None else (lambda k, _: progress(k, total))
-    L = lighting_matrix(n, d, E, omega, view_dirs=v if v.ndim == 2 else v, grid=(n_t, n_s),
+    L = lighting_matrix(n, d, E, omega, view_dirs=v, grid=(n_t, n_s),
                         progress=report)
     irr = np.einsum("crk->c", L.astype(np.float64)) / len(n)      # mean irradiance per channel
     if not np.all(irr > 0):

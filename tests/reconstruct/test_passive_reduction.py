@@ -33,7 +33,8 @@ def test_node_is_the_mean_over_valid_phi_d(node):
 
 
 @pytest.mark.parametrize("truth, rtol", [
-    (Ward(0.05, 0.3, 0.08), 3e-2), (CookTorrance(0.1, 0.9, 0.2), 5e-3), (OrenNayar(0.5, 0.4), 5e-3)])
+    (Ward(0.05, 0.3, 0.08), 3e-2), (CookTorrance(0.1, 0.9, 0.2), 5e-3),
+    (OrenNayar(0.5, 0.4), 5e-3)])
 def test_no_nan_and_grazing_edges_are_inset_means(truth, rtol):
     """Every node is finite; the last node of each axis equals the valid-phi_d mean a quarter
     cell inside the grazing edge (0.5 %; original Ward 3 %: its 1/sqrt(cos_i cos_o) is singular
