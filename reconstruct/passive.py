@@ -218,8 +218,10 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
 
     Parameters
     ----------
-    image : ndarray (H, W, 3)
+    image : ndarray (H, W, 3), or a sequence of them
         Linear radiance of a homogeneous object (units of the environment's radiance).
+        Several images (e.g. views of the object turned on the turntable) are combined: pass
+        sequences of the same length for ``normals``, ``mask`` and ``view_dirs`` (or None).
     normals : ndarray (H, W, 3)
         Unit normals inside ``mask`` (ignored outside), in the frame of the environment.
     mask : ndarray (H, W) bool
@@ -270,7 +272,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         When the adequacy checks find the problem poorly posed (see ``PassiveFit.warnings``).
     """
     n_t, n_s = _grid(grid)
-    img, nrm, msk, views = _check_image_inputs(image, normals, mask, view_dirs)
+    images = _as_images(image, normals, mask, view_dirs)
     d, E, omega, trust = _sources(environment, environment_weight)
     if not 0 < max_view_angle_deg < 90:
         raise PassiveInputError(f"max_view_angle_deg must be in (0, 90), got "
@@ -282,7 +284,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     priors = _priors(prior, two_priors, (n_t, n_s))
     gen = np.random.default_rng(rng)
 
-    n, v, I = _observations(img, nrm, msk, views, max_view_angle_deg, n_normals, gen)
+    n, v, I = _observations(images, max_view_angle_deg, n_normals, gen)
     if trust is not None:
         keep = _untrusted_fraction(n, d[trust < 1], (1 - trust[trust < 1]) * omega[trust < 1]) \
             <= MAX_UNTRUSTED
@@ -398,21 +400,44 @@ def _sources(environment, weight):
     return d, E * w[:, None], omega, w
 
 
-def _observations(img, nrm, msk, views, max_angle_deg, n_normals, gen):
-    """Pixels inside the mask facing the camera within ``max_angle_deg``, drawn uniformly over
-    surface area (probability ~ 1 / cos of the view angle, a pixel's area on the surface)."""
-    rows, cols = np.nonzero(msk)
-    n = nrm[rows, cols]
-    v = views if views.ndim == 1 else views[rows, cols]
-    I = img[rows, cols]
-    cos = np.einsum("ij,ij->i", n, np.broadcast_to(v, n.shape))
+def _as_images(image, normals, mask, view_dirs):
+    """One image's arrays, or equally long sequences of them (several images), validated:
+    a list of (image, normals, mask, views)."""
+    if isinstance(image, (list, tuple)):
+        k = len(image)
+        views = [None] * k if view_dirs is None else view_dirs
+        for name, seq in (("normals", normals), ("mask", mask), ("view_dirs", views)):
+            if not isinstance(seq, (list, tuple)) or len(seq) != k:
+                raise PassiveInputError(f"{name} must be a sequence of {k} arrays, one per "
+                                        f"image, when image is a sequence")
+        if k == 0:
+            raise PassiveInputError("image is an empty sequence")
+        return [_check_image_inputs(*args) for args in zip(image, normals, mask, views)]
+    return [_check_image_inputs(image, normals, mask, view_dirs)]
+
+
+def _observations(images, max_angle_deg, n_normals, gen):
+    """Pixels inside the masks facing their camera within ``max_angle_deg``, drawn uniformly
+    over surface area (probability ~ 1 / cos of the view angle, a pixel's area on the
+    surface), ``n_normals`` in all. Returns normals (M, 3), view directions (3,) when one
+    image has one, else (M, 3), and radiance (M, 3)."""
+    ns, vs, Is = [], [], []
+    for img, nrm, msk, views in images:
+        rows, cols = np.nonzero(msk)
+        ns.append(nrm[rows, cols])
+        vs.append(np.broadcast_to(views, ns[-1].shape) if views.ndim == 1 else
+                  views[rows, cols])
+        Is.append(img[rows, cols])
+    n, v, I = np.concatenate(ns), np.concatenate(vs), np.concatenate(Is)
+    cos = np.einsum("ij,ij->i", n, v)
     ok = (cos >= np.cos(np.radians(max_angle_deg))) & np.all(np.isfinite(I), axis=1) & \
         np.all(I >= 0, axis=1)
     idx = np.flatnonzero(ok)
     if len(idx) > n_normals:
         p = 1.0 / cos[idx]
         idx = np.sort(gen.choice(idx, n_normals, replace=False, p=p / p.sum()))
-    return n[idx], (v if views.ndim == 1 else v[idx]), I[idx]
+    one_view = len(images) == 1 and images[0][3].ndim == 1
+    return n[idx], (images[0][3] if one_view else v[idx]), I[idx]
 
 
 def _untrusted_fraction(n, d, omega):
