@@ -150,6 +150,7 @@ def test_too_few_normals_is_an_error(grace):
     (dict(grid=(1, 32)), "grid must have"),
     (dict(max_view_angle_deg=95), "max_view_angle_deg"),
     (dict(environment_weight=np.ones(7)), "environment_weight must have the map's shape"),
+    (dict(image=[np.ones((64, 64, 3))] * 2), "normals must be a sequence of 2 arrays"),
 ])
 def test_bad_arguments_are_named(grace, kwargs, match):
     normals, mask = sphere_normals(64)
