@@ -171,7 +171,7 @@ def bench_sim_sphere_row():
     centres_w = row.points_world(0.0)
     radius = row.spec.radius_mm
     centres = centres_w @ cam.R.T + cam.t
-    discs = [SphereImage(uv, float(cam.K[0, 0] * radius / np.sqrt(c @ c - radius ** 2)), None, np.zeros((0, 2)))
+    discs = [SphereImage(uv, float(cam.K[0, 0] * radius / np.sqrt(c @ c - radius ** 2)))
              for uv, c in zip(cam.project(centres_w), centres)]
     (flash, t_render) = timed(lambda: world.radiance({"ring_flash": True}).mean(axis=2))
     flash_hl = np.array([find_highlight(flash, d).xy_px for d in discs])

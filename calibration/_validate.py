@@ -68,15 +68,33 @@ def camera(K, dist) -> tuple[np.ndarray, np.ndarray]:
     return K, d
 
 
-def image(value, name: str) -> np.ndarray:
-    """A non-empty (H, W) or (H, W, C) image, dtype kept."""
+def image(value, name: str, *, ndim: tuple | int = (2, 3), dtype=None, finite: bool = True) -> np.ndarray:
+    """A non-empty image: (H, W) or (H, W, C) (``ndim`` narrows it), converted to ``dtype`` when
+    given (else its dtype kept), and free of NaN / inf when ``finite``."""
     try:
         img = np.asarray(value)
     except (TypeError, ValueError):
         img = None
     if img is None or img.dtype.kind not in "biuf":
         raise InvalidInput(f"{name} must be a numeric image array, got {type(value).__name__}", argument=name)
-    if img.ndim not in (2, 3) or img.shape[0] == 0 or img.shape[1] == 0:
-        raise InvalidInput(f"{name} must be a non-empty (H, W) or (H, W, C) image, got shape {img.shape}",
-                           argument=name)
+    dims = tuple(np.atleast_1d(ndim))
+    if img.ndim not in dims or img.shape[0] == 0 or img.shape[1] == 0:
+        want = " or ".join({2: "(H, W)", 3: "(H, W, C)"}[d] for d in dims)
+        raise InvalidInput(f"{name} must be a non-empty {want} image, got shape {img.shape}", argument=name)
+    if dtype is not None:
+        img = img.astype(dtype, copy=False)
+    if finite and img.dtype.kind == "f" and not np.all(np.isfinite(img)):
+        raise InvalidInput(f"{name} contains NaN or infinite values", argument=name)
     return img
+
+
+def gray(value, name: str, *, weights=None, dtype=np.float64) -> np.ndarray:
+    """A single-channel (H, W) view of an (H, W) or (H, W, 3|4) image: the colour channels'
+    mean, or their sum weighted by ``weights`` (3,) (alpha dropped), as ``dtype``."""
+    img = image(value, name)
+    if img.ndim == 3:
+        if img.shape[2] not in (3, 4):
+            raise InvalidInput(f"{name} must be (H, W) or (H, W, 3), got shape {img.shape}", argument=name)
+        rgb = img[..., :3].astype(dtype, copy=False)
+        img = rgb.mean(axis=2) if weights is None else rgb @ np.asarray(weights, dtype)
+    return img.astype(dtype, copy=False)

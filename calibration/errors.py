@@ -41,3 +41,15 @@ class InvalidInput(CalibrationError):
     def __init__(self, message: str, *, argument: str | None = None) -> None:
         self.argument = argument
         super().__init__(message)
+
+
+class NotConverged(CalibrationError):
+    """An iterative fit stopped without meeting its convergence tolerances.
+
+    ``status`` and ``message`` are the solver's (``scipy.optimize.least_squares``).
+    """
+
+    def __init__(self, message: str, *, status: int, solver_message: str) -> None:
+        self.status = status
+        self.solver_message = solver_message
+        super().__init__(f"{message} did not converge (status {status}: {solver_message})")

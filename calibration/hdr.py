@@ -1,6 +1,6 @@
 """High-dynamic-range radiance from exposure brackets.
 
-Raw path: decoded Bayer mosaics (``rawpy``; :func:`read_raw` for files) are black-subtracted,
+Raw path: decoded Bayer mosaics (:func:`calibration.raw.read_raw`) are black-subtracted,
 saturation-masked, normalised by exposure time and merged with noise-optimal weights
 (inverse variance under a shot + read noise model, Granados et al. 2010). Output: float32
 linear radiance in DN per second on the mosaic grid (demosaic afterwards if needed).
@@ -21,30 +21,8 @@ import numpy as np
 from . import _validate
 from .errors import InvalidInput, TooFewViews
 
-__all__ = ["RawMosaic", "HDRImage", "read_raw", "merge_raw_brackets", "master_frame",
+__all__ = ["HDRImage", "merge_raw_brackets", "master_frame",
            "recover_response", "merge_ldr", "write_hdr"]
-
-
-@dataclass(frozen=True)
-class RawMosaic:
-    """A decoded raw frame.
-
-    Attributes
-    ----------
-    data : ndarray of shape (H, W), uint16
-        Visible sensor values, DN.
-    black_level : ndarray of shape (H, W), float32
-        Black level of every photosite (from the per-channel levels), DN.
-    white_level : float
-        Clipping level, DN.
-    cfa : str
-        The 2x2 colour pattern, row-major, e.g. ``'RGGB'``.
-    """
-
-    data: np.ndarray
-    black_level: np.ndarray
-    white_level: float
-    cfa: str
 
 
 @dataclass(frozen=True)
@@ -69,29 +47,6 @@ class HDRImage:
     n_used: np.ndarray
 
 
-def read_raw(path: str | os.PathLike) -> RawMosaic:
-    """Decode a raw file (DNG, CR2, NEF, KDC, ...) with rawpy into a :class:`RawMosaic`.
-
-    Raises
-    ------
-    InvalidInput
-        The file cannot be decoded (names the path and LibRaw's reason).
-    """
-    import rawpy
-
-    try:
-        with rawpy.imread(os.fspath(path)) as raw:
-            data = raw.raw_image_visible.copy()
-            colors = raw.raw_colors_visible
-            black = np.asarray(raw.black_level_per_channel, np.float32)[colors]
-            white = float(raw.white_level)
-            desc = raw.color_desc.decode()
-            cfa = "".join(desc[c] for c in raw.raw_pattern.ravel()[:4])
-    except (rawpy.LibRawError, OSError) as err:
-        raise InvalidInput(f"{path}: cannot decode raw file ({err})") from None
-    return RawMosaic(data, black, white, cfa)
-
-
 def master_frame(frames, method: str = "median") -> np.ndarray:
     """Combine dark (or flat) frames (N, H, W[, C]) into one float32 master, pixel by pixel.
 
@@ -113,7 +68,8 @@ def master_frame(frames, method: str = "median") -> np.ndarray:
 
 
 def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=0.0, white_level: float,
-                       gain_e_per_dn: float = 1.0, read_noise_dn: float = 1.0,
+                       gain_e_per_dn: float | None = None, gain_dn_per_e: float | None = None,
+                       read_noise_dn: float = 1.0,
                        linear_fraction: float = 0.97, darks=None) -> HDRImage:
     """Merge raw exposures of a static scene into linear radiance (noise-optimal weights).
 
@@ -130,12 +86,14 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
     exposure_s : array_like of shape (N,)
         Exposure times, seconds (> 0).
     black_level : float or ndarray of shape (H, W)
-        Black level, DN (scalar or per photosite, e.g. ``RawMosaic.black_level``). Ignored for
+        Black level, DN (scalar or per photosite, e.g. :attr:`calibration.raw.RawMosaic.black_level`). Ignored for
         frames that have a dark frame.
     white_level : float
         Sensor clipping level, DN.
-    gain_e_per_dn : float
-        Conversion gain, electrons per DN (> 0).
+    gain_e_per_dn, gain_dn_per_e : float, optional
+        Conversion gain, given one way or the other (> 0): electrons per DN (EMVA 1288's
+        1/K, what photon-transfer curves give) or DN per electron (what many data sheets
+        quote as "system gain" K). Give at most one; neither: 1 e-/DN.
     read_noise_dn : float
         Read noise, DN rms (>= 0).
     linear_fraction : float
@@ -153,7 +111,16 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
     ------
     TooFewViews
         No frames.
+    InvalidInput
+        A bad argument (named), or both gains given.
     """
+    if gain_e_per_dn is not None and gain_dn_per_e is not None:
+        raise InvalidInput("give the conversion gain once: gain_e_per_dn (electrons per DN) or "
+                           "gain_dn_per_e (DN per electron), not both", argument="gain_dn_per_e")
+    if gain_dn_per_e is not None:
+        gain_e_per_dn = 1.0 / _validate.positive(gain_dn_per_e, "gain_dn_per_e")
+    elif gain_e_per_dn is None:
+        gain_e_per_dn = 1.0
     if len(frames) == 0:
         raise TooFewViews("HDR merge (exposures)", have=0, need=1)
     D = [_validate.image(f, f"frames[{k}]") for k, f in enumerate(frames)]
@@ -170,8 +137,6 @@ def merge_raw_brackets(frames: Sequence[np.ndarray], exposure_s, *, black_level=
         raise InvalidInput(f"exposure_s must have one time per frame ({len(D)}), got shape {t.shape}")
     if np.any(~(t > 0)):
         raise InvalidInput(f"exposure_s must be positive, got {t}")
-    if not gain_e_per_dn > 0 or read_noise_dn < 0:
-        raise InvalidInput("gain_e_per_dn must be > 0 and read_noise_dn >= 0")
     if not 0 < linear_fraction <= 1:
         raise InvalidInput(f"linear_fraction must be in (0, 1], got {linear_fraction}")
     black = _validate.array(black_level, "black_level", dtype=np.float32)

@@ -22,6 +22,10 @@ __all__ = [
 _MIN_VIEWS = 3
 # Views whose board normals all lie within this cone cannot separate focal length from depth.
 _MIN_TILT_SPREAD_DEG = 5.0
+#: k3 counts as determined when its 1-sigma moves the farthest image corner by at most this
+#: (pixels) and the fitted k3 exceeds twice its sigma; else it is fixed at 0 (a 5-parameter fit
+#: of 15 views can put corners pixels off the true distortion while its RMS looks fine)
+K3_MAX_CORNER_STD_PX = 0.5
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,9 @@ class IntrinsicsResult:
         Views removed as outliers or unusable, with the reason.
     coverage : ndarray of shape (gy, gx), int
         Corners that fell in each cell of a grid over the image (kept views).
+    model_note : str
+        How the distortion model was chosen: empty when used as asked, else why k3 was fixed
+        at 0 (with the free fit's k3, its sigma and their effect at the image corner).
     """
 
     K: np.ndarray
@@ -75,6 +82,7 @@ class IntrinsicsResult:
     frames: list[str]
     rejected: list[RejectedView] = field(default_factory=list)
     coverage: np.ndarray | None = None
+    model_note: str = ""
 
     @property
     def coverage_fraction(self) -> float:
@@ -94,11 +102,12 @@ class IntrinsicsResult:
         ]
         lines += [f"  view {f}: {e:.4f} px" for f, e in zip(self.frames, self.per_view_rms_px)]
         lines += [f"  rejected {r.frame}: {r.reason}" for r in self.rejected]
+        lines += [f"  {self.model_note}"] if self.model_note else []
         return "\n".join(lines)
 
 
 def detect_all(images: Sequence, detector: Callable[..., TargetDetection], *,
-               names: Sequence[str] | None = None, on_missing: str = "raise"
+               names: Sequence[str] | None = None, on_missing: str = "skip"
                ) -> tuple[list[TargetDetection], list[RejectedView]]:
     """Run ``detector(image, frame=name)`` over frames.
 
@@ -110,14 +119,17 @@ def detect_all(images: Sequence, detector: Callable[..., TargetDetection], *,
         E.g. ``functools.partial(detect_chessboard, pattern_size=(9, 6), square_size=25.0)``.
     names : sequence of str, optional
         Frame names (default ``'frame 0'``, ...), used in errors and reports.
-    on_missing : {'raise', 'skip'}
-        ``'raise'``: a frame without a target raises :class:`TargetNotFound` naming it.
-        ``'skip'``: it is listed in the returned rejections instead.
+    on_missing : {'skip', 'raise'}
+        ``'skip'`` (default: a folder of photos usually holds a few without the whole board):
+        a frame without a target is listed in ``missing`` with the detector's reason.
+        ``'raise'``: it raises :class:`TargetNotFound` naming it.
 
     Returns
     -------
     detections : list of TargetDetection
+        The frames where the target was found, in order.
     missing : list of RejectedView
+        The frames skipped, each with the reason (the report of what was left out).
     """
     if on_missing not in ("raise", "skip"):
         raise InvalidInput(f"on_missing must be 'raise' or 'skip', got {on_missing!r}")
@@ -179,12 +191,17 @@ def _calibrate(dets, image_size, flags):
 def calibrate_intrinsics(detections: Sequence[TargetDetection], image_size: tuple[int, int] | None = None,
                          *, flags: int = 0, reject_outliers: bool = True, outlier_sigma: float = 4.0,
                          min_view_rms_px: float = 0.3, min_views: int = _MIN_VIEWS,
-                         coverage_grid: tuple[int, int] = (8, 6)) -> IntrinsicsResult:
+                         coverage_grid: tuple[int, int] = (8, 6), choose_k3: bool = True) -> IntrinsicsResult:
     """Calibrate K and lens distortion from planar-target detections.
 
     Runs ``cv2.calibrateCameraExtended`` (Zhang), then removes outlier views one at a time —
     the worst view while its RMS exceeds ``max(median + outlier_sigma * 1.4826 * MAD,
     min_view_rms_px)`` — re-calibrating after each removal, down to ``min_views``.
+
+    The distortion model is chosen by evidence (``choose_k3``): when ``flags`` leave k3 free,
+    a k3 the views do not determine (its 1-sigma moves the farthest image corner by more than
+    :data:`K3_MAX_CORNER_STD_PX`, or it is within 2 sigma of 0) is fixed at 0 and the fit
+    repeated; ``model_note`` says so.
 
     Parameters
     ----------
@@ -205,6 +222,8 @@ def calibrate_intrinsics(detections: Sequence[TargetDetection], image_size: tupl
         Fewest views accepted (>= 3).
     coverage_grid : (int, int)
         Grid ``(gx, gy)`` for the corner coverage map.
+    choose_k3 : bool
+        Fix an undetermined k3 at 0 (above); False keeps the model ``flags`` ask for.
 
     Returns
     -------
@@ -254,6 +273,14 @@ def calibrate_intrinsics(detections: Sequence[TargetDetection], image_size: tupl
         del dets[worst], names[worst]
         sol = _calibrate(dets, image_size, flags)
 
+    note = ""
+    if choose_k3 and not flags & (cv2.CALIB_FIX_K3 | cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_THIN_PRISM_MODEL
+                                  | cv2.CALIB_TILTED_MODEL):
+        undetermined = _k3_undetermined(sol, image_size)
+        if undetermined:
+            note = f"k3 fixed at 0: {undetermined}"
+            sol = _calibrate(dets, image_size, flags | cv2.CALIB_FIX_K3)
+
     # Board normals in the camera frame: third column of each rotation.
     normals = np.array([cv2.Rodrigues(r)[0][:, 2] for r in sol["rvecs"]])
     spread = np.degrees(np.arccos(np.clip(normals @ normals.T, -1, 1))).max()
@@ -266,4 +293,21 @@ def calibrate_intrinsics(detections: Sequence[TargetDetection], image_size: tupl
         K=sol["K"], dist=sol["dist"], image_size=image_size, rms_px=sol["rms"],
         per_view_rms_px=sol["per_view"], K_std=std[:4].copy(), dist_std=std[4:4 + n_dist].copy(),
         rvecs=sol["rvecs"], tvecs=sol["tvecs"], frames=names, rejected=rejected,
-        coverage=corner_coverage([d.image_points for d in dets], image_size, coverage_grid))
+        coverage=corner_coverage([d.image_points for d in dets], image_size, coverage_grid), model_note=note)
+
+
+def _k3_undetermined(sol: dict, image_size: tuple[int, int]) -> str:
+    """Why the free fit's k3 is not determined (empty when it is): its sigma's effect at the
+    farthest image corner (radial displacement ``f k3 r^7``), or k3 within 2 sigma of 0."""
+    K, k3, s3 = sol["K"], float(sol["dist"][4]), float(sol["std"][4 + 4])
+    w, h = image_size
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    r = np.max(np.hypot((corners[:, 0] - K[0, 2]) / K[0, 0], (corners[:, 1] - K[1, 2]) / K[1, 1]))
+    corner_std_px = s3 * r ** 7 * float(np.sqrt(K[0, 0] * K[1, 1]))
+    if corner_std_px > K3_MAX_CORNER_STD_PX:
+        return (f"the views leave it uncertain by {corner_std_px:.2f} px at the image corner "
+                f"(k3 = {k3:.4g} ± {s3:.2g}; > {K3_MAX_CORNER_STD_PX} px): add views that put the board "
+                "into the image corners")
+    if abs(k3) < 2 * s3:
+        return f"k3 = {k3:.4g} ± {s3:.2g} is not distinguishable from 0"
+    return ""

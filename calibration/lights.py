@@ -10,19 +10,19 @@ least-squares intersection of the reflected rays).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
-from . import _validate
+from . import _fit, _validate
 from .errors import DegenerateFit, InvalidInput, TargetNotFound, TooFewViews
 
 __all__ = [
     "SphereImage", "Highlight", "PointLight", "PositionerModel",
     "detect_sphere", "find_highlight", "light_direction_orthographic", "sphere_center_from_silhouette",
-    "reflect_highlight", "triangulate_point_light", "locate_collinear_spheres", "fit_positioner_model",
+    "reflect_highlight", "closest_point_to_lines", "triangulate_point_light", "locate_collinear_spheres",
+    "fit_positioner_model",
 ]
 
 
@@ -33,19 +33,28 @@ class SphereImage:
     Attributes
     ----------
     center_px : ndarray of shape (2,)
-        Centroid of the silhouette (x, y), pixels.
+        Centre of the sphere's image (x, y), pixels (:func:`detect_sphere`: of its outline's
+        ellipse).
     radius_px : float
-        Radius of the equal-area circle, pixels.
-    ellipse : tuple
-        ``cv2.fitEllipse`` result ``((cx, cy), (major, minor), angle_deg)`` of the outline.
+        Radius, pixels (:func:`detect_sphere`: of the circle with the ellipse's area).
+    ellipse : tuple or None
+        ``cv2.fitEllipse`` result ``((cx, cy), (d1, d2), angle_deg)`` of the outline; None when
+        the geometry was given rather than detected.
     edge_px : ndarray of shape (N, 2)
-        Outline points (boundary-pixel centres pushed half a pixel outward), pixels.
+        Outline points (boundary-pixel centres pushed half a pixel outward), pixels; empty when
+        the geometry was given.
     """
 
     center_px: np.ndarray
     radius_px: float
-    ellipse: tuple
-    edge_px: np.ndarray
+    ellipse: tuple | None = None
+    edge_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center_px", _validate.array(self.center_px, "center_px", shape=(2,)))
+        object.__setattr__(self, "radius_px", _validate.positive(self.radius_px, "radius_px"))
+        edge = np.zeros((0, 2)) if self.edge_px is None else self.edge_px
+        object.__setattr__(self, "edge_px", _validate.array(edge, "edge_px", shape=(-1, 2)))
 
 
 @dataclass(frozen=True)
@@ -82,59 +91,112 @@ class PointLight:
     directions: np.ndarray
 
 
-def _image_2d(image, arg_name: str) -> np.ndarray:
-    img = _validate.image(image, arg_name)
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        img = img[..., :3].astype(np.float64).mean(axis=2)
-    if img.ndim != 2:
-        raise InvalidInput(f"{arg_name} must be (H, W) or (H, W, 3), got shape {img.shape}")
-    img = img.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(img)):
-        raise InvalidInput(f"{arg_name} contains NaN or infinite values")
-    return img
+#: a sphere's outline is a circle, or an ellipse of at most this eccentricity under perspective
+#: (minor / major axis; 0.75 is a sphere 40 deg off a wide lens' axis)
+MIN_SPHERE_AXIS_RATIO = 0.75
+#: outline points may stray from the fitted ellipse by this fraction of the radius (rms)
+MAX_SPHERE_OUTLINE_RMS = 0.03
+#: the filled outline must cover this fraction of its ellipse (a convex, unbroken silhouette)
+MIN_SPHERE_FILL = 0.9
 
 
 def detect_sphere(mask, *, threshold: float | None = None, frame: str | None = None) -> SphereImage:
-    """Find a sphere's silhouette (the largest blob) in a mask or an image.
+    """Find a sphere's silhouette (the largest blob) in a mask or an image, from its outline.
+
+    The centre and radius come from an ellipse fitted to the blob's *outer* outline, not from
+    its pixel moments: a mirror sphere reflects dark parts of the room as holes in the blob,
+    which bias moments but leave the outline intact.
 
     Parameters
     ----------
     mask : ndarray of shape (H, W) or (H, W, 3)
-        Boolean mask, or an image where the sphere is brighter than the background.
+        Boolean mask, or an image where the sphere is brighter than the background (its
+        colour channels are averaged).
     threshold : float, optional
-        Level separating sphere from background (default: half the maximum).
+        Level separating sphere from background. Default: Otsu's threshold of the image (of
+        its logarithm for a float or 16-bit image, so a dim ball under a bright highlight still
+        separates); 0.5 for a boolean mask.
     frame : str, optional
-        Frame name for the error message.
+        Frame name for the error messages.
 
     Returns
     -------
     SphereImage
-        Centre from the blob's moments and radius from its area (both unbiased for a
-        digitised disc), plus an ellipse fit of the outline.
+        ``center_px`` and ``ellipse`` from the outline's ellipse fit; ``radius_px`` the radius
+        of the circle of the ellipse's area, pixels; ``edge_px`` the outline points.
 
     Raises
     ------
     TargetNotFound
-        No blob of at least 50 pixels.
+        No blob of at least 50 pixels, or the largest blob is not a credible sphere: it
+        touches the image border, its outline is not an ellipse of axis ratio >=
+        :data:`MIN_SPHERE_AXIS_RATIO` within :data:`MAX_SPHERE_OUTLINE_RMS` of its radius, or it
+        fills less than :data:`MIN_SPHERE_FILL` of that ellipse. The message says which.
     """
-    img = _image_2d(mask, "mask")
+    img = _validate.gray(mask, "mask")
     if threshold is not None and not np.isfinite(threshold):
         raise InvalidInput(f"threshold must be finite, got {threshold!r}", argument="threshold")
-    level = 0.5 * img.max() if threshold is None else float(threshold)
+    level = _sphere_threshold(img, np.asarray(mask).dtype) if threshold is None else float(threshold)
     binary = (img > level).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     if n < 2 or stats[1:, cv2.CC_STAT_AREA].max() < 50:
-        raise TargetNotFound("no sphere silhouette (blob of >= 50 px above the threshold)", frame=frame)
+        raise TargetNotFound(f"no sphere silhouette (blob of >= 50 px above the threshold {level:.4g})",
+                             frame=frame)
     k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    blob = (labels == k).astype(np.uint8)
-    m = cv2.moments(blob, binaryImage=True)
-    centre = np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
-    contours, _ = cv2.findContours(blob, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    pts = max(contours, key=len).reshape(-1, 2).astype(np.float64)
-    outward = pts - centre
+    x, y, bw, bh = stats[k, :4]
+    h, w = img.shape
+    if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
+        raise TargetNotFound(f"the largest blob above the threshold {level:.4g} touches the image border: "
+                             "not a whole sphere (mask it, or give a threshold)", frame=frame)
+    contours, _ = cv2.findContours((labels == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = max(contours, key=len)
+    pts = outline.reshape(-1, 2).astype(np.float64)
+    # boundary-pixel centres lie half a pixel inside the edge: push them out
+    inner = pts.mean(axis=0)
+    outward = pts - inner
     pts = pts + 0.5 * outward / np.maximum(np.linalg.norm(outward, axis=1, keepdims=True), 1e-9)
     ellipse = cv2.fitEllipse(pts.astype(np.float32))
-    return SphereImage(centre, float(np.sqrt(m["m00"] / np.pi)), ellipse, pts)
+    (cx, cy), (d1, d2), angle = ellipse
+    a, b = max(d1, d2) / 2, min(d1, d2) / 2
+    radius = float(np.sqrt(a * b))
+    ratio = b / a if a > 0 else 0.0
+    # outline scatter about the ellipse: normalised radius in the ellipse's own axes
+    t = np.radians(angle)
+    rel = pts - [cx, cy]
+    u = rel @ np.array([np.cos(t), np.sin(t)]) / max(d1 / 2, 1e-9)
+    v = rel @ np.array([-np.sin(t), np.cos(t)]) / max(d2 / 2, 1e-9)
+    rms = float(np.sqrt(np.mean((np.hypot(u, v) - 1) ** 2))) * radius
+    fill = cv2.contourArea(outline) / max(np.pi * a * b, 1e-9)
+    why = []
+    if ratio < MIN_SPHERE_AXIS_RATIO:
+        why.append(f"its outline's axis ratio is {ratio:.2f} (< {MIN_SPHERE_AXIS_RATIO})")
+    if rms > max(MAX_SPHERE_OUTLINE_RMS * radius, 1.0):
+        why.append(f"its outline strays {rms:.1f} px rms from an ellipse (> {100 * MAX_SPHERE_OUTLINE_RMS:.0f}% "
+                   f"of the {radius:.1f} px radius)")
+    if fill < MIN_SPHERE_FILL:
+        why.append(f"it fills {100 * fill:.0f}% of its ellipse (< {100 * MIN_SPHERE_FILL:.0f}%)")
+    if why:
+        raise TargetNotFound(f"the largest blob above the threshold {level:.4g} is not a credible sphere: "
+                             + "; ".join(why) + " (mask the sphere, or give a threshold)", frame=frame)
+    return SphereImage(np.array([cx, cy], float), radius, ellipse, pts)
+
+
+def _sphere_threshold(img: np.ndarray, dtype) -> float:
+    """Default sphere / background level: 0.5 for masks, Otsu's for 8-bit images, Otsu's on
+    the logarithm for float or 16-bit ones (a highlight thousands of times brighter than the
+    ball would otherwise take the whole upper class)."""
+    if dtype == bool:
+        return 0.5
+    lo, hi = float(img.min()), float(img.max())
+    if hi <= lo:
+        return hi
+    if dtype == np.uint8:
+        return float(cv2.threshold(img.astype(np.uint8), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[0])
+    floor = max(float(np.percentile(img, 1)), lo) if lo < 0 else lo
+    span = np.log1p(np.maximum(img - floor, 0) / max(hi - floor, 1e-30) * 1e4)
+    u8 = np.round(span / span.max() * 255).astype(np.uint8)
+    t = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)[0]
+    return float(floor + np.expm1(t / 255 * span.max()) / 1e4 * (hi - floor))
 
 
 def find_highlight(image, sphere: SphereImage | None = None, *, saturation: float | None = None,
@@ -173,7 +235,7 @@ def find_highlight(image, sphere: SphereImage | None = None, *, saturation: floa
     TargetNotFound
         No pixel above the background inside the search region.
     """
-    img = _image_2d(image, "image")
+    img = _validate.gray(image, "image")
     if sphere is not None:
         _sphere(sphere)
     if saturation is not None:
@@ -332,11 +394,26 @@ def reflect_highlight(highlight_xy, center_mm, radius_mm, K, dist=None) -> tuple
     return X, 2 * np.sum(n * v, axis=1, keepdims=True) * n - v
 
 
-def _closest_point(P, L):
-    """Least-squares point nearest to lines P + s L (unit L); returns point and the 3x3 system."""
-    proj = np.eye(3) - L[:, :, None] * L[:, None, :]
-    A = proj.sum(axis=0)
-    return np.linalg.solve(A, np.einsum("mij,mj->i", proj, P)), A
+def closest_point_to_lines(P, L) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares point nearest to the lines ``P + s L``, for one or a batch of line sets.
+
+    Parameters
+    ----------
+    P : ndarray of shape (..., M, 3)
+        A point on each line.
+    L : ndarray of shape (..., M, 3)
+        Unit direction of each line.
+
+    Returns
+    -------
+    X : ndarray of shape (..., 3)
+        The point minimising the summed squared distances to the M lines.
+    A : ndarray of shape (..., 3, 3)
+        The normal matrix ``sum(I - L L^T)`` (singular when the lines are parallel).
+    """
+    proj = np.eye(3) - L[..., :, None] * L[..., None, :]
+    A = proj.sum(axis=-3)
+    return np.linalg.solve(A, np.einsum("...mij,...mj->...i", proj, P)[..., None])[..., 0], A
 
 
 def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, *,
@@ -388,14 +465,14 @@ def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, 
     if np.linalg.eigvalsh(A)[0] < 1e-6 * len(h):
         raise DegenerateFit("the reflected rays are nearly parallel: spread the spheres further apart "
                             "or move the light closer")
-    pos = _closest_point(P, L)[0]
+    pos = closest_point_to_lines(P, L)[0]
     J = np.empty((3, h.size))
     eps = 1e-3
     for k in range(h.size):  # 2M tiny solves; each re-reflects all rays
         hp = h.copy().ravel()
         hp[k] += eps
         Pk, Lk = reflect_highlight(hp.reshape(-1, 2), centers_mm, radius_mm, K, dist)
-        J[:, k] = (_closest_point(Pk, Lk)[0] - pos) / eps
+        J[:, k] = (closest_point_to_lines(Pk, Lk)[0] - pos) / eps
     cov = sigma_px ** 2 * J @ J.T
     if sigma_center_mm > 0:
         C = np.asarray(centers_mm, float).reshape(-1, 3)
@@ -404,7 +481,7 @@ def triangulate_point_light(highlights_xy, centers_mm, radius_mm, K, dist=None, 
             Ck = C.copy().ravel()
             Ck[k] += eps
             Pk, Lk = reflect_highlight(h, Ck.reshape(-1, 3), radius_mm, K, dist)
-            Jc[:, k] = (_closest_point(Pk, Lk)[0] - pos) / eps
+            Jc[:, k] = (closest_point_to_lines(Pk, Lk)[0] - pos) / eps
         cov = cov + sigma_center_mm ** 2 * Jc @ Jc.T
     diff = pos - P
     resid = np.linalg.norm(diff - np.sum(diff * L, axis=1, keepdims=True) * L, axis=1)
@@ -467,6 +544,10 @@ class PositionerModel:
         1-sigma of (cx, cy, cz, radius, az offset, el offset), mm / deg.
     residuals_mm : ndarray of shape (N,)
         Distance of each measured position from the model, mm.
+    fit_status : int
+        ``scipy.optimize.least_squares`` status (1-4: converged).
+    fit_message : str
+        The solver's termination message.
     """
 
     centre_mm: np.ndarray
@@ -475,6 +556,8 @@ class PositionerModel:
     elevation_offset_deg: float
     param_std: np.ndarray
     residuals_mm: np.ndarray
+    fit_status: int = 1
+    fit_message: str = ""
 
     @property
     def rms_mm(self) -> float:
@@ -491,7 +574,8 @@ def _arm(p, az, el):
     return p[:3] + p[3] * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1)
 
 
-def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> PositionerModel:
+def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm, *,
+                         max_evaluations: int | None = None) -> PositionerModel:
     """Fit arm kinematics (centre, radius, azimuth/elevation offsets) to measured positions.
 
     Parameters
@@ -502,6 +586,8 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
     positions_mm : array_like of shape (N, 3)
         Light positions measured for those poses (e.g. :func:`triangulate_point_light`,
         mapped to the world frame), mm.
+    max_evaluations : int, optional
+        Residual evaluations the fit may use (scipy's default when None).
 
     Returns
     -------
@@ -514,6 +600,8 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
         Fewer than 3 poses (6 parameters, 3 coordinates each).
     DegenerateFit
         The poses do not span both angles (the offsets are then undetermined).
+    NotConverged
+        The fit stopped before converging.
     """
     az = _validate.array(azimuth_deg, "azimuth_deg").ravel()
     el = _validate.array(elevation_deg, "elevation_deg").ravel()
@@ -534,7 +622,8 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
     r0 = float(np.mean(np.linalg.norm(d0, axis=1)))
     a_off = np.degrees(np.angle(np.mean(np.exp(1j * (np.arctan2(d0[:, 1], d0[:, 0]) - np.radians(az))))))
     e_off = float(np.mean(np.degrees(np.arcsin(np.clip(d0[:, 2] / max(r0, 1e-9), -1, 1))) - el))
-    sol = least_squares(lambda p: (_arm(p, az, el) - X).ravel(), np.r_[c0, r0, a_off, e_off], method="lm")
+    sol = _fit.solve(lambda p: (_arm(p, az, el) - X).ravel(), np.r_[c0, r0, a_off, e_off],
+                     what="positioner arm fit", max_evaluations=max_evaluations, method="lm")
     J = sol.jac
     dof = max(sol.fun.size - 6, 1)
     try:
@@ -544,4 +633,4 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm) -> Positioner
     p = sol.x
     res = np.linalg.norm((_arm(p, az, el) - X), axis=1)
     return PositionerModel(p[:3], float(p[3]), float((p[4] + 180) % 360 - 180), float(p[5]),
-                           np.sqrt(np.diag(cov)), res)
+                           np.sqrt(np.diag(cov)), res, int(sol.status), str(sol.message))

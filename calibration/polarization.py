@@ -57,16 +57,6 @@ class PolarizationFit:
     residual_rms: np.ndarray
 
 
-def _as_float_image(a, name: str) -> np.ndarray:
-    arr = _validate.image(a, name)
-    if arr.ndim not in (2, 3):
-        raise InvalidInput(f"{name} must be (H, W) or (H, W, C), got shape {arr.shape}")
-    arr = arr.astype(np.float32, copy=False)
-    if not np.all(np.isfinite(arr)):
-        raise InvalidInput(f"{name} contains NaN or infinite values")
-    return arr
-
-
 def separate_parallel_crossed(parallel, crossed, *, read_sigma: float = 0.0, shot_gain: float = 0.0,
                               k_sigma: float = 3.0) -> Separation:
     """Two-image separation: diffuse = 2 crossed, specular = parallel - crossed (clamped at 0).
@@ -86,8 +76,8 @@ def separate_parallel_crossed(parallel, crossed, *, read_sigma: float = 0.0, sho
     -------
     Separation
     """
-    p = _as_float_image(parallel, "parallel")
-    c = _as_float_image(crossed, "crossed")
+    p = _validate.image(parallel, "parallel", dtype=np.float32)
+    c = _validate.image(crossed, "crossed", dtype=np.float32)
     if p.shape != c.shape:
         raise InvalidInput(f"parallel {p.shape} and crossed {c.shape} must have the same shape")
     read_sigma = _validate.positive(read_sigma, "read_sigma", allow_zero=True)

@@ -87,7 +87,7 @@ def mirror_sphere_to_latlong(image, center_px, radius_px: float, R_world_to_came
     -------
     Probe
     """
-    img = _image(image)
+    img = _validate.image(image, "image", dtype=np.float32)
     R = _rotation(R_world_to_camera)
     c = _validate.array(center_px, "center_px", shape=(2,))
     radius_px = _validate.positive(radius_px, "radius_px")
@@ -106,13 +106,6 @@ def mirror_sphere_to_latlong(image, center_px, radius_px: float, R_world_to_came
     weight = np.where(inside, weight, 0.0).astype(np.float32)
     env = env * (weight > 0)[..., None] if env.ndim == 3 else env * (weight > 0)
     return Probe(env.astype(np.float32), weight)
-
-
-def _image(image) -> np.ndarray:
-    img = _validate.image(image, "image").astype(np.float32, copy=False)
-    if not np.all(np.isfinite(img)):
-        raise InvalidInput("image contains NaN or infinite values", argument="image")
-    return img
 
 
 def _rotation(R) -> np.ndarray:
@@ -160,7 +153,7 @@ def mirror_sphere_to_latlong_perspective(image, K, dist, center_mm, radius_mm: f
     -------
     Probe
     """
-    img = _image(image)
+    img = _validate.image(image, "image", dtype=np.float32)
     R = _rotation(R_world_to_camera)
     K, dist = _validate.camera(K, dist)
     C = _validate.array(center_mm, "center_mm", shape=(3,))

@@ -8,14 +8,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
-from . import _validate
-from .errors import DegenerateFit, InvalidInput
+from . import _fit, _validate
+from .errors import DegenerateFit, InvalidInput, TargetNotFound
 
 __all__ = ["VignettingModel", "GrayCard", "flat_field_gain", "fit_vignetting", "apply_flat",
-           "gray_card_scale", "normalize_irradiance"]
+           "find_gray_card", "gray_card_scale", "normalize_irradiance"]
 
 
 def flat_field_gain(flats, dark=None, *, channels=None) -> np.ndarray:
@@ -131,7 +131,7 @@ def fit_vignetting(gain, *, order: int = 3, fit_center: bool = True, step: int =
 
     c0 = np.array([(w - 1) / 2, (h - 1) / 2])
     if fit_center:
-        c0 = least_squares(lambda c: linear(*c)[1], c0, x_scale=norm / 10).x
+        c0 = _fit.solve(lambda c: linear(*c)[1], c0, what="vignetting centre fit", x_scale=norm / 10).x
     coef, res = linear(*c0)
     if not coef[0] > 0:
         raise DegenerateFit("vignetting fit gives a non-positive centre gain")
@@ -148,6 +148,42 @@ def apply_flat(image, gain, *, min_gain: float = 0.05) -> np.ndarray:
     if g.ndim < img.ndim:
         g = g[..., None]
     return np.where(g >= min_gain, img / np.maximum(g, min_gain), 0.0).astype(np.float32)
+
+
+def find_gray_card(image, *, min_pixels: int = 50, frame: str | None = None) -> np.ndarray:
+    """The gray card's pixels in a linear image: the largest bright region (above half the 99th
+    percentile), eroded by 2 px away from its edges (blur and the card's border).
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W) or (H, W, 3)
+        Linear radiance of the card under the light.
+    min_pixels : int
+        Fewest card pixels left after the erosion.
+    frame : str, optional
+        Frame name for the error messages.
+
+    Returns
+    -------
+    ndarray of shape (H, W), bool
+
+    Raises
+    ------
+    TargetNotFound
+        No bright region, or fewer than ``min_pixels`` after the erosion.
+    """
+    lum = _validate.gray(image, "image", dtype=np.float32)
+    min_pixels = _validate.integer(min_pixels, "min_pixels", minimum=1)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(
+        (lum > 0.5 * np.percentile(lum, 99)).astype(np.uint8), connectivity=4)
+    if n < 2:
+        raise TargetNotFound("no gray card (bright uniform region)", frame=frame)
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    card = cv2.erode((labels == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    if card.sum() < min_pixels:
+        raise TargetNotFound(f"gray card region has {int(card.sum())} px after erosion (need {min_pixels})",
+                             frame=frame)
+    return card
 
 
 @dataclass(frozen=True)

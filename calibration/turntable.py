@@ -15,18 +15,17 @@ is ``R(reading) = R_ref @ Rz(phi)``, ``t(reading) = t_ref``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
-from . import _validate
+from . import _fit, _validate
 from .errors import DegenerateFit, InvalidInput, TooFewViews
 from .targets import TargetDetection
 
-__all__ = ["TurntableFit", "fit_turntable"]
+__all__ = ["TurntableFit", "fit_turntable", "consistent_corner_order", "lab_frame"]
 
 
 def _rot(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -73,6 +72,10 @@ class TurntableFit:
         1-sigma angular uncertainty of the axis direction, deg.
     angles_known : bool
         Whether turntable readings were given (else ``view_angles_deg`` are free fits).
+    fit_status : int
+        ``scipy.optimize.least_squares`` status of the bundle adjustment (1-4: converged).
+    fit_message : str
+        The solver's termination message.
     """
 
     axis_camera: np.ndarray
@@ -86,6 +89,8 @@ class TurntableFit:
     rms_px: float
     axis_std_deg: float
     angles_known: bool
+    fit_status: int = 1
+    fit_message: str = ""
 
     def platter_angle_deg(self, reading_deg) -> np.ndarray:
         """Platter angle ``phi`` (deg) for turntable readings (deg)."""
@@ -104,7 +109,7 @@ class TurntableFit:
 
 
 def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_deg=None, *,
-                  fit_scale: bool = False) -> TurntableFit:
+                  fit_scale: bool = False, max_evaluations: int | None = None) -> TurntableFit:
     """Fit the turntable axis, the angle model and the object pose from target views.
 
     Each view is solved with ``cv2.solvePnP``; the relative rotations give an initial axis
@@ -126,6 +131,8 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
         Turntable readings of the views, deg. Without them each view's angle is fitted.
     fit_scale : bool
         Also fit the reading-to-angle scale (needs ``angles_deg``).
+    max_evaluations : int, optional
+        Residual evaluations the bundle adjustment may use (scipy's default when None).
 
     Returns
     -------
@@ -133,6 +140,8 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
 
     Raises
     ------
+    NotConverged
+        The bundle adjustment stopped before converging.
     TooFewViews
         Fewer than 3 views (2 with known angles).
     DegenerateFit
@@ -221,7 +230,8 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
             out.append(fx * (X[:, :2] / X[:, 2:3] - norm[i]))
         return np.concatenate(out).ravel()
 
-    sol = least_squares(residuals, x0, method="lm", x_scale="jac")
+    sol = _fit.solve(residuals, x0, what="turntable bundle adjustment", max_evaluations=max_evaluations,
+                     method="lm", x_scale="jac")
     ax, cc, R0, t0, ph = unpack(sol.x)
     res = sol.fun.reshape(-1, 2)
     counts = np.array([len(o) for o in obj])
@@ -252,4 +262,72 @@ def fit_turntable(detections: Sequence[TargetDetection], K, dist=None, angles_de
                         angle_offset_deg=float(offset), view_angles_deg=np.degrees(ph),
                         target_in_world=target_in_world, per_view_rms_px=per_view,
                         rms_px=float(np.sqrt(np.mean(np.sum(res ** 2, 1)))), axis_std_deg=axis_std,
-                        angles_known=known)
+                        angles_known=known, fit_status=int(sol.status), fit_message=str(sol.message))
+
+
+def consistent_corner_order(detections: Sequence[TargetDetection], K, dist=None) -> list[TargetDetection]:
+    """Chessboard views renumbered to one corner order (for :func:`fit_turntable`).
+
+    A chessboard's corner order is ambiguous by a half turn in its plane (OpenCV may start at
+    either end), so each view takes the order whose board x axis (``cv2.solvePnP``) agrees with
+    the first view's. Views with corner ids (ChArUco) are returned as they are.
+
+    Parameters
+    ----------
+    detections : sequence of TargetDetection
+        Views of one board.
+    K, dist : camera matrix (3, 3) and OpenCV distortion.
+
+    Returns
+    -------
+    list of TargetDetection
+    """
+    K, dist = _validate.camera(K, dist)
+    out, ref = [], None
+    for k, d in enumerate(detections):  # a few views; one solvePnP each
+        if not isinstance(d, TargetDetection):
+            raise InvalidInput(f"detections[{k}] must be a TargetDetection, got {type(d).__name__}",
+                               argument=f"detections[{k}]")
+        if d.ids is None:
+            ok, rvec, _ = cv2.solvePnP(d.object_points, d.image_points, K, dist)
+            if not ok:
+                raise DegenerateFit(f"{d.frame or f'detections[{k}]'}: no board pose (solvePnP failed)")
+            x_axis = cv2.Rodrigues(rvec)[0][:, 0]
+            if ref is None:
+                ref = x_axis
+            elif float(x_axis @ ref) < 0:
+                d = replace(d, image_points=d.image_points[::-1].copy())
+        out.append(d)
+    return out
+
+
+def lab_frame(fit: TurntableFit, grid_centre_mm, centre_height_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lab frame from a turntable fit: fixed in the room, origin on the axis at the platter
+    surface, +z up the axis, +x horizontal from the axis towards the camera, +y = z x x.
+
+    Parameters
+    ----------
+    fit : TurntableFit
+    grid_centre_mm : array_like of shape (3,)
+        A point of the board, board frame, mm (e.g. the centre of its corner grid).
+    centre_height_mm : float
+        That point's height above the platter, mm (what the images cannot tell).
+
+    Returns
+    -------
+    R : ndarray of shape (3, 3)
+        Lab-to-camera rotation.
+    t : ndarray of shape (3,)
+        Lab origin in the camera frame, mm (``X_cam = R @ X_lab + t``).
+    """
+    if not isinstance(fit, TurntableFit):
+        raise InvalidInput(f"fit must be a TurntableFit, got {type(fit).__name__}", argument="fit")
+    g = _validate.array(grid_centre_mm, "grid_centre_mm", shape=(3,))
+    height = float(_validate.array(centre_height_mm, "centre_height_mm", shape=()))
+    R_tw, t_tw = fit.target_in_world
+    centre_z = float((R_tw @ g + t_tw)[2])
+    # +x towards the camera: the camera centre's azimuth in the fit's frame
+    cam = -fit.R_ref.T @ fit.origin_camera
+    psi = np.arctan2(cam[1], cam[0])
+    Rz = np.array([[np.cos(psi), -np.sin(psi), 0.0], [np.sin(psi), np.cos(psi), 0.0], [0.0, 0.0, 1.0]])
+    return fit.R_ref @ Rz, fit.origin_camera + (centre_z - height) * fit.axis_camera

@@ -15,13 +15,15 @@ code version)::
     gray_card   absolute scale from the 18 % card
     mirror_probe  lat-long environment map from mirror-sphere captures (lab frame)
 
-A stage whose inputs are missing is *skipped* with the reason; a stage that fails records the
-error (naming the frame) and the others continue. Bad data never raises: only an unknown
+This module only orchestrates: the image analysis is ``calibration``'s. A stage whose inputs
+are missing is *skipped* with the reason; a stage that bad data fails (a
+:class:`~calibration.errors.CalibrationError`, a :class:`StageDataError`, a store error) records
+the error (naming the frame) and the others continue. Bad data never raises: only an unknown
 session (:class:`SessionNotFound`) and a session with nothing to calibrate
-(:class:`NothingToCalibrate`) do.
+(:class:`NothingToCalibrate`) do; any other exception is a bug and propagates.
 
-Images: the camera's raw bytes -> rawpy mosaic -> :func:`calibration.hdr.merge_raw_brackets`
-in the mosaic domain (master dark of the same exposure, else the black level; unclipped samples
+Images: the camera's raw bytes -> :func:`calibration.raw.read_raw` ->
+:func:`calibration.hdr.merge_raw_brackets` in the mosaic domain (master dark of the same exposure, else the black level; unclipped samples
 weighted by inverse variance with the read noise measured on the darks) -> bilinear demosaic.
 Radiance unit: DN per second, camera RGB, float32 H x W x 3. Calibration steps' images stay in
 memory during a run; measurement steps are merged for their figures and dropped (the
@@ -37,44 +39,43 @@ room) are reported in the lab and camera frames; the object frame at turntable r
 the lab frame turned about +z by the platter angle (``TurntableFit.platter_angle_deg``) plus
 the fit's angle at the first board view.
 
-Lights: with :attr:`LabTargets.sphere_centres_mm` (default: the simulated lab's row of steel
-balls) the spheres' centres come from the lab frame (Lensch et al. 2003 Sec. 4.1: spheres of
+Lights: with :attr:`LabTargets.sphere_centres_mm` the spheres' centres come from the lab frame (Lensch et al. 2003 Sec. 4.1: spheres of
 known radius and position); without them, from their silhouettes against a lit backdrop. Each
 light is the least-squares intersection of the rays reflected at the highlights
 (:func:`calibration.lights.triangulate_point_light`); of the bright spots on each ball (the lamp,
-and the lamp again through a neighbouring ball) the combination whose rays meet best is used.
+and the lamp again through a neighbouring ball) the combination whose rays meet best is used
+(:func:`calibration.spheres.pick_lamp_highlights`).
 Expose the spheres short enough that the lamp's image does not clip.
 """
 from __future__ import annotations
 
 import io
-import itertools
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import cv2
 import numpy as np
-import rawpy
 
 from calibration.errors import CalibrationError, TargetNotFound
-from calibration.hdr import RawMosaic, master_frame, merge_raw_brackets
-from calibration.intrinsics import calibrate_intrinsics
-from calibration.probe import merge_probes, mirror_sphere_to_latlong
-from calibration.radiometry import gray_card_scale
-from calibration.polarization import fit_polarization, separate_parallel_crossed
-from calibration.lights import (SphereImage, detect_sphere, find_highlight, fit_positioner_model,
-                                reflect_highlight, sphere_center_from_silhouette,
+from calibration.hdr import master_frame, merge_raw_brackets
+from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
+from calibration.lights import (PositionerModel, detect_sphere, fit_positioner_model, sphere_center_from_silhouette,
                                 triangulate_point_light)
-from calibration.targets import detect_charuco, detect_chessboard, make_charuco_board
-from calibration.turntable import fit_turntable
+from calibration.polarization import fit_polarization, separate_parallel_crossed
+from calibration.probe import merge_probes, mirror_sphere_to_latlong
+from calibration.radiometry import find_gray_card, gray_card_scale
+from calibration.raw import RawMosaic, demosaic_bilinear, read_raw
+from calibration.spheres import (find_mirror_sphere, lamp_spots, pick_lamp_highlights, project_spheres,
+                                 sphere_silhouettes)
+from calibration.targets import TargetDetection, detect_charuco, detect_chessboard, make_charuco_board, to_gray_u8
+from calibration.turntable import TurntableFit, consistent_corner_order, fit_turntable, lab_frame
 
 from .plan import CALIBRATION_KINDS
 from .store import FrameRecord, SessionNotFound, Store, StoreError
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
-           "NothingToCalibrate", "calibrate_session", "decode_raw", "cfa_channels", "demosaic_bilinear",
-           "SessionNotFound"]
+           "NothingToCalibrate", "calibrate_session", "SessionNotFound"]
 
 #: stage names, in the order they run
 STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "polarization",
@@ -88,62 +89,88 @@ MIN_COVERAGE_FULL_MODEL = 0.5
 MAX_ARM_RMS_FRACTION = 0.1
 #: poses (turntable angle x light) the polarization check separates, spread over the session
 POLARIZATION_POSES = 4
-#: lat-long environment map height (width is twice), pixels
-PROBE_HEIGHT = 64
-#: the simulated lab's steel-ball row (``sims.world.spheres_target``: six 1-inch balls 40 mm
-#: apart along +y, 120 mm above the platter, 80 mm behind the axis), lab frame, mm
-SIM_SPHERE_CENTRES_MM = tuple((-80.0, y, 120.0) for y in (-100.0, -60.0, -20.0, 20.0, 60.0, 100.0))
+#: least lat-long environment map height (width is twice), pixels; a larger sphere image keeps
+#: its own resolution (one map row per pixel of sphere radius: the reflection sweeps 180 deg
+#: of elevation over the radius)
+MIN_PROBE_HEIGHT = 128
 _CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
                       | cv2.CALIB_FIX_K3)
+
+
+_BOARD_FIELDS = {"chessboard": ("chessboard_inner", "chessboard_square_mm", "chessboard_centre_height_mm"),
+                 "charuco": ("charuco_squares", "charuco_square_mm", "charuco_marker_mm",
+                             "charuco_centre_height_mm")}
 
 
 @dataclass(frozen=True)
 class LabTargets:
     """The lab's physical calibration targets (what the pipeline looks for), millimetres.
 
-    Defaults are the simulated lab's capture scenes (``sims.world.SimWorld.for_capture``): a
-    9 x 6 inner-corner chessboard of 15 mm squares, a 7 x 5 ChArUco of 22 mm squares with 16 mm
-    DICT_5X5_100 markers, 1-inch steel bearing balls. A real lab states its own (``gonio calibrate
-    --targets FILE``): the board's square size sets the metric scale of the turntable frame.
+    A real lab states its own (``gonio calibrate --targets FILE``, a TOML file of these field
+    names): the board's square size sets the metric scale of the turntable frame. The simulated
+    lab's come from the simulator itself (:meth:`simulated`). A board is given by all of its
+    fields or none; at least one board is needed.
     """
 
-    chessboard_inner: tuple[int, int] = (9, 6)
-    chessboard_square_mm: float = 15.0
-    charuco_squares: tuple[int, int] = (7, 5)
-    charuco_square_mm: float = 22.0
-    charuco_marker_mm: float = 16.0
+    chessboard_inner: tuple[int, int] | None = None
+    chessboard_square_mm: float | None = None
+    #: height above the platter of the centre of the board's corner grid, mm (puts the lab
+    #: origin on the platter; a 180-degree ambiguous chessboard has the same centre either way)
+    chessboard_centre_height_mm: float | None = None
+    charuco_squares: tuple[int, int] | None = None
+    charuco_square_mm: float | None = None
+    charuco_marker_mm: float | None = None
+    charuco_centre_height_mm: float | None = None
     charuco_dictionary: str = "DICT_5X5_100"
-    sphere_radius_mm: float = 12.7
+    #: radius of the light-calibration spheres, mm (None: no lights stage)
+    sphere_radius_mm: float | None = None
     #: mirror reflectance of the spheres (chrome ~0.65, bearing steel ~0.55): their limb shows
     #: the backdrop times this, which places the silhouette threshold
     sphere_reflectance: float = 0.55
-    gray_card_albedo: float = 0.18
     #: centres of the light-calibration spheres in the lab frame (module docstring), mm; empty
     #: or None: find them from their silhouettes (needs a lit backdrop behind the spheres)
-    sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = SIM_SPHERE_CENTRES_MM
-    #: height above the platter of the centre of the board's corner grid, mm (puts the lab
-    #: origin on the platter; a 180-degree ambiguous chessboard has the same centre either way)
-    chessboard_centre_height_mm: float = 72.5
-    charuco_centre_height_mm: float = 75.0
-    #: cv2.CALIB_* flags for the intrinsics fit (k3 fixed: a turntable-only board sweep
-    #: covers the image centre, where k3 is not observable)
-    intrinsics_flags: int = cv2.CALIB_FIX_K3
+    sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = None
+    gray_card_albedo: float = 0.18
+    #: cv2.CALIB_* flags for the intrinsics fit; with k3 free the fit fixes it at 0 when the
+    #: views do not determine it (a turntable-only board sweep covers only the image centre)
+    intrinsics_flags: int = 0
+
+    @classmethod
+    def simulated(cls, **overrides) -> "LabTargets":
+        """The targets of the simulated lab's capture scenes, as the simulator states them
+        (:func:`sims.world.capture_targets`), with ``overrides`` (field names) applied."""
+        from sims.world import capture_targets
+        return cls(**{**capture_targets(), **overrides})
+
+    def has_board(self, kind: str) -> bool:
+        """Whether the ``'chessboard'`` or ``'charuco'`` board is described."""
+        return getattr(self, _BOARD_FIELDS[kind][0]) is not None
 
     def __post_init__(self) -> None:
+        for kind, names in _BOARD_FIELDS.items():
+            given = [getattr(self, n) is not None for n in names]
+            if any(given) and not all(given):
+                raise ValueError(f"LabTargets: the {kind} needs all of {', '.join(names)}; missing "
+                                 f"{', '.join(n for n, g in zip(names, given) if not g)}")
+        if not any(self.has_board(k) for k in _BOARD_FIELDS):
+            raise ValueError("LabTargets: describe at least one board (chessboard_* or charuco_* fields)")
         for name in ("chessboard_square_mm", "charuco_square_mm", "charuco_marker_mm", "sphere_radius_mm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"LabTargets.{name} must be > 0 mm, got {getattr(self, name)!r}")
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"LabTargets.{name} must be > 0 mm, got {value!r}")
         if not 0 < self.sphere_reflectance < 1:
             raise ValueError(f"LabTargets.sphere_reflectance must be in (0, 1), "
                              f"got {self.sphere_reflectance!r}")
         if not 0 < self.gray_card_albedo <= 1:
             raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
         for name in ("chessboard_centre_height_mm", "charuco_centre_height_mm"):
-            if not np.isfinite(getattr(self, name)):
-                raise ValueError(f"LabTargets.{name} must be a finite number of mm, "
-                                 f"got {getattr(self, name)!r}")
+            value = getattr(self, name)
+            if value is not None and not np.isfinite(value):
+                raise ValueError(f"LabTargets.{name} must be a finite number of mm, got {value!r}")
         centres = self.sphere_centres_mm
         if centres is not None and len(centres):
+            if self.sphere_radius_mm is None:
+                raise ValueError("LabTargets.sphere_centres_mm needs sphere_radius_mm")
             try:
                 arr = np.asarray(centres, dtype=float)
             except (TypeError, ValueError):
@@ -189,6 +216,62 @@ class StageResult:
 
 
 @dataclass
+class StageOutput:
+    """What a stage hands :func:`calibrate_session` to store (``Store.add_calibration``).
+
+    Attributes
+    ----------
+    result : dict
+        The stored result (JSON-able, arrays allowed).
+    figures : dict
+        Key numbers for the summary table.
+    input_frames : list of int
+        Ids of the frames the result was computed from (provenance).
+    artifacts : dict of str -> bytes
+        Files stored beside the result.
+    params : dict
+        Parameters the stage ran with (provenance).
+    errors : list of str
+        Inputs the stage lost (each names its frame): the result is stored for the rest but the
+        stage reports ``failed``.
+    """
+
+    result: dict[str, Any]
+    figures: dict[str, Any]
+    input_frames: list[int]
+    artifacts: dict[str, bytes] = field(default_factory=dict)
+    params: dict[str, Any] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class LabFrame:
+    """Lab -> camera pose (module docstring): ``X_cam = R @ X_lab + t_mm``."""
+
+    R: np.ndarray
+    t_mm: np.ndarray
+
+    def to_lab(self, x_cam_mm: np.ndarray) -> np.ndarray:
+        """Camera-frame points (..., 3) mm -> lab frame (..., 3) mm."""
+        return (np.asarray(x_cam_mm) - self.t_mm) @ self.R
+
+
+@dataclass(frozen=True)
+class MeasuredLight:
+    """One light located by the lights stage (camera frame and, with a lab frame, lab frame, mm)."""
+
+    step: int
+    position_camera_mm: np.ndarray
+    position_lab_mm: np.ndarray | None
+    commanded: dict[str, Any] | None
+
+
+class StageDataError(ValueError):
+    """The session's stored data cannot feed a stage: a frame without an exposure time, a step
+    without the read-back or planned value a stage needs (the message names it)."""
+
+
+@dataclass
 class CalibrationReport:
     """Everything one :func:`calibrate_session` run produced.
 
@@ -227,60 +310,9 @@ class _Skip(Exception):
     """Internal: the stage lacks its inputs (the message says which)."""
 
 
-# -- raw decoding, demosaic ---------------------------------------------------------------------
-def decode_raw(data: bytes, *, frame: str = "frame") -> RawMosaic:
-    """Decode a camera raw file's bytes (DNG or any LibRaw format) into a
-    :class:`calibration.hdr.RawMosaic` (the in-memory twin of :func:`calibration.hdr.read_raw`).
-
-    Raises
-    ------
-    ValueError
-        LibRaw cannot read the bytes (names ``frame``), or the file is not an RGB Bayer raw.
-    """
-    try:
-        with rawpy.imread(io.BytesIO(data)) as raw:
-            mosaic = raw.raw_image_visible.copy()
-            black = np.asarray(raw.black_level_per_channel, np.float32)[raw.raw_colors_visible]
-            desc = raw.color_desc.decode()
-            pattern = raw.raw_pattern
-            bayer = pattern is not None and pattern.shape == (2, 2)
-            cfa = "".join(desc[c] for c in pattern.ravel()) if bayer else ""
-            white = float(raw.white_level)
-    except (rawpy.LibRawError, OSError) as exc:
-        raise ValueError(f"{frame}: not a readable raw file ({type(exc).__name__}: {exc})") from None
-    if len(cfa) != 4 or set(cfa) - set("RGB"):
-        raise ValueError(f"{frame}: colour filter {cfa!r} is not a 2x2 RGB Bayer pattern")
-    return RawMosaic(mosaic, black, white, cfa)
-
-
-def cfa_channels(cfa: str, shape: tuple[int, int]) -> np.ndarray:
-    """Channel index (0 R, 1 G, 2 B) of every photosite for a row-major 2x2 ``cfa`` like 'RGGB'."""
-    tile = np.array(["RGB".index(c) for c in cfa], np.uint8).reshape(2, 2)
-    h, w = shape
-    return np.tile(tile, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
-
-
-_BILINEAR = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32)
-
-
-def demosaic_bilinear(mosaic: np.ndarray, colors: np.ndarray) -> np.ndarray:
-    """Bilinear demosaic for any 2x2 Bayer layout: each channel keeps its own samples and
-    averages its nearest neighbours elsewhere (normalised convolution). -> (H, W, 3) float32."""
-    out = np.empty(mosaic.shape + (3,), np.float32)
-    for c in range(3):
-        m = (colors == c).astype(np.float32)
-        num = cv2.filter2D(mosaic * m, -1, _BILINEAR, borderType=cv2.BORDER_REFLECT)
-        den = cv2.filter2D(m, -1, _BILINEAR, borderType=cv2.BORDER_REFLECT)
-        out[..., c] = np.where(m > 0, mosaic, num / np.maximum(den, 1e-6))
-    return out
-
-
-def _display(img: np.ndarray) -> np.ndarray:
-    """Grey view of a linear image scaled so its 99.5th percentile is 1 (for target detection:
-    hot pixels and highlights do not crush the contrast)."""
-    g = img.mean(axis=2) if img.ndim == 3 else img
-    top = float(np.percentile(g, 99.5))
-    return np.clip(g / top, 0.0, 1.0) if top > 0 else np.zeros_like(g)
+#: detectors see the HDR image scaled so this percentile is white (hot pixels and highlights do
+#: not crush the contrast)
+DETECTION_WHITE_PERCENTILE = 99.5
 
 
 # -- the session as the stages see it ----------------------------------------------------------
@@ -300,7 +332,13 @@ class _Context:
         self.hdr: dict[int, np.ndarray] = {}           # calibration step -> (H, W, 3) radiance
         self.bad_steps: set[int] = set()               # steps whose frames could not be merged
         self.tick: Callable[[str], None] = lambda label: None  # progress inside a stage
-        self.results: dict[str, Any] = {}              # stage -> the calibration object it made
+        # what the stages made for the later ones (None: that stage did not succeed)
+        self.intrinsics: IntrinsicsResult | None = None
+        self.detections: dict[int, TargetDetection] = {}    # checkerboard step -> corners
+        self.detector: str | None = None                    # 'charuco' or 'chessboard'
+        self.lab: LabFrame | None = None
+        self.lights: list[MeasuredLight] | None = None
+        self.positioner: PositionerModel | None = None
 
     def steps_of(self, kind: str) -> list[int]:
         """Indices of steps of ``kind`` that have frames, in order."""
@@ -310,7 +348,7 @@ class _Context:
         return [f.id for s in steps for f in self.frames[s]]
 
     def raw(self, f: FrameRecord) -> RawMosaic:
-        return decode_raw(self.store.read_object(f.sha256), frame=f"frame {f.id} (step {f.step})")
+        return read_raw(self.store.read_object(f.sha256), name=f"frame {f.id} (step {f.step})")
 
     @property
     def read_noise(self) -> float:
@@ -319,7 +357,7 @@ class _Context:
 
     def merge(self, step: int) -> tuple[np.ndarray, dict[str, Any]]:
         """HDR radiance (H, W, 3) float32, DN/s, of one step's frames (all brackets and repeats)
-        and its figures. Raises ValueError naming an unreadable frame."""
+        and its figures. Raises InvalidInput naming an unreadable frame."""
         frames = self.frames[step]
         raws = [self.raw(f) for f in frames]
         ts = [_exposure(f) for f in frames]
@@ -328,7 +366,7 @@ class _Context:
         darks = np.stack([raws[0].black_level if d is None else d for d in found])
         hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
                                  white_level=raws[0].white_level, read_noise_dn=self.read_noise, darks=darks)
-        img = demosaic_bilinear(hdr.radiance, cfa_channels(raws[0].cfa, hdr.radiance.shape))
+        img = demosaic_bilinear(hdr.radiance, raws[0].channels)
         pos = hdr.radiance[~hdr.saturated & (hdr.radiance > 0)]
         dr = float(np.log2(pos.max() / max(np.percentile(pos, 1), 1e-12))) if pos.size else 0.0
         return img, {"step": step, "kind": self.steps[step]["kind"], "frames": len(frames),
@@ -357,7 +395,7 @@ class _Context:
         if not vals:
             planned = self.steps[step].get(key)
             if planned is None:
-                raise ValueError(f"step {step}: frames have no {key!r} read-back and the plan names none")
+                raise StageDataError(f"step {step}: frames have no {key!r} read-back and the plan names none")
             return float(planned)
         return float(np.mean(vals))
 
@@ -365,12 +403,12 @@ class _Context:
 def _exposure(f: FrameRecord) -> float:
     t = f.exposure_s if f.exposure_s else f.exposure_requested_s
     if not t or t <= 0:
-        raise ValueError(f"frame {f.id} (step {f.step}) has no exposure time")
+        raise StageDataError(f"frame {f.id} (step {f.step}) has no exposure time")
     return float(t)
 
 
 # -- stages -------------------------------------------------------------------------------------
-def _stage_dark(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[int], dict]:
+def _stage_dark(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.steps_of("dark")
     if not steps:
         raise _Skip("no dark (lens-cap) captures in this session")
@@ -397,11 +435,11 @@ def _stage_dark(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list
     figures = {"exposures": len(out),
                "mean_above_black_dn": round(float(np.mean([o["mean_above_black_dn"] for o in out])), 3),
                "read_noise_dn": None if ctx.read_noise_dn is None else round(ctx.read_noise_dn, 2)}
-    return ({"darks": out, "read_noise_dn": ctx.read_noise_dn, "artifacts": "master dark per exposure "
-             "(DN, black level included), .npy"}, figures, ctx.frame_ids(steps), artifacts)
+    return StageOutput({"darks": out, "read_noise_dn": ctx.read_noise_dn, "artifacts": "master dark per exposure "
+                        "(DN, black level included), .npy"}, figures, ctx.frame_ids(steps), artifacts)
 
 
-def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[int], dict]:
+def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = [s for s in sorted(ctx.frames) if ctx.steps[s]["kind"] != "dark"
              and (ctx.measure_hdr or ctx.steps[s]["kind"] != "measure")]
     if not steps:
@@ -411,7 +449,7 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[
         ctx.tick(f"hdr {k + 1}/{len(steps)} steps")
         try:
             img, meta = ctx.merge(s)
-        except ValueError as exc:  # one unreadable frame loses its step, not the session
+        except (CalibrationError, StageDataError) as exc:  # an unreadable frame loses its step only
             errors.append(str(exc))
             ctx.bad_steps.add(s)
             continue
@@ -429,34 +467,37 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> tuple[dict, dict, list[
     figures = {"steps": len(per_step), "failed_steps": len(errors),
                "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
                "dark_subtracted_frames": sum(m["dark_subtracted"] for m in per_step)}
-    return ({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": ctx.read_noise,
-             "steps": per_step, "errors": errors}, figures, ctx.frame_ids([m["step"] for m in per_step]), {})
+    return StageOutput({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": ctx.read_noise,
+                        "steps": per_step, "errors": errors}, figures, ctx.frame_ids([m["step"] for m in per_step]),
+                       errors=errors)
 
 
 def _detector(ctx: _Context):
     t = ctx.targets
     board = make_charuco_board(t.charuco_squares, t.charuco_square_mm, t.charuco_marker_mm,
-                               t.charuco_dictionary)
+                               t.charuco_dictionary) if t.has_board("charuco") else None
 
     def detect(img, frame):
         # ChArUco first: its corner ids stay consistent as the board turns (the turntable fit
         # needs that); a plain chessboard otherwise
-        try:
-            return detect_charuco(img, board, frame=frame), "charuco"
-        except TargetNotFound:
-            found = detect_chessboard(img, t.chessboard_inner, t.chessboard_square_mm, frame=frame)
-            return found, "chessboard"
+        if board is not None:
+            try:
+                return detect_charuco(img, board, frame=frame), "charuco"
+            except TargetNotFound:
+                if not t.has_board("chessboard"):
+                    raise
+        return detect_chessboard(img, t.chessboard_inner, t.chessboard_square_mm, frame=frame), "chessboard"
     return detect
 
 
-def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
+def _stage_intrinsics(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("checkerboard")
     detect = _detector(ctx)
     dets, kinds, det_steps, missing = [], [], [], []
     for s in steps:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         try:
-            d, kind = detect(_display(ctx.hdr[s]), name)
+            d, kind = detect(to_gray_u8(ctx.hdr[s].mean(axis=2), white_percentile=DETECTION_WHITE_PERCENTILE), name)
         except TargetNotFound as exc:
             missing.append(str(exc))
             continue
@@ -482,9 +523,9 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
                  f"{100 * res.coverage_fraction:.0f}% of the image (< {100 * MIN_COVERAGE_FULL_MODEL:.0f}%); "
                  "add board views across the whole frame for the full model")
         res = calibrate_intrinsics(dets, flags=flags)
-    ctx.results["intrinsics"] = res
-    ctx.results["detections"] = dict(zip(det_steps, dets))
-    ctx.results["detector"] = kinds[0]
+    ctx.intrinsics = res
+    ctx.detections = dict(zip(det_steps, dets))
+    ctx.detector = kinds[0]
     kept = {d.frame for d in dets} - {r.frame for r in res.rejected}
     rep.plots["intrinsics"] = {"frames": res.frames, "per_view_rms_px": res.per_view_rms_px,
                                "coverage": res.coverage, "image_size": res.image_size,
@@ -493,79 +534,56 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport):
               "K_std": res.K_std, "dist_std": res.dist_std, "per_view_rms_px": res.per_view_rms_px,
               "views": res.frames, "rejected": [asdict(r) for r in res.rejected],
               "not_found": missing, "target": kinds[0], "coverage": res.coverage,
-              "coverage_fraction": res.coverage_fraction, "model": model, "flags": flags}
+              "coverage_fraction": res.coverage_fraction, "model": model, "flags": flags,
+              "distortion_note": res.model_note}
     figures = {"rms_px": round(res.rms_px, 3), "fx_px": round(float(res.K[0, 0]), 2),
                "fy_px": round(float(res.K[1, 1]), 2), "cx_px": round(float(res.K[0, 2]), 2),
                "cy_px": round(float(res.K[1, 2]), 2), "views": len(res.frames),
                "coverage_pct": round(100 * res.coverage_fraction),
                "model": "full" if model == "full" else "constrained"}
     params = {"targets": asdict(ctx.targets), "detector": kinds[0], "flags": flags}
-    return result, figures, ctx.frame_ids(det_steps), {}, params
+    return StageOutput(result, figures, ctx.frame_ids(det_steps), params=params)
 
 
-def _need(ctx: _Context, stage: str, why: str):
-    if stage not in ctx.results:
+def _need(product, stage: str, why: str):
+    """``product`` of an earlier stage, or skip naming that stage."""
+    if product is None:
         raise _Skip(f"needs the {stage} stage ({why}), which did not succeed")
-    return ctx.results[stage]
+    return product
 
 
-def _consistent_numbering(dets: dict, K, dist) -> dict:
-    """The board views renumbered to one corner order. A chessboard's corner order is ambiguous
-    by a half turn in its plane (OpenCV may start at either end), so each view takes the order
-    whose board x axis (``solvePnP``) agrees with the first view's; ChArUco ids need no help."""
-    out, ref = {}, None
-    for s, d in dets.items():
-        if d.ids is None:
-            R = cv2.Rodrigues(cv2.solvePnP(d.object_points, d.image_points, K, dist)[1])[0]
-            if ref is None:
-                ref = R[:, 0]
-            elif float(R[:, 0] @ ref) < 0:
-                d = replace(d, image_points=d.image_points[::-1].copy())
-        out[s] = d
-    return out
-
-
-def _lab_frame(fit, targets: LabTargets, detector: str) -> tuple[np.ndarray, np.ndarray]:
-    """Lab -> camera pose ``(R, t mm)`` (lab frame: module docstring) from a turntable fit and
-    the height of the board's corner-grid centre."""
+def _lab_frame(fit: TurntableFit, targets: LabTargets, detector: str) -> LabFrame:
+    """The lab frame (module docstring) from a turntable fit and the board's stated height."""
     if detector == "charuco":  # OpenCV's ChArUco corners run from one square in to one square short
         (cols, rows), sq = targets.charuco_squares, targets.charuco_square_mm
-        grid_centre, height = np.array([cols * sq / 2, rows * sq / 2, 0.0]), targets.charuco_centre_height_mm
+        grid_centre, height = [cols * sq / 2, rows * sq / 2, 0.0], targets.charuco_centre_height_mm
     else:  # chessboard object points start at the first inner corner
         (cols, rows), sq = targets.chessboard_inner, targets.chessboard_square_mm
-        grid_centre = np.array([(cols - 1) * sq / 2, (rows - 1) * sq / 2, 0.0])
-        height = targets.chessboard_centre_height_mm
-    R_tw, t_tw = fit.target_in_world
-    centre_z = float((R_tw @ grid_centre + t_tw)[2])
-    # +x towards the camera: the camera centre's azimuth in the fit's frame
-    cam = -fit.R_ref.T @ fit.origin_camera
-    psi = np.arctan2(cam[1], cam[0])
-    Rz = np.array([[np.cos(psi), -np.sin(psi), 0.0], [np.sin(psi), np.cos(psi), 0.0], [0.0, 0.0, 1.0]])
-    return fit.R_ref @ Rz, fit.origin_camera + (centre_z - height) * fit.axis_camera
+        grid_centre, height = [(cols - 1) * sq / 2, (rows - 1) * sq / 2, 0.0], targets.chessboard_centre_height_mm
+    return LabFrame(*lab_frame(fit, grid_centre, height))
 
 
-def _stage_turntable(ctx: _Context, rep: CalibrationReport):
+def _stage_turntable(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     if not ctx.steps_of("checkerboard"):
         raise _Skip("no checkerboard captures in this session")
-    intr = _need(ctx, "intrinsics", "camera matrix")
+    intr = _need(ctx.intrinsics, "intrinsics", "camera matrix")
     kept = set(intr.frames)
-    dets_by_step = _consistent_numbering({s: d for s, d in ctx.results["detections"].items()
-                                          if d.frame in kept}, intr.K, intr.dist)
-    steps = list(dets_by_step)
+    steps = [s for s, d in ctx.detections.items() if d.frame in kept]
+    dets_by_step = dict(zip(steps, consistent_corner_order([ctx.detections[s] for s in steps], intr.K, intr.dist)))
     readings = [ctx.reading(s, "turntable_deg") for s in steps]
     if len(set(np.round(readings, 3))) < 2:
         raise _Skip(f"the target was seen at {len(set(np.round(readings, 3)))} turntable "
                     "angle(s); the axis needs captures at several angles")
     fit = fit_turntable([dets_by_step[s] for s in steps], intr.K, intr.dist, angles_deg=readings)
-    R_lab, t_lab = _lab_frame(fit, ctx.targets, ctx.results["detector"])
-    ctx.results["turntable"] = fit
-    ctx.results["lab_frame"] = (R_lab, t_lab)
+    ctx.lab = _lab_frame(fit, ctx.targets, ctx.detector)
+    R_lab, t_lab = ctx.lab.R, ctx.lab.t_mm
     rep.plots["turntable"] = {"readings_deg": np.array(readings), "per_view_rms_px": fit.per_view_rms_px,
                               "view_angles_deg": fit.view_angles_deg}
     tilt = float(np.degrees(np.arccos(abs(fit.axis_camera[1]))))
     camera_lab = -R_lab.T @ t_lab
     result = {"axis_camera": fit.axis_camera, "origin_camera_mm": fit.origin_camera, "R_ref": fit.R_ref,
               "angle_scale": fit.angle_scale, "angle_offset_deg": fit.angle_offset_deg,
+              "fit_status": fit.fit_status, "fit_message": fit.fit_message,
               "readings_deg": readings, "view_angles_deg": fit.view_angles_deg,
               "per_view_rms_px": fit.per_view_rms_px, "rms_px": fit.rms_px,
               "axis_std_deg": fit.axis_std_deg,
@@ -577,56 +595,8 @@ def _stage_turntable(ctx: _Context, rep: CalibrationReport):
     figures = {"rms_px": round(fit.rms_px, 3), "axis": [round(float(v), 4) for v in fit.axis_camera],
                "axis_std_deg": round(fit.axis_std_deg, 3), "axis_from_image_y_deg": round(tilt, 2),
                "views": len(steps), "camera_lab_mm": [round(float(v), 1) for v in camera_lab]}
-    return result, figures, ctx.frame_ids(steps), {}, {"angles_from": "frame read-backs turntable_deg"}
-
-
-def _round_blobs(mask: np.ndarray, min_area: int) -> list[tuple[int, int, np.ndarray]]:
-    """Compact, round connected components of ``mask`` not touching the border, as
-    (x, diameter px, boolean mask)."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=4)
-    h, w = mask.shape
-    out = []
-    for k in range(1, n):
-        x, y, bw, bh, area = stats[k]
-        if area < min_area or x == 0 or y == 0 or x + bw >= w or y + bh >= h:
-            continue  # too small, or open to the border: background, not a sphere
-        if not 0.7 < bw / bh < 1.4 or area < 0.6 * np.pi * (max(bw, bh) / 2) ** 2:
-            continue  # not round
-        out.append((int(x), int(max(bw, bh)), labels == k))
-    return out
-
-
-def _sphere_blobs(images: list[np.ndarray], reflectance: float, *, min_area: int = 30) -> list[np.ndarray]:
-    """Silhouettes of mirror spheres in front of a lit backdrop, left to right.
-
-    The per-pixel median over the spheres frames removes each frame's moving highlight and
-    shadows; dark round blobs in it are the candidate spheres. A mirror's limb reflects the
-    backdrop right behind it times the mirror's ``reflectance``, so each outline is then redrawn
-    halfway between the backdrop level *around that sphere* (median of an annulus) and that
-    limb level, not at a global dark threshold, which would shrink the silhouette by the bright
-    limb ring and bias the sphere's depth.
-    """
-    med = np.median(np.stack([im.mean(axis=2) for im in images]), axis=0).astype(np.float32)
-    h, w = med.shape
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
-    out = []
-    for _, diam, coarse in _round_blobs(med < 0.3 * float(np.percentile(med, 95)), min_area):
-        cy, cx = (float(v.mean()) for v in np.nonzero(coarse))
-        # work in a window around the sphere (1.6 radii: the annulus' outer edge)
-        y0, y1 = max(int(cy - 0.8 * diam), 0), min(int(cy + 0.8 * diam) + 2, h)
-        x0, x1 = max(int(cx - 0.8 * diam), 0), min(int(cx + 0.8 * diam) + 2, w)
-        yy, xx = np.mgrid[y0:y1, x0:x1]
-        win = med[y0:y1, x0:x1]
-        r = np.hypot(yy - cy, xx - cx) / (diam / 2)
-        level = 0.5 * (1 + reflectance) * float(np.median(win[(r > 1.2) & (r < 1.6)]))
-        local = cv2.morphologyEx(((win < level) & (r < 1.3)).astype(np.uint8), cv2.MORPH_OPEN, disc)
-        _, labels = cv2.connectedComponents(local, connectivity=4)
-        k = labels[int(round(cy)) - y0, int(round(cx)) - x0]
-        if k:
-            mask = np.zeros(med.shape, bool)
-            mask[y0:y1, x0:x1] = labels == k
-            out.append((cx, mask))
-    return [b for _, b in sorted(out, key=lambda t: t[0])]
+    return StageOutput(result, figures, ctx.frame_ids(steps),
+                       params={"angles_from": "frame read-backs turntable_deg"})
 
 
 #: a sphere shows the lamp when its brightest pixel is at least this many times the frame's 99th
@@ -642,99 +612,29 @@ MIN_HIGHLIGHT_FRACTION = 0.25
 def _known_spheres(ctx: _Context, K, dist, radius: float, shape: tuple[int, int], frame: str):
     """The spheres at their configured lab positions (``LabTargets.sphere_centres_mm`` through
     the lab frame) that the image holds: camera-frame centres (M, 3) mm, their image discs
-    (:class:`SphereImage`, masks) and their indices in the configured list."""
-    R, t = ctx.results["lab_frame"]
-    centres = np.asarray(ctx.targets.sphere_centres_mm, float) @ R.T + t
-    depth = np.linalg.norm(centres, axis=1)
-    if np.any(centres[:, 2] <= radius):
-        raise CalibrationError(f"LabTargets.sphere_centres_mm: sphere(s) "
-                               f"{np.nonzero(centres[:, 2] <= radius)[0].tolist()} lie behind the camera "
-                               "in the lab frame (check the positions and the frame convention)")
-    px = cv2.projectPoints(centres, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
-    # apparent radius of a sphere: its outline cone's half-angle times the focal length
-    r_px = np.sqrt(K[0, 0] * K[1, 1]) * np.tan(np.arcsin(radius / depth))
-    h, w = shape
-    inside = (px[:, 0] - r_px >= 0) & (px[:, 1] - r_px >= 0) & (px[:, 0] + r_px < w) & (px[:, 1] + r_px < h)
-    if inside.sum() < 2:
-        raise TargetNotFound(f"{int(inside.sum())} of the {len(centres)} configured spheres project inside "
+    and their indices in the configured list."""
+    centres = np.asarray(ctx.targets.sphere_centres_mm, float) @ ctx.lab.R.T + ctx.lab.t_mm
+    spheres, inside = project_spheres(centres, radius, K, dist, (shape[1], shape[0]))
+    if len(inside) < 2:
+        raise TargetNotFound(f"{len(inside)} of the {len(centres)} configured spheres project inside "
                              "the image (need 2); check LabTargets.sphere_centres_mm", frame=frame)
-    spheres = [SphereImage(p, float(r), None, np.zeros((0, 2))) for p, r in zip(px[inside], r_px[inside])]
-    masks = []
-    yy, xx = np.indices((h, w))
-    for sp in spheres:
-        masks.append((xx - sp.center_px[0]) ** 2 + (yy - sp.center_px[1]) ** 2 < sp.radius_px ** 2)
-    return centres[inside], spheres, masks, np.nonzero(inside)[0]
+    return centres[inside], spheres, inside
 
 
-def _lamp_candidates(lum: np.ndarray, sphere: SphereImage, level: float, frame: str) -> list[tuple]:
-    """Bright spots on one sphere's disc that may be the lamp's image: ``(xy px, flux)`` per blob
-    above ``level`` (its sub-pixel position from :func:`find_highlight`), largest flux first.
-
-    Besides the lamp's own image, a ball in a row shows the lamp once more through its
-    neighbour (a smaller, dimmer spot near the limb facing it); once the HDR merge clips both,
-    only their size and where their reflected rays go tell them apart.
-    """
-    c, r = sphere.center_px, sphere.radius_px
-    x0, y0 = np.maximum(np.floor(c - r).astype(int), 0)
-    x1, y1 = np.minimum(np.ceil(c + r).astype(int) + 1, [lum.shape[1], lum.shape[0]])
-    win = lum[y0:y1, x0:x1]
-    yy, xx = np.mgrid[y0:y1, x0:x1]
-    disc = (xx - c[0]) ** 2 + (yy - c[1]) ** 2 < (r - 1) ** 2
-    n, labels = cv2.connectedComponents(((win > level) & disc).astype(np.uint8), connectivity=8)
-    local = SphereImage(c - [x0, y0], r, None, np.zeros((0, 2)))
-    out = []
-    for k in range(1, n):
-        blob = labels == k
-        hl = find_highlight(np.where(blob, win, 0.0), local, frame=frame)
-        out.append((hl.xy_px + [x0, y0], float(win[blob].sum())))
-    return sorted(out, key=lambda t: -t[1])
-
-
-#: most spot combinations :func:`_pick_highlights` tries (a ball row shows 1-2 spots per ball)
-MAX_SPOT_COMBINATIONS = 4096
-
-
-def _pick_highlights(cands: list[list[tuple]], centres: np.ndarray, radius: float, K, dist):
-    """One lamp highlight per sphere: of every combination of the spheres' spots, the one whose
-    reflected rays meet best, i.e. whose least-squares light sees the smallest RMS angle between
-    each reflected ray and the direction from its reflection point to the light (an angle, not
-    a distance: rays all pass near the balls they leave). A sphere whose ray then misses by
-    more than 3x the median angle (and 1 deg) sits the light out when 2 others remain.
-
-    Returns the chosen pixels (K, 2) and the indices (K,) of their spheres in ``cands``.
-    """
-    xy = np.concatenate([[p for p, _ in cs] for cs in cands])
-    owner = np.repeat(np.arange(len(cands)), [len(cs) for cs in cands])
-    P, L = reflect_highlight(xy, centres[owner], radius, K, dist)
-    first = np.r_[0, np.cumsum([len(cs) for cs in cands])[:-1]]
-    combos = np.array(list(itertools.islice(itertools.product(*[range(len(cs)) for cs in cands]),
-                                            MAX_SPOT_COMBINATIONS))) + first     # (C, M) spot rows
-    Pc, Lc = P[combos], L[combos]                                                # (C, M, 3)
-    proj = np.eye(3) - Lc[..., :, None] * Lc[..., None, :]
-    X = np.linalg.solve(proj.sum(axis=1), np.einsum("cmij,cmj->ci", proj, Pc)[..., None])[..., 0]
-    to = X[:, None] - Pc
-    cos = np.sum(to * Lc, axis=2) / np.maximum(np.linalg.norm(to, axis=2), 1e-9)
-    ang = np.degrees(np.arccos(np.clip(cos, -1, 1)))                             # (C, M)
-    best = int(np.argmin(np.sqrt(np.mean(ang ** 2, axis=1))))
-    keep = np.arange(len(cands))
-    a = ang[best]
-    if len(cands) > 2:
-        keep = keep[(a <= max(3 * float(np.median(a)), 1.0)) | (np.argsort(np.argsort(a)) < 2)]
-    return xy[combos[best][keep]], keep
-
-
-def _stage_lights(ctx: _Context, rep: CalibrationReport):
+def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("spheres")
-    intr = _need(ctx, "intrinsics", "camera matrix")
+    intr = _need(ctx.intrinsics, "intrinsics", "camera matrix")
     K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
+    if radius is None:
+        raise _Skip("LabTargets states no sphere_radius_mm (the light-calibration spheres)")
     images = [ctx.hdr[s] for s in steps]
     first = f"frame {ctx.frames[steps[0]][0].id} (step {steps[0]})"
     known = ctx.targets.sphere_centres_mm is not None
-    if known and "lab_frame" in ctx.results:
-        centres, spheres, blobs, index = _known_spheres(ctx, K, dist, radius, images[0].shape[:2], first)
+    if known and ctx.lab is not None:
+        centres, spheres, index = _known_spheres(ctx, K, dist, radius, images[0].shape[:2], first)
         source = "known positions (LabTargets.sphere_centres_mm, lab frame)"
     else:  # no positions, or no lab frame to place them: the silhouettes against a backdrop
-        blobs = _sphere_blobs(images, ctx.targets.sphere_reflectance)
+        blobs = sphere_silhouettes(images, ctx.targets.sphere_reflectance)
         if len(blobs) < 2:
             why = ("the turntable stage gave no lab frame to place LabTargets.sphere_centres_mm, and "
                    if known else "no LabTargets.sphere_centres_mm, and ")
@@ -744,52 +644,56 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport):
         centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
         index = np.arange(len(spheres))
         source = "silhouettes"
-    lab = ctx.results.get("lab_frame")
-    lights, rows, errors, unseen = [], [], [], []
+    h, w = images[0].shape[:2]
+    yy, xx = np.indices((h, w))
+    discs = [(xx - sp.center_px[0]) ** 2 + (yy - sp.center_px[1]) ** 2 < sp.radius_px ** 2 for sp in spheres]
+    lights, rows, measured, errors, unseen = [], [], [], [], []
     for s, img in zip(steps, images):
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         lum = img.mean(axis=2)
         try:  # one bad light loses its step; the others still feed the positioner model
-            peak = max(float(lum[b].max()) for b in blobs)
+            peak = max(float(lum[d].max()) for d in discs)
             level = max(MIN_HIGHLIGHT_FRACTION * peak, MIN_LAMP_CONTRAST * float(np.percentile(lum, 99)))
-            cands = [_lamp_candidates(lum, sp, level, name) for sp in spheres]
-            use = np.array([i for i, cs in enumerate(cands) if cs], int)
+            spots = [lamp_spots(lum, sp, level, frame=name) for sp in spheres]
+            use = np.array([i for i, ss in enumerate(spots) if ss], int)
             if len(use) < 2:  # not a fault: from here the lamp cannot be seen in two spheres
                 unseen.append({"step": s, "frame": ctx.frames[s][0].id,
                                "commanded": ctx.steps[s].get("light"), "spheres_showing_lamp": len(use)})
                 continue
-            hl, kept = _pick_highlights([cands[i] for i in use], centres[use], radius, K, dist)
+            hl, kept = pick_lamp_highlights([spots[i] for i in use], centres[use], radius, K, dist)
             use = use[kept]
             pl = triangulate_point_light(hl, centres[use], radius, K, dist)
         except CalibrationError as exc:
             errors.append(f"{name}: {exc}" if name not in str(exc) else str(exc))
             continue
+        p_lab = None if ctx.lab is None else ctx.lab.to_lab(pl.position_mm)
         row = {"step": s, "frame": ctx.frames[s][0].id, "position_camera_mm": pl.position_mm,
                "std_mm": pl.std_mm, "residuals_mm": pl.residuals_mm, "highlights_px": hl,
                "spheres_used": index[use].tolist(),
                "commanded": ctx.steps[s].get("light"), "readback_mm": _readback_light(ctx, s)}
-        if lab is not None:
-            row["position_lab_mm"] = lab[0].T @ (pl.position_mm - lab[1])
+        if p_lab is not None:
+            row["position_lab_mm"] = p_lab
         rows.append(row)
         lights.append(pl)
+        measured.append(MeasuredLight(s, pl.position_mm, p_lab, ctx.steps[s].get("light")))
     if not rows:
         raise CalibrationError(f"no light could be located: {len(unseen)} of {len(steps)} spheres steps show "
                                "the lamp in fewer than 2 spheres" + "".join(f"; {e}" for e in errors))
-    ctx.results["lights"] = rows
+    ctx.lights = measured
     res = np.concatenate([pl.residuals_mm for pl in lights])
     result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres, "sphere_centres_from": source,
               "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows, "errors": errors,
               "unseen": unseen,
               "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (axis at the platter, +x to the "
                        "camera)"}
-    if lab is not None:
-        result["sphere_centres_lab_mm"] = (centres - lab[1]) @ lab[0]
+    if ctx.lab is not None:
+        result["sphere_centres_lab_mm"] = ctx.lab.to_lab(centres)
     figures = {"lights": len(rows), "failed": len(errors), "unseen": len(unseen), "spheres": len(spheres),
                "centres": "known" if source.startswith("known") else "silhouettes",
                "ray_residual_rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 3),
                "max_std_mm": round(float(max(pl.std_mm.max() for pl in lights)), 2)}
-    return result, figures, ctx.frame_ids([r["step"] for r in rows]), {}, {"sphere_radius_mm": radius,
-                                                                          "sphere_centres_from": source}
+    return StageOutput(result, figures, ctx.frame_ids([r["step"] for r in rows]),
+                       params={"sphere_radius_mm": radius, "sphere_centres_from": source}, errors=errors)
 
 
 def _readback_light(ctx: _Context, step: int) -> list[float] | None:
@@ -797,16 +701,16 @@ def _readback_light(ctx: _Context, step: int) -> list[float] | None:
     return np.mean(np.array(vals, float), axis=0).tolist() if vals else None
 
 
-def _stage_positioner(ctx: _Context, rep: CalibrationReport):
-    rows = _need(ctx, "lights", "measured light positions")
-    _need(ctx, "turntable", "the lab frame: azimuth and elevation are about the turntable axis")
-    use = [r for r in rows if r["commanded"] and "azimuth_deg" in r["commanded"]]
+def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
+    measured = _need(ctx.lights, "lights", "measured light positions")
+    lab = _need(ctx.lab, "turntable", "the lab frame: azimuth and elevation are about the turntable axis")
+    use = [m for m in measured if m.commanded and "azimuth_deg" in m.commanded]
     if len(use) < 3:
         raise _Skip(f"{len(use)} spheres steps with commanded azimuth/elevation (need 3; "
                     "xyz_mm light targets have no arm model)")
-    az = np.array([r["commanded"]["azimuth_deg"] for r in use])
-    el = np.array([r["commanded"]["elevation_deg"] for r in use])
-    X = np.array([r["position_lab_mm"] for r in use])
+    az = np.array([m.commanded["azimuth_deg"] for m in use])
+    el = np.array([m.commanded["elevation_deg"] for m in use])
+    X = np.array([m.position_lab_mm for m in use])
     model = fit_positioner_model(az, el, X)
     if model.radius_mm <= 0 or model.rms_mm > MAX_ARM_RMS_FRACTION * model.radius_mm:
         # LM can settle on a mirrored arm (negative radius) when the lights scatter in distance
@@ -814,7 +718,6 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
             f"the arm model does not fit the {len(use)} measured lights (radius {model.radius_mm:.0f} mm, "
             f"rms {model.rms_mm:.0f} mm): their distances scatter too much (lights stage max_std_mm); "
             "image the spheres at a higher resolution or add light poses")
-    R_lab, t_lab = ctx.results["lab_frame"]
     d = X - model.centre_mm
     rep.plots["lights"] = {"commanded_az": az, "commanded_el": el,
                            "measured_az": np.degrees(np.arctan2(d[:, 1], d[:, 0])) - model.azimuth_offset_deg,
@@ -828,19 +731,20 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport):
             continue
         p_lab = model.position(light["azimuth_deg"], light["elevation_deg"])
         per_step.append({"step": idx, "position_lab_mm": p_lab,
-                         "position_camera_mm": R_lab @ p_lab + t_lab})
-    ctx.results["positioner"] = model
+                         "position_camera_mm": lab.R @ p_lab + lab.t_mm})
+    ctx.positioner = model
     result = {"centre_lab_mm": model.centre_mm, "radius_mm": model.radius_mm,
               "azimuth_offset_deg": model.azimuth_offset_deg,
               "elevation_offset_deg": model.elevation_offset_deg, "param_std": model.param_std,
+              "fit_status": model.fit_status, "fit_message": model.fit_message,
               "residuals_mm": model.residuals_mm, "rms_mm": model.rms_mm, "step_lights": per_step}
     figures = {"rms_mm": round(model.rms_mm, 2), "radius_mm": round(model.radius_mm, 1),
                "el_offset_deg": round(model.elevation_offset_deg, 2), "steps_with_light": len(per_step)}
     params = {"model": "arm (centre, radius, azimuth/elevation offsets)"}
-    return result, figures, ctx.frame_ids([r["step"] for r in use]), {}, params
+    return StageOutput(result, figures, ctx.frame_ids([m.step for m in use]), params=params)
 
 
-def _stage_polarization(ctx: _Context, rep: CalibrationReport):
+def _stage_polarization(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     groups: dict[tuple, list[int]] = {}
     for s in sorted(ctx.frames):
         st = ctx.steps[s]
@@ -892,34 +796,24 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport):
     rep.plots["polarization"] = example
     figures = {"poses": len(out), "method": out[0]["method"],
                "specular_pct": round(100 * float(np.mean([r["specular_fraction"] for r in out])), 2)}
-    return {"poses": out}, figures, ctx.frame_ids(used), {}, {"light_polarizer_deg": 0.0}
+    return StageOutput({"poses": out}, figures, ctx.frame_ids(used), params={"light_polarizer_deg": 0.0})
 
 
-def _stage_gray_card(ctx: _Context, rep: CalibrationReport):
+def _stage_gray_card(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("gray_card")
     albedo = ctx.targets.gray_card_albedo
-    model, tt = ctx.results.get("positioner"), ctx.results.get("turntable")
+    model = ctx.positioner
     rows = []
     for s in steps:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         img = ctx.hdr[s]
-        lum = img.mean(axis=2)
-        # the card: the largest bright region, eroded away from its edges
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(
-            (lum > 0.5 * np.percentile(lum, 99)).astype(np.uint8), connectivity=4)
-        if n < 2:
-            raise TargetNotFound("no gray card (bright uniform region)", frame=name)
-        k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        card = cv2.erode((labels == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        if card.sum() < 50:
-            raise TargetNotFound(f"gray card region has {int(card.sum())} px after erosion (need 50)",
-                                 frame=name)
+        card = find_gray_card(img, frame=name)
         rgb = np.median(img[card], axis=0)
         row = {"step": s, "pixels": int(card.sum()), "value_rgb": rgb,
                "relative_scale_rgb": albedo / rgb,
                "relative_spread": float(np.std(img[card].mean(axis=1)) / max(float(rgb.mean()), 1e-12))}
         light = ctx.steps[s].get("light")
-        if model is not None and tt is not None and light and "azimuth_deg" in light:
+        if model is not None and light and "azimuth_deg" in light:
             # absolute scale: the card stands at the lab origin facing the light (assumed)
             d = float(np.linalg.norm(model.position(light["azimuth_deg"], light["elevation_deg"])))
             row["light_distance_mm"] = d
@@ -934,48 +828,33 @@ def _stage_gray_card(ctx: _Context, rep: CalibrationReport):
     figures = {"cards": len(rows), "relative_scale_rgb": [float(f"{v:.4g}") for v in scale],
                "spread_pct": round(100 * max(r["relative_spread"] for r in rows), 2),
                "absolute": all("brdf_scale_rgb" in r for r in rows)}
-    return result, figures, ctx.frame_ids(steps), {}, {"albedo": albedo}
+    return StageOutput(result, figures, ctx.frame_ids(steps), params={"albedo": albedo})
 
 
-def _find_mirror_sphere(img: np.ndarray, frame: str) -> tuple[np.ndarray, float]:
-    """Centre (x, y) and radius (px) of a mirror sphere under an environment: the strongest
-    circle of OpenCV's gradient Hough transform on the tone-mapped image (the sphere's
-    compressed reflection of the room differs from the background all round its limb)."""
-    g8 = (np.sqrt(_display(img)) * 255).astype(np.uint8)
-    h, w = g8.shape
-    circles = cv2.HoughCircles(g8, cv2.HOUGH_GRADIENT_ALT, dp=1.0, minDist=min(h, w) / 4, param1=100,
-                               param2=0.75, minRadius=5, maxRadius=min(h, w) // 2)
-    if circles is None:
-        raise TargetNotFound("no mirror sphere (no circle in the image)", frame=frame)
-    x, y, r = (float(v) for v in circles.reshape(-1, 3)[0])
-    return np.array([x, y]), r
-
-
-def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport):
+def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("mirror_probe")
-    lab = ctx.results.get("lab_frame")
     # the room is fixed in the lab: map it in the lab frame when the turntable gave one
-    R, frame = (lab[0], "lab") if lab is not None else (np.eye(3), "camera")
-    probes, rows = [], []
-    for s in steps:
-        name = f"frame {ctx.frames[s][0].id} (step {s})"
-        centre, radius = _find_mirror_sphere(ctx.hdr[s], name)
-        probes.append(mirror_sphere_to_latlong(ctx.hdr[s], centre, radius, R, height=PROBE_HEIGHT))
-        rows.append({"step": s, "centre_px": centre, "radius_px": radius})
+    R, frame = (ctx.lab.R, "lab") if ctx.lab is not None else (np.eye(3), "camera")
+    spheres = {s: find_mirror_sphere(ctx.hdr[s], frame=f"frame {ctx.frames[s][0].id} (step {s})") for s in steps}
+    height = max(MIN_PROBE_HEIGHT, int(np.ceil(max(sp.radius_px for sp in spheres.values()))))
+    probes = [mirror_sphere_to_latlong(ctx.hdr[s], sp.center_px, sp.radius_px, R, height=height)
+              for s, sp in spheres.items()]
+    rows = [{"step": s, "centre_px": sp.center_px, "radius_px": sp.radius_px} for s, sp in spheres.items()]
     probe = merge_probes(probes)
     buf = io.BytesIO()
-    np.savez_compressed(buf, env=probe.env, weight=probe.weight)
+    np.savez_compressed(buf, env=probe.env, weight=probe.weight, mask=probe.valid)
     rep.plots["probe"] = {"env": probe.env, "weight": probe.weight}
-    result = {"frame": frame, "height": PROBE_HEIGHT, "views": rows,
+    result = {"frame": frame, "height": height, "views": rows,
               "valid_fraction": float(probe.valid.mean()), "mean_rgb": probe.env[probe.valid].mean(axis=0),
-              "artifacts": "environment.npz: env (H, 2H, 3) DN/s lat-long, weight (H, 2H)"}
+              "artifacts": "environment.npz: env (H, 2H, 3) DN/s lat-long, weight (H, 2H) in [0, 1] "
+                           "(0 in the blind cone behind the sphere), mask (H, 2H) bool: weight > 0"}
     figures = {"views": len(rows), "frame": frame, "valid_pct": round(100 * float(probe.valid.mean()), 1),
                "sphere_radius_px": round(rows[0]["radius_px"], 1)}
     artifacts = {"environment.npz": buf.getvalue()}
-    return result, figures, ctx.frame_ids(steps), artifacts, {"height": PROBE_HEIGHT}
+    return StageOutput(result, figures, ctx.frame_ids(steps), artifacts, {"height": height})
 
 
-_RUNNERS: dict[str, Callable] = {
+_RUNNERS: dict[str, Callable[[_Context, CalibrationReport], StageOutput]] = {
     "dark": _stage_dark, "hdr": _stage_hdr, "intrinsics": _stage_intrinsics,
     "turntable": _stage_turntable, "lights": _stage_lights, "positioner": _stage_positioner,
     "polarization": _stage_polarization, "gray_card": _stage_gray_card,
@@ -991,18 +870,17 @@ RESULT_KIND = {"dark": "dark", "hdr": "hdr", "intrinsics": "intrinsics", "turnta
 def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -> StageResult:
     if not wanted:
         return StageResult(name, "skipped", "not requested")
+    # bad data fails the stage (the error names the frame); anything else is a bug and raises
     try:
-        result, figures, inputs, artifacts, *rest = _RUNNERS[name](ctx, rep)
+        out = _RUNNERS[name](ctx, rep)
     except _Skip as skip:
         return StageResult(name, "skipped", str(skip))
-    except (CalibrationError, ValueError, np.linalg.LinAlgError, cv2.error, StoreError) as exc:
+    except (CalibrationError, StageDataError, StoreError) as exc:
         return StageResult(name, "failed", f"{type(exc).__name__}: {exc}")
-    cid = ctx.store.add_calibration(ctx.info.id, RESULT_KIND[name], result=result,
-                                    params=rest[0] if rest else {}, input_frames=inputs, artifacts=artifacts)
-    ctx.results.setdefault(name, True)
-    # a stage that lost some inputs (``errors``) is stored for the rest but reported failed
-    errors = result.get("errors") or []
-    return StageResult(name, "failed" if errors else "ok", "; ".join(errors), figures, cid)
+    cid = ctx.store.add_calibration(ctx.info.id, RESULT_KIND[name], result=out.result, params=out.params,
+                                    input_frames=out.input_frames, artifacts=out.artifacts)
+    # a stage that lost some inputs is stored for the rest but reported failed
+    return StageResult(name, "failed" if out.errors else "ok", "; ".join(out.errors), out.figures, cid)
 
 
 def calibrate_session(store: Store, session_name: str, *,
@@ -1020,7 +898,8 @@ def calibrate_session(store: Store, session_name: str, *,
         Called before each stage with its name (``index`` 0-based of ``total`` stages), during
         the long hdr stage with ``'hdr k/n steps'``, and once with ``('done', total, total)``.
     targets : LabTargets, optional
-        Physical targets (board geometry, sphere radius, card albedo); default :class:`LabTargets`.
+        Physical targets (board geometry, sphere radius, card albedo); default: the simulated
+        lab's (:meth:`LabTargets.simulated`).
     stages : tuple of str
         Subset of :data:`STAGES` to run (later stages skip when an earlier one they need is
         left out).
@@ -1047,7 +926,7 @@ def calibrate_session(store: Store, session_name: str, *,
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
         raise ValueError(f"stages: unknown {unknown}; known: {', '.join(STAGES)}")
-    ctx = _Context(store, session_name, targets or LabTargets(), measurement_hdr)
+    ctx = _Context(store, session_name, targets or LabTargets.simulated(), measurement_hdr)
     if not ctx.frames:
         raise NothingToCalibrate(f"session {session_name!r} has no stored frames yet; capture it first "
                                  f"(gonio capture run / resume)")

@@ -1,19 +1,21 @@
 """Auto-exposure from metering shots: the raw histogram of the camera's own file.
 
-A metering shot is decoded with rawpy; its visible CFA values are normalised to the fraction of
-the usable range, ``(raw - black) / (white - black)``. Raw values are linear in exposure time,
+A metering shot is decoded with :func:`calibration.raw.read_raw`; its visible CFA values are
+normalised to the fraction of the usable range, ``(raw - black) / (white - black)`` with each
+photosite's own channel black level. Raw values are linear in exposure time,
 so the exposure that puts a chosen highlight percentile at a chosen level follows from one
 unclipped shot. A shot with clipped highlights says only "too much": the exposure is cut by
 ``jump_stops`` and metered again; a shot with no signal above the noise floor is lengthened.
 """
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-import rawpy
+
+from calibration.errors import InvalidInput
+from calibration.raw import read_raw
 
 
 class MeteringError(RuntimeError):
@@ -21,18 +23,13 @@ class MeteringError(RuntimeError):
 
 
 def raw_signal(data: bytes) -> np.ndarray:
-    """Visible raw values of a camera file as fractions of the usable range (0 = black level,
-    1 = white level), float32, shape (H, W) (the CFA mosaic, not demosaiced)."""
+    """Visible raw values of a camera file as fractions of the usable range, float32, shape (H, W)
+    (the CFA mosaic, not demosaiced): 0 at each photosite's own channel black level, 1 at the
+    white level (:meth:`calibration.raw.RawMosaic.signal`)."""
     try:
-        with rawpy.imread(io.BytesIO(data)) as raw:
-            values = raw.raw_image_visible.astype(np.float32)
-            black = float(np.mean(raw.black_level_per_channel))
-            white = float(raw.white_level)
-    except (rawpy.LibRawError, ValueError) as exc:
-        raise MeteringError(f"the metering shot is not a raw file rawpy can decode: {exc}") from None
-    if white <= black:
-        raise MeteringError(f"the metering shot has white level {white:g} <= black level {black:g}")
-    return (values - black) / (white - black)
+        return read_raw(data, name="the metering shot").signal()
+    except InvalidInput as exc:
+        raise MeteringError(str(exc)) from None
 
 
 @dataclass(frozen=True)

@@ -46,18 +46,32 @@ import hashlib
 import itertools
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from rig.motion import move_time_s
+from rig.tomlfile import read_toml
+
+#: The scene targets: what stands in front of the camera for a step, and what the operator does
+#: to set it up. One vocabulary: a calibration kind is named after its target, and the simulated
+#: lab (``sims.world.SimWorld.set_scene``) stages a scene under the same name.
+SCENE_TARGETS = {
+    "object": "put the object on the turntable",
+    "dark": "put the lens cap on",
+    "checkerboard": "put the checkerboard target on the turntable",
+    "spheres": "put the calibration spheres on the turntable",
+    "gray_card": "put the gray card on the turntable",
+    "mirror_probe": "put the mirror sphere on the turntable",
+}
+
 CALIBRATION_KINDS = {
-    # kind: (scene target the operator sets up, default frames, default light use)
-    "dark": ("lens_cap", 5, "none"),
-    "checkerboard": ("checkerboard", 1, "first"),
-    "spheres": ("spheres", 1, "grid"),
-    "gray_card": ("gray_card", 1, "grid"),
-    "mirror_probe": ("mirror_probe", 1, "none"),
+    # kind (= its scene target): (default frames, default light use)
+    "dark": (5, "none"),
+    "checkerboard": (1, "first"),
+    "spheres": (1, "grid"),
+    "gray_card": (1, "grid"),
+    "mirror_probe": (1, "none"),
 }
 
 #: motion model defaults where a device's describe() gives none (speed unit/s, accel unit/s^2)
@@ -70,6 +84,15 @@ DEFAULT_FRAME_BYTES = 25_000_000
 USB_BYTES_PER_S = 35e6
 #: per-frame overhead beyond the exposure time: shutter and readout, then the USB transfer, s
 DEFAULT_FRAME_OVERHEAD_S = 0.2 + DEFAULT_FRAME_BYTES / USB_BYTES_PER_S
+
+
+#: caps on a plan, counted before anything is expanded: values past them are surely typos (a
+#: 10^9-step plan once ran until memory ran out); split a bigger measurement into sessions
+MAX_VALUES = 100_000        # values in one list or range
+MAX_STEPS = 200_000         # steps of a whole plan
+MAX_FRAMES = 1_000_000      # frames of a whole plan
+MAX_REPEATS = 1_000         # repeats, and frames of one calibration step
+MAX_STOPS = 64              # exposures in a bracket
 
 
 class PlanError(ValueError):
@@ -195,14 +218,7 @@ class Plan:
     def from_toml(cls, path: str | Path) -> "Plan":
         """Read and validate a plan file (errors name the file and the field)."""
         path = Path(path)
-        if not path.is_file():
-            raise PlanError(f"plan file {path} does not exist")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise PlanError(f"{path}: not valid TOML: {exc}") from None
-        except UnicodeDecodeError:
-            raise PlanError(f"{path}: not a text file") from None
+        data = read_toml(path, error=PlanError, what="plan file")
         try:
             return cls.from_dict(data)
         except PlanError as exc:
@@ -326,7 +342,7 @@ class Plan:
         return None
 
     def _calibration_steps(self, c: Calibration) -> list["Step"]:
-        target, default_frames, default_lights = CALIBRATION_KINDS[c.kind]
+        default_frames, default_lights = CALIBRATION_KINDS[c.kind]
         frames = c.frames or default_frames
         lights = c.lights or default_lights
         if c.exposure_s is not None:
@@ -346,7 +362,7 @@ class Plan:
         pol = None if c.kind == "dark" or not self.polarizer_deg else self.polarizer_deg[0]
         out = []
         for a, lt in _serpentine([angles, light_list]):
-            out.append(Step(index=0, kind=c.kind, target=target,
+            out.append(Step(index=0, kind=c.kind, target=c.kind,
                             turntable_deg=None if c.kind == "dark" else a,
                             light=None if c.kind == "dark" else lt, polarizer_deg=pol,
                             exposures_s=exposures, repeats=frames, iso=self.exposure.iso,
@@ -371,7 +387,7 @@ class Step:
     kind : str
         ``measure`` or a calibration kind (``dark``, ``checkerboard`` ...).
     target : str
-        What must be in front of the camera (``object``, ``lens_cap``, ``checkerboard`` ...).
+        What must be in front of the camera: a key of :data:`SCENE_TARGETS`.
     turntable_deg, polarizer_deg : float or None
         Axis targets, degrees (None: leave where it is).
     light : dict or None
@@ -484,11 +500,7 @@ class MotionModel:
 
     def move_s(self, role: str, distance: float) -> float:
         """Time of one trapezoidal move of ``distance`` (device units), seconds."""
-        v, a = self.speeds[role]
-        d = abs(distance)
-        if d == 0:
-            return 0.0
-        return d / v + v / a if d > v * v / a else 2.0 * math.sqrt(d / a)
+        return move_time_s(distance, *self.speeds[role])
 
     def step_move_s(self, prev: Step | None, step: Step) -> float:
         """Time to go from ``prev`` to ``step``: axes move together, so the slowest counts."""
@@ -616,6 +628,9 @@ def _parse(data: Any) -> Plan:
             pts = lt["xyz_mm"]
             if not isinstance(pts, list):
                 raise PlanError(f"light.xyz_mm must be a list of [x, y, z] points in mm, got {_tname(pts)}")
+            if len(pts) > MAX_VALUES:  # before converting them all
+                raise PlanError(f"light.xyz_mm has {len(pts)} points; more than {MAX_VALUES} is "
+                                "surely a mistake")
             for i, p in enumerate(pts):
                 if not (isinstance(p, list) and len(p) == 3 and all(_is_num(x) for x in p)):
                     raise PlanError(f"light.xyz_mm[{i}] must be [x, y, z] (three numbers, mm), got {p!r}")
@@ -704,7 +719,19 @@ def _validate(p: Plan) -> None:
     """Rig-independent checks (also run on Python-built plans)."""
     if not _is_int(p.repeats) or p.repeats < 1:
         raise PlanError(f"repeats = {p.repeats!r} must be a whole number >= 1")
+    if p.repeats > MAX_REPEATS:
+        raise PlanError(f"repeats = {p.repeats} is more than {MAX_REPEATS}: surely a mistake")
     e = p.exposure
+    if len(e.stops) > MAX_STOPS:
+        raise PlanError(f"exposure.stops has {len(e.stops)} stops; more than {MAX_STOPS} is "
+                        "surely a mistake")
+    if p.light is not None and p.light.xyz_mm is not None and len(p.light.xyz_mm) > MAX_VALUES:
+        raise PlanError(f"light.xyz_mm has {len(p.light.xyz_mm)} points; more than {MAX_VALUES} "
+                        "is surely a mistake")  # a plan built in Python
+    for i, c in enumerate(p.calibration):
+        if c.frames is not None and c.frames > MAX_REPEATS:
+            raise PlanError(f"calibration[{i}].frames = {c.frames} is more than {MAX_REPEATS}: "
+                            "surely a mistake")
     if not (_is_num(e.base_s) and e.base_s > 0 and math.isfinite(e.base_s)):
         raise PlanError(f"exposure.base_s = {_fmt(e.base_s)} must be a positive number of seconds")
     if not e.stops:
@@ -757,6 +784,28 @@ def _validate(p: Plan) -> None:
     if not measuring and not p.calibration:
         raise PlanError("the plan captures nothing: give turntable, light or polarizer values, "
                         "or a [[calibration]] capture")
+    steps, frames = _count(p)
+    if steps > MAX_STEPS or frames > MAX_FRAMES:
+        raise PlanError(f"the plan has {steps:,} steps and {frames:,} frames; the caps are "
+                        f"{MAX_STEPS:,} steps and {MAX_FRAMES:,} frames per session (split the "
+                        "measurement into several sessions, or check the ranges for a typo)")
+
+
+def _count(p: Plan) -> tuple[int, int]:
+    """Steps and frames of ``p`` by arithmetic (what :meth:`Plan.steps` would expand), so a plan
+    far too big is refused before anything is expanded."""
+    measure = [len(p.turntable_deg), len(p.polarizer_deg), p.light.count if p.light else 0]
+    steps = math.prod(n for n in measure if n) if any(measure) else 0
+    frames = steps * len(p.exposure.stops) * p.repeats
+    for c in p.calibration:
+        default_frames, default_lights = CALIBRATION_KINDS.get(c.kind, (1, "none"))
+        angles = (len(c.turntable_angles_deg) if c.turntable_angles_deg is not None else
+                  8 if c.kind == "checkerboard" and p.turntable_deg else 1)
+        lights = (c.lights or default_lights) == "grid" and p.light is not None and p.light.count or 1
+        steps += angles * lights
+        frames += angles * lights * (1 if c.exposure_s is not None else len(p.exposure.stops)) \
+            * (c.frames or default_frames)
+    return steps, frames
 
 
 def _no_duplicates(values: Sequence[Any], where: str) -> None:
@@ -817,13 +866,16 @@ def _numbers(v: Any, where: str) -> tuple[float, ...]:
         if step == 0 or (stop - start) * step < 0:
             raise PlanError(f"{where}: step {step:g} never goes from {start:g} to {stop:g}")
         n = math.floor((stop - start) / step + 1e-9) + 1
-        if n > 100_000:
-            raise PlanError(f"{where}: the range has {n} values; more than 100000 is surely a mistake")
+        if n > MAX_VALUES:
+            raise PlanError(f"{where}: the range has {n} values; more than {MAX_VALUES} is surely "
+                            "a mistake")
         return tuple(round(start + k * step, 9) for k in range(n))
     if not isinstance(v, list):
         raise PlanError(f"{where} must be a list of numbers or {{start, stop, step}}, got {_tname(v)}")
     if not v:
         raise PlanError(f"{where} is empty; give at least one value")
+    if len(v) > MAX_VALUES:
+        raise PlanError(f"{where} has {len(v)} values; more than {MAX_VALUES} is surely a mistake")
     for i, x in enumerate(v):
         if not _is_num(x):
             raise PlanError(f"{where}[{i}] must be a number, got {_tname(x)}")

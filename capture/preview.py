@@ -6,7 +6,7 @@ colour in the *output* (a few thousand terminal cells at most).
 
 Pipeline for a DNG frame::
 
-    decode_dng(bytes) -> RawMosaic                  camera's CFA values, DN, untouched
+    decode_dng(bytes) -> RawMosaic                  calibration.raw.read_raw: CFA values, DN
     bin_cfa(mosaic)   -> (H/2, W/2, 3) float32      linear, 0 = black level, 1 = white level
     fit_cells(...) + downscale(...)                 area-average to the widget's cell grid
     to_display(...)   -> uint8 sRGB                 gamma-encoded for the terminal
@@ -18,16 +18,17 @@ needs to pick the exposures of a bracket.
 """
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import rawpy
 from rich.color import Color, ColorType
 from rich.color_triplet import ColorTriplet
 from rich.segment import Segment
 from rich.style import Style
+
+from calibration.errors import InvalidInput
+from calibration.raw import RawMosaic, read_raw
 
 #: block characters for one-row bar charts, from empty to full
 SPARK = np.array(list(" ▁▂▃▄▅▆▇█"))
@@ -39,63 +40,19 @@ class PreviewError(ValueError):
     """A frame cannot be previewed (not a raw file rawpy reads, wrong array shape...)."""
 
 
-@dataclass(frozen=True)
-class RawMosaic:
-    """A Bayer mosaic as the camera recorded it.
-
-    Attributes
-    ----------
-    cfa : ndarray of shape (H, W), uint16
-        Raw values, digital numbers (DN), visible area only.
-    pattern : str
-        The 2x2 CFA tile from the top-left, row-major, e.g. ``"RGGB"``.
-    black_level : ndarray of shape (2, 2), float
-        Black level (DN) of each position of the 2x2 tile.
-    white_level : float
-        Saturation level, DN.
-    """
-
-    cfa: np.ndarray
-    pattern: str
-    black_level: np.ndarray
-    white_level: float
-
-
 def decode_dng(data: bytes) -> RawMosaic:
-    """Read a raw file (DNG or any format LibRaw knows) from memory.
-
-    Parameters
-    ----------
-    data : bytes
-        The camera's file, as stored (``Frame.data``).
-
-    Returns
-    -------
-    RawMosaic
+    """Read a raw file (DNG or any format LibRaw knows) from memory with
+    :func:`calibration.raw.read_raw`.
 
     Raises
     ------
     PreviewError
         If ``data`` is not a raw file LibRaw can open, or is not a 2x2 RGB Bayer mosaic.
     """
-    if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) == 0:
-        raise PreviewError("data must be the non-empty bytes of a raw file")
     try:
-        with rawpy.imread(io.BytesIO(bytes(data))) as raw:
-            cfa = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
-            colors = raw.color_desc.decode("ascii")
-            idx = np.asarray(raw.raw_pattern)
-            black = np.asarray(raw.black_level_per_channel, dtype=float)
-            white = float(raw.white_level)
-    except (rawpy.LibRawError, OSError) as exc:
-        raise PreviewError(f"data is not a raw file LibRaw can read ({exc})") from None
-    if idx is None or idx.shape != (2, 2) or cfa.ndim != 2:
-        raise PreviewError("only 2x2 Bayer mosaics can be previewed (got pattern "
-                           f"{None if idx is None else idx.tolist()}, image shape {cfa.shape})")
-    pattern = "".join(colors[i] for i in idx.ravel())
-    if sorted(pattern) != ["B", "G", "G", "R"]:
-        raise PreviewError(f"CFA pattern {pattern!r} is not an RGB Bayer tile")
-    return RawMosaic(cfa=cfa, pattern=pattern, black_level=black[idx], white_level=white)
+        return read_raw(data, name="frame")
+    except InvalidInput as exc:
+        raise PreviewError(str(exc)) from None
 
 
 def bin_cfa(mosaic: RawMosaic) -> np.ndarray:
@@ -111,18 +68,18 @@ def bin_cfa(mosaic: RawMosaic) -> np.ndarray:
         Linear, black-subtracted and scaled so that 0 is the black level and 1 the white level
         (values above 1 cannot occur; an odd last row / column is dropped).
     """
-    h, w = mosaic.cfa.shape
+    h, w = mosaic.data.shape
     if h < 2 or w < 2:
         raise PreviewError(f"mosaic is {h}x{w} pixels; at least one 2x2 tile is needed")
     hh, ww = h // 2, w // 2
     out = np.zeros((hh, ww, 3), dtype=np.float32)
     counts = np.zeros(3, dtype=np.float32)
-    for k, c in enumerate(mosaic.pattern):  # four tile positions (strided views), not pixels
+    for k, c in enumerate(mosaic.cfa):  # four tile positions (strided views), not pixels
         i, j = divmod(k, 2)
-        black = np.float32(mosaic.black_level[i, j])
+        black = np.float32(mosaic.black_level_cfa[i, j])
         scale = np.float32(1.0 / max(mosaic.white_level - black, 1.0))
         ch = CHANNELS.index(c)
-        out[..., ch] += (mosaic.cfa[i:2 * hh:2, j:2 * ww:2].astype(np.float32) - black) * scale
+        out[..., ch] += (mosaic.data[i:2 * hh:2, j:2 * ww:2].astype(np.float32) - black) * scale
         counts[ch] += 1
     out /= counts
     return np.clip(out, 0.0, 1.0, out=out)
@@ -322,19 +279,19 @@ def raw_histogram(mosaic: RawMosaic, bins: int = 64, *, white_fraction: float = 
         raise PreviewError(f"bins must be >= 1, got {bins}")
     if not 0 < white_fraction <= 1:
         raise PreviewError(f"white_fraction must be in (0, 1], got {white_fraction}")
-    lo, hi = float(mosaic.black_level.min()), float(mosaic.white_level)
+    lo, hi = float(mosaic.black_level_cfa.min()), float(mosaic.white_level)
     edges = np.linspace(lo, hi, bins + 1)
     # the bin of every possible DN, so each CFA position needs one bincount over its raw values
     bin_of = np.clip(((np.arange(65536) - lo) * (bins / max(hi - lo, 1.0))).astype(np.int64),
                      0, bins - 1)
     counts = np.zeros((3, bins), dtype=np.int64)
     total, crushed, clipped = np.zeros(3), np.zeros(3), np.zeros(3)
-    for k, c in enumerate(mosaic.pattern):  # the four positions of the 2x2 tile
+    for k, c in enumerate(mosaic.cfa):  # the four positions of the 2x2 tile
         i, j = divmod(k, 2)
-        per_dn = np.bincount(mosaic.cfa[i::2, j::2].ravel(), minlength=65536)
+        per_dn = np.bincount(mosaic.data[i::2, j::2].ravel(), minlength=65536)
         ch = CHANNELS.index(c)
         counts[ch] += np.bincount(bin_of, weights=per_dn, minlength=bins).astype(np.int64)
-        black = float(mosaic.black_level[i, j])
+        black = float(mosaic.black_level_cfa[i, j])
         white = black + white_fraction * (hi - black)
         total[ch] += per_dn.sum()
         crushed[ch] += per_dn[: int(np.floor(black)) + 1].sum()

@@ -16,19 +16,29 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from rig import Axis, Rig, load_config, wait_all
-from rig.rig import ROLES
+from rig.rig import ROLES, ConfigError
 from sims.lab import SimLab
+
+
+#: the driver that speaks each simulated device's protocol (what ``port = "sim"`` serves)
+SIM_DRIVERS = {"turntable": "zaber", "positioner": "grbl", "polarizer": "elliptec", "camera": "ptp"}
 
 
 @dataclass
 class OpenedRig:
-    """A rig built by :func:`open_rig` and the simulators behind it (None for real hardware)."""
+    """A rig built by :func:`open_rig` and the simulators behind it (None for real hardware).
+
+    ``prepare_target(target, step)`` stages a scene target (``object``, ``checkerboard`` ...)
+    in front of a simulated camera — the runner's ``prepare_target`` hook. None where nothing
+    can: a real camera (the operator sets the scene up) or a lab given a plain ``frame_source``
+    without a ``prepare_target`` of its own."""
 
     rig: Rig
     lab: SimLab | None = None
+    prepare_target: Callable[[str, Any], None] | None = None
 
     def close(self) -> None:
         """Close every device, then stop the simulators."""
@@ -63,7 +73,10 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
     timeout_s : float
         Time allowed for homing, seconds.
     lab_options
-        Passed to :class:`SimLab` (``frame_source``, ``kinematics``, ``options``).
+        Passed to :class:`SimLab` (``frame_source``, ``kinematics``, ``options``), but for
+        ``prepare_target``: the scene changer that goes with a given ``frame_source``. Without a
+        ``frame_source`` a simulated camera renders :func:`sims.world.lab_world`, whose
+        ``prepare_target`` the result carries.
 
     Raises
     ------
@@ -71,15 +84,25 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
         For a malformed rig file; ``RigError`` subclasses for device faults.
     """
     lab = None
+    prepare_target = lab_options.pop("prepare_target", None)
     if isinstance(spec, str) and spec == "sim":
+        prepare_target = _sim_scene(fast, lab_options, prepare_target)
         lab = SimLab(fast=fast, **lab_options).start()
         cfg = lab.rig_config()
     else:
         cfg = load_config(spec)
         sim_roles = [role for role, section in cfg.items() if role in ROLES and section.get("port") == "sim"]
+        where = "rig config" if isinstance(spec, dict) else str(spec)
+        for role in sim_roles:
+            if cfg[role]["driver"] != SIM_DRIVERS[role]:
+                raise ConfigError(f"{where}: [{role}] driver = {cfg[role]['driver']!r} with port = "
+                                  f"'sim': the simulated {role} speaks the {SIM_DRIVERS[role]!r} "
+                                  f"protocol; write driver = {SIM_DRIVERS[role]!r}, or a real port")
         if sim_roles:
             if "positioner" in sim_roles and "kinematics" in cfg["positioner"]:
                 lab_options.setdefault("kinematics", _kinematics_table(cfg["positioner"]["kinematics"]))
+            if "camera" in sim_roles:
+                prepare_target = _sim_scene(fast, lab_options, prepare_target)
             lab = SimLab(fast=fast, roles=sim_roles, **lab_options).start()
             served = lab.rig_config()
             cfg = {role: ({**section, "port": served[role]["port"]} if role in sim_roles else section)
@@ -95,7 +118,18 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
         if lab is not None:
             lab.stop()
         raise
-    return OpenedRig(rig, lab)
+    return OpenedRig(rig, lab, prepare_target)
+
+
+def _sim_scene(fast: bool, lab_options: dict[str, Any], prepare_target):
+    """The simulated camera's scene changer: the given one beside a given ``frame_source``,
+    else the default world's (whose frame source goes into ``lab_options``)."""
+    if lab_options.get("frame_source") is not None:
+        return prepare_target
+    from sims.world import lab_world  # imported lazily: it loads the renderer
+    world = lab_world(fast)
+    lab_options["frame_source"] = world.frame_source
+    return world.prepare_target
 
 
 def _kinematics_table(value: Any) -> Any:

@@ -19,6 +19,7 @@ Control from another thread (the CLI's Ctrl-C handler, a TUI button): :meth:`Run
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from dataclasses import dataclass
@@ -29,8 +30,8 @@ from rig.errors import Disconnected
 
 from .events import Event, EventBus, EventKind
 from .metering import MeteringError, meter
-from .plan import Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff
-from .store import SessionInfo, Store, StoreFull
+from .plan import SCENE_TARGETS, Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff
+from .store import SessionInfo, Store, StoreFull, check_session_name, safe_name_from
 
 #: free space kept in reserve on the store's disk, bytes
 DEFAULT_RESERVE_BYTES = 1 << 30
@@ -71,7 +72,8 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
     Parameters
     ----------
     name : str, optional
-        Session name; default ``<plan name or 'session'>-YYYYmmdd-HHMMSS``.
+        Session name (see :func:`~capture.store.check_session_name`); default
+        ``<plan name made safe, or 'session'>-YYYYmmdd-HHMMSS``.
     plan_path : str, optional
         The plan file, remembered so ``resume`` can check it is unchanged.
     operator : str, optional
@@ -86,6 +88,8 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
     RunnerError
         The store's disk lacks room for the plan's estimated frames.
     """
+    if name is not None:
+        check_session_name(name)  # before any work: a bad name is the cheapest error
     if rig is not None:
         plan.check_rig(rig)
     steps = plan.steps(rig)
@@ -97,7 +101,7 @@ def create_session(store: Store, plan: Plan, rig: Any = None, *, name: str | Non
         raise RunnerError(f"not enough disk space in {store.root}: the plan needs about "
                           f"{estimate.bytes / 1e9:.2f} GB{assumed} (+{reserve_bytes / 1e9:.2f} GB "
                           f"reserve), {free / 1e9:.2f} GB are free")
-    name = name or f"{plan.name or 'session'}-{time.strftime('%Y%m%d-%H%M%S')}"
+    name = name or f"{safe_name_from(plan.name or 'session')}-{time.strftime('%Y%m%d-%H%M%S')}"
     return store.create_session(name, plan=plan.to_dict(), plan_hash=plan.hash,
                                 steps=[s.to_dict() for s in steps], plan_path=plan_path,
                                 operator=plan.operator if operator is None else operator,
@@ -149,7 +153,7 @@ class Runner:
     reserve_bytes : int
         Free space to keep on the store's disk; below it the session pauses (``low_disk``).
     prepare_target : callable(target, step), optional
-        Called when the scene must change (``checkerboard``, ``lens_cap``, ``object`` ...) before
+        Called when the scene must change (``checkerboard``, ``dark``, ``object`` ...) before
         the first step needing it, e.g. to prompt the operator or tell a simulator. Without it a
         ``target`` event is emitted and the runner carries on.
     home : bool
@@ -218,7 +222,22 @@ class Runner:
         return events
 
     def _set_state(self, state: str) -> None:
-        self.store.set_state(self._session.id, state, self._take_events())
+        events = self._take_events()
+        try:
+            self.store.set_state(self._session.id, state, events)
+        except BaseException:
+            self._pending[:0] = events  # not recorded: keep them for the next write
+            raise
+
+    def _finish(self, state: str) -> None:
+        """Record the final state; on a full disk give up the store's space reserve to record
+        it, and failing even that leave it for ``resume`` (it shows as interrupted)."""
+        try:
+            self._set_state(state)
+        except StoreFull:
+            self.store.release_reserve()
+            with contextlib.suppress(StoreFull):
+                self._set_state(state)
 
     # -- the run ------------------------------------------------------------------------------
     def run(self) -> str:
@@ -248,14 +267,21 @@ class Runner:
             try:
                 self._run_steps(resumed=info.state != "planned")
             except _Stop as stop:
-                self._set_state(stop.state)
+                self._finish(stop.state)
                 return stop.state
+            except StoreFull as exc:  # any other write (state, events, rig snapshot) met a full disk
+                self._stop_rig()
+                self._emit(EventKind.LOW_DISK, str(exc))
+                self._emit(EventKind.PAUSED, "paused: the disk is full; free space, then: gonio "
+                           f"capture resume {self.name}", **self._counters)
+                self._finish("paused")
+                return "paused"
             except BaseException as exc:
                 # a bug or KeyboardInterrupt: never leave the session marked running
                 self._stop_rig()
                 self._emit(EventKind.FAULT, f"unexpected error: {exc!r}", error=type(exc).__name__)
                 self._emit(EventKind.PAUSED, "paused after an unexpected error")
-                self._set_state("paused")
+                self._finish("paused")
                 raise
         return "done"
 
@@ -352,12 +378,7 @@ class Runner:
             raise _Stop("paused", msg)
 
     def _change_target(self, step: Step) -> None:
-        msg = {"object": "put the object on the turntable", "lens_cap": "put the lens cap on",
-               "checkerboard": "put the checkerboard target on the turntable",
-               "spheres": "put the calibration spheres on the turntable",
-               "gray_card": "put the gray card on the turntable",
-               "mirror_probe": "put the mirror sphere on the turntable"}.get(step.target,
-                                                                            f"set up {step.target}")
+        msg = SCENE_TARGETS.get(step.target, f"set up {step.target}")
         self._emit(EventKind.TARGET, msg, step=step.index, target=step.target, kind=step.kind)
         if self.prepare_target is not None:
             self.prepare_target(step.target, step)

@@ -25,15 +25,19 @@ import functools
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import sqlite3
+import stat
 import subprocess
 import tarfile
 import tempfile
 import threading
 import time
+import urllib.parse
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
@@ -43,6 +47,11 @@ from .events import Event
 DB_NAME = "gonio.sqlite"
 STATES = ("planned", "running", "paused", "done", "aborted")
 _TMP_PREFIX = ".tmp-"
+#: free space below which an SQLite I/O error is taken for a full disk, bytes
+FULL_BELOW_BYTES = 1 << 20
+#: disk space a writer holds back to record a pause when the disk fills, bytes
+RESERVE_BYTES = 1 << 20
+RESERVE_NAME = "space-reserve"
 
 
 class StoreError(Exception):
@@ -67,6 +76,53 @@ class StoreFull(StoreError):
 
 class SchemaError(StoreError):
     """The database was written by a newer gonio (unknown schema version)."""
+
+
+class StoreDamaged(StoreError):
+    """The database file is damaged, truncated or empty while frame files exist."""
+
+
+class ForeignDatabase(StoreError):
+    """``gonio.sqlite`` is some other program's SQLite database."""
+
+
+class InvalidName(StoreError, ValueError):
+    """A session name outside the safe set (see :func:`check_session_name`)."""
+
+
+#: letters, digits, ``_``, then also ``.`` and ``-``: never ``.``/``..``, a separator, a control
+#: character or a leading ``-`` (read as an option); names become folder names in exports
+_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+NAME_MAX = 100
+
+
+def check_session_name(name: object, argument: str = "session name") -> str:
+    """Return ``name`` if it is a safe session name, else raise :class:`InvalidName`.
+
+    A safe name is 1 to :data:`NAME_MAX` characters of ``A-Z a-z 0-9 _ . -``, starting with a
+    letter, digit or ``_`` (so never ``.``, ``..``, a path or an option).
+    """
+    if not isinstance(name, str) or not name:
+        raise InvalidName(f"{argument} must be a non-empty string, not {name!r}")
+    if len(name) > NAME_MAX or not _NAME_RE.fullmatch(name):
+        raise InvalidName(f"{argument} {name[:NAME_MAX + 20]!r} is not allowed: use 1-{NAME_MAX} "
+                          "letters, digits, '_', '.' or '-', starting with a letter, digit or '_'")
+    return name
+
+
+def safe_name_from(text: str, fallback: str = "session") -> str:
+    """A safe session-name stem made from free text (a plan's name): unsafe runs become ``-``."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip(".-")[:NAME_MAX - 20]
+    return stem if stem and _NAME_RE.fullmatch(stem) else fallback
+
+
+def inside(base: Path, *parts: str) -> Path:
+    """``base / parts`` after checking that it stays inside ``base`` (no ``..``, no absolute
+    part, no symlink out); raises :class:`StoreError` otherwise."""
+    path = base.joinpath(*parts)
+    if not path.resolve().is_relative_to(base.resolve()):
+        raise StoreError(f"refusing {path}: it leads outside {base}")
+    return path
 
 
 # -- crash hook points (tests kill the process here: GONIO_CRASH_AFTER=N) -----------------------
@@ -274,6 +330,8 @@ class VerifyReport:
     corrupt: list[str] = field(default_factory=list)
     orphans: list[str] = field(default_factory=list)
     incomplete_steps: list[int] = field(default_factory=list)
+    #: sha256 -> where the session uses it (``step 3 frame 1 ...``, ``result dark #2 ...``)
+    where: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -320,6 +378,33 @@ def sha256_file(path: Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
+def _unsafe_member(name: str) -> bool:
+    parts = Path(name).parts
+    return not parts or Path(name).is_absolute() or ".." in parts or "\\" in name
+
+
+def _extract_safely(archive: Path, dest: Path) -> None:
+    """Extract a ``.tar``/``.zip`` export into ``dest`` after checking every member: only plain
+    files and folders with relative names inside ``dest``; else :class:`StoreError` naming it."""
+    try:
+        if zipfile.is_zipfile(archive):
+            with zipfile.ZipFile(archive) as z:
+                for info in z.infolist():
+                    if _unsafe_member(info.filename) or stat.S_ISLNK(info.external_attr >> 16):
+                        raise StoreError(f"{archive}: refusing unsafe member {info.filename!r} (an "
+                                         "absolute path, '..' or a link); a gonio export has none")
+                z.extractall(dest)
+            return
+        with tarfile.open(archive) as t:
+            for m in t.getmembers():
+                if _unsafe_member(m.name) or not (m.isfile() or m.isdir()):
+                    raise StoreError(f"{archive}: refusing unsafe member {m.name!r} (an absolute "
+                                     "path, '..', a link or a device); a gonio export has none")
+            t.extractall(dest, filter="data")
+    except (tarfile.TarError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+        raise StoreError(f"{archive}: damaged archive ({exc})") from None
+
+
 class Store:
     """A store directory: the SQLite database and the object files beside it.
 
@@ -334,6 +419,19 @@ class Store:
         stored frame survives power loss. False keeps the write order (a killed process still
         leaves a consistent store) but not power-loss durability: for scratch stores and tests.
         Default: True unless the environment sets ``GONIO_STORE_DURABLE=0``.
+    readonly : bool, optional
+        Open the database without writing to it (``mode=ro``: no migration, no pragmas; write
+        methods raise :class:`StoreError`), for commands that only read: they then work on a
+        full disk and leave a foreign file alone.
+
+    Raises
+    ------
+    StoreDamaged
+        ``gonio.sqlite`` is damaged, or empty while ``objects/`` holds frame files.
+    ForeignDatabase
+        ``gonio.sqlite`` is another program's SQLite database.
+    StoreFull
+        The disk is full and the database cannot be opened for writing.
 
     Notes
     -----
@@ -342,54 +440,136 @@ class Store:
     """
 
     def __init__(self, root: str | os.PathLike, *, create: bool = True,
-                 durable: bool | None = None) -> None:
+                 durable: bool | None = None, readonly: bool = False) -> None:
         self.root = Path(root)
         self.durable = os.environ.get("GONIO_STORE_DURABLE", "1") != "0" if durable is None else durable
+        self.readonly = readonly
         self.db_path = self.root / DB_NAME
-        if not self.db_path.exists():
-            if not create:
+        if not self.db_path.is_file():
+            if not create or readonly:
                 raise StoreError(f"{self.root} is not a gonio store (no {DB_NAME}); "
                                  "give --store the folder a session was recorded in")
             self.root.mkdir(parents=True, exist_ok=True)
         self.objects = self.root / "objects"
         self._lock = threading.RLock()
-        self._db = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False,
-                                   timeout=30.0)
-        self._db.row_factory = sqlite3.Row
         self._cleanup: Callable[[], None] | None = None
         try:
-            self._db.execute("PRAGMA busy_timeout = 30000")
-            self._db.execute("PRAGMA journal_mode = WAL")
-            # FULL: a committed frame survives power loss; NORMAL (in WAL): a killed process
-            self._db.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
-            self._db.execute("PRAGMA foreign_keys = ON")
-            self._migrate()
+            self._db = self._connect()
+        except sqlite3.Error as exc:  # e.g. gonio.sqlite is a folder, or unreadable
+            raise StoreError(f"cannot open {self.db_path}: {exc}") from None
+        try:
+            self._prepare()
         except BaseException:
             self._db.close()
             raise
 
+    def _connect(self, immutable: bool = False) -> sqlite3.Connection:
+        if self.readonly:
+            # mode=ro never writes the file; immutable=1 also skips the WAL index (-shm), which a
+            # full disk cannot create
+            uri = f"file:{urllib.parse.quote(str(self.db_path))}?mode=ro" + ("&immutable=1" * immutable)
+            db = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False,
+                                 timeout=30.0)
+        else:
+            db = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False,
+                                 timeout=30.0)
+        db.row_factory = sqlite3.Row
+        return db
+
+    def _prepare(self) -> None:
+        """Recognise the database (gonio's, empty, damaged or foreign), then set it up: WAL,
+        durability and forward migrations, or for a read-only store only the schema check."""
+        try:
+            try:
+                tables = {r[0] for r in self._db.execute(
+                    "SELECT name FROM sqlite_master WHERE type = 'table'")}
+            except sqlite3.OperationalError:
+                wal = self.db_path.with_name(DB_NAME + "-wal")
+                if not self.readonly or (wal.exists() and wal.stat().st_size):
+                    raise
+                # a read-only open on a full disk: no WAL to merge, so read the file as it is
+                self._db.close()
+                self._db = self._connect(immutable=True)
+                tables = {r[0] for r in self._db.execute(
+                    "SELECT name FROM sqlite_master WHERE type = 'table'")}
+            if not tables:
+                files = sum(1 for _ in self._object_files())
+                if files:
+                    raise StoreDamaged(
+                        f"{self.db_path} is empty but {self.objects} holds {files} file(s) of "
+                        "captured data: the database was lost or truncated. Nothing was changed; "
+                        "restore gonio.sqlite from a backup or an export, and keep objects/ as it is")
+                if self.readonly:
+                    raise StoreError(f"{self.db_path} is empty: no session was ever recorded there")
+            elif not {"schema_version", "sessions"} <= tables:
+                raise ForeignDatabase(
+                    f"{self.db_path} is an SQLite database but not a gonio store (its tables: "
+                    f"{', '.join(sorted(tables)[:8])}); gonio leaves it untouched. Give --store "
+                    "a folder gonio recorded in, or a new folder")
+            self._db.execute("PRAGMA busy_timeout = 30000")
+            if self.readonly:
+                self._check_version(self._db)
+                return
+            if self._db.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
+                self._db.execute("PRAGMA journal_mode = WAL")
+            # FULL: a committed frame survives power loss; NORMAL (in WAL): a killed process
+            self._db.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
+            self._db.execute("PRAGMA foreign_keys = ON")
+            self._migrate()
+        except sqlite3.Error as exc:
+            error = self._translate(exc)
+            raise (StoreError(f"cannot open {self.db_path}: {exc}") if error is exc else error) from None
+
+    def _translate(self, exc: sqlite3.Error) -> Exception:
+        """An SQLite error as the store error that says what to do, or ``exc`` itself."""
+        code = (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF
+        if code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB):
+            files = sum(1 for _ in self._object_files())
+            return StoreDamaged(
+                f"{self.db_path} is damaged ({exc}). The {files} frame file(s) in {self.objects} "
+                "are separate and untouched. Restore gonio.sqlite from a backup or an export "
+                "('gonio session export'); 'sqlite3 gonio.sqlite .recover' can often salvage "
+                "the rows. Keep objects/ as it is meanwhile")
+        if code in (sqlite3.SQLITE_FULL, sqlite3.SQLITE_IOERR) and self._disk_full():
+            return StoreFull(f"no space left on the disk holding {self.root}: free space, then "
+                             "run the command again (read-only commands such as 'gonio session "
+                             "list' still work)")
+        if code == sqlite3.SQLITE_READONLY and self.readonly:
+            return StoreError(f"{self.db_path} was opened read-only")
+        return exc
+
+    def _disk_full(self) -> bool:
+        try:
+            return shutil.disk_usage(self.root).free < FULL_BELOW_BYTES
+        except OSError:
+            return False
+
     # -- lifecycle ----------------------------------------------------------------------------
     @classmethod
-    def open(cls, path: str | os.PathLike, *, create: bool = False) -> "Store":
+    def open(cls, path: str | os.PathLike, *, create: bool = False,
+             readonly: bool = False) -> "Store":
         """Open a store folder, or an exported ``.tar`` / ``.zip`` archive (extracted to a
-        temporary folder that is removed on :meth:`close`)."""
+        temporary folder that is removed on :meth:`close`, and on every error).
+
+        An archive member that is absolute, climbs out with ``..``, or is a link or device
+        (an export holds only folders and plain files) is refused by name before anything is
+        extracted. ``readonly`` opens the database without writing to it (see :class:`Store`).
+        """
         path = Path(path)
-        if path.is_file() and (tarfile.is_tarfile(path) or zipfile.is_zipfile(path)):
-            tmp = Path(tempfile.mkdtemp(prefix="gonio-store-"))
-            if zipfile.is_zipfile(path):
-                with zipfile.ZipFile(path) as z:
-                    z.extractall(tmp)
-            else:
-                with tarfile.open(path) as t:
-                    t.extractall(tmp, filter="data")
+        if not (path.is_file() and (tarfile.is_tarfile(path) or zipfile.is_zipfile(path))):
+            return cls(path, create=create, readonly=readonly)
+        tmp = Path(tempfile.mkdtemp(prefix="gonio-store-"))
+        try:
+            _extract_safely(path, tmp)
             inner = [p.parent for p in tmp.rglob(DB_NAME)]
             if len(inner) != 1:
-                shutil.rmtree(tmp, ignore_errors=True)
                 raise StoreError(f"{path}: archive holds {len(inner)} gonio stores, expected 1")
-            store = cls(inner[0], create=False)
-            store._cleanup = lambda: shutil.rmtree(tmp, ignore_errors=True)
-            return store
-        return cls(path, create=create)
+            store = cls(inner[0], create=False, readonly=readonly)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        store._cleanup = lambda: shutil.rmtree(tmp, ignore_errors=True)
+        return store
 
     def close(self) -> None:
         with self._lock:
@@ -408,16 +588,21 @@ class Store:
         with self._write() as db:
             db.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
             row = db.execute("SELECT version FROM schema_version").fetchone()
-            current = 0 if row is None else row[0]
-            if current > SCHEMA_VERSION:
-                raise SchemaError(f"{self.db_path} has schema version {current}; this gonio "
-                                  f"knows up to {SCHEMA_VERSION}: upgrade gonio to open it")
+            current = self._check_version(db)
             for version in range(current, SCHEMA_VERSION):
                 MIGRATIONS[version](db)
             if row is None:
                 db.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
             else:
                 db.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION,))
+
+    def _check_version(self, db: sqlite3.Connection) -> int:
+        row = db.execute("SELECT version FROM schema_version").fetchone()
+        current = 0 if row is None else row[0]
+        if current > SCHEMA_VERSION:
+            raise SchemaError(f"{self.db_path} has schema version {current}; this gonio "
+                              f"knows up to {SCHEMA_VERSION}: upgrade gonio to open it")
+        return current
 
     @property
     def schema_version(self) -> int:
@@ -428,6 +613,8 @@ class Store:
     def _write(self) -> Iterator[sqlite3.Connection]:
         """One short write transaction (``BEGIN IMMEDIATE``: takes the write lock up front so a
         concurrent writer waits in busy_timeout rather than failing on lock upgrade)."""
+        if self.readonly:
+            raise StoreError(f"{self.root} was opened read-only; this needs a writable store")
         with self._lock:
             # BEGIN inside the try: a KeyboardInterrupt landing just after it must not leave the
             # shared connection inside a transaction (every later BEGIN would then fail)
@@ -442,6 +629,8 @@ class Store:
                 if isinstance(exc, sqlite3.OperationalError) and _is_full(exc):
                     raise StoreFull(f"no space left on the disk holding {self.root} to commit; "
                                     "free space and resume (nothing was recorded)") from exc
+                if isinstance(exc, sqlite3.Error) and self._translate(exc) is not exc:
+                    raise self._translate(exc) from exc
                 raise
             _crash_point("after_commit")
 
@@ -452,6 +641,10 @@ class Store:
             try:
                 self._db.execute("BEGIN")
                 yield self._db
+            except sqlite3.Error as exc:
+                if self._translate(exc) is not exc:
+                    raise self._translate(exc) from exc
+                raise
             finally:
                 if self._db.in_transaction:
                     self._db.execute("COMMIT")
@@ -500,11 +693,36 @@ class Store:
                 except BlockingIOError:
                     pass
                 fcntl.flock(wfd, fcntl.LOCK_SH)  # converts the exclusive lock if we held it
+                self._keep_reserve()
                 yield removed
             finally:
                 os.close(wfd)
         finally:
             os.close(sfd)
+
+    def _keep_reserve(self) -> None:
+        """Hold :data:`RESERVE_BYTES` of disk in ``locks/space-reserve`` while writing (best
+        effort), so that on a full disk :meth:`release_reserve` frees room to record the pause."""
+        path = self.root / "locks" / RESERVE_NAME
+        with contextlib.suppress(OSError):
+            if not path.is_file() or path.stat().st_size < RESERVE_BYTES:
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
+                try:
+                    os.posix_fallocate(fd, 0, RESERVE_BYTES)
+                except OSError:
+                    os.ftruncate(fd, 0)  # no room for it: better none than a partial one
+                    raise
+                finally:
+                    os.close(fd)
+
+    def release_reserve(self) -> bool:
+        """Delete the space reserve (the disk is full); True if there was one. The next
+        :meth:`writer` takes it again once there is room."""
+        try:
+            (self.root / "locks" / RESERVE_NAME).unlink()
+        except FileNotFoundError:
+            return False
+        return True
 
     # -- sessions -----------------------------------------------------------------------------
     def create_session(self, name: str, *, plan: dict[str, Any], plan_hash: str,
@@ -515,9 +733,7 @@ class Store:
         ``steps`` are JSON-serialisable dicts in execution order; each must carry ``frames``,
         the number of frames the step stores (bracket length x repeats).
         """
-        if not name or "/" in name or name.strip() != name:
-            raise StoreError(f"session name {name!r} is not allowed (non-empty, no '/', "
-                             "no surrounding spaces)")
+        check_session_name(name)
         for i, s in enumerate(steps):
             if not isinstance(s.get("frames"), int) or s["frames"] < 0:
                 raise StoreError(f"steps[{i}] needs an integer 'frames' >= 0")
@@ -827,6 +1043,7 @@ class Store:
         frame_ids = sorted(set(int(i) for i in input_frames))
         blobs = {name: (hashlib.sha256(blob).hexdigest(), blob)
                  for name, blob in (artifacts or {}).items()}
+        version = code_version()  # may run git: never while holding the database's write lock
         with self._writing():
             for sha, blob in blobs.values():
                 self._ensure_object(blob, sha)
@@ -845,7 +1062,7 @@ class Store:
                 cur = db.execute("INSERT INTO results (session_id, category, kind, created, params_json, "
                                  "result_json, input_frames_json, code_version) VALUES (?,?,?,?,?,?,?,?)",
                                  (session_id, category, kind, time.time(), _dumps(params or {}),
-                                  _dumps(result), _dumps(frame_ids), code_version()))
+                                  _dumps(result), _dumps(frame_ids), version))
                 rid = cur.lastrowid
                 db.executemany("INSERT INTO result_objects (result_id, name, sha256, size) VALUES (?,?,?,?)",
                                [(rid, n, sha, size) for n, (sha, size) in stored.items()])
@@ -907,7 +1124,10 @@ class Store:
 
     def _lock_held(self, name: str) -> bool:
         """Whether another holder has lock file ``name`` (probed without waiting)."""
-        fd = self._lock_file(name)
+        try:  # a holder creates the file: a missing one is not held (and a reader creates nothing)
+            fd = os.open(self.root / "locks" / name, os.O_RDONLY)
+        except FileNotFoundError:
+            return False
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -983,11 +1203,32 @@ class Store:
             report.checked += 1
             if progress is not None:
                 progress(i + 1, len(shas))
+        bad = report.missing + report.corrupt
+        if bad:
+            report.where = self._uses(info.id, bad)
         # with a writer running, an unreferenced file younger than a minute may be a frame between
         # its rename and its commit: not reported
         min_age = 60.0 if self.writer_active() else 0.0
         report.orphans = [str(p.relative_to(self.root)) for p in self.orphans(min_age_s=min_age)]
         return report
+
+    def _uses(self, session_id: int, shas: list[str]) -> dict[str, list[str]]:
+        """Where session ``session_id`` uses each of ``shas``: its frames and result artifacts."""
+        marks = ",".join("?" * len(shas))
+        with self._read() as db:
+            frames = db.execute(f"SELECT sha256, step, bracket_index, repeat, filename FROM frames "
+                                f"WHERE session_id = ? AND sha256 IN ({marks}) ORDER BY step, "
+                                "repeat, bracket_index", (session_id, *shas)).fetchall()
+            arts = db.execute(f"SELECT o.sha256, r.kind, r.id, o.name FROM result_objects o JOIN "
+                              f"results r ON r.id = o.result_id WHERE r.session_id = ? AND "
+                              f"o.sha256 IN ({marks}) ORDER BY r.id", (session_id, *shas)).fetchall()
+        where: dict[str, list[str]] = {}
+        for sha, step, b, r, name in frames:
+            where.setdefault(sha, []).append(f"step {step} frame {b} of the bracket, repeat {r} "
+                                             f"({name})")
+        for sha, kind, rid, name in arts:
+            where.setdefault(sha, []).append(f"result {kind} #{rid} artifact {name}")
+        return where
 
     def free_bytes(self) -> int:
         """Free space on the disk holding the store, bytes."""
@@ -1009,9 +1250,15 @@ class Store:
             raise StoreError(f"export destination {dest} already exists; choose a new path")
         info = self.session(session)
         dest.parent.mkdir(parents=True, exist_ok=True)
+        if dest.resolve().is_relative_to(self.root.resolve()):
+            raise StoreError(f"export destination {dest} is inside the store {self.root}; "
+                             "choose a path outside it")
         work = Path(tempfile.mkdtemp(prefix="gonio-export-", dir=dest.parent)) if archive else dest
         created = not dest.exists()
-        folder = work / info.name if archive else dest
+        try:  # names of older stores were not checked: one that is unsafe exports under its id
+            folder = inside(work, check_session_name(info.name)) if archive else dest
+        except StoreError:
+            folder = work / f"session-{info.id}"
         try:
             folder.mkdir(parents=True, exist_ok=True)
             copy = sqlite3.connect(folder / DB_NAME, isolation_level=None)
@@ -1045,7 +1292,7 @@ class Store:
             else:
                 mode = "w:gz" if archive in (".tar.gz", ".tgz") else "w"
                 with tarfile.open(dest, mode) as t:
-                    t.add(folder, arcname=info.name)
+                    t.add(folder, arcname=folder.name)
             return dest
         except BaseException:  # leave nothing half-exported behind
             if archive and dest.exists():

@@ -5,8 +5,8 @@ the scene). Light directions point from the surface towards the light, normals p
 surface, so surfaces facing the camera have ``n_z < 0`` and lights in front of the object have
 ``l_z < 0``. Images are linear (radiance or raw values, not gamma-encoded).
 
-Model per pixel: ``I_k = rho * max(0, n . l_k)`` (times a constant light intensity), solved for
-``g = rho * n`` by least squares over all pixels at once.
+Model per pixel: ``I_k = e_k * rho * max(0, n . l_k)`` with light intensity ``e_k`` (given, or
+equal), solved for ``g = rho * n`` by least squares over all pixels at once.
 """
 from __future__ import annotations
 
@@ -44,11 +44,22 @@ class PhotometricStereoResult:
     lights_used: np.ndarray
 
 
-def _check_inputs(images, light_dirs, mask):
+def _check_inputs(images, light_dirs, mask, light_intensities):
     images = np.asarray(images)
     if images.ndim not in (3, 4):
         raise PhotometricStereoError(
             f"images must have shape (K, H, W) or (K, H, W, C), got {images.shape}")
+    if light_intensities is not None:
+        e = np.asarray(light_intensities, dtype=np.float64)
+        C = images.shape[3] if images.ndim == 4 else None
+        if e.shape not in ((images.shape[0],),) + (((images.shape[0], C),) if C else ()):
+            raise PhotometricStereoError(
+                f"light_intensities must have shape ({images.shape[0]},)"
+                + (f" or ({images.shape[0]}, {C})" if C else "") + f", got {e.shape}")
+        if not np.all(np.isfinite(e)) or np.any(e <= 0):
+            raise PhotometricStereoError("light_intensities must be finite and > 0")
+        # I_k / e_k: every image as if lit with unit intensity (per channel for (K, C))
+        images = images / (e[:, None, None, :] if e.ndim == 2 else e.reshape((-1,) + (1,) * (images.ndim - 1)))
     L = np.asarray(light_dirs, dtype=np.float64)
     if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] != images.shape[0]:
         raise PhotometricStereoError(
@@ -73,10 +84,18 @@ def _check_inputs(images, light_dirs, mask):
 
 
 def photometric_stereo(images: np.ndarray, light_dirs: np.ndarray, mask: np.ndarray | None = None,
-                       *, robust: bool = False, shadow_threshold: float = 0.0,
+                       *, light_intensities: np.ndarray | None = None, robust: bool = False,
+                       shadow_threshold: float = 0.0,
                        drop_darkest: int = 2, drop_brightest: int = 1,
                        refine_iterations: int = 3) -> PhotometricStereoResult:
     """Recover normals and albedo from K images under K known distant lights.
+
+    Frame: the OpenCV camera frame (x right along image columns, y down along rows, z forward
+    into the scene). ``light_dirs`` point from the surface towards the lights and the normals
+    out of the surface, so a surface facing the camera has ``n_z < 0`` and a light on the
+    camera's side ``l_z < 0``. Data in another convention (e.g. DiLiGenT and many course sets:
+    x right, y up, z towards the viewer) converts by negating y and z of the directions (and
+    of the normals it returns).
 
     Parameters
     ----------
@@ -84,10 +103,13 @@ def photometric_stereo(images: np.ndarray, light_dirs: np.ndarray, mask: np.ndar
         Linear images, one per light. Colour stacks share one normal; the normal is solved on
         the channel sum and the albedo per channel.
     light_dirs : ndarray of shape (K, 3)
-        Directions towards each light in the camera frame (normalised here). Light intensities
-        are assumed equal (scale images beforehand otherwise).
+        Directions towards each light in the camera frame (normalised here).
     mask : ndarray of shape (H, W), bool, optional
         Pixels to solve; default all.
+    light_intensities : ndarray of shape (K,) or (K, C), optional
+        Each light's intensity (per channel for (K, C), as DiLiGenT's ``light_intensities.txt``):
+        each image is divided by it before solving, so the albedo is per unit intensity.
+        Default: equal intensities (albedo in image units).
     robust : bool
         Reject per pixel the ``drop_darkest`` darkest observations (attached/cast shadows) and the
         ``drop_brightest`` brightest (specular highlights), plus any at or below
@@ -96,13 +118,14 @@ def photometric_stereo(images: np.ndarray, light_dirs: np.ndarray, mask: np.ndar
         fit puts in shadow and those far above it (3 sigma of the global residual spread plus 5%:
         highlights), and solve again.
     shadow_threshold : float
-        Intensities at or below this are treated as shadowed (robust mode), image units.
+        Intensities at or below this are treated as shadowed (robust mode), image units (after
+        the division by ``light_intensities``).
 
     Returns
     -------
     PhotometricStereoResult
     """
-    images, L, mask = _check_inputs(images, light_dirs, mask)
+    images, L, mask = _check_inputs(images, light_dirs, mask, light_intensities)
     K = L.shape[0]
     color = images.ndim == 4
     gray = images.sum(axis=3) if color else images

@@ -339,7 +339,8 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
         Monte-Carlo samples per pixel for the environment map (ignored without one).
     env_sampling : {'mis', 'importance', 'uniform'}
         Environment sampling: 'mis' (half the samples by luminance x solid angle, half
-        cosine-weighted about the normal, balance heuristic; robust for bright, small sources
+        cosine-weighted about the normal — an odd count gives the map one more — combined by
+        the balance heuristic with each strategy's sample count; robust for bright, small sources
         and broad skies alike), 'importance' (luminance x solid angle only) or 'uniform' over
         the sphere. All are unbiased estimates of the piecewise-constant map's reflection.
     max_bounces : int
@@ -680,6 +681,8 @@ def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale)
     acc = np.zeros((K, 3))
     acc_d = np.zeros((K, 3)) if opts.components else None
     diffuse = brdf.diffuse_part() if opts.components else None
+    n_cos = S // 2  # 'mis': odd passes are cosine-weighted, so an odd S has one more map sample
+    n_env = S - n_cos
     for j in range(S):
         if opts.env_sampling == "mis" and j % 2 == 1:
             wi_l = _cosine_hemisphere(K, opts.rng)
@@ -690,8 +693,8 @@ def _env_lighting(scene, brdf: BRDF, p, ng, frames, wo_l, opts: _Options, scale)
             wi_l = to_local(wi, frames)
         cos_i = np.clip(wi_l[:, 2], 0.0, None)
         L_env, pdf = env.lookup_pdf(wi)
-        if opts.env_sampling == "mis":  # balance heuristic over the two strategies
-            pdf = 0.5 * (pdf + cos_i / np.pi)
+        if opts.env_sampling == "mis":  # balance heuristic, each strategy by its sample count
+            pdf = (n_env * pdf + n_cos * cos_i / np.pi) / S
         elif opts.env_sampling == "uniform":
             pdf = np.full(K, 1 / (4 * np.pi))
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -32,10 +32,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from .device import Axis, reading
-from .errors import (DeviceBusy, DeviceError, DeviceTimeout, Disconnected, LimitError, NotHomed,
+from .errors import (DeviceBusy, DeviceError, DeviceTimeout, LimitError, NotHomed,
                      ProtocolError, RigError)
 from .status import MoveStatus
-from .transport import SerialTransport
+from .transport import SerialDriver, SerialTransport
 
 BAUDRATE = 9600
 TERMINATOR = b"\r\n"
@@ -232,7 +232,7 @@ def encode_info(info: DeviceInfo, address: str = "0") -> bytes:
 
 
 # -- driver -----------------------------------------------------------------------------------
-class ElliptecRotator(Axis):
+class ElliptecRotator(SerialDriver, Axis):
     """ELL14 rotation mount as an :class:`~rig.device.Axis` in degrees.
 
     The mount rotates without end; targets in ``limits`` (-360..360 degrees) are wrapped into
@@ -306,17 +306,10 @@ class ElliptecRotator(Axis):
                               device=self.name)
         self.info = info
         self._check_ok(self._exchange("gs"), "status at connect")
-
-    def close(self) -> None:
-        self.transport.close()
-
-    @property
-    def connected(self) -> bool:
-        return self.transport.is_open and self.info is not None
+        self._connected = True
 
     def _require_info(self) -> DeviceInfo:
-        if self.info is None or not self.transport.is_open:
-            raise Disconnected("not connected; call connect() first", device=self.name)
+        self._require()
         return self.info
 
     # -- exchanges ----------------------------------------------------------------------------
@@ -407,7 +400,7 @@ class ElliptecRotator(Axis):
     def position(self) -> float:
         """Read-back angle in degrees, [0, 360). Waits for a running move to finish (the port
         is busy with it until its ``PO`` reply)."""
-        self._require_info()
+        self._require()
         return self._pulses_to_deg(parse_position(self._query("gp", "PO"), device=self.name))
 
     def move_to(self, value: float) -> MoveStatus:
@@ -452,7 +445,7 @@ class ElliptecRotator(Axis):
 
     def home(self, clockwise: bool = True) -> MoveStatus:
         """Start the homing run (``ho``); ``homed`` becomes True when it ends at 0 degrees."""
-        self._require_info()
+        self._require()
 
         def _home() -> float:
             angle = self._run_motion("ho", "0" if clockwise else "1", "homing")
@@ -464,7 +457,7 @@ class ElliptecRotator(Axis):
 
     def stop(self) -> None:
         """Stop motion now (``st``). A running move's status then ends at the stop position."""
-        self._require_info()
+        self._require()
         motion = self._motion
         if motion is not None and not motion.done:
             # the move thread holds the port waiting for PO; write past it and let it eat the GS
@@ -475,7 +468,7 @@ class ElliptecRotator(Axis):
 
     def status_code(self) -> int:
         """The device's ``gs`` status code (0 = OK, 9 = busy, see :data:`STATUS`)."""
-        self._require_info()
+        self._require()
         return parse_status(self._exchange("gs"), device=self.name)
 
     def read(self) -> dict[str, dict[str, Any]]:

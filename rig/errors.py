@@ -32,7 +32,8 @@ class DeviceTimeout(RigError):
     def __init__(self, message: str, *, device: str = "", timeout_s: float | None = None) -> None:
         self.timeout_s = timeout_s
         if timeout_s is not None:
-            message = f"{message} (no answer within {timeout_s:g} s)"
+            # to the millisecond: a deadline's remainder reads 1 s, not 0.999999 s
+            message = f"{message} (no answer within {round(timeout_s, 3):g} s)"
         super().__init__(message, device=device)
 
 

@@ -27,10 +27,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .device import LightPositioner, LightTarget, reading
-from .errors import DeviceError, DeviceTimeout, Disconnected, NotHomed, ProtocolError
+from .errors import DeviceError, DeviceTimeout, NotHomed, ProtocolError
 from .kinematics import Kinematics, kinematics_from_config
+from .motion import move_time_s
 from .status import MoveStatus
-from .transport import SerialTransport
+from .transport import SerialDriver, SerialTransport
 
 log = logging.getLogger("gonio.rig.grbl")
 
@@ -239,15 +240,13 @@ def path_time_s(start: tuple[float, ...], end: tuple[float, ...], rate: tuple[fl
         return 0.0
     v = min(r / 60.0 * length / abs(d) for d, r in zip(delta, rate) if d)
     a = min(ac * length / abs(d) for d, ac in zip(delta, accel) if d)
-    if length <= v * v / a:
-        return 2.0 * math.sqrt(length / a)
-    return v / a + length / v
+    return move_time_s(length, v, a)
 
 
 # ---------------------------------------------------------------------------------------------
 # driver
 # ---------------------------------------------------------------------------------------------
-class GrblPositioner(LightPositioner):
+class GrblPositioner(SerialDriver, LightPositioner):
     """The light-stage positioner on a GRBL 1.1 controller.
 
     Plans speak :class:`LightTarget` in the world frame; the configured kinematics
@@ -289,7 +288,7 @@ class GrblPositioner(LightPositioner):
         if transport is None and not port:
             raise ValueError(f"{name}: give a serial port or a transport")
         self.port = port or getattr(transport, "port", "")
-        self._transport = transport or SerialTransport(port, baudrate, timeout_s=timeout_s, device=name)
+        self.transport = transport or SerialTransport(port, baudrate, timeout_s=timeout_s, device=name)
         self.kinematics = kinematics_from_config(kinematics, device=name)
         self.timeout_s = timeout_s
         self.poll_interval_s = poll_interval_s
@@ -323,7 +322,7 @@ class GrblPositioner(LightPositioner):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise DeviceTimeout(f"no reply to {what}", device=self.name, timeout_s=timeout)
-            raw = self._transport.read_until(b"\n", remaining)
+            raw = self.transport.read_until(b"\n", remaining)
             try:
                 line = raw.decode("ascii").strip()
             except UnicodeDecodeError:
@@ -351,7 +350,7 @@ class GrblPositioner(LightPositioner):
         if any(c in line for c in "\r\n?!~\x18"):
             raise ValueError(f"{line!r} contains a line end or a real-time character")
         timeout = self.timeout_s if timeout_s is None else timeout_s
-        t = self._transport
+        t = self.transport
         with t.lock:
             t.write(line.encode("ascii") + b"\n")
             deadline = time.monotonic() + timeout
@@ -374,7 +373,7 @@ class GrblPositioner(LightPositioner):
 
     def status(self) -> GrblStatus:
         """Send ``?`` and return the status report (pushes on the way are recorded)."""
-        t = self._transport
+        t = self.transport
         with t.lock:
             t.write(REALTIME_STATUS)
             deadline = time.monotonic() + self.timeout_s
@@ -396,7 +395,7 @@ class GrblPositioner(LightPositioner):
 
     def soft_reset(self) -> str:
         """Ctrl-X: abort motion, flush buffers, wait for the banner; return GRBL's version."""
-        t = self._transport
+        t = self.transport
         with t.lock:
             t.write(SOFT_RESET)
             timeout = 2.0 * self.timeout_s + 1.0  # the board may still be printing its boot lines
@@ -409,13 +408,13 @@ class GrblPositioner(LightPositioner):
 
     def feed_hold(self) -> None:
         """``!``: decelerate and pause the running motion (resume with :meth:`resume`)."""
-        with self._transport.lock:
-            self._transport.write(FEED_HOLD)
+        with self.transport.lock:
+            self.transport.write(FEED_HOLD)
 
     def resume(self) -> None:
         """``~``: cycle start / resume after a feed hold."""
-        with self._transport.lock:
-            self._transport.write(CYCLE_START)
+        with self.transport.lock:
+            self.transport.write(CYCLE_START)
 
     def sync(self, timeout_s: float = 60.0) -> None:
         """Block until every queued motion has finished: ``G4 P0`` is answered only once the
@@ -430,9 +429,9 @@ class GrblPositioner(LightPositioner):
     def connect(self) -> None:
         """Open the port, soft-reset to a known state, read build info and settings."""
         self.close()
-        self._transport.open()
+        self.transport.open()
         try:
-            self._transport.reset_input()
+            self.transport.reset_input()
             self.version = self.soft_reset()
             for line in self.send("$I"):
                 if line.startswith("[VER:"):  # [VER:1.1h.20190825:<optional build string>]
@@ -445,25 +444,13 @@ class GrblPositioner(LightPositioner):
                 raise ProtocolError(f"$$ did not report settings {missing}", device=self.name)
             state = self.status().state
         except BaseException:
-            self._transport.close()
+            self.transport.close()
             raise
         # GRBL does not report "homed": with homing enabled it powers up locked in Alarm, so an
         # Idle controller has been homed (or deliberately unlocked) since power-up
         self._homed = not self.homing_enabled or state != "Alarm"
         self._connected = True
         log.info("%s: Grbl %s, state %s", self.name, self.version, state)
-
-    def close(self) -> None:
-        self._connected = False
-        self._transport.close()
-
-    @property
-    def connected(self) -> bool:
-        return self._connected and self._transport.is_open
-
-    def _require(self) -> None:
-        if not self._connected:
-            raise Disconnected("not connected; call connect() first", device=self.name)
 
     # -- state ------------------------------------------------------------------------------------
     @property
@@ -529,17 +516,8 @@ class GrblPositioner(LightPositioner):
         deadline = time.monotonic() + timeout
         moved = False
         grace = time.monotonic() + 0.25  # GRBL may report Idle for a moment before the block starts
-        failures = 0
         while True:
-            try:
-                st = self.status()
-            except (ProtocolError, DeviceTimeout):
-                # a status poll is idempotent: line noise or one lost report must not fail the move
-                failures += 1
-                if failures > self.poll_retries:
-                    raise
-                continue
-            failures = 0
+            st = self._poll(self.status)
             if st.state == "Alarm":
                 raise GrblAlarm(self.last_alarm, device=self.name)
             if st.state == "Idle":

@@ -25,13 +25,14 @@ simulator for that device; ``rig`` itself never imports the simulators.
 from __future__ import annotations
 
 import importlib
-import tomllib
+import inspect
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .device import Axis, Camera, Device, LightPositioner
 from .errors import RigError
+from .tomlfile import read_toml
 
 #: driver name -> "module:Class"; each class has ``from_config(name, section, **context)``
 DRIVERS: dict[str, str] = {
@@ -56,14 +57,8 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
     if isinstance(source, dict):
         cfg = source
     else:
-        path = Path(source)
-        where = str(path)
-        if not path.is_file():
-            raise ConfigError(f"rig file {path} does not exist")
-        try:
-            cfg = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+        where = str(source)
+        cfg = read_toml(source, error=ConfigError, what="rig file")
     for role, section in cfg.items():
         if role == "rig":  # free metadata: name, notes
             continue
@@ -76,9 +71,20 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
         if driver not in DRIVERS:
             raise ConfigError(f"{where}: [{role}] driver = {driver!r} is unknown; "
                               f"known drivers: {', '.join(sorted(DRIVERS))}")
-        if not section.get("port"):
+        port = section.get("port")
+        if not port:
             raise ConfigError(f"{where}: [{role}] needs a port (e.g. '/dev/ttyUSB0', "
                               f"'usb:VID:PID' or 'sim')")
+        if not isinstance(port, str) or not port.isprintable():
+            raise ConfigError(f"{where}: [{role}] port = {port!r} must be a text such as "
+                              "\"/dev/ttyUSB0\", \"usb:VID:PID\" or \"sim\" (in quotes)")
+    ports: dict[str, str] = {}
+    for role, section in cfg.items():  # one device cannot serve two roles
+        if role != "rig" and section["port"] not in ("sim", "auto"):
+            if section["port"] in ports:
+                raise ConfigError(f"{where}: [{role}] port = {section['port']!r} is also the "
+                                  f"[{ports[section['port']]}] port; each device needs its own")
+            ports[section["port"]] = role
     return cfg
 
 
@@ -91,7 +97,22 @@ def driver_options(name: str, section: dict[str, Any], driver: str,
     if unknown:
         raise ConfigError(f"[{name}] unknown key(s) for the {driver} driver: "
                           f"{', '.join(sorted(unknown))}; allowed: {', '.join(sorted(allowed))}")
-    return {k: v for k, v in section.items() if k not in ("driver", "port")}
+    options = {k: v for k, v in section.items() if k not in ("driver", "port")}
+    params = inspect.signature(driver_class(driver).__init__).parameters
+    for key, value in options.items():
+        want = _KINDS.get(str(params[key].annotation).replace(" | None", "")) if key in params else None
+        if want is not None and not (isinstance(value, want[0]) and not isinstance(value, want[1])):
+            raise ConfigError(f"[{name}] {key} = {value!r} must be {want[2]}")
+    return options
+
+
+#: a driver parameter's annotation -> (accepted types, refused types, what to write)
+_KINDS: dict[str, tuple[type | tuple[type, ...], type | tuple[type, ...], str]] = {
+    "int": (int, bool, "a whole number"),
+    "float": ((int, float), bool, "a number"),
+    "bool": (bool, (), "true or false"),
+    "str": (str, (), "a text in quotes"),
+}
 
 
 def driver_class(driver: str) -> type[Device]:

@@ -12,7 +12,7 @@ import threading
 import time
 from typing import Any, Callable
 
-from .errors import DeviceTimeout, RigError
+from .errors import DeviceTimeout
 
 
 class MoveStatus:
@@ -112,8 +112,8 @@ class MoveStatus:
 def wait_all(statuses: list[MoveStatus], timeout: float | None = None) -> list[Any]:
     """Wait for several statuses (moves on different devices run at the same time).
 
-    All are waited for even if one fails, so no device is left moving unobserved; the first error
-    is then raised.
+    All are waited for even if one fails — with any exception, not only a rig error — so no
+    device is left moving unobserved; the first error is then raised.
     """
     deadline = None if timeout is None else time.monotonic() + timeout
     results, first_error = [], None
@@ -121,7 +121,7 @@ def wait_all(statuses: list[MoveStatus], timeout: float | None = None) -> list[A
         remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
         try:
             results.append(st.wait(remaining))
-        except RigError as exc:
+        except Exception as exc:  # noqa: BLE001 - re-raised once every status has been waited for
             results.append(None)
             first_error = first_error or exc
     if first_error is not None:

@@ -13,10 +13,13 @@ import select
 import termios
 import threading
 import time
+from typing import Callable, TypeVar
 
 import serial
 
-from .errors import DeviceTimeout, Disconnected
+from .errors import DeviceTimeout, Disconnected, ProtocolError
+
+T = TypeVar("T")
 
 log = logging.getLogger("gonio.rig.wire")
 
@@ -218,3 +221,42 @@ class ScriptedTransport:
         """Every scripted request was sent and every reply byte read."""
         assert not self.script, f"script not finished; still expected {self.script[0][0]!r}"
         assert not self._rx, f"unread reply bytes left: {bytes(self._rx)!r}"
+
+
+class SerialDriver:
+    """The link bookkeeping every serial driver shares (mixed in before its device base class).
+
+    The driver sets ``transport`` (a :class:`SerialTransport` or a stand-in) and ``name`` in its
+    ``__init__``, and ``_connected = True`` at the end of a successful ``connect()``.
+    """
+
+    transport: SerialTransport
+    name: str
+    poll_retries: int = 2
+    _connected: bool = False
+
+    def close(self) -> None:
+        """Mark the link down and close the port. Safe to call twice."""
+        self._connected = False
+        self.transport.close()
+
+    @property
+    def connected(self) -> bool:
+        return self._connected and self.transport.is_open
+
+    def _require(self) -> None:
+        """Raise ``Disconnected`` unless ``connect()`` succeeded and the port is still open."""
+        if not self.connected:
+            raise Disconnected("not connected; call connect() first", device=self.name)
+
+    def _poll(self, request: Callable[[], T]) -> T:
+        """``request()``, an idempotent status poll, retried up to ``self.poll_retries`` more
+        times on line noise or a lost reply, which must not fail a move."""
+        failures = 0
+        while True:
+            try:
+                return request()
+            except (ProtocolError, DeviceTimeout):
+                failures += 1
+                if failures > self.poll_retries:
+                    raise

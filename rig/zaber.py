@@ -37,10 +37,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from .device import Axis, reading
-from .errors import (DeviceBusy, DeviceError, DeviceTimeout, Disconnected, LimitError, NotHomed,
+from .errors import (DeviceBusy, DeviceError, DeviceTimeout, LimitError, NotHomed,
                      ProtocolError, RigError)
+from .motion import move_time_s
 from .status import MoveStatus
-from .transport import SerialTransport
+from .transport import SerialDriver, SerialTransport
 
 log = logging.getLogger("gonio.rig.zaber")
 
@@ -289,24 +290,10 @@ def flag_error(flag: str, *, device: str = "") -> RigError | None:
     return None
 
 
-def move_time_s(distance: float, speed: float, accel: float) -> float:
-    """Duration of a trapezoidal (or triangular) move, seconds.
-
-    ``distance``, ``speed`` and ``accel`` in any consistent units (e.g. microsteps, /s, /s^2).
-    """
-    distance = abs(distance)
-    if speed <= 0 or accel <= 0:
-        raise ValueError(f"speed and accel must be > 0 (got {speed}, {accel})")
-    ramp = speed * speed / accel  # distance spent accelerating plus decelerating
-    if distance <= ramp:
-        return 2.0 * math.sqrt(distance / accel)
-    return 2.0 * speed / accel + (distance - ramp) / speed
-
-
 # ---------------------------------------------------------------------------------------------
 # driver
 # ---------------------------------------------------------------------------------------------
-class ZaberRotaryStage(Axis):
+class ZaberRotaryStage(SerialDriver, Axis):
     """A Zaber rotary stage (X-RSW, X-RST, RSM ...) as the turntable, over the ASCII protocol.
 
     Angles are degrees. The conversion microsteps <-> degrees is read from the device at
@@ -374,7 +361,7 @@ class ZaberRotaryStage(Axis):
         if microstep_deg is not None and microstep_deg <= 0:
             raise ValueError(f"{name}: microstep_deg must be > 0, got {microstep_deg}")
         self.port = port or getattr(transport, "port", "")
-        self._transport = transport or SerialTransport(port, baudrate, timeout_s=timeout_s, device=name)
+        self.transport = transport or SerialTransport(port, baudrate, timeout_s=timeout_s, device=name)
         self.address = device
         self.axis_number = axis
         self.timeout_s = timeout_s
@@ -424,7 +411,7 @@ class ZaberRotaryStage(Axis):
         """
         axis = 0 if scope_device else self.axis_number
         timeout = self.timeout_s if timeout_s is None else timeout_s
-        t = self._transport
+        t = self.transport
         with t.lock:
             mid = self._next_id()
             t.write(encode_command(command, device=self.address, axis=axis, message_id=mid,
@@ -479,10 +466,10 @@ class ZaberRotaryStage(Axis):
     def connect(self) -> None:
         """Open the port and read identity, resolution, travel and speed from the device."""
         self.close()
-        self._transport.open()
+        self.transport.open()
         self._require_reply_checksum = False
         try:
-            self._transport.reset_input()
+            self.transport.reset_input()
             info: dict[str, Any] = {
                 "device_id": int(self.get("deviceid", scope_device=True)),
                 "firmware": self.get_text("version", scope_device=True),
@@ -497,19 +484,19 @@ class ZaberRotaryStage(Axis):
             if self.reply_checksums:
                 self._enable_reply_checksums()
         except BaseException:
-            self._transport.close()
+            self.transport.close()
             raise
         if info["cycle_microsteps"] > 0:
             info["microstep_deg"] = 360.0 / info["cycle_microsteps"]
         elif self._microstep_deg_config is not None:
             info["microstep_deg"] = float(self._microstep_deg_config)
         else:
-            self._transport.close()
+            self.transport.close()
             raise DeviceError("limit.cycle.dist", "this stage is not a continuous rotary stage "
                               "(limit.cycle.dist = 0); set microstep_deg from its data sheet",
                               device=self.name)
         if info["maxspeed"] <= 0 or info["accel"] <= 0:
-            self._transport.close()
+            self.transport.close()
             raise DeviceError("maxspeed", f"maxspeed={info['maxspeed']:g}, accel={info['accel']:g}: "
                               "the axis cannot move with zero speed or acceleration", device=self.name)
         self.info = info
@@ -535,14 +522,6 @@ class ZaberRotaryStage(Axis):
             self.command("set comm.checksum 1", scope_device=True)
             log.info("%s: turned on reply checksums (device setting comm.checksum = 1)", self.name)
         self._require_reply_checksum = True
-
-    def close(self) -> None:
-        self._connected = False
-        self._transport.close()
-
-    @property
-    def connected(self) -> bool:
-        return self._connected and self._transport.is_open
 
     # -- conversions ------------------------------------------------------------------------------
     @property
@@ -573,10 +552,6 @@ class ZaberRotaryStage(Axis):
         if self.cyclic:
             return (0.0, 360.0)
         return (self.info["limit_min"] * self.microstep_deg, self.info["limit_max"] * self.microstep_deg)
-
-    def _require(self) -> None:
-        if not self._connected:
-            raise Disconnected("not connected; call connect() first", device=self.name)
 
     def _target_microsteps(self, deg: float) -> tuple[int, float]:
         """Microstep target for ``deg`` and the travel to it in degrees (shortest way if cyclic)."""
@@ -679,17 +654,8 @@ class ZaberRotaryStage(Axis):
 
     def _wait_idle(self, target_deg: float | None, timeout: float) -> float:
         deadline = time.monotonic() + timeout
-        failures = 0
         while True:
-            try:
-                msg = self.request("")
-            except (ProtocolError, DeviceTimeout):
-                # a poll is idempotent: line noise or one lost reply must not fail the move
-                failures += 1
-                if failures > self.poll_retries:
-                    raise
-                continue
-            failures = 0
+            msg = self._poll(lambda: self.request(""))
             if not msg.busy:
                 break
             if time.monotonic() > deadline:

@@ -27,7 +27,7 @@ def _srational_matrix(m: np.ndarray) -> tuple[int, ...]:
     return tuple(out)
 
 
-def write_dng(raw: np.ndarray, *, cfa_pattern: str = "RGGB", black_level: int = 0,
+def write_dng(raw: np.ndarray, *, cfa_pattern: str = "RGGB", black_level: int | tuple[int, ...] = 0,
               white_level: int = 65535, color_matrix: np.ndarray | None = None,
               as_shot_neutral: tuple[float, float, float] = (1.0, 1.0, 1.0),
               make: str = "gonio", model: str = "SimCam", exposure_s: float | None = None,
@@ -41,8 +41,11 @@ def write_dng(raw: np.ndarray, *, cfa_pattern: str = "RGGB", black_level: int = 
         Raw sensor values (digital numbers), mosaic in ``cfa_pattern`` order from the top-left.
     cfa_pattern : str
         Four letters for the 2x2 tile, row-major, e.g. ``"RGGB"``, ``"GRBG"``, ``"BGGR"``, ``"GBRG"``.
-    black_level, white_level : int
-        Sensor black (offset) and white (saturation) levels in DN.
+    black_level : int or 4 ints
+        Sensor black (offset) level in DN: one for all photosites, or one per position of the
+        2x2 tile (row-major, as ``cfa_pattern``).
+    white_level : int
+        Sensor white (saturation) level in DN.
     color_matrix : ndarray of shape (3, 3), optional
         ColorMatrix1 (XYZ -> camera). Identity by default, so camera RGB is the simulator's RGB.
     as_shot_neutral : 3 floats
@@ -61,6 +64,8 @@ def write_dng(raw: np.ndarray, *, cfa_pattern: str = "RGGB", black_level: int = 
     pattern = cfa_pattern.upper()
     if len(pattern) != 4 or set(pattern) - set("RGB"):
         raise ValueError(f"cfa_pattern must be four letters of R, G, B (e.g. 'RGGB'), got {cfa_pattern!r}")
+    if np.size(black_level) not in (1, 4):
+        raise ValueError(f"black_level must be one level or four (per 2x2 tile position), got {black_level!r}")
     cm = np.eye(3) if color_matrix is None else np.asarray(color_matrix, dtype=float)
     tags = [
         (50706, "B", 4, (1, 4, 0, 0), True),                        # DNGVersion
@@ -69,7 +74,8 @@ def write_dng(raw: np.ndarray, *, cfa_pattern: str = "RGGB", black_level: int = 
         (33421, "H", 2, (2, 2), True),                              # CFARepeatPatternDim
         (33422, "B", 4, tuple(_CFA_CODES[c] for c in pattern), True),  # CFAPattern
         (50710, "B", 3, (0, 1, 2), True),                           # CFAPlaneColor
-        (50714, "I", 1, (int(black_level),), True),                 # BlackLevel
+        (50713, "H", 2, (2, 2) if np.size(black_level) == 4 else (1, 1), True),  # BlackLevelRepeatDim
+        (50714, "I", np.size(black_level), tuple(int(b) for b in np.ravel(black_level)), True),  # BlackLevel
         (50717, "I", 1, (int(white_level),), True),                 # WhiteLevel
         (50721, "2i", 9, _srational_matrix(cm), True),              # ColorMatrix1
         (50778, "H", 1, (21,), True),                               # CalibrationIlluminant1 = D65

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import os
 import select
+import shutil
 import tempfile
 import threading
 import time
 import tty
+import weakref
 
 from .faults import FaultInjection
 
@@ -49,6 +51,9 @@ class SerialSim(FaultInjection):
         self._init_faults()
         self.requests: list[bytes] = []  # every request received, for tests
         self._dir = tempfile.mkdtemp(prefix=f"gonio-sim-{name}-")
+        # removed by stop(), when the simulator is collected, or at interpreter exit (Ctrl-C,
+        # an error): a simulated rig leaves no folder behind
+        self._remove_dir = weakref.finalize(self, shutil.rmtree, self._dir, ignore_errors=True)
         self.port = os.path.join(self._dir, name)
         self._master: int | None = None
         self._slave: int | None = None
@@ -65,10 +70,12 @@ class SerialSim(FaultInjection):
         return self.port
 
     def stop(self) -> None:
+        """Stop serving, close the pty and remove the port's temporary folder."""
         self._running = False
         if self._thread is not None:
             self._thread.join(timeout=2)
         self._close_pty()
+        self._remove_dir()
 
     def __enter__(self):
         self.start()
@@ -82,6 +89,9 @@ class SerialSim(FaultInjection):
         tty.setraw(master)
         tty.setraw(slave)
         self._master, self._slave = master, slave
+        if not self._remove_dir.alive:  # started again after stop()
+            os.makedirs(self._dir, exist_ok=True)
+            self._remove_dir = weakref.finalize(self, shutil.rmtree, self._dir, ignore_errors=True)
         tmp = self.port + ".new"
         if os.path.lexists(tmp):
             os.unlink(tmp)

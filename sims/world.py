@@ -43,8 +43,10 @@ RING_FLASH_RADIUS_MM = 40.0
 ARM_RADIUS_MM = 500.0
 ARM_CENTER_MM = (0.0, 0.0, 0.0)
 #: Scene kinds :meth:`SimWorld.for_capture` knows.
-CAPTURE_KINDS = ("object", "checkerboard", "charuco", "chrome", "spheres", "graycard", "probe",
-                 "passive", "dark", "flat")
+#: the scenes the simulated camera can show; the plan's scene targets (capture.plan.SCENE_TARGETS)
+#: under the same names, and simulator-only ones (charuco, chrome, passive, flat)
+CAPTURE_KINDS = ("object", "checkerboard", "charuco", "chrome", "spheres", "gray_card",
+                 "mirror_probe", "passive", "dark", "flat")
 
 
 def light_position(azimuth_deg: float, elevation_deg: float, *, radius_mm: float = ARM_RADIUS_MM,
@@ -340,24 +342,18 @@ class SimWorld:
     #: ~0.25 px and the ~1 px lamp highlight on a small steel ball enough to move a triangulated
     #: light by ~2 % (3 x 3 brings it under 0.4 %, tests/calibration)
     KIND_SUPERSAMPLE = {"checkerboard": 2, "charuco": 2, "spheres": 3, "chrome": 2}
-    #: the runner's target names (capture/plan.py) -> capture kinds
-    TARGET_KINDS = {"object": "object", "lens_cap": "dark", "checkerboard": "checkerboard",
-                    "charuco": "charuco", "spheres": "spheres", "gray_card": "graycard",
-                    "mirror_probe": "probe", "chrome": "chrome", "passive": "passive", "flat": "flat"}
 
     def set_scene(self, kind: str) -> None:
         """Change what stands in front of the camera to the scene of capture ``kind`` (see
-        :meth:`for_capture`; the runner's target names ``lens_cap``, ``gray_card``,
-        ``mirror_probe`` ... are accepted too), keeping the camera, sensor, lamp polarizer and
-        noise stream. ``"object"`` puts this world's own object back."""
-        kind = self.TARGET_KINDS.get(kind, kind)
+        :meth:`for_capture`; the names of a plan's scene targets), keeping the camera, sensor,
+        lamp polarizer and noise stream. ``"object"`` puts this world's own object back."""
         keep = dict(camera=self.camera, sensor=self.sensor, light_radius_mm=self.light_radius_mm,
                     light_polarizer_deg=self.light_polarizer_deg, env_samples=self.env_samples,
                     supersample=max(self._home["supersample"], self.KIND_SUPERSAMPLE.get(kind, 1)))
         home = dict(self._home)
         obj = home.pop("object")
         home.pop("supersample")
-        if kind in ("probe", "passive"):  # the probe kinds bring their own lighting and no cloth
+        if kind in ("mirror_probe", "passive"):  # they bring their own lighting and no cloth
             home = {"environment": home["environment"]} if home["environment"] is not None else {}
         other = SimWorld.for_capture(kind, obj, **keep, **home)
         with self._lock:
@@ -375,8 +371,8 @@ class SimWorld:
         """The scene of one kind of capture: ``"object"`` (the object alone), ``"checkerboard"``
         / ``"charuco"`` (a board standing on the turntable; 2 x 2 supersampled by default, since
         one ray per pixel aliases the print's edges by ~0.25 px), ``"chrome"`` (one chrome sphere),
-        ``"spheres"`` (Lensch's row of six steel spheres, beside the object), ``"graycard"``,
-        ``"probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"passive"``
+        ``"spheres"`` (Lensch's row of six steel spheres, beside the object), ``"gray_card"``,
+        ``"mirror_probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"passive"``
         (the object under that probe, no lamp: passive reflectometry), ``"dark"`` (lens
         cap on: sensor dark frame), ``"flat"`` (a uniform white field)."""
         if kind not in CAPTURE_KINDS:
@@ -384,17 +380,17 @@ class SimWorld:
         if kind == "object":
             return cls(object, **kwargs)
         kwargs.setdefault("supersample", cls.KIND_SUPERSAMPLE.get(kind, 1))
-        if kind == "checkerboard":  # sized to fit the default camera's view at any angle
-            return cls(None, targets=[board_on_turntable(Checkerboard(square_mm=15.0, margin_mm=10.0))], **kwargs)
+        if kind == "checkerboard":
+            return cls(None, targets=[board_on_turntable(CAPTURE_CHESSBOARD)], **kwargs)
         if kind == "charuco":
-            return cls(None, targets=[board_on_turntable(CharucoTarget(square_mm=22.0, marker_mm=16.0))], **kwargs)
+            return cls(None, targets=[board_on_turntable(CAPTURE_CHARUCO)], **kwargs)
         if kind == "chrome":
             return cls(None, targets=[sphere_target("chrome")], **kwargs)
         if kind == "spheres":
             return cls(object, targets=[spheres_target("steel")], **kwargs)
-        if kind == "graycard":
+        if kind == "gray_card":
             return cls(None, targets=[gray_card_target()], **kwargs)
-        if kind in ("probe", "passive"):
+        if kind in ("mirror_probe", "passive"):
             if "environment" not in kwargs:
                 from .targets import environment
                 kwargs["environment"] = environment("grace")
@@ -498,12 +494,45 @@ class SimWorld:
                            object_pose=turntable_pose(st.turntable_deg), expected=expected)
 
 
-def lab_frame_source(fast: bool = True, object: GroundTruthObject | str | None = "sphere"):
-    """The default frame source of :class:`sims.lab.SimLab`: a :class:`SimWorld` with ``object``
-    on the turntable, its ground-truth camera at 320 x 240 in ``fast`` mode (tests: ~0.1 s per
-    frame) or the full 1200 x 800 otherwise. Returns its bound :meth:`SimWorld.frame_source`."""
+#: the boards :meth:`SimWorld.for_capture` stands on the turntable (sized to fit the default
+#: camera's view at any angle)
+CAPTURE_CHESSBOARD = Checkerboard(square_mm=15.0, margin_mm=10.0)
+CAPTURE_CHARUCO = CharucoTarget(square_mm=22.0, marker_mm=16.0)
+
+
+def capture_targets() -> dict[str, Any]:
+    """What the calibration targets of :meth:`SimWorld.for_capture` are, for a calibration to look
+    for (mm, world frame = the lab frame: origin on the axis at the platter, +z up): the boards'
+    geometry and the height of their corner grids' centres, the steel-ball row's radius, mirror
+    reflectance and centres, the gray card's albedo. Keys are plain names a calibration's target
+    description can take as they are."""
+    chess, charuco = board_on_turntable(CAPTURE_CHESSBOARD), board_on_turntable(CAPTURE_CHARUCO)
+    balls = spheres_target("steel")
+    return {"chessboard_inner": CAPTURE_CHESSBOARD.inner_corners,
+            "chessboard_square_mm": CAPTURE_CHESSBOARD.square_mm,
+            "chessboard_centre_height_mm": float(chess.points_world(0.0).mean(axis=0)[2]),
+            "charuco_squares": CAPTURE_CHARUCO.squares, "charuco_square_mm": CAPTURE_CHARUCO.square_mm,
+            "charuco_marker_mm": CAPTURE_CHARUCO.marker_mm, "charuco_dictionary": CAPTURE_CHARUCO.dictionary,
+            "charuco_centre_height_mm": float(charuco.points_world(0.0).mean(axis=0)[2]),
+            "sphere_radius_mm": balls.spec.radius_mm,
+            "sphere_reflectance": CalibrationSphere(balls.spec.radius_mm, balls.spec.kind).reflectance,
+            "sphere_centres_mm": tuple(map(tuple, balls.points_world(0.0).tolist())),
+            "gray_card_albedo": gray_card_target().spec.albedo}
+
+
+def lab_world(fast: bool = True, object: GroundTruthObject | str | None = "sphere") -> "SimWorld":
+    """The simulated lab's default scene: a :class:`SimWorld` with ``object`` on the turntable,
+    its ground-truth camera at 320 x 240 in ``fast`` mode (tests: ~0.1 s per frame) or the full
+    1200 x 800 otherwise. Its :meth:`SimWorld.frame_source` feeds the camera simulator and its
+    :meth:`SimWorld.prepare_target` stages each scene target."""
     camera = default_camera(320, 240) if fast else default_camera()
-    return SimWorld(object, camera=camera).frame_source
+    return SimWorld(object, camera=camera)
+
+
+def lab_frame_source(fast: bool = True, object: GroundTruthObject | str | None = "sphere"):
+    """The default frame source of :class:`sims.lab.SimLab`: :func:`lab_world`'s bound
+    :meth:`SimWorld.frame_source`."""
+    return lab_world(fast, object).frame_source
 
 
 def supersampled_camera(camera: CameraModel, s: int) -> CameraModel:

@@ -263,7 +263,7 @@ class GonioApp(App[None]):
         if self.runner_active:
             self.runner.request_pause(now=True)  # stops the rig too, and moves no further
         self.log_line(logging.ERROR, "estop", "EMERGENCY STOP: stopping every axis")
-        self.notify("EMERGENCY STOP: all axes stopping", severity="error", timeout=5)
+        self.notify("EMERGENCY STOP: all axes stopping", severity="error", timeout=5, markup=False)
         self._estop()
 
     @work(thread=True, group="estop")
@@ -321,13 +321,13 @@ class GonioApp(App[None]):
         names = ", ".join(f"{r} ({d.get('model', d.get('driver'))})" for r, d in self.info.items())
         self.log_line(logging.INFO, "console", f"rig connected: {names}")
         self._update_status()
-        self.notify("rig connected")
+        self.notify("rig connected", markup=False)
         self.poll_devices()
 
     @_while_attached
     def on_rig_failed(self, message: RigFailed) -> None:
         self.log_line(logging.ERROR, "console", f"cannot open the rig: {message.error}")
-        self.notify(f"cannot open the rig: {message.error}", severity="error", timeout=10)
+        self.notify(f"cannot open the rig: {message.error}", severity="error", timeout=10, markup=False)
         self._update_status()
 
     def poll_devices(self) -> None:
@@ -373,14 +373,14 @@ class GonioApp(App[None]):
             self.open_rig()
             return
         if self.rig is None:
-            self.notify("the rig is not connected yet", severity="warning")
+            self.notify("the rig is not connected yet", severity="warning", markup=False)
             return
         if self.runner_active and op != "stop":
-            self.notify("a session is running: pause (p) or abort (a) it first", severity="warning")
+            self.notify("a session is running: pause (p) or abort (a) it first", severity="warning", markup=False)
             return
         role = ROWS[request.key][0] if request.key else ""
         if role and getattr(self.rig, role) is None:
-            self.notify(f"no {role} in this rig", severity="warning")
+            self.notify(f"no {role} in this rig", severity="warning", markup=False)
             return
         what = op if request.value is None else f"{op} {request.value:g}"
         self.log_line(logging.INFO, "camera" if role == "camera" else "device", what,
@@ -460,7 +460,7 @@ class GonioApp(App[None]):
             self.log_line(logging.ERROR, kind, f"{result.op} failed: {result.error}",
                           device=role or None)
             self.notify(f"{role or 'console'}: {result.op} failed: {result.error}",
-                        severity="error", timeout=8)
+                        severity="error", timeout=8, markup=False)
             if role:
                 self.devices_pane.set_fault(role, msg)
                 if isinstance(result.error, Disconnected):
@@ -506,13 +506,13 @@ class GonioApp(App[None]):
         elif op in ("new", "resume_interrupted"):
             if self.runner_active or pane.state == "paused":
                 self.notify("a session is open: resume (p) or abort (a) it first",
-                            severity="warning")
+                            severity="warning", markup=False)
             elif self.rig is None or self.store is None:
-                self.notify("the rig is not connected yet", severity="warning")
+                self.notify("the rig is not connected yet", severity="warning", markup=False)
             else:
                 self._start_session(None if op == "new" else (request.name or ""))
         elif self.runner is None:
-            self.notify("no session is open", severity="warning")
+            self.notify("no session is open", severity="warning", markup=False)
         elif op == "pause" and self.runner_active:
             self.log_line(logging.INFO, "console", "pause requested (after the current step)")
             self.runner.request_pause()
@@ -583,7 +583,7 @@ class GonioApp(App[None]):
         self.runner_active = False
         if message.error is not None:
             self.log_line(logging.ERROR, "console", f"session stopped: {message.error}")
-            self.notify(str(message.error), severity="error", timeout=10)
+            self.notify(str(message.error), severity="error", timeout=10, markup=False)
         self.session_pane.state = message.state
         self.open_store()  # refresh the session list
         self.poll_devices()
@@ -596,19 +596,19 @@ class GonioApp(App[None]):
         kind = event.kind
         if kind == EventKind.FAULT:
             self.notify(f"{event.device or 'session'}: {event.message}", title="device fault",
-                        severity="error", timeout=15)
+                        severity="error", timeout=15, markup=False)
             if event.device:
                 self.devices_pane.set_fault(event.device, event.message)
                 if event.data.get("error") == "Disconnected":
                     self.devices_pane.set_disconnected(event.device)
         elif kind == EventKind.TARGET:
-            self.notify(event.message, title="scene change", severity="warning", timeout=10)
+            self.notify(event.message, title="scene change", severity="warning", timeout=10, markup=False)
         elif kind == EventKind.MOVED:
             self.devices_pane.set_positions(event.data.get("positions", {}))
         elif kind == EventKind.FRAME_STORED and "sha256" in event.data:
             self._preview_step(event.session, event.step)
         elif kind in (EventKind.DONE, EventKind.ABORTED):
-            self.notify(f"session {event.session}: {kind.value}")
+            self.notify(f"session {event.session}: {kind.value}", markup=False)
 
     @work(thread=True, exclusive=True, group="preview")
     def _preview_step(self, session: str, step: int) -> None:

@@ -31,18 +31,12 @@ def home_every_axis(rig: Rig) -> str:
 
 def target_handler(opened: OpenedRig, ask: Callable[[str, Step], None], *,
                    prompt: bool | None = None) -> Callable[[str, Step], None] | None:
-    """Who sets up the scene a step needs (``object``, ``lens_cap``, ``checkerboard`` ...), as
-    in ``gonio capture run``: the simulated scene swaps itself for ``--rig sim``, the operator is
-    asked (``ask``) on a real rig. ``prompt`` True / False forces asking / not asking."""
+    """Who sets up the scene a step needs (``object``, ``dark``, ``checkerboard`` ...), as
+    in ``gonio capture run``: the opened rig's ``prepare_target`` where it has one (a simulated
+    camera), else the operator is asked (``ask``). ``prompt`` True / False forces asking / not asking."""
     if prompt is None:
-        prompt = opened.lab is None
-    if prompt:
-        return ask
-    if opened.lab is None:
-        return None
-    # the lab's default frame source is a bound SimWorld.frame_source; its world swaps scenes
-    world = getattr(opened.lab.frame_source, "__self__", None)
-    return getattr(world, "prepare_target", None)
+        prompt = opened.prepare_target is None
+    return ask if prompt else opened.prepare_target
 
 
 def open_store(root: str | Path) -> Store:

@@ -266,7 +266,7 @@ class DevicesPane(Vertical):
 
     def action_jog(self, sign: int) -> None:
         if self.selected == "camera":
-            self.notify("the camera has no axis to jog", severity="warning")
+            self.notify("the camera has no axis to jog", severity="warning", markup=False)
             return
         self.post_message(DeviceRequest("jog", self.selected, sign * self.jog_step))
 
@@ -283,7 +283,7 @@ class DevicesPane(Vertical):
         try:
             value = float(event.value)
         except ValueError:
-            self.notify(f"{which}: {event.value!r} is not a number", severity="error")
+            self.notify(f"{which}: {event.value!r} is not a number", severity="error", markup=False)
             return
         key = self.selected if which == "goto" else "camera"
         op = {"goto": "goto", "exposure": "exposure", "iso": "iso"}[which]

@@ -19,6 +19,7 @@ from textual.screen import ModalScreen
 from textual.widgets import DataTable, Input, Label, ProgressBar, Static
 
 from ..events import Event, EventKind
+from ..plan import SCENE_TARGETS
 from .devices import light_direction
 
 #: store states a session can be resumed from ("running" in the store but not here: a crash)
@@ -139,7 +140,7 @@ class SessionPane(Vertical):
                   path: str | None = None) -> None:
         """Fill the steps table; ``steps`` as ``(index, step dict, done)``; ``path`` is the
         plan file, if any."""
-        self.query_one("#plan-summary", Static).update(summary)
+        self.query_one("#plan-summary", Static).update(Text(summary))  # user text: no markup
         if path:
             self.query_one("#plan-path", Input).value = path
         table = self.query_one("#steps", DataTable)
@@ -158,7 +159,7 @@ class SessionPane(Vertical):
         for name, state, progress in rows:
             style = {"running": "green", "paused": "yellow", "interrupted": "bold yellow",
                      "aborted": "red"}.get(state, "")
-            table.add_row(name, Text(state, style=style), progress, key=name)
+            table.add_row(Text(name), Text(state, style=style), progress, key=name)
 
     @property
     def selected_session(self) -> str | None:
@@ -269,7 +270,7 @@ class SessionPane(Vertical):
 
     def show_alert(self, message: str) -> None:
         alert = self.query_one("#alert", Static)
-        alert.update(message)
+        alert.update(Text(message))
         alert.display = True
 
     def clear_alert(self) -> None:
@@ -330,13 +331,7 @@ class TargetScreen(ModalScreen[bool]):
         with Vertical(id="target-box"):
             yield Label(Text(f"Step {self.step} needs: {self.target.replace('_', ' ')}",
                              style="bold"))
-            yield Label(f"{TARGET_TEXT.get(self.target, 'set up ' + self.target)}, then press "
+            yield Label(f"{SCENE_TARGETS.get(self.target, 'set up ' + self.target)}, then press "
                         "enter. Escape pauses the session instead.")
 
 
-#: what the operator does for each scene target of a plan
-TARGET_TEXT = {"object": "put the object on the turntable", "lens_cap": "put the lens cap on",
-               "checkerboard": "put the checkerboard target on the turntable",
-               "spheres": "put the calibration spheres on the turntable",
-               "gray_card": "put the gray card on the turntable",
-               "mirror_probe": "put the mirror sphere on the turntable"}

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import calibration as c
+from calibration.targets import to_gray_u8
 from calibration.errors import CalibrationError, InvalidInput
 
 K = np.array([[1000.0, 0, 320], [0, 1000, 240], [0, 0, 1]])
@@ -31,7 +32,8 @@ CASES = [
     ("angles_deg", lambda: c.fit_turntable([DET] * 3, K, angles_deg=[0, np.nan, 20])),
     ("mask", lambda: c.detect_sphere(np.zeros((0, 0)))),
     ("rel_threshold", lambda: c.find_highlight(np.ones((10, 10)), rel_threshold=2)),
-    ("sphere.radius_px", lambda: c.find_highlight(np.ones((10, 10)), c.SphereImage(np.zeros(2), -1.0, None, None))),
+    ("radius_px", lambda: c.SphereImage(np.zeros(2), -1.0)),
+    ("sphere", lambda: c.find_highlight(np.ones((10, 10)), (np.zeros(2), 5.0))),
     ("highlight_xy", lambda: c.light_direction_orthographic([1, 2, 3], SPH)),
     ("K", lambda: c.sphere_center_from_silhouette(
         c.SphereImage(np.array([50.0, 50]), 20.0, None, np.random.default_rng(2).random((30, 2)) * 100), NAN_K)),
@@ -71,6 +73,15 @@ CASES = [
     ("K", lambda: c.mirror_sphere_to_latlong_perspective(np.ones((10, 10)), np.eye(2), None, [0, 0, 500], 10,
                                                          np.eye(3))),
     ("probes[0]", lambda: c.merge_probes([1, 2])),
+    ("source", lambda: c.read_raw(3.5)),
+    ("images[1]", lambda: c.light_directions_from_sphere([np.ones((8, 8)), np.full((8, 8), np.nan)])),
+    ("reflectance", lambda: c.sphere_silhouettes([np.ones((8, 8))], 1.5)),
+    ("centers_mm", lambda: c.project_spheres([[0, 0, 1.0]], 5.0, K, None, (640, 480))),
+    ("sphere", lambda: c.lamp_spots(np.ones((8, 8)), "not a sphere", 0.5)),
+    ("min_pixels", lambda: c.find_gray_card(np.ones((8, 8)), min_pixels=0)),
+    ("detections[0]", lambda: c.consistent_corner_order(["x"], K)),
+    ("fit", lambda: c.lab_frame(None, [0, 0, 0], 1.0)),
+    ("white_percentile", lambda: to_gray_u8(np.ones((4, 4)), white_percentile=0)),
     ("height", lambda: c.latlong_directions("x")),
 ]
 

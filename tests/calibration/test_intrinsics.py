@@ -77,6 +77,16 @@ def test_frame_without_board_is_named():
     assert missing[0].frame == "empty.jpg"
 
 
+def test_a_folder_with_a_boardless_photo_is_skipped_by_default(chess_views):
+    """By default the photos without a board are skipped and reported, the rest detected."""
+    blank = np.full(chess_views[0].shape, 128, np.uint8)
+    dets, missing = detect_all([chess_views[0], blank, chess_views[1]], DETECT, names=["a", "b", "c"])
+    assert [d.frame for d in dets] == ["a", "c"]
+    assert [m.frame for m in missing] == ["b"] and "no 11x8 chessboard" in missing[0].reason
+    with pytest.raises(TargetNotFound, match="b: no 11x8"):
+        detect_all([chess_views[0], blank], DETECT, names=["a", "b"], on_missing="raise")
+
+
 def test_too_few_views(chess_views):
     dets, _ = detect_all(chess_views[:2], DETECT)
     with pytest.raises(TooFewViews, match="have 2"):
@@ -147,3 +157,28 @@ def test_opencv_chessboard_photos_reproduce_reference(shared_data, method):
     assert abs(res.rms_px - 0.19633) < tol_rms
     assert np.abs(np.diag(res.K)[:2] - np.diag(K_ref)[:2]).max() < tol_f
     assert np.abs(res.K[:2, 2] - K_ref[:2, 2]).max() < tol_c
+
+
+def _corner_error_px(res) -> float:
+    """Largest distance, over the four image corners, between where the true lens and the
+    fitted one put the same viewing ray, pixels."""
+    from calib_synth import SIZE
+    w, h = SIZE
+    c = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
+    rays = np.c_[cv2.undistortPoints(c.reshape(-1, 1, 2), K_TRUE, DIST_TRUE).reshape(-1, 2), np.ones(4)]
+    return float(np.abs(cv2.projectPoints(rays, np.zeros(3), np.zeros(3), res.K, res.dist)[0].reshape(-1, 2)
+                        - c).max())
+
+
+def test_undetermined_k3_is_fixed_at_zero_and_reported(chess_views):
+    """10 views leave k3 uncertain by ~0.8 px at the image corners: it is fixed at 0 (the true
+    lens has none), the report says why, and the corners stay within 1 px of the true lens."""
+    dets, _ = detect_all(chess_views, DETECT)
+    res = calibrate_intrinsics(dets)
+    assert res.dist[4] == 0.0 and "k3 fixed at 0" in res.model_note and "image corner" in res.model_note
+    assert res.model_note in res.report()
+    assert _corner_error_px(res) < 1.0
+    free = calibrate_intrinsics(dets, choose_k3=False)
+    assert free.dist[4] != 0.0 and free.model_note == ""
+    # a model the caller fixed is left alone
+    assert calibrate_intrinsics(dets, flags=cv2.CALIB_FIX_K3).model_note == ""

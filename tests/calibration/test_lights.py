@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.errors import DegenerateFit, TargetNotFound, TooFewViews
+from calibration.errors import DegenerateFit, NotConverged, TargetNotFound, TooFewViews
 from calibration.lights import (detect_sphere, find_highlight, fit_positioner_model,
                                 light_direction_orthographic, locate_collinear_spheres,
                                 reflect_highlight, sphere_center_from_silhouette,
@@ -168,6 +168,9 @@ def test_positioner_model_recovers_kinematics():
     assert np.linalg.norm(m.position(45.0, 20.0) - (truth["c"] + truth["r"] * np.array(
         [np.cos(np.radians(18.8)) * np.cos(np.radians(47.5)), np.cos(np.radians(18.8)) * np.sin(np.radians(47.5)),
          np.sin(np.radians(18.8))]))) < 3.0
+    assert 1 <= m.fit_status <= 4 and m.fit_message  # converged, with scipy's reason
+    with pytest.raises(NotConverged, match="positioner arm fit did not converge"):
+        fit_positioner_model(az, el, X_meas, max_evaluations=2)
     with pytest.raises(TooFewViews):
         fit_positioner_model(az[:2], el[:2], X[:2])
     with pytest.raises(ValueError, match="positions_mm"):
@@ -199,6 +202,11 @@ def test_uw_chrome_sphere_light_directions(shared_data):
     print(f"UW chrome: angular difference to lights.txt mean {ang.mean():.2f}°, max {ang.max():.2f}°")
     # the course reference itself differs from an independent re-derivation by 3° mean, 8° worst
     assert ang.mean() < 4.0 and ang.max() < 10.0
+    # the same in one call, as a new user would make it
+    from calibration.spheres import light_directions_from_sphere
+    imgs = [np.asarray(Image.open(root / "chrome" / f"chrome.{i}.tga")) for i in range(12)]
+    one = light_directions_from_sphere(imgs, mask, names=[f"chrome.{i}" for i in range(12)])
+    np.testing.assert_allclose(one.directions, dirs, atol=1e-12)
 
 
 def test_point_light_covariance_includes_centre_noise():
@@ -224,3 +232,61 @@ def test_point_light_covariance_includes_centre_noise():
                      for _ in range(300)])
     # Monte Carlo scatter vs the linearised covariance: total variance within 30 %
     assert 0.7 < np.trace(np.cov(errs.T)) / np.trace(pl.covariance_mm2) < 1.3
+
+
+def _dim_mirror_ball(rng, centre=(150.3, 120.7), radius=60.0, size=(300, 260), ss=4):
+    """A dim mirror ball (reflected room ~0.08) with dark reflections as holes, a highlight 600x
+    brighter, on a darker noisy background; the disc is supersampled ``ss`` x ``ss``."""
+    w, h = size
+    yy, xx = (np.indices((h * ss, w * ss)) + 0.5) / ss - 0.5
+    inside = (xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 < radius ** 2
+    img = np.where(inside, 0.08, 0.01).reshape(h, ss, w, ss).mean(axis=(1, 3))
+    for _ in range(8):  # dark reflections: holes well inside the disc
+        r, a = rng.uniform(0, 0.7) * radius, rng.uniform(0, 2 * np.pi)
+        cx, cy = centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)
+        img[(np.indices((h, w))[1] - cx) ** 2 + (np.indices((h, w))[0] - cy) ** 2 < (0.15 * radius) ** 2] = 0.002
+    hx, hy = centre[0] - 0.3 * radius, centre[1] - 0.2 * radius
+    img[(np.indices((h, w))[1] - hx) ** 2 + (np.indices((h, w))[0] - hy) ** 2 < 9] = 50.0
+    return img + rng.normal(0, 0.002, img.shape)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_dim_mirror_ball_centre_from_its_outline(seed):
+    rng = np.random.default_rng(seed)
+    centre, radius = np.array([150.3 + seed, 120.7 - seed]), 55.0 + 3 * seed
+    img = _dim_mirror_ball(rng, centre, radius)
+    sph = detect_sphere(img)  # default threshold: the highlight is 600x the ball
+    assert np.linalg.norm(sph.center_px - centre) < 0.3
+    assert abs(sph.radius_px - radius) < 0.5
+    # a user-given threshold inside the ball's range: the holes do not move the centre
+    sph = detect_sphere(img, threshold=0.04)
+    assert np.linalg.norm(sph.center_px - centre) < 0.3
+
+
+def test_a_blob_that_is_not_a_sphere_is_refused():
+    img = np.zeros((200, 200))
+    img[40:160, 60:90] = 1.0  # a bar: axis ratio 0.25
+    with pytest.raises(TargetNotFound, match="bar.png: .*not a credible sphere.*axis ratio"):
+        detect_sphere(img, frame="bar.png")
+    img = np.zeros((200, 200))
+    img[:, :100] = 1.0  # background half: open to the border
+    with pytest.raises(TargetNotFound, match="touches the image border"):
+        detect_sphere(img)
+
+
+@pytest.mark.realdata
+def test_uw_chrome_photo_without_mask_is_found_or_refused(shared_data):
+    """On a real, dim mirror-sphere photo (no mask) the sphere is either found where its mask
+    says, or refused with the reason: never a centre tens of pixels off without an error."""
+    from PIL import Image
+    root = shared_data / "uw-photometric-stereo" / "chrome"
+    truth = detect_sphere(np.asarray(Image.open(root / "chrome.mask.tga")))
+    for i in range(12):
+        img = np.asarray(Image.open(root / f"chrome.{i}.tga")).astype(np.float32)
+        for threshold in (None, 2.0, 8.0):
+            try:
+                sph = detect_sphere(img, threshold=threshold, frame=f"chrome.{i}")
+            except TargetNotFound as exc:
+                assert f"chrome.{i}" in str(exc)
+                continue
+            assert np.linalg.norm(sph.center_px - truth.center_px) < 2.0, (i, threshold, sph.center_px)

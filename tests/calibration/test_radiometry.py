@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from calibration.errors import TooFewViews
-from calibration.hdr import (master_frame, merge_ldr, merge_raw_brackets, read_raw,
-                             recover_response, write_hdr)
+from calibration.hdr import master_frame, merge_ldr, merge_raw_brackets, recover_response, write_hdr
+from calibration.raw import read_raw
 from calibration.radiometry import (apply_flat, fit_vignetting, flat_field_gain, gray_card_scale,
                                     normalize_irradiance)
 
@@ -198,7 +198,7 @@ def test_real_raw_files_decode_and_merge(shared_data, name):
     h, w = full.data.shape
     y0, x0 = (max(h - 1024, 0) // 4) * 2, (max(w - 1024, 0) // 4) * 2
     crop = (slice(y0, y0 + 1024), slice(x0, x0 + 1024))
-    raw = type(full)(full.data[crop], full.black_level[crop], full.white_level, full.cfa)
+    raw = type(full)(full.data[crop], full.cfa, full.black_level_cfa, full.white_level)
     # a 2-frame bracket from the real mosaic: the frame itself and a 4x shorter exposure of it
     short = np.round((raw.data.astype(np.float64) - raw.black_level) / 4 + raw.black_level).astype(np.uint16)
     hdr = merge_raw_brackets([raw.data, short], [0.01, 0.0025], black_level=raw.black_level,

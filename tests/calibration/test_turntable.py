@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.errors import DegenerateFit, TooFewViews
+from calibration.errors import DegenerateFit, NotConverged, TooFewViews
 from calibration.intrinsics import detect_all
 from calibration.targets import detect_charuco, make_charuco_board
 from calib_synth import DIST_TRUE, K_TRUE, render_plane, rot_axis_angle
@@ -66,6 +66,7 @@ def test_axis_direction_within_0p1_deg(scene, mode):
     axis_true = scene["R_cw"] @ [0, 0, 1.0]
     assert _angle_deg(fit.axis_camera, axis_true) < 0.1
     assert fit.axis_std_deg < 0.1 and fit.rms_px < 0.3
+    assert 1 <= fit.fit_status <= 4 and fit.fit_message  # converged, with scipy's reason
     # world origin (foot of the target origin on the axis: board lies at z = 0) in camera frame
     assert np.linalg.norm(fit.origin_camera - scene["t_cw"]) < 0.5
     # fitted per-view platter angles follow the readings
@@ -83,6 +84,12 @@ def test_axis_direction_within_0p1_deg(scene, mode):
     Rz = rot_axis_angle([0, 0, 1], np.radians(SCALE * reading + OFFSET))
     truth = (corners @ scene["R_b0"].T + scene["t_b0"]) @ Rz.T @ scene["R_cw"].T + scene["t_cw"]
     assert np.abs(pred - truth).max() < 0.5  # mm, at ~330 mm range
+
+
+def test_a_fit_that_does_not_converge_is_an_error(scene):
+    from calibration.turntable import fit_turntable
+    with pytest.raises(NotConverged, match="turntable bundle adjustment did not converge"):
+        fit_turntable(scene["dets"], K_TRUE, DIST_TRUE, max_evaluations=2)
 
 
 def test_too_few_views_and_no_rotation(scene):

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from capture.cli_capture import app as capture_app
-from capture.cli_session import app as session_app
+from capture.cli.capture import app as capture_app
+from capture.cli.session import app as session_app
 from capture.plan import Plan
 from capture.rigs import to_toml
 from capture.runner import create_session

@@ -11,31 +11,47 @@ from capture.rigs import open_rig
 from capture.runner import Runner, create_session
 from capture.store import Store
 from capture_fakes import tolerant_sim_config
+from sims.dng import write_dng
 from sims.ptp_sim import placeholder_frame
 
 LIMITS = (1e-4, 30.0)
+#: the synthetic camera: white level and a different black level per 2x2 tile position (DN)
+WHITE = 16000
+BLACKS = (256, 1800, 2400, 4000)
+T0 = 0.01
+#: the scene as the fraction of each photosite's usable range it reaches at T0 (noise-free)
+SCENE = np.tile(np.linspace(0.02, 0.5, 96, dtype=np.float64), (64, 1))
 
 
 def _camera():
+    """Noise-free linear camera: DN = black_c + SCENE * t / T0 * (white - black_c), clipped."""
     shots = []
+    black = np.tile(np.reshape(BLACKS, (2, 2)), (32, 48))
 
     def capture(t: float) -> bytes:
         shots.append(t)
-        return placeholder_frame({"exposure_s": t, "iso": 100.0, "fnumber": 8.0,
-                                  "capture_number": len(shots)})
+        dn = black + np.minimum(SCENE * t / T0, 1.0) * (WHITE - black)
+        return write_dng(np.rint(dn).astype(np.uint16), black_level=BLACKS, white_level=WHITE, exposure_s=t)
     return capture, shots
 
 
-def _p995(t: float) -> float:
-    return float(np.percentile(raw_signal(placeholder_frame(
-        {"exposure_s": t, "iso": 100.0, "fnumber": 8.0, "capture_number": 99})), 99.5))
+def _expected_exposure(highlight: float, percentile: float = 99.5) -> float:
+    """Closed form: the signal is linear in time, so the percentile reaches ``highlight`` at
+    T0 * highlight / percentile(SCENE)."""
+    return T0 * highlight / float(np.percentile(SCENE, percentile))
+
+
+def test_raw_signal_uses_each_channels_black_level():
+    capture, _ = _camera()
+    # one DN of rounding in a usable range of >= 12000 DN
+    np.testing.assert_allclose(raw_signal(capture(T0)), SCENE, atol=1e-4)
 
 
 def test_metered_exposure_puts_highlights_at_target():
     capture, shots = _camera()
-    m = meter(capture, 0.01, limits_s=LIMITS, highlight=0.8)
+    m = meter(capture, T0, limits_s=LIMITS, highlight=0.8)
     assert len(shots) == 1  # an unclipped first shot is enough (raw is linear in time)
-    assert _p995(m.exposure_s) == pytest.approx(0.8, abs=0.02)
+    assert m.exposure_s == pytest.approx(_expected_exposure(0.8), rel=1e-3)
 
 
 def test_clipped_start_is_shortened_then_metered():
@@ -43,14 +59,14 @@ def test_clipped_start_is_shortened_then_metered():
     m = meter(capture, 1.0, limits_s=LIMITS, highlight=0.6)
     assert shots[0] == 1.0 and shots[1] == pytest.approx(1.0 / 16)
     assert m.shots[0]["saturated_fraction"] > 0.5
-    assert _p995(m.exposure_s) == pytest.approx(0.6, abs=0.02)
+    assert m.exposure_s == pytest.approx(_expected_exposure(0.6), rel=1e-3)
 
 
 def test_dark_start_is_lengthened():
     capture, shots = _camera()
     m = meter(capture, 1e-4, limits_s=LIMITS)
     assert len(shots) == 2 and shots[1] == pytest.approx(16e-4)
-    assert _p995(m.exposure_s) == pytest.approx(0.8, abs=0.02)
+    assert m.exposure_s == pytest.approx(_expected_exposure(0.8), rel=1e-3)
 
 
 def test_too_dark_within_limits_is_an_error():

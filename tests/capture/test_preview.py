@@ -28,9 +28,9 @@ def test_decode_and_bin_recover_tile_colours(pattern):
     dng = write_dng(_mosaic_from_rgb(rgb, pattern), cfa_pattern=pattern, black_level=BLACK,
                     white_level=WHITE)
     mosaic = decode_dng(dng)
-    assert mosaic.pattern == pattern
+    assert mosaic.cfa == pattern
     assert mosaic.white_level == WHITE
-    assert np.all(mosaic.black_level == BLACK)
+    assert np.all(mosaic.black_level_cfa == BLACK)
     binned = bin_cfa(mosaic)
     expected = (rgb - BLACK) / (WHITE - BLACK)
     assert binned.shape == (40, 60, 3) and binned.dtype == np.float32
@@ -161,7 +161,7 @@ def test_sparklines_width_and_shape():
 def test_bad_input_is_named():
     with pytest.raises(PreviewError, match="not a raw file"):
         decode_dng(b"not a dng at all" * 100)
-    with pytest.raises(PreviewError, match="non-empty bytes"):
+    with pytest.raises(PreviewError, match="empty"):
         decode_dng(b"")
     with pytest.raises(PreviewError, match=r"source must have shape \(H, W, 3\)"):
         make_preview(np.zeros((4, 4)))

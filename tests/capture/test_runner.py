@@ -224,7 +224,7 @@ def test_targets_are_announced_in_order(tmp_path):
     seen = []
     r = Runner(rig, store, "s", reserve_bytes=0, prepare_target=lambda t, step: seen.append(t))
     assert r.run() == "done"
-    assert seen == ["lens_cap", "object", "gray_card"]
+    assert seen == ["dark", "object", "gray_card"]
 
 
 def test_faulty_subscriber_does_not_stop_the_capture(setup):

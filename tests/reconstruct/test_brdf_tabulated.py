@@ -71,7 +71,6 @@ def test_interpolates_a_smooth_analytic_brdf(pairs):
     assert np.median(rel) < 5e-3 and rel.max() < 3e-2, (np.median(rel), rel.max())
 
 
-@pytest.mark.slow
 def test_interpolates_at_merl_resolution(pairs):
     """(90, 90, 180): median < 0.1 %, max < 0.6 % (measured 0.04 % / 0.38 %)."""
     wi, wo = pairs

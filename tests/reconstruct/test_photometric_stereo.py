@@ -100,3 +100,29 @@ def test_real_grey_sphere(shared_data):
     # against an independent re-derivation), so a few degrees is the floor here
     assert err.mean() < 6.0
     assert np.median(err) < 5.0
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_light_intensities_per_light_and_channel(seed):
+    """DiLiGenT-style data: each light has its own RGB intensity. Given them, normals and the
+    per-channel albedo come out exact; ignored, the normals are biased."""
+    n, inside = sphere_normals()
+    L = lights(seed=seed)
+    rng = np.random.default_rng(seed)
+    e = rng.uniform(0.5, 2.0, (len(L), 3))                       # (K, C)
+    rho = np.array([0.7, 0.5, 0.3])
+    shading = np.clip(np.einsum("hwc,kc->khw", n, L), 0, None)
+    imgs = shading[..., None] * rho * e[:, None, None, :]         # (K, H, W, C)
+    lit_all = np.all(shading > 0.05, axis=0) & inside
+    res = photometric_stereo(imgs, L, inside, light_intensities=e)
+    assert angular_error_deg(res.normals[lit_all], n[lit_all]).max() < 0.05  # float32 normals
+    np.testing.assert_allclose(res.albedo[lit_all], np.broadcast_to(rho, (lit_all.sum(), 3)), rtol=1e-4)
+    # one intensity per light (grey lights) divides every channel alike
+    grey = photometric_stereo(imgs[..., 1], L, inside, light_intensities=e[:, 1])
+    assert angular_error_deg(grey.normals[lit_all], n[lit_all]).max() < 0.05
+    ignored = photometric_stereo(imgs, L, inside)
+    assert angular_error_deg(ignored.normals[lit_all], n[lit_all]).mean() > 2.0
+    with pytest.raises(PhotometricStereoError, match="light_intensities must have shape"):
+        photometric_stereo(imgs, L, inside, light_intensities=e[:5])
+    with pytest.raises(PhotometricStereoError, match="> 0"):
+        photometric_stereo(imgs, L, inside, light_intensities=-e)

@@ -221,7 +221,6 @@ def test_bad_inputs_raise_named_errors():
         occluded([s], np.zeros((2, 3)), np.ones((2, 3)), normals=np.ones((3, 3)))
 
 
-@pytest.mark.slow
 @pytest.mark.realdata
 def test_bunny_million_rays_fast(shared_data):
     """10^6 rays against the 69k-face bunny in well under a second of ray casting (Embree);

@@ -269,6 +269,34 @@ def test_env_lit_lambertian_sphere_matches_numeric_irradiance(small_cam, method,
     assert _assert_unbiased_mc(rel) < rms_max
 
 
+@pytest.mark.parametrize("S", [1, 3, 5])
+def test_mis_with_an_odd_sample_count_is_unbiased(small_cam, S):
+    """'mis' with an odd ``env_samples`` has one more map sample than cosine samples; the
+    balance heuristic must weight each strategy by its own count (weighting both as S / 2 was
+    off by 40 % at S = 1 and 13 % at S = 3 on the plane). Closed forms: a Lambertian plane under
+    a uniform sky of radiance L reflects albedo x L; a Lambertian sphere under the sun sky
+    reflects albedo / pi x E(n), E summed over the map pixels."""
+    cam = CameraModel.look_at((0.0, -120.0, 150.0), (0.0, 0.0, 0.0), width=64, height=48,
+                              fov_deg=40)
+    sc = Scene(environment=EnvironmentMap.constant(2.0, 16))
+    sc.add(Plane((600, 600)), Lambertian(0.6))
+    res = render(sc, cam, env_samples=S, rng=11 + S)
+    assert res.mask.all()
+    rel = res.radiance[..., 1].ravel() / (0.6 * 2.0) - 1
+    se = rel.std() / np.sqrt(rel.size)
+    assert abs(rel.mean()) < 4 * se + 0.002, (rel.mean(), se)
+
+    sky = EnvironmentMap.from_function(_sky, 32)
+    sc = Scene(environment=sky)
+    sc.add(Sphere(40.0, center=(0, 0, 50)), Lambertian(0.7))
+    res = render(sc, small_cam, env_samples=S, rng=S, shadows=False)
+    m = res.mask
+    rel = (res.radiance[m] / (0.7 / np.pi * sky.irradiance(res.normal[m].astype(float))) - 1)
+    rel = rel[:, 1]
+    se = rel.std() / np.sqrt(rel.size)
+    assert abs(rel.mean()) < 4 * se + 0.004, (rel.mean(), se)
+
+
 def test_env_lighting_shadowed_by_a_mesh_blocker():
     """A uniform sky over a Lambertian plane with a thin disc (mesh) hovering above it: the
     irradiance is pi L (1 - F), F the view factor from a plane element to a parallel disc of
@@ -500,28 +528,46 @@ def test_threads_and_seeds_reproducible(small_cam):
 
 
 def test_components_split_diffuse_and_specular(small_cam):
-    """``components=True``: diffuse = the render of the diffuse part alone, specular = the
-    rest, under a polarized point light through an analyser and an environment map."""
+    """``components=True`` under a polarized point light through an analyser and an
+    environment map: diffuse = the render of the diffuse part alone, specular = the render of
+    the specular part alone (same seed, so the same environment samples); under the point light
+    alone both follow the closed form I / r^2 cos(theta_i) f x the analyser's transmission
+    (diffuse 1/2, specular cos^2(50 - 20 deg))."""
     model = CookTorrance(kd=(0.5, 0.3, 0.2), f0=0.8, alpha=0.2)
     env = EnvironmentMap.from_function(_sky, 16)
+    light = np.array([80.0, -250.0, 120.0])
 
-    def scene(material):
-        sc = Scene(environment=env)
+    def scene(material, environment=env):
+        sc = Scene(environment=environment)
         sc.add(Sphere(40.0, center=(0, 0, 50)), material)
-        sc.add_light(PointLight((80.0, -250.0, 120.0), 1e5, polarizer=20.0))
+        sc.add_light(PointLight(light, 1e5, polarizer=20.0))
         return sc
 
     kw = dict(polarizer=50.0, env_samples=8, rng=2)
     res = render(scene(model), small_cam, components=True, **kw)
     diffuse_only = render(scene(model.diffuse_part()), small_cam, **kw).radiance
+    specular_only = render(scene(model.specular_part()), small_cam, **kw).radiance
     m = res.mask
     np.testing.assert_allclose(res.diffuse[m], diffuse_only[m], rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(res.specular[m], specular_only[m], rtol=1e-4, atol=1e-6)
     assert np.all(res.diffuse[~m] == 0) and np.all(res.specular[~m] == 0)
-    np.testing.assert_allclose(res.diffuse + res.specular, np.where(m[..., None],
-                                                                    res.radiance, 0),
-                               rtol=1e-5, atol=1e-7)
     assert res.specular[m].max() > 0.1 * res.diffuse[m].max()
     assert render(scene(model), small_cam, **kw).diffuse is None
+
+    res = render(scene(model, None), small_cam, components=True, **kw)
+    m = res.mask
+    p, n = res.position[m], res.normal[m].astype(float)
+    v = light - p
+    r2 = np.sum(v * v, axis=1)
+    frames = tangent_frames(n)
+    wi = to_local(v / np.sqrt(r2)[:, None], frames)
+    wo = to_local(_unit(small_cam.center - p), frames)
+    irradiance = (1e5 * np.clip(wi[:, 2], 0, None) / r2)[:, None]
+    spec = model.specular_part().evaluate(wi, wo) * irradiance * np.cos(np.radians(30.0)) ** 2
+    diff = model.diffuse_part().evaluate(wi, wo) * irradiance * 0.5
+    assert spec.max() > diff.max()  # a real highlight in view
+    np.testing.assert_allclose(res.specular[m], spec, rtol=2e-4, atol=1e-5 * spec.max())
+    np.testing.assert_allclose(res.diffuse[m], diff, rtol=2e-4, atol=1e-5 * diff.max())
 
 
 def test_docstring_examples_run():

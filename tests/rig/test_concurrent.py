@@ -5,11 +5,12 @@ thread, so the moves overlap instead of queueing.
 """
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
 
-from rig import LightTarget, wait_all
+from rig import LightTarget, MoveStatus, wait_all
 from rig.grbl import GrblPositioner
 from rig.zaber import ZaberRotaryStage
 from sims.grbl_sim import GrblSim
@@ -56,3 +57,25 @@ def test_one_failure_does_not_abandon_the_other_move(devices):
     with pytest.raises(Exception, match="stalled"):
         wait_all(statuses, timeout=5)
     assert statuses[1].done and statuses[1].success  # the positioner still finished its move
+
+
+def test_any_error_still_waits_for_the_other_moves():
+    """A non-rig exception (a bug, a ValueError from a driver) must not make ``wait_all`` abandon
+    the moves still running; the first error is raised after all have finished."""
+    release = threading.Event()
+
+    def fail():
+        raise ValueError("bad reply parse")
+
+    def slow_move():
+        release.wait(5)
+        return 42.0
+
+    failing = MoveStatus.run(fail, device="a")
+    running = MoveStatus.run(slow_move, device="b")
+    threading.Timer(0.2, release.set).start()
+    t0 = time.monotonic()
+    with pytest.raises(ValueError, match="bad reply parse"):
+        wait_all([failing, running], timeout=5)
+    assert running.done and running.success  # waited for, not left running
+    assert time.monotonic() - t0 >= 0.15

@@ -81,6 +81,10 @@ def test_missing_and_malformed_rig_files(tmp_path):
     bad.write_text("[turntable\ndriver = 1\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         Rig.from_config(bad)
+    binary = tmp_path / "photo.toml"  # a wrong file picked: was a bare UnicodeDecodeError
+    binary.write_bytes(b"\xff\xd8\xff\xe0 JFIF")
+    with pytest.raises(ConfigError, match="photo.toml: not a text file"):
+        Rig.from_config(binary)
 
 
 def test_rig_connects_to_simulators_and_moves():

@@ -98,7 +98,7 @@ def _match_either_order(found, truth):
     return e1 if e1.mean() < e2.mean() else e2
 
 
-@pytest.mark.parametrize("angle", [25.0, pytest.param(-30.0, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("angle", [25.0, -30.0])
 def test_checkerboard_corners_project_where_the_camera_model_says(angle):
     cam = default_camera(400, 300, fov_deg=22.0)
     assert np.any(cam.dist)  # the ground-truth lens distorts
@@ -159,7 +159,6 @@ def test_steel_sphere_row_highlights_lamp_and_ring_flash():
         assert err.max() < 0.3, (flash, err)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("angle", [-45.0, 0.0, 45.0])
 def test_default_checkerboard_capture_is_detectable_at_full_resolution(angle):
     world = SimWorld.for_capture("checkerboard")

@@ -128,14 +128,25 @@ def test_capture_kinds_build_their_scenes():
     assert np.all(flat.radiance() == 0.4)
     with pytest.raises(ValueError, match="capture kind"):
         SimWorld.for_capture("moon")
-    assert "probe" in CAPTURE_KINDS
+    assert "mirror_probe" in CAPTURE_KINDS
+
+
+def test_one_vocabulary_of_scene_targets():
+    """Every scene target a plan can name is a scene the simulated lab stages under that same
+    name (no translation table), and ``gonio sim render --scene`` offers exactly these scenes."""
+    from capture.cli.sim import SCENES
+    from capture.plan import CALIBRATION_KINDS, SCENE_TARGETS
+
+    assert set(CALIBRATION_KINDS) < set(SCENE_TARGETS) <= set(CAPTURE_KINDS)
+    assert SCENES == CAPTURE_KINDS
+    assert not hasattr(SimWorld, "TARGET_KINDS")
 
 
 def test_probe_capture_reflects_the_environment_in_the_chrome_ball():
     from sims.targets import procedural_sky
     env = procedural_sky(height=64)
     cam = default_camera(120, 90, fov_deg=8.0, target_mm=(0.0, 0.0, 25.4))
-    world = SimWorld.for_capture("probe", camera=cam, environment=env)
+    world = SimWorld.for_capture("mirror_probe", camera=cam, environment=env)
     gt = world.ground_truth({})
     m = gt.buffers.mask
     assert m.sum() > 2000 and np.all(gt.buffers.surface_index[m] == 0)
@@ -195,7 +206,7 @@ def test_set_scene_follows_the_runner_targets_and_comes_back():
     assert names()[0] == "checkerboard" and not any(n.startswith("sphere:") for n in names())
     world.prepare_target("mirror_probe")
     assert world.environment is not None and world.scene().lights == []
-    world.prepare_target("lens_cap")
+    world.prepare_target("dark")
     with rawpy.imread(io.BytesIO(world.frame_source({"exposure_s": 0.01}))) as r:
         assert r.raw_image_visible.mean() < SensorModel.compact().black_level + 2
     world.set_scene("object")

@@ -15,12 +15,13 @@ from typing import Any, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from rig import RigError
 from rig.rig import ROLES
 
-from .rigs import home_all, open_rig, position_text, to_toml
+from ..rigs import home_all, open_rig, position_text, to_toml
 
 app = typer.Typer(name="rig", help="Check, home and simulate the measurement rig.", no_args_is_help=True)
 
@@ -63,16 +64,18 @@ def check(rig: str = typer.Option("sim", "--rig", help=RIG_HELP),
     if as_json:
         typer.echo(json.dumps(rows, indent=2))
     else:
-        table = Table(title=f"rig: {rig}")
+        table = Table(title=f"rig: {escape(rig)}")
         for column in ("role", "driver", "model", "firmware", "serial", "position", "homed", "port"):
             table.add_column(column, overflow="fold")
+        e = lambda v: escape(str(v))  # noqa: E731 - file and device text, never markup
         for r in rows:
             if r["ok"]:
                 homed = {True: "yes", False: "no", None: "-"}[r["homed"]]
-                table.add_row(r["role"], r["driver"], r["model"], r["firmware"], r["serial"],
-                              r["position"], homed, r["port"])
+                table.add_row(r["role"], e(r["driver"]), e(r["model"]), e(r["firmware"]),
+                              e(r["serial"]), e(r["position"]), homed, e(r["port"]))
             else:
-                table.add_row(r["role"], r["driver"], "[red]FAILED[/red]", "", "", r["error"], "", r["port"])
+                table.add_row(r["role"], e(r["driver"]), "[red]FAILED[/red]", "", "", e(r["error"]),
+                              "", e(r["port"]))
         Console(width=160).print(table)
     if not rows:
         raise _fail("the rig has no devices", 1)

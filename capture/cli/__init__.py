@@ -1,4 +1,4 @@
-"""The ``gonio`` command line. Each command group lives in its own ``cli_*.py`` module."""
+"""The ``gonio`` command line. Each command group lives in its own module of this package."""
 from __future__ import annotations
 
 import typer
@@ -24,12 +24,12 @@ def _root(version: bool = typer.Option(False, "--version", help="Print gonio's v
 
 def _register() -> None:
     # one line per command group; each module defines `app`, a typer.Typer
-    from .cli_rig import app as rig_app; app.add_typer(rig_app, name="rig")  # noqa: E702
-    from .cli_tui import app as tui_app; app.add_typer(tui_app, name="tui")  # noqa: E702
-    from .cli_session import app as session_app; app.add_typer(session_app, name="session")  # noqa: E702
-    from .cli_capture import app as capture_app; app.add_typer(capture_app, name="capture")  # noqa: E702
-    from .cli_sim import app as sim_app; app.add_typer(sim_app, name="sim")  # noqa: E702
-    from .cli_calibrate import calibrate; app.command("calibrate")(calibrate)  # noqa: E702
+    from .rig import app as rig_app; app.add_typer(rig_app, name="rig")  # noqa: E702
+    from .tui import app as tui_app; app.add_typer(tui_app, name="tui")  # noqa: E702
+    from .session import app as session_app; app.add_typer(session_app, name="session")  # noqa: E702
+    from .capture import app as capture_app; app.add_typer(capture_app, name="capture")  # noqa: E702
+    from .sim import app as sim_app; app.add_typer(sim_app, name="sim")  # noqa: E702
+    from .calibrate import calibrate; app.command("calibrate")(calibrate)  # noqa: E702
     pass
 
 
@@ -39,6 +39,3 @@ _register()
 def main() -> None:  # console script entry point
     app()
 
-
-if __name__ == "__main__":
-    main()

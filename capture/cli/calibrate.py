@@ -18,20 +18,21 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from .calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
-from .cli_session import STORE_OPTION, fail, open_store
-from .store import SessionNotFound
+from ..calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
+from .session import STORE_OPTION, fail, open_store
+from ..store import SessionNotFound, StoreError, check_session_name, inside
 
 EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
 
 
 def _targets(path: Path | None) -> LabTargets:
     """LabTargets from a TOML file of its field names (``sphere_radius_mm = 25.0`` ...)."""
-    if path is None:
-        return LabTargets()
+    if path is None:  # the simulated lab's targets, as the simulator states them
+        return LabTargets.simulated()
     try:
         data = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
@@ -53,7 +54,8 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                                        "(default: the folder holding the store)."),
               targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
                                            "targets (board size and height, sphere radius and lab "
-                                           "positions ...: LabTargets fields)."),
+                                           "positions ...: LabTargets fields); default: the "
+                                           "simulated lab's."),
               measurement_hdr: bool = typer.Option(True, "--measurement-hdr/--calibration-hdr-only",
                                                    help="Merge every measurement step's bracket too "
                                                    "(slow for big sessions) or only the calibration steps."),
@@ -82,22 +84,27 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 progress.stop()
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NOTHING) from None
-        from .report import write_report  # here, not at the top: matplotlib would slow every gonio start
+        from ..report import write_report  # here, not at the top: matplotlib would slow every gonio start
         folder = out if out is not None else Path(st.root).resolve().parent
-        png = write_report(report, folder / f"{session}-calibration.png")
+        try:  # a name from before names were checked may not be a safe file name
+            png_path = inside(folder, f"{check_session_name(session)}-calibration.png")
+        except StoreError:
+            png_path = folder / f"session-{st.session(session).id}-calibration.png"
+        png = write_report(report, png_path)
         if as_json:
             stages = [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
                        "calibration_id": s.calibration_id, "seconds": s.seconds} for s in report.stages]
             typer.echo(json.dumps({"session": session, "report": str(png), "stages": stages}, indent=2))
             raise typer.Exit(EXIT_FAILED if report.failed else EXIT_OK)
-        table = Table(title=f"calibration of session {session}")
+        table = Table(title=f"calibration of session {escape(session)}")
         for col in ("stage", "status", "s", "key figures / reason"):
             table.add_column(col, overflow="fold", justify="right" if col == "s" else "left")
         colour = {"ok": "green", "skipped": "yellow", "failed": "red"}
         for s in report.stages:
             text = ", ".join(f"{k} {v}" for k, v in s.figures.items()) if s.status == "ok" else s.reason
-            table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", f"{s.seconds:.1f}", text)
+            table.add_row(s.stage, f"[{colour[s.status]}]{s.status}[/]", f"{s.seconds:.1f}", escape(text))
         console.print(table)
         stored = sum(s.calibration_id is not None for s in report.stages)
-        console.print(f"stored {stored} calibration result(s) in {st.root}; report: {png}", highlight=False)
+        console.print(escape(f"stored {stored} calibration result(s) in {st.root}; report: {png}"),
+                      highlight=False)
     raise typer.Exit(EXIT_FAILED if report.failed else EXIT_OK)

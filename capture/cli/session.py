@@ -15,19 +15,22 @@ archive (read in a temporary folder).
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import inspect
 import json
 import re
 from collections import Counter
 from pathlib import Path
+from typing import Iterator
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from .store import Store, StoreError
+from ..store import Store, StoreError
 
 HELP = """List, inspect, verify and export recorded sessions.
 
@@ -35,7 +38,8 @@ A store is a folder that 'gonio capture run --store DIR' writes: DIR/gonio.sqlit
 their plans and steps, frames with what the devices reported, events and faults, calibration
 and reconstruction results) and DIR/objects/ (the frame files, named by their SHA-256).
 --store defaults to $GONIO_STORE or ./gonio-store and also opens an exported .tar, .tar.gz or
-.zip. Reading is safe while a session is being recorded.
+.zip. Reading is safe while a session is being recorded, and list, show, verify and export
+never write the database (they work on a full disk).
 
 Exit status: 0 ok; 1 'verify' found missing, corrupt or orphaned files; 2 error (no such store
 or session).
@@ -58,14 +62,27 @@ def fail(message: str, code: int = 2) -> typer.Exit:
     return typer.Exit(code)
 
 
-def open_store(path: str, *, create: bool = False) -> Store:
-    """Open ``--store`` or exit with a clear message."""
+def open_store(path: str, *, create: bool = False, readonly: bool = False) -> Store:
+    """Open ``--store`` or exit with a clear message (``readonly``: commands that only read
+    never write the database, so they work on a full disk and leave a foreign file alone)."""
     try:
-        return Store.open(path, create=create)
+        return Store.open(path, create=create, readonly=readonly)
     except StoreError as exc:
         raise fail(str(exc)) from None
     except OSError as exc:  # e.g. --store names a file that is neither a store nor an archive
         raise fail(f"cannot open store {path}: {exc}") from None
+
+
+@contextlib.contextmanager
+def store_errors() -> Iterator[None]:
+    """Turn a store error met after opening (a database damaged past its first page, a disk
+    that filled up) into the message and exit status 2, never a traceback."""
+    try:
+        yield
+    except StoreError as exc:
+        raise fail(str(exc)) from None
+    except OSError as exc:
+        raise fail(f"store: {exc}") from None
 
 
 def human_bytes(n: float) -> str:
@@ -103,7 +120,8 @@ def _when(t: float) -> str:
 def list_(store: str = STORE_OPTION,
           as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
     """One line per session of the store."""
-    with open_store(store) as st:
+    with open_store(store, readonly=True) as st, store_errors():
+        unknown = st.orphans(min_age_s=60.0 if st.writer_active() else 0.0)
         rows = []
         for s in st.sessions():
             p = st.progress(s.id)
@@ -111,21 +129,25 @@ def list_(store: str = STORE_OPTION,
                          "steps_total": p.steps_total, "frames_stored": p.frames_stored,
                          "frames_total": p.frames_total, "bytes": p.bytes_stored,
                          "object": s.object, "operator": s.operator, "created": s.created})
+    if unknown:  # never hide captured data: files no row knows (an interrupted write, a lost db)
+        typer.secho(f"warning: {len(unknown)} file(s) in {Path(store) / 'objects'} belong to no "
+                    "session (e.g. objects/" + "/".join(Path(unknown[0]).parts[-2:]) + "); "
+                    "'gonio session verify NAME' lists them", err=True, fg=typer.colors.YELLOW)
     if as_json:
         typer.echo(json.dumps(rows, indent=2))
         return
     if not rows:
         typer.echo(f"no sessions in {store}")
         return
-    table = Table(title=f"sessions in {store}")
+    table = Table(title=f"sessions in {escape(store)}")
     for col in ("name", "state", "steps", "frames", "size", "object", "created"):
         table.add_column(col)
     colour = {"done": "green", "paused": "yellow", "running": "cyan", "aborted": "red",
               "planned": "white", "interrupted": "yellow"}
     for r in rows:
-        table.add_row(r["name"], f"[{colour[r['state']]}]{r['state']}[/]",
+        table.add_row(escape(r["name"]), f"[{colour[r['state']]}]{r['state']}[/]",
                       f"{r['steps_done']}/{r['steps_total']}", f"{r['frames_stored']}/{r['frames_total']}",
-                      human_bytes(r["bytes"]), r["object"], _when(r["created"]))
+                      human_bytes(r["bytes"]), escape(r["object"]), _when(r["created"]))
     Console(width=140).print(table)
 
 
@@ -134,14 +156,14 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
          events: int = typer.Option(10, help="How many recent events to print."),
          as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
     """Details of one session: plan, progress, rig, faults, recent events, results."""
-    with open_store(store) as st:
+    with open_store(store, readonly=True) as st, store_errors():
         try:
             info = st.session(name)
         except StoreError as exc:
             raise fail(str(exc)) from None
         p = st.progress(info.id)
         state = display_state(st, info)
-        kinds = Counter(d["kind"] for _, d, _ in st.steps(info.id))
+        kinds = Counter(str(d.get("kind", "?")) for _, d, _ in st.steps(info.id))
         snaps = st.rig_snapshots(info.id)
         faults = st.events(info.id, kinds=["fault", "low_disk"])
         recent = st.events(info.id)[-events:] if events > 0 else []
@@ -155,38 +177,41 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
                                "rig": snaps[-1] if snaps else None, "faults": faults,
                                "events": recent, "results": results}, indent=2, default=str))
         return
-    c = Console(width=140)
-    c.print(f"[bold]{info.name}[/]  state [bold]{state}[/]  object {info.object or '-'}  "
-            f"operator {info.operator or '-'}")
+    c = Console(width=140, highlight=False)
+    e = escape  # every stored text is the user's (names, plan, device messages): never markup
+    c.print(f"[bold]{e(info.name)}[/]  state [bold]{state}[/]  object {e(info.object) or '-'}  "
+            f"operator {e(info.operator) or '-'}")
     if state in ("paused", "interrupted", "planned"):
-        c.print(f"continue with: gonio capture resume {info.name} --rig <sim|rig file> --store {store}")
+        c.print(f"continue with: gonio capture resume {e(info.name)} --rig <sim|rig file> "
+                f"--store {e(store)}")
     c.print(f"created {_when(info.created)}, updated {_when(info.updated)}; plan "
-            f"{info.plan_path or '(built in Python)'} hash {info.plan_hash[:12]}")
+            f"{e(info.plan_path or '(built in Python)')} hash {info.plan_hash[:12]}")
     if info.notes:
-        c.print(f"notes: {info.notes}")
+        c.print(f"notes: {e(info.notes)}")
     c.print(f"steps {p.steps_done}/{p.steps_total}, frames {p.frames_stored}/{p.frames_total}, "
             f"{human_bytes(p.bytes_stored)} stored; steps by kind: "
-            + ", ".join(f"{k} {n}" for k, n in kinds.items()))
+            + ", ".join(f"{e(str(k))} {n}" for k, n in kinds.items()))
     if snaps:
         last = snaps[-1]["describe"]
-        c.print("rig: " + "; ".join(f"{role} {d.get('model', d.get('driver', '?'))}"
-                                    + (f" fw {d['firmware']}" if d.get("firmware") else "")
+        c.print("rig: " + "; ".join(e(f"{role} {d.get('model', d.get('driver', '?'))}"
+                                      + (f" fw {d['firmware']}" if d.get("firmware") else ""))
                                     for role, d in last.items())
                 + f" ({len(snaps)} snapshot{'s' if len(snaps) > 1 else ''})")
     for f in faults:
-        c.print(f"[red]{f['kind']}[/] {_when(f['time'])} step {f['step']} {f['device'] or ''}: {f['message']}",
-                markup=True, highlight=False)
+        c.print(f"[red]{f['kind']}[/] {_when(f['time'])} step {f['step']} "
+                f"{e(f['device'] or '')}: {e(f['message'])}")
     if recent:
         table = Table(title="recent events")
         for col in ("time", "kind", "step", "device", "message"):
             table.add_column(col, overflow="fold")
-        for e in recent:
-            table.add_row(_when(e["time"]), e["kind"], "" if e["step"] is None else str(e["step"]),
-                          e["device"] or "", e["message"])
+        for ev in recent:
+            table.add_row(_when(ev["time"]), ev["kind"], "" if ev["step"] is None else str(ev["step"]),
+                          e(ev["device"] or ""), e(ev["message"]))
         c.print(table)
     for r in results:
-        c.print(f"{r['category']} {r['kind']} #{r['id']} ({_when(r['created'])}, {r['code_version']}, "
-                f"{len(r['input_frames'])} input frames, artifacts: {', '.join(r['artifacts']) or '-'})")
+        c.print(e(f"{r['category']} {r['kind']} #{r['id']} ({_when(r['created'])}, {r['code_version']}, "
+                  f"{len(r['input_frames'])} input frames, artifacts: "
+                  f"{', '.join(r['artifacts']) or '-'})"))
 
 
 @app.command()
@@ -195,7 +220,7 @@ def verify(name: str = typer.Argument(..., help="Session name."), store: str = S
                False, "--remove-orphans", help="Delete the orphaned files found (left by an "
                "interrupted write; refused while a session is being written).")) -> None:
     """Re-hash every file of the session; exit 1 on missing, corrupt or orphaned files."""
-    with open_store(store) as st:
+    with open_store(store, readonly=True) as st, store_errors():
         try:
             st.session(name)
         except StoreError as exc:
@@ -215,7 +240,8 @@ def verify(name: str = typer.Argument(..., help="Session name."), store: str = S
     for label, items in (("missing", report.missing), ("corrupt", report.corrupt),
                          ("orphaned", report.orphans)):
         for item in items:
-            typer.secho(f"{label}: {item}", fg=typer.colors.RED)
+            uses = "; ".join(report.where.get(item, []))
+            typer.secho(f"{label}: {item}" + (f" ({uses})" if uses else ""), fg=typer.colors.RED)
     for step in report.incomplete_steps:
         typer.secho(f"incomplete: step {step} is marked done but has the wrong number of frames",
                     fg=typer.colors.RED)
@@ -231,7 +257,7 @@ def export(name: str = typer.Argument(..., help="Session name."),
            dest: Path = typer.Argument(..., help="New folder, or a .tar / .tar.gz / .zip file."),
            store: str = STORE_OPTION) -> None:
     """Write a self-contained store holding only this session (open it with --store DEST)."""
-    with open_store(store) as st:
+    with open_store(store, readonly=True) as st, store_errors():
         try:
             out = st.export(name, dest)
         except StoreError as exc:

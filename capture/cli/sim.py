@@ -18,7 +18,9 @@ import typer
 app = typer.Typer(name="sim", help="Render the simulated lab: scenes, targets and the camera's raw frames.",
                   no_args_is_help=True)
 
-SCENES = ("object", "checkerboard", "charuco", "chrome", "spheres", "graycard", "probe", "passive", "dark", "flat")
+#: sims.world.CAPTURE_KINDS, restated so that --help does not import the renderer (tests/sims/test_world.py)
+SCENES = ("object", "checkerboard", "charuco", "chrome", "spheres", "gray_card", "mirror_probe", "passive", "dark",
+          "flat")
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:

@@ -24,5 +24,5 @@ def tui(rig: str = typer.Option("sim", "--rig",
         raise typer.BadParameter(f"must be > 0 seconds, got {poll}", param_hint="--poll")
     if plan is not None and not plan.is_file():
         raise typer.BadParameter(f"plan file {plan} does not exist", param_hint="--plan")
-    from .tui import GonioApp  # Textual loads only for this command
+    from ..tui import GonioApp  # Textual loads only for this command
     GonioApp(rig, store, fast=fast, poll_s=poll, plan=plan).run()

@@ -12,26 +12,29 @@ interrupted step is re-done on resume). Exit status: 0 done, 3 paused, 4 aborted
 """
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
 import threading
 from collections import Counter
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Iterator, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from rig import RigError
 
-from .cli_session import (STORE_OPTION, display_state, fail, human_bytes, human_time, open_store,
+from .session import (STORE_OPTION, display_state, fail, human_bytes, human_time, open_store,
                           unwrap)
-from .events import Event, EventKind
-from .plan import Estimate, MotionModel, Plan, PlanError, Step
-from .rigs import OpenedRig, open_rig
-from .runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
-from .store import StoreError
+from ..events import Event, EventKind
+from ..plan import Estimate, MotionModel, Plan, PlanError, Step
+from ..rigs import OpenedRig, open_rig
+from ..runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
+from ..store import StoreError, check_session_name
 
 HELP = """Plan, run and resume capture sessions.
 
@@ -116,8 +119,9 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         if opened is not None:
             opened.close()
     c = Console(width=140, highlight=False)
-    c.print(f"plan [bold]{p.name or plan_file.stem}[/] ({plan_file}), hash {p.hash[:12]}")
-    c.print(f"rig: {rig} (limits checked, device speeds)" if rig else
+    c.print(f"plan [bold]{escape(p.name or plan_file.stem)}[/] ({escape(str(plan_file))}), "
+            f"hash {p.hash[:12]}")
+    c.print(f"rig: {escape(rig)} (limits checked, device speeds)" if rig else
             "rig: none given (limits not checked, default speeds)")
     c.print(f"steps {est.steps}, frames {est.frames}, data {human_bytes(est.bytes)}, time "
             f"{human_time(est.seconds)} (motion {human_time(est.motion_s)}, exposure "
@@ -128,14 +132,14 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
     for s in expanded:
         by_kind[s.kind] += 1
         frames_by_kind[s.kind] += s.frames
-    c.print("by kind: " + ", ".join(f"{k} {n} step{'s' if n > 1 else ''} / {frames_by_kind[k]} frames"
+    c.print("by kind: " + ", ".join(f"{escape(k)} {n} step{'s' if n > 1 else ''} / {frames_by_kind[k]} frames"
                                     for k, n in by_kind.items()))
     if steps:
         table = Table()
         for col in ("#", "kind", "target", "turntable", "light", "polarizer", "exposures (s)", "repeats"):
             table.add_column(col)
         for s in expanded:
-            table.add_row(str(s.index), s.kind, s.target,
+            table.add_row(str(s.index), escape(s.kind), escape(s.target),
                           "-" if s.turntable_deg is None else f"{s.turntable_deg:g}°",
                           _light_text(s.light), "-" if s.polarizer_deg is None else f"{s.polarizer_deg:g}°",
                           ", ".join(f"{t:g}" for t in s.exposures_s), str(s.repeats))
@@ -166,24 +170,22 @@ class _ProgressView:
             fields = dict(frames=f"{d['frames_done']}/{d['frames_total']} frames",
                           eta=f"ETA {human_time(d.get('eta_s'))}")
             if self.task is None:
-                self.task = self.progress.add_task(e.session, total=d["steps_total"],
+                self.task = self.progress.add_task(escape(e.session), total=d["steps_total"],
                                                    completed=d["steps_done"], **fields)
             self.progress.update(self.task, completed=d["steps_done"], **fields)
         if e.kind in (EventKind.RETRY, EventKind.FAULT, EventKind.LOW_DISK):
-            self.progress.console.print(f"[yellow]{e.kind.value}[/] {e.device or ''} {e.message}",
-                                        highlight=False)
+            self.progress.console.print(f"[yellow]{e.kind.value}[/] {escape(e.device or '')} "
+                                        f"{escape(e.message)}", highlight=False)
         elif e.kind in (EventKind.TARGET, EventKind.NOTE, EventKind.METERED, EventKind.PAUSED,
                         EventKind.ABORTED):
-            self.progress.console.print(f"{e.kind.value}: {e.message}", highlight=False)
+            self.progress.console.print(f"{e.kind.value}: {escape(e.message)}", highlight=False)
 
 
 def _target_handler(opened: OpenedRig, yes: bool):
     """Who sets up each calibration target: the simulated scene (``--rig sim``), the operator
     (real rig, interactive terminal, no ``--yes``), or nobody (a ``target`` line is printed)."""
-    if opened.lab is not None:
-        # the lab's default frame source is a bound SimWorld.frame_source; its world swaps scenes
-        world = getattr(opened.lab.frame_source, "__self__", None)
-        return getattr(world, "prepare_target", None)
+    if opened.prepare_target is not None:
+        return opened.prepare_target
     if yes or not sys.stdin.isatty():
         return None
 
@@ -193,8 +195,25 @@ def _target_handler(opened: OpenedRig, yes: bool):
     return ask
 
 
-def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
-    """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly."""
+@contextlib.contextmanager
+def _ctrl_c_counted() -> Iterator[list[int]]:
+    """While a session runs and until the rig is closed, Ctrl-C only appends to the yielded list
+    (a handler that never raises): a second one landing anywhere, even while the first is being
+    handled or the rig closes, stops motion instead of killing gonio with SIGINT."""
+    interrupts: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield interrupts
+        return
+    restore = signal.signal(signal.SIGINT, lambda *_: interrupts.append(1))
+    try:
+        yield interrupts
+    finally:
+        signal.signal(signal.SIGINT, restore)
+
+
+def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]) -> None:
+    """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly;
+    ``interrupts`` is :func:`_ctrl_c_counted`'s list."""
     columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("steps"), TextColumn("{task.fields[frames]}"), TimeElapsedColumn(),
                TextColumn("{task.fields[eta]}")]
@@ -212,22 +231,23 @@ def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
     with Progress(*columns, console=Console(stderr=True), transient=False,
                   disable=quiet) as progress:
         runner.bus.subscribe(_ProgressView(progress))
+        handled = 0
         worker = threading.Thread(target=work, name="gonio-runner", daemon=True)
         worker.start()
-        interrupts = 0
-        # wait on an Event, not Thread.join: a KeyboardInterrupt inside join() can leave the
-        # thread looking finished while it still runs (a known CPython pitfall)
         while not finished.is_set():
             try:
-                finished.wait(0.2)
-            except KeyboardInterrupt:
-                interrupts += 1
-                if interrupts == 1:
+                finished.wait(0.1)
+            except KeyboardInterrupt:  # not on the main thread: no handler of ours
+                interrupts.append(1)
+            while handled < len(interrupts):
+                handled += 1
+                if handled == 1:
                     progress.console.print("[yellow]pausing after the current step[/] "
                                            "(Ctrl-C again to stop motion now)")
                     runner.request_pause()
-                else:
-                    progress.console.print("[yellow]stopping now[/]; the interrupted step will be re-done")
+                elif handled == 2:
+                    progress.console.print("[yellow]stopping now[/]; the interrupted step will "
+                                           "be re-done")
                     runner.request_pause(now=True)
         worker.join()
     if "error" in outcome:
@@ -250,8 +270,8 @@ def _execute(runner: Runner, store_path: str, quiet: bool) -> None:
 def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         rig: str = typer.Option(..., "--rig", help=RIG_HELP),
         store: str = STORE_OPTION,
-        session: Optional[str] = typer.Option(None, "--session", help="Session name (default: "
-                                              "<plan name>-<date>-<time>)."),
+        session: Optional[str] = typer.Option(None, "--session", help="Session name: letters, digits, "
+                                              "'_', '.', '-' (default: <plan name>-<date>-<time>)."),
         operator: Optional[str] = typer.Option(None, help="Operator (overrides the plan's)."),
         fast: bool = typer.Option(True, help="Simulated devices move instantly."),
         home: bool = typer.Option(True, help="Home axes that report not homed before starting."),
@@ -271,15 +291,22 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
 
     Exit status: 0 done, 3 paused, 4 aborted, 2 error (nothing captured).
     """
+    if session is not None:
+        try:  # before the store or the rig is touched
+            check_session_name(session, "--session")
+        except StoreError as exc:
+            raise fail(str(exc)) from None
     p = _load_plan(plan_file)
     st = open_store(store, create=True)
     with st:
         opened = _open_rig(rig, fast)
-        with opened:
+        with _ctrl_c_counted() as interrupts, opened:
             try:
                 info = create_session(st, p, opened.rig, name=session, operator=operator,
                                       plan_path=str(plan_file.resolve()))
-            except (PlanError, RunnerError, StoreError) as exc:
+            except PlanError as exc:
+                raise fail(f"{plan_file}: {exc}") from None
+            except (RunnerError, StoreError) as exc:
                 raise fail(str(exc)) from None
             todo = [Step.from_dict(d) for _, d, _ in st.steps(info.id)]
             est = MotionModel.from_rig(opened.rig).estimate(todo)
@@ -288,7 +315,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
             typer.echo(_frame_size_text(est, True, running=True))
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
-            _execute(runner, store, quiet)
+            _execute(runner, store, quiet, interrupts)
 
 
 @_command
@@ -330,7 +357,7 @@ def resume(name: str = typer.Argument(..., help="Session name."),
             typer.secho(f"note: plan file {path} is gone; resuming from the plan stored with "
                         "the session", fg=typer.colors.YELLOW)
         opened = _open_rig(rig, fast)
-        with opened:
+        with _ctrl_c_counted() as interrupts, opened:
             try:
                 Plan.from_dict(info.plan).check_rig(opened.rig)
             except PlanError as exc:
@@ -341,5 +368,5 @@ def resume(name: str = typer.Argument(..., help="Session name."),
                        f"{human_bytes(est.bytes)} and {human_time(est.seconds)}")
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
-            _execute(runner, store, quiet)
+            _execute(runner, store, quiet, interrupts)
 

@@ -1,0 +1,344 @@
+"""Reflectance sharing fits: homogeneous (Sect. 5), spatially varying (Sect. 6), dichromatic
+with albedo (Sect. 7, Eq. 7) and single image (Sect. 7.4, Eq. 8), after Zickler et al. 2005.
+
+Inputs are reflectance samples: local unit directions ``wi`` (to the light) and ``wo`` (to the
+camera), normal = +z, and ``brdf`` = f_r in 1/sr (radiance / (irradiance cos theta_i)).
+Samples near the terminator carry huge, noisy f_r (the division by a tiny cos theta_i): every
+fit drops samples with cos theta_i < ``min_cos`` and weights the greedy residual of the rest by
+cos theta_i (the paper's radiance residual, Sect. 5), so callers can pass all samples. Samples
+marked invalid (``valid`` False: saturated, shadowed, occluded) are dropped and may hold NaN.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..brdf import BRDF, Dichromatic, Lambertian
+from ..coords import uvw_from_directions
+from .models import RbfBRDF, SpatialRbfBRDF
+from .rbf import RbfFit, SharingError, fit_rbf
+
+#: Default cos(theta_i) below which samples are dropped (theta_i > 87 deg).
+MIN_COS = 0.05
+#: w spread below which all samples count as one image (one theta_d): Eq. 8 applies.
+SINGLE_IMAGE_W_SPREAD = 1e-3
+
+
+@dataclass(frozen=True)
+class _Samples:
+    wi: np.ndarray
+    wo: np.ndarray
+    keep: np.ndarray      # (S,) bool: used by the fit
+    cos_i: np.ndarray     # (S,)
+
+
+def _directions(name: str, a, n: int | None = None) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3 or (n is not None and len(arr) != n):
+        raise SharingError(f"{name} must have shape ({n if n is not None else 'S'}, 3), "
+                           f"got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise SharingError(f"{name} contains NaN or infinite values")
+    if np.any(np.abs(np.linalg.norm(arr, axis=1) - 1.0) > 1e-3):
+        raise SharingError(f"{name} must hold unit vectors")
+    return arr
+
+
+def _values(name: str, a, n: int, keep: np.ndarray, channels=(1, 3)) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    arr = arr[:, None] if arr.ndim == 1 else arr
+    if arr.ndim != 2 or len(arr) != n or arr.shape[1] not in channels:
+        raise SharingError(f"{name} must have shape ({n},) or ({n}, 3), got {np.shape(a)}")
+    bad = ~np.isfinite(arr).all(axis=1) & keep
+    if np.any(bad):
+        raise SharingError(f"{name} contains NaN or infinite values at {int(bad.sum())} samples "
+                           "marked valid (mark saturated or missing samples with valid=False)")
+    return np.where(keep[:, None], arr, 0.0)
+
+
+def _samples(wi, wo, valid, min_cos: float) -> _Samples:
+    wi = _directions("wi", wi)
+    wo = _directions("wo", wo, len(wi))
+    if not 0.0 <= min_cos < 1.0:
+        raise SharingError(f"min_cos must be in [0, 1), got {min_cos!r}")
+    keep = (wi[:, 2] >= max(min_cos, 1e-9)) & (wo[:, 2] > 0)
+    if valid is not None:
+        v = np.asarray(valid)
+        if v.shape != (len(wi),) or v.dtype != bool:
+            raise SharingError(f"valid must be a bool array of shape ({len(wi)},), got "
+                               f"{v.dtype} {v.shape}")
+        keep &= v
+    if not keep.any():
+        raise SharingError(f"wi: none of the {len(wi)} samples is usable (valid, lit with "
+                           f"cos theta_i >= min_cos = {min_cos}, seen from above)")
+    return _Samples(wi, wo, keep, wi[:, 2])
+
+
+def _w_varies(uvw: np.ndarray) -> bool:
+    return float(np.ptp(uvw[:, 2])) >= SINGLE_IMAGE_W_SPREAD
+
+
+def _weight(s: _Samples, weight) -> np.ndarray:
+    w = s.cos_i * s.keep
+    if weight is not None:
+        user = np.asarray(weight, dtype=np.float64)
+        if user.shape != w.shape or not np.all(np.isfinite(user)) or np.any(user < 0):
+            raise SharingError(f"weight must be finite, >= 0, of shape {w.shape}")
+        w = w * user
+    return w
+
+
+# ----------------------------------------------------------------------------------------------
+# homogeneous
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class IsotropicFit:
+    """Result of :func:`fit_isotropic`.
+
+    Attributes
+    ----------
+    brdf : RbfBRDF
+        The recovered BRDF (f_r, 1/sr).
+    fit : RbfFit
+        The RBF fit over (u, v, w): centres, history (centre count vs residual).
+    n_used, n_dropped : int
+        Samples used / dropped (terminator, invalid, below the horizon).
+    """
+
+    brdf: RbfBRDF
+    fit: RbfFit
+    n_used: int
+    n_dropped: int
+
+    def brdf_with(self, n_centers: int) -> RbfBRDF:
+        """The BRDF refitted on the first ``n_centers`` greedy centres (error vs centre count)."""
+        return RbfBRDF(self.fit.refit(n_centers))
+
+    def report(self) -> str:
+        return (f"isotropic RBF BRDF from {self.n_used} samples ({self.n_dropped} dropped): "
+                + self.fit.report())
+
+
+def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w: float = 0.5, weight=None,
+                  valid=None, min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
+                  progress: Callable[[int, int], None] | None = None) -> IsotropicFit:
+    """Homogeneous isotropic BRDF f(u, v, w) by greedy linear-RBF interpolation (Sect. 5, Eq. 5).
+
+    Parameters
+    ----------
+    wi, wo : array_like, (S, 3)
+        Local unit directions to the light / camera (normal = +z).
+    brdf : array_like, (S, 3) or (S,)
+        f_r samples, 1/sr.
+    max_centers : int
+        Centre budget (the paper: < 1000 suffice for 10 sphere images).
+    m_w : float
+        Scale of the sparsely sampled w = 2 theta_d / pi axis, M = diag(1, 1, m_w) (Eq. 4; the
+        paper's typical values 0.1-0.5; 0.5 measured best of 0.3, 0.5, 1 on 10 sphere images).
+    weight : array_like, (S,), optional
+        Extra non-negative weight per sample (multiplies cos theta_i).
+    valid : array_like of bool, (S,), optional
+        False drops a sample (it may hold NaN).
+    min_cos : float
+        Samples with cos theta_i below this are dropped (module docstring).
+    tol, smoothing, rng, progress
+        As :func:`reconstruct.sharing.fit_rbf`.
+
+    Returns
+    -------
+    IsotropicFit
+
+    Raises
+    ------
+    SharingError
+        Mis-shaped or non-finite input; all samples at one theta_d (one light/view pair: w is
+        not sampled, the fit would be undetermined along it); too few samples.
+    """
+    s = _samples(wi, wo, valid, min_cos)
+    values = _values("brdf", brdf, len(s.wi), s.keep)
+    w = _weight(s, weight)
+    uvw = uvw_from_directions(s.wi[s.keep], s.wo[s.keep])
+    if not _w_varies(uvw):
+        raise SharingError("wi, wo: every sample has the same theta_d (one light/view pair), so "
+                           "the w axis of (u, v, w) is not sampled; a homogeneous BRDF needs at "
+                           "least two theta_d (use fit_spatial for the single-image case)")
+    if not m_w > 0:
+        raise SharingError(f"m_w must be > 0, got {m_w!r}")
+    fit = fit_rbf(uvw, values[s.keep], scale=(1.0, 1.0, m_w), weight=w[s.keep],
+                  max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
+                  progress=progress)
+    n_used = int(s.keep.sum())
+    return IsotropicFit(RbfBRDF(fit.model), fit, n_used, len(s.wi) - n_used)
+
+
+# ----------------------------------------------------------------------------------------------
+# spatially varying
+# ----------------------------------------------------------------------------------------------
+def group_median(values: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
+    """Per-group median of ``values`` (S, C) for integer labels ``group`` (S,) -> (n_groups, C);
+    NaN for empty groups. One sort per channel, no loop over groups."""
+    counts = np.bincount(group, minlength=n_groups)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    lo, hi = starts + (counts - 1) // 2, starts + counts // 2
+    out = np.full((n_groups, values.shape[1]), np.nan)
+    has = counts > 0
+    for c in range(values.shape[1]):  # C <= 3 channels
+        srt = values[np.lexsort((values[:, c], group)), c]
+        out[has, c] = 0.5 * (srt[lo[has]] + srt[hi[has]])
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class SpatialFit:
+    """Result of :func:`fit_spatial`.
+
+    Attributes
+    ----------
+    mode : str
+        ``"5d"`` (Eq. 6), ``"single-image"`` (4-D (x, y, u, v), Eq. 8), ``"dichromatic"``
+        (Eq. 7) or ``"dichromatic single-image"`` (Eq. 8: Lambertian albedo + 4-D specular).
+    texel_xy : ndarray, (T, 2)
+        Surface coordinates of the surface points (texels) the samples came from.
+    albedo : ndarray, (T, 3) or None
+        Dichromatic modes: per-texel diffuse albedo a(x) as f_r (1/sr; the median of the
+        texel's diffuse samples, Sect. 7.1).
+    fits : dict of str -> RbfFit
+        ``"brdf"``, or ``"diffuse"`` (a/albedo-normalised d_k, 3 channels sharing centres) and
+        ``"specular"`` (g, 1 channel); absent for the Lambertian diffuse of the single-image case.
+    n_used, n_dropped : int
+    """
+
+    mode: str
+    texel_xy: np.ndarray
+    albedo: np.ndarray | None
+    fits: dict
+    n_used: int
+    n_dropped: int
+
+    def brdf_at(self, xy, texel=None) -> BRDF:
+        """A per-point BRDF for surface points ``xy`` (N, 2); the albedo of the dichromatic modes
+        comes from ``texel`` (N,) indices into ``texel_xy``, or from the nearest texel."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if self.albedo is not None:
+            if texel is None:
+                texel = cKDTree(self.texel_xy).query(xy)[1]
+            albedo = self.albedo[np.asarray(texel)]
+        if self.mode in ("5d", "single-image"):
+            return SpatialRbfBRDF(self.fits["brdf"].model, xy)
+        spec = SpatialRbfBRDF(self.fits["specular"].model, xy)
+        if self.mode == "dichromatic":
+            return Dichromatic(SpatialRbfBRDF(self.fits["diffuse"].model, xy, albedo), spec)
+        return Dichromatic(Lambertian(np.pi * albedo), spec)
+
+    @property
+    def brdf(self) -> BRDF:
+        """The per-texel BRDF, row t for ``texel_xy[t]``."""
+        return self.brdf_at(self.texel_xy, np.arange(len(self.texel_xy)))
+
+    def report(self) -> str:
+        parts = "; ".join(f"{k}: {f.report()}" for k, f in self.fits.items())
+        return (f"spatial RBF ({self.mode}) over {len(self.texel_xy)} texels from {self.n_used} "
+                f"samples ({self.n_dropped} dropped). {parts}")
+
+
+def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
+                m_xy: float = 0.3, m_w: float = 0.5, max_centers: int = 2000,
+                single_image: bool | None = None, weight=None, valid=None,
+                min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
+                progress: Callable[[int, int], None] | None = None) -> SpatialFit:
+    """Spatially varying BRDF by reflectance sharing (Zickler et al. Sects. 6-7).
+
+    The samples live in q = (x, y, u, v, w) with M = diag(m_xy, m_xy, 1, 1, m_w) (Eq. 6). When
+    every sample has the same theta_d (one image: one distant light and an orthographic view),
+    w is constant and dropped: q = (x, y, u, v) (Eq. 8). With ``diffuse`` and ``specular``
+    (polarization-separated f_r) the dichromatic model of Eq. 7 is fitted instead:
+    f_k = a_k(x) d_k(q) + g(q), a = per-texel median of the diffuse samples, d fitted to the
+    normalised diffuse samples (three channels sharing one centre set, the storage saving the
+    paper suggests), g to the specular samples; in the single-image case the diffuse part is
+    Lambertian with albedo a (Eq. 8).
+
+    Parameters
+    ----------
+    xy : array_like, (S, 2)
+        Surface coordinates of each sample (the paper: the surface as a graph over [0, 1]^2; or
+        the mesh's UVs). ``m_xy`` is in units of 1 / these.
+    wi, wo : array_like, (S, 3)
+        Local unit directions to the light / camera (normal = +z).
+    brdf : array_like, (S, 3) or (S,), or None
+        f_r samples (1/sr); None when ``diffuse`` and ``specular`` are given.
+    texel : array_like of int, (S,), optional
+        Surface point of each sample (for the albedo median); default: equal ``xy`` rows.
+    diffuse : array_like, (S, 3), optional
+        Diffuse (depolarised) f_r samples; with ``specular``, selects the dichromatic model.
+    specular : array_like, (S,) or (S, 3), optional
+        Specular f_r samples (grey: the channel mean is used).
+    m_xy, m_w : float
+        Spatial and w scales of M (the paper: m_xy 0.2-0.4, m_w 0.1-0.5).
+    max_centers : int
+        Centre budget of each RBF.
+    single_image : bool, optional
+        Force (True) or forbid (False) the 4-D case; default: by the spread of w.
+    weight, valid, min_cos, tol, smoothing, rng, progress
+        As :func:`fit_isotropic`.
+
+    Returns
+    -------
+    SpatialFit
+
+    Raises
+    ------
+    SharingError
+        Mis-shaped or non-finite input, ``brdf`` given together with ``diffuse``/``specular``
+        (or only one of those), too few samples, samples on a hyperplane.
+    """
+    s = _samples(wi, wo, valid, min_cos)
+    n = len(s.wi)
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.shape != (n, 2) or not np.all(np.isfinite(xy)):
+        raise SharingError(f"xy must be finite with shape ({n}, 2), got {xy.shape}")
+    for name, v in (("m_xy", m_xy), ("m_w", m_w)):
+        if not v > 0:
+            raise SharingError(f"{name} must be > 0, got {v!r}")
+    dichromatic = diffuse is not None or specular is not None
+    if dichromatic and (diffuse is None or specular is None):
+        raise SharingError("diffuse and specular must be given together (Eq. 7)")
+    if dichromatic == (brdf is not None):
+        raise SharingError("pass either brdf or diffuse and specular, not both / neither")
+    if texel is None:
+        texel_xy, texel = np.unique(xy, axis=0, return_inverse=True)
+        texel = texel.reshape(-1)
+    else:
+        texel = np.asarray(texel)
+        if texel.shape != (n,) or not np.issubdtype(texel.dtype, np.integer) or texel.min() < 0:
+            raise SharingError(f"texel must be non-negative integers of shape ({n},)")
+        texel_xy = np.zeros((texel.max() + 1, 2))
+        texel_xy[texel] = xy
+    w = _weight(s, weight)
+    uvw = uvw_from_directions(s.wi, s.wo)
+    if single_image is None:
+        single_image = not _w_varies(uvw[s.keep])
+    q = np.hstack([xy, uvw[:, :2] if single_image else uvw])
+    scale = (m_xy, m_xy, 1.0, 1.0) + (() if single_image else (m_w,))
+    k = s.keep
+    opts = dict(scale=scale, max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
+                progress=progress)
+    n_used = int(k.sum())
+    if not dichromatic:
+        values = _values("brdf", brdf, n, k)
+        fit = fit_rbf(q[k], values[k], weight=w[k], **opts)
+        return SpatialFit("single-image" if single_image else "5d", texel_xy, None,
+                          {"brdf": fit}, n_used, n - n_used)
+    dif = _values("diffuse", diffuse, n, k, channels=(3,))
+    spec = _values("specular", specular, n, k).mean(axis=1, keepdims=True)
+    albedo = group_median(dif[k], texel[k], len(texel_xy))
+    albedo = np.where(np.isfinite(albedo), np.maximum(albedo, 0.0), 0.0)
+    fits = {"specular": fit_rbf(q[k], spec[k], weight=w[k], **opts)}
+    if single_image:
+        return SpatialFit("dichromatic single-image", texel_xy, albedo, fits, n_used, n - n_used)
+    a = albedo[texel]
+    lit = k & (a.min(axis=1) > 0)  # a black texel's normalised diffuse is undefined
+    fits["diffuse"] = fit_rbf(q[lit], dif[lit] / a[lit], weight=w[lit], **opts)
+    return SpatialFit("dichromatic", texel_xy, albedo, fits, n_used, n - n_used)

@@ -1,0 +1,126 @@
+"""fit_lafortune (Lensch et al. 2003, Sec. 6): recovery of known models, covariance honesty, errors."""
+import numpy as np
+import pytest
+
+from reconstruct.brdf import Lafortune
+from reconstruct.lensch import LafortuneFitError, fit_lafortune
+
+
+def _directions(rng, n, *, near_mirror_of=None, spread=0.15):
+    """Random upper-hemisphere unit vectors; with ``near_mirror_of`` close to those vectors' mirrors."""
+    if near_mirror_of is None:
+        v = rng.normal(size=(n, 3))
+        v[:, 2] = np.abs(v[:, 2]) + 0.1
+    else:
+        v = near_mirror_of * [-1, -1, 1] + spread * rng.normal(size=near_mirror_of.shape)
+        v[:, 2] = np.abs(v[:, 2]) + 0.05
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _samples(rng, n=3000, frac_mirror=0.4):
+    wi = _directions(rng, n)
+    wo = _directions(rng, n)
+    k = int(frac_mirror * n)
+    wo[:k] = _directions(rng, k, near_mirror_of=wi[:k])
+    return wi, wo
+
+
+MODELS = {
+    "phong": Lafortune.phong(rho_d=(0.15, 0.3, 0.1), rho_s=1.0, exponent=48.2),
+    "off_specular_rgb": Lafortune(rho_d=(0.3, 0.5, 0.2), cx=[[-0.95, -1.0, -1.05]],
+                                  cz=[[0.75, 0.8, 0.85]], n=[[20.0, 25.0, 30.0]]),
+    "broad_dark": Lafortune(rho_d=(0.05, 0.04, 0.06), cx=-0.9, cz=0.9, n=4.0),
+}
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_noise_free_samples_give_the_model_back(name):
+    true = MODELS[name]
+    rng = np.random.default_rng(3)
+    wi, wo = _samples(rng)
+    r = true.evaluate(wi, wo) * wi[:, 2:3]
+    fit = fit_lafortune(wi, wo, r)
+    assert fit.converged
+    np.testing.assert_allclose(fit.model.rho_d, np.broadcast_to(true.rho_d, (3,)), rtol=1e-6, atol=1e-9)
+    for k in ("cx", "cz", "n"):
+        np.testing.assert_allclose(getattr(fit.model, k), np.broadcast_to(getattr(true, k), (1, 3)),
+                                   rtol=1e-6)
+    assert fit.rms < 1e-8 * np.abs(r).max()
+    assert fit.n_samples == len(wi)
+
+
+def test_covariance_predicts_the_scatter_of_repeated_noisy_fits():
+    """The reported standard errors match the spread of fits to independent noise draws."""
+    true = MODELS["off_specular_rgb"]
+    rng = np.random.default_rng(11)
+    wi, wo = _samples(rng, n=1500)
+    clean = true.evaluate(wi, wo) * wi[:, 2:3]
+    fits = [fit_lafortune(wi, wo, clean + 0.02 * rng.normal(size=clean.shape)) for _ in range(40)]
+    est = np.array([f.params for f in fits])
+    predicted = np.median([f.std for f in fits], axis=0)
+    observed = est.std(axis=0, ddof=1)
+    # 40 draws: the sample std is within ~+-25 % of the truth at 2 sigma
+    np.testing.assert_allclose(observed / predicted, 1.0, atol=0.35)
+    # and the truth lies within 4 standard errors of every estimate
+    truth = fits[0].params * 0
+    truth[:3] = true.rho_d
+    truth[3:6], truth[6:9], truth[9:12] = np.asarray(true.cx)[0], np.asarray(true.cz)[0], np.asarray(true.n)[0]
+    assert np.all(np.abs(est - truth) < 4 * predicted)
+
+
+def test_two_lobes_forward_plus_retro_reproduce_held_out_values():
+    true = Lafortune(rho_d=(0.2, 0.2, 0.3), cx=[-1.0, 0.9], cz=[1.0, 0.9], n=[40.0, 6.0])
+    rng = np.random.default_rng(5)
+    wi, wo = _samples(rng, n=4000)
+    k = 800  # some views near the light so the retro lobe is seen
+    wo[-k:] = _directions(rng, k, near_mirror_of=wi[-k:] * [-1, -1, 1])
+    r = true.evaluate(wi, wo) * wi[:, 2:3]
+    fit = fit_lafortune(wi, wo, r, n_lobes=2)
+    assert fit.model.n_lobes == 2 and fit.params.shape == (21,) and fit.covariance.shape == (21, 21)
+    wi2, wo2 = _samples(np.random.default_rng(6), n=2000)
+    np.testing.assert_allclose(fit.model.evaluate(wi2, wo2), true.evaluate(wi2, wo2), rtol=1e-4, atol=1e-6)
+    lobes = sorted(zip(np.asarray(fit.model.n)[:, 0], np.asarray(fit.model.cx)[:, 0]))
+    np.testing.assert_allclose(lobes, [(6.0, 0.9), (40.0, -1.0)], rtol=1e-4)
+
+
+def test_weights_exclude_samples_and_init_is_used():
+    true = MODELS["phong"]
+    rng = np.random.default_rng(8)
+    wi, wo = _samples(rng, n=1000)
+    r = true.evaluate(wi, wo) * wi[:, 2:3]
+    r[:100] = 50.0  # corrupt samples that carry zero weight
+    w = np.ones(len(wi))
+    w[:100] = 0
+    fit = fit_lafortune(wi, wo, r, weight=w, init=Lafortune.phong(0.5, 0.5, 10.0))
+    np.testing.assert_allclose(np.asarray(fit.model.n)[0], 48.2, rtol=1e-6)
+    assert fit.rms < 1e-8
+
+
+def test_bad_input_names_the_argument():
+    rng = np.random.default_rng(0)
+    wi, wo = _samples(rng, n=20)
+    r = np.full((20, 3), 0.1)
+    with pytest.raises(LafortuneFitError, match="fewer than the 4 parameters"):
+        fit_lafortune(wi[:3], wo[:3], r[:3])
+    with pytest.raises(LafortuneFitError, match="fewer than the 7 parameters"):
+        fit_lafortune(wi[:5], wo[:5], r[:5], n_lobes=2)
+    bad = r.copy()
+    bad[4, 1] = np.nan
+    with pytest.raises(LafortuneFitError, match="reflectance holds 1 non-finite"):
+        fit_lafortune(wi, wo, bad)
+    with pytest.raises(LafortuneFitError, match=r"wo must have shape \(S, 3\)"):
+        fit_lafortune(wi, wo[:, :2], r)
+    with pytest.raises(LafortuneFitError, match="reflectance has 19 rows"):
+        fit_lafortune(wi, wo, r[:19])
+    with pytest.raises(LafortuneFitError, match="wi has 1 directions at or below"):
+        below = wi.copy()
+        below[0, 2] *= -1
+        fit_lafortune(below, wo, r)
+    with pytest.raises(LafortuneFitError, match="wi must hold unit vectors"):
+        fit_lafortune(wi * 2, wo, r)
+    with pytest.raises(LafortuneFitError, match="n_lobes"):
+        fit_lafortune(wi, wo, r, n_lobes=0)
+    with pytest.raises(LafortuneFitError, match="weight must have shape"):
+        fit_lafortune(wi, wo, r, weight=np.ones(3))
+    with pytest.raises(LafortuneFitError, match="init has 1 lobes"):
+        fit_lafortune(wi, wo, r, n_lobes=2, init=Lafortune.phong())
