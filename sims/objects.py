@@ -26,7 +26,7 @@ from reconstruct.raycast import Hemisphere, Mesh, Sphere, Surface
 from reconstruct.render import MaterialMap, SceneObject
 
 #: Names accepted by :func:`make_object` (and ``gonio sim render --object``).
-OBJECTS = ("sphere", "hemisphere", "multi", "bunny")
+OBJECTS = ("sphere", "hemisphere", "multi", "bunny", "bumpy")
 #: Default ceramic-like glaze of the single-material objects.
 GLAZE = CookTorrance(kd=(0.60, 0.52, 0.45), f0=0.04, alpha=0.15)
 
@@ -258,7 +258,113 @@ def make_multi_material(base: str = "bunny", *, height_mm: float = 120.0,
 def make_object(name: str, **kwargs) -> GroundTruthObject:
     """One of :data:`OBJECTS` by name, with its default parameters (``kwargs`` passed on)."""
     makers = {"sphere": make_sphere, "hemisphere": make_hemisphere,
-              "multi": make_multi_material, "bunny": make_bunny}
+              "multi": make_multi_material, "bunny": make_bunny, "bumpy": make_bumpy}
     if name not in makers:
         raise ValueError(f"object must be one of {OBJECTS}, got {name!r}")
     return makers[name](**kwargs)
+
+
+# ----------------------------------------------------------------------------------------------
+# bumpy multi-material object (Lensch et al. 2003: detail in the surface, not in the mesh)
+# ----------------------------------------------------------------------------------------------
+#: The materials of :func:`make_bumpy`, in id order (single-lobe Lafortune, as the paper fits).
+BUMPY_MATERIALS: tuple[Lafortune, ...] = (
+    Lafortune.phong(rho_d=(0.55, 0.12, 0.08), rho_s=0.5, exponent=25.0),     # red glossy
+    Lafortune.phong(rho_d=(0.10, 0.20, 0.50), rho_s=0.8, exponent=70.0),     # blue shiny
+    Lafortune(rho_d=(0.30, 0.25, 0.10), cx=[[-1.02, -0.99, -0.93]], cz=[[0.95, 0.93, 0.88]],
+              n=[[12.0, 12.0, 12.0]]),                                        # gold-ish, off-specular
+)
+
+
+@dataclass
+class BumpyObject(GroundTruthObject):
+    """A sphere with raised bumps and an engraved groove, painted with :data:`BUMPY_MATERIALS`.
+
+    ``parts`` render the displaced high-resolution mesh; ``fitter_mesh`` is the smooth sphere a
+    reconstruction is handed (the detail is in the images, not in this mesh).
+    :meth:`normal_at` / :meth:`material_at` give the ground truth at object-frame points (looked up
+    by their direction from the sphere's centre, so points on either mesh work).
+    """
+
+    fitter_mesh: trimesh.Trimesh | None = None
+    center_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sphere_radius_mm: float = 0.0
+    bump_centers: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    bump_height_mm: float = 0.0
+    bump_sigma_rad: float = 0.1
+    groove_depth_mm: float = 0.0
+    groove_width_rad: float = 0.05
+    materials: tuple = ()
+
+    def _dirs(self, points) -> np.ndarray:
+        d = np.asarray(points, float).reshape(-1, 3) - self.center_mm
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def height(self, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Displacement h (N,) mm along the unit ``dirs`` (N, 3) and its gradient on the sphere
+        (N, 3) (tangent, mm per radian): Gaussian bumps in the angle from each bump centre, minus a
+        Gaussian groove around the circle of latitude z = 0.35 (an engraved ring)."""
+        h = np.zeros(len(dirs))
+        grad = np.zeros((len(dirs), 3))
+        for c in self.bump_centers:  # a few dozen bumps, vectorised over points
+            cosang = np.clip(dirs @ c, -1, 1)
+            ang = np.arccos(cosang)
+            g = self.bump_height_mm * np.exp(-0.5 * (ang / self.bump_sigma_rad) ** 2)
+            h += g
+            # d ang / d dir along the tangent towards c: -(c - cos d) / sin
+            sin = np.maximum(np.sqrt(1 - cosang ** 2), 1e-9)
+            tangent_to_c = (c - cosang[:, None] * dirs) / sin[:, None]
+            grad += (g * ang / self.bump_sigma_rad ** 2)[:, None] * tangent_to_c
+        lat = np.arcsin(np.clip(dirs[:, 2], -1, 1)) - np.arcsin(0.35)
+        gg = -self.groove_depth_mm * np.exp(-0.5 * (lat / self.groove_width_rad) ** 2)
+        h += gg
+        up = np.array([0.0, 0.0, 1.0]) - dirs[:, 2:3] * dirs  # d lat direction (unnormalised)
+        up /= np.maximum(np.linalg.norm(up, axis=1, keepdims=True), 1e-9)
+        grad += (-gg * lat / self.groove_width_rad ** 2)[:, None] * up
+        return h, grad
+
+    def normal_at(self, points) -> np.ndarray:
+        """True unit normals (N, 3) of the displaced surface at the directions of ``points``."""
+        d = self._dirs(points)
+        h, grad = self.height(d)
+        r = self.sphere_radius_mm + h
+        n = d - grad / r[:, None]  # normal of r(d) = R + h(d): d - grad_s h / r
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def material_at(self, points) -> np.ndarray:
+        """Material id (N,) at ``points``: three bands in azimuth about the axis."""
+        d = self._dirs(points)
+        az = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+        return (az // (2 * np.pi / 3)).astype(np.int64) % 3
+
+
+def make_bumpy(radius_mm: float = 40.0, *, n_bumps: int = 40, bump_height_mm: float = 0.8,
+               bump_sigma_mm: float = 3.5, groove_depth_mm: float = 0.6, groove_width_mm: float = 1.5,
+               subdivisions: int = 6, fitter_subdivisions: int = 4, seed: int = 0) -> BumpyObject:
+    """A sphere on the platter with fine relief the fitter's mesh lacks (Lensch 2003, Sec. 9).
+
+    The rendered surface is an icosphere of ``subdivisions`` (default 6: 82k faces, ~0.7 mm edges)
+    displaced by ``n_bumps`` Gaussian bumps (height ``bump_height_mm``, width ``bump_sigma_mm``) and
+    an engraved ring; ``fitter_mesh`` is the undisplaced icosphere of ``fitter_subdivisions``.
+    Three materials in azimuth bands (:meth:`BumpyObject.material_at`).
+    """
+    if not radius_mm > 0:
+        raise ValueError(f"radius_mm must be > 0, got {radius_mm!r}")
+    rng = np.random.default_rng(seed)
+    centers = rng.normal(size=(n_bumps, 3))
+    centers /= np.linalg.norm(centers, axis=1, keepdims=True)
+    center = np.array([0.0, 0.0, radius_mm + bump_height_mm])
+    obj = BumpyObject(name="bumpy", parts=[], height_mm=2 * (radius_mm + bump_height_mm),
+                      radius_mm=radius_mm + bump_height_mm, center_mm=center,
+                      sphere_radius_mm=radius_mm, bump_centers=centers,
+                      bump_height_mm=bump_height_mm, bump_sigma_rad=bump_sigma_mm / radius_mm,
+                      groove_depth_mm=groove_depth_mm, groove_width_rad=groove_width_mm / radius_mm,
+                      materials=BUMPY_MATERIALS)
+    fine = trimesh.creation.icosphere(subdivisions=subdivisions)
+    h, _ = obj.height(fine.vertices)
+    detailed = trimesh.Trimesh(fine.vertices * (radius_mm + h)[:, None] + center, fine.faces, process=False)
+    smooth = trimesh.creation.icosphere(subdivisions=fitter_subdivisions, radius=radius_mm)
+    obj.fitter_mesh = trimesh.Trimesh(smooth.vertices + center, smooth.faces, process=False)
+    ids = obj.material_at(detailed.triangles_center)
+    obj.parts = [Part(Mesh(detailed), MaterialMap(list(BUMPY_MATERIALS), ids), "bumpy")]
+    return obj

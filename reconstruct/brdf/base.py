@@ -42,6 +42,14 @@ class BRDF(abc.ABC):
 
     __call__ = evaluate
 
+    def defined(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """Where the model has a value, (N,) bool: both directions above the surface (a table
+        also needs a measured node nearby, see ``TabulatedIsotropic``). Elsewhere ``evaluate``
+        returns 0, which is "unknown", not "black"."""
+        wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+        wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+        return (wi[:, 2] > 0) & (wo[:, 2] > 0)
+
     def diffuse_part(self) -> "BRDF":
         """The body (depolarising) reflection of this model; default: none (black)."""
         return Lambertian(0.0)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from ..coords import HALF_PI, from_halfway_difference, halfway_difference, romeiro_st
 from .base import BRDF
@@ -71,6 +72,16 @@ class _Nodes:
             num += wv * np.take(self.values, idx, axis=0)
             den += wv
         return np.divide(num, den, out=np.zeros_like(num), where=den > 1e-12)
+
+    def support(self, coords, shape, periodic) -> np.ndarray:
+        """(N,) bool: the sample has a valid corner of non-zero weight in every channel (where
+        ``interpolate`` returns a value rather than the 0 of "no data")."""
+        if not self.has_invalid:
+            return np.ones(len(coords[0]), bool)
+        den = np.zeros((len(coords[0]), 3))
+        for idx, w in _corners(coords, shape, periodic):
+            den += np.take(self.valid, idx, axis=0) * w[:, None]
+        return np.all(den > 1e-12, axis=1)
 
 
 def _check_table(owner: str, table, ndim: int) -> np.ndarray:
@@ -152,6 +163,15 @@ class TabulatedIsotropic(BRDF):
     def _evaluate(self, wi, wo):
         return self._nodes.interpolate(self._coords(wi, wo), self.shape, (False, False, True))
 
+    def defined(self, wi, wo):
+        """Above the horizon and next to a measured (non-NaN) node: where ``evaluate``'s value
+        is data. Beside invalid cells it returns 0 for "unknown", which averages must skip."""
+        ok = super().defined(wi, wo)
+        ok[ok] = self._nodes.support(self._coords(np.asarray(wi, float).reshape(-1, 3)[ok],
+                                                  np.asarray(wo, float).reshape(-1, 3)[ok]),
+                                     self.shape, (False, False, True))
+        return ok
+
     def take(self, index) -> "TabulatedIsotropic":
         """A table is one material: the same model for every sample."""
         return self
@@ -186,20 +206,48 @@ class Bivariate(BRDF):
 
     @classmethod
     def from_brdf(cls, brdf: BRDF, n_t: int = 32, n_s: int = 32, n_phi: int = 64):
-        """Project an isotropic ``brdf`` onto the grid: mean over phi_d in [0, pi) of its values
-        at each (theta_h, theta_d) node (``n_phi`` midpoint samples; directions below the
-        horizon excluded; NaN where none is valid)."""
+        """Project an isotropic ``brdf`` onto the grid (Romeiro et al.'s f-bar, Eq. 1).
+
+        Each node holds the mean of ``brdf`` over the phi_d for which both directions are
+        above the horizon, |cos phi_d| < cot(theta_h) cot(theta_d): ``n_phi`` midpoint samples
+        spread over that interval only, so every node is a mean of ``n_phi`` valid values (a
+        fixed phi_d grid leaves few or none near grazing). Samples where the model has no value
+        (``brdf.defined``: a measured table's unmeasured cells, which evaluate to 0) are left
+        out. The grazing edges theta_h = pi/2 and theta_d = pi/2 admit no valid pair, so the
+        last node of each axis takes the mean a quarter of its cell inside the edge (the value
+        the bilinear cell next to the edge needs). A node with no value at all takes its
+        nearest valid node's. The table has no NaN.
+
+        Raises
+        ------
+        ValueError
+            If a count is < 1 (naming it) or ``brdf`` has no value anywhere on the domain.
+        """
         if min(n_t, n_s, n_phi) < 1:
             raise ValueError(f"n_t, n_s, n_phi must be >= 1, got {n_t}, {n_s}, {n_phi}")
         theta_h, theta_d = cls.node_angles(n_t, n_s)
-        th, td, pd = np.meshgrid(theta_h, theta_d, (np.arange(n_phi) + 0.5) / n_phi * np.pi,
-                                 indexing="ij")
-        wi, wo = from_halfway_difference(th, 0.0, td, pd)
+        for a in (theta_h, theta_d):
+            if len(a) > 1:
+                a[-1] -= 0.25 * (a[-1] - a[-2])
+        th, td = np.meshgrid(theta_h, theta_d, indexing="ij")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            c = np.nan_to_num(1.0 / (np.tan(th) * np.tan(td)), nan=np.inf, posinf=np.inf)
+        phi0 = np.arccos(np.minimum(c, 1.0))  # valid phi_d: (phi0, pi - phi0)
+        u = (np.arange(n_phi) + 0.5) / n_phi
+        pd = phi0[..., None] + u * (np.pi - 2 * phi0[..., None])
+        wi, wo = from_halfway_difference(th[..., None], 0.0, td[..., None], pd)
         f = brdf.evaluate(wi, wo).reshape(n_t, n_s, n_phi, 3)
-        ok = ((wi[:, 2] > 0) & (wo[:, 2] > 0)).reshape(n_t, n_s, n_phi, 1)
+        ok = brdf.defined(wi, wo).reshape(n_t, n_s, n_phi, 1)
         count = ok.sum(axis=2)
-        total = np.where(ok, f, 0.0).sum(axis=2)
-        return cls(np.divide(total, count, out=np.full(total.shape, np.nan), where=count > 0))
+        table = np.divide(np.where(ok, f, 0.0).sum(axis=2), count,
+                          out=np.full((n_t, n_s, 3), np.nan), where=count > 0)
+        empty = count[..., 0] == 0
+        if empty.all():
+            raise ValueError("brdf has no value anywhere on the bivariate domain")
+        if empty.any():
+            _, (it, js) = distance_transform_edt(empty, return_indices=True)
+            table = table[it, js]
+        return cls(table)
 
     def _coords(self, wi, wo):
         theta_h, _, theta_d, _ = halfway_difference(wi, wo)

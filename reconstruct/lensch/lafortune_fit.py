@@ -14,10 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import nnls
 
 from ..brdf import Lafortune
-from .lm import covariance, levenberg_marquardt
+from .lm import covariance, levenberg_marquardt, nnls_batched
 
 
 class LafortuneFitError(ValueError):
@@ -127,7 +126,8 @@ class LafortuneFit:
         independently, so cross-channel blocks are zero.
     names : tuple of str
     rms : float
-        Root mean square of the (weighted) residual f_r cos(theta_i) - reflectance over samples
+        Root mean square of the (weighted; with ``noise="relative"``: relative) residual
+        f_r cos(theta_i) - reflectance over samples
         and channels, 1/sr.
     n_samples : int
         Samples used.
@@ -145,6 +145,11 @@ class LafortuneFit:
     n_samples: int
     converged: bool
     n_iter: int
+
+    @property
+    def channel_params(self) -> np.ndarray:
+        """Parameters per channel, (3, 1 + 3L): ``[rho_d, cx_1, cz_1, n_1, ...]`` (the fit's layout)."""
+        return self.params.reshape(-1, 3).T.copy()
 
     @property
     def std(self) -> np.ndarray:
@@ -200,7 +205,9 @@ def initial_params(t, z, cos_i, reflectance, weight, n_lobes: int) -> np.ndarray
     sw = np.sqrt(weight)[:, None]
     cols = [cos_i / np.pi] + [np.maximum(cos_mirror, 0.0) ** N * cos_i for N in _START_EXPONENTS]
     A = np.stack(cols, axis=1) * sw
-    amps = np.array([nnls(A, reflectance[:, c] * sw[:, 0])[0] for c in range(3)])  # (3, 1 + K)
+    rw = reflectance * sw
+    G = A.T @ A
+    amps, _ = nnls_batched(np.broadcast_to(G, (3,) + G.shape), rw.T @ A, np.sum(rw * rw, axis=0))
     energy = (amps[:, 1:] * A[:, 1:].mean(axis=0)).sum(axis=0)
     order = np.argsort(-energy, kind="stable")
     chosen = np.sort(order[:n_lobes])
@@ -233,11 +240,14 @@ def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_i
     upper = np.full(P, np.inf)
     lower[0] = 0.0
     lower[3::3], upper[3::3] = N_MIN, N_MAX
-    return levenberg_marquardt(fun, params0, lower=lower, upper=upper, max_iter=max_iter)
+    # a relative cost change of 1e-8 per step is far below any noise; multi-lobe fits crawl
+    # along flat valleys (lobes trading energy) long after that
+    return levenberg_marquardt(fun, params0, lower=lower, upper=upper, max_iter=max_iter, ftol=1e-8)
 
 
 def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
-                  init: Lafortune | LafortuneFit | None = None, max_iter: int = 200) -> LafortuneFit:
+                  init: Lafortune | LafortuneFit | None = None, noise: str = "absolute",
+                  max_iter: int = 200) -> LafortuneFit:
     """Fit an isotropic Lafortune BRDF to reflectance samples by Levenberg-Marquardt (Sec. 6).
 
     Parameters
@@ -254,6 +264,10 @@ def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
     init : Lafortune or LafortuneFit, optional
         Start point (L lobes); default: an average BRDF from the data (diffuse + the L strongest
         of a few Phong lobes, by non-negative least squares).
+    noise : {"absolute", "relative"}
+        "absolute": least squares in the reflectance itself (errors of equal size everywhere);
+        "relative": multiplicative noise (e.g. the paper's synthetic +-5 %), each sample weighted
+        by 1 / model^2, iteratively reweighted from the previous round's model.
     max_iter : int
         Cap on LM iterations per channel.
 
@@ -278,19 +292,37 @@ def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
         raise LafortuneFitError(f"reflectance has {n_used} samples with non-zero weight, fewer than "
                                 f"the {P} parameters per channel of a {n_lobes}-lobe Lafortune model")
     t, z = lobe_geometry(wi, wo)
-    cos_i = wi[:, 2]
-    if init is None:
-        p0 = initial_params(t, z, cos_i, r, w, n_lobes)
-    else:
-        p0 = params_of(init.model if isinstance(init, LafortuneFit) else init, n_lobes)
-    res = lafortune_lm(p0, t, z, cos_i, r, w, max_iter=max_iter)
+    p0 = None if init is None else params_of(init.model if isinstance(init, LafortuneFit) else init,
+                                              n_lobes)
+    return fit_geometry(t, z, wi[:, 2], r, w, n_lobes=n_lobes, init=p0, noise=noise, max_iter=max_iter)
+
+
+def fit_geometry(t, z, cos_i, reflectance, weight, *, n_lobes: int = 1, init: np.ndarray | None = None,
+                 noise: str = "absolute", max_iter: int = 200) -> LafortuneFit:
+    """:func:`fit_lafortune` on validated samples given by their :func:`lobe_geometry` (t, z),
+    cos(theta_i) (S,), ``reflectance`` (S, 3) and ``weight`` (S,); ``init`` (3, 1 + 3L) or None."""
+    P = 1 + 3 * n_lobes
+    n_used = int(np.count_nonzero(weight))
+    p0 = initial_params(t, z, cos_i, reflectance, weight, n_lobes) if init is None else init
+    res = lafortune_lm(p0, t, z, cos_i, reflectance, weight, max_iter=max_iter)
+    if noise == "relative":
+        # multiplicative noise: weight by 1 / model^2 of the previous round (iteratively
+        # reweighted; the model, not the noisy sample, sets the weight, so no bias toward low values)
+        for _ in range(2):
+            f = model_and_jacobian(res.x, t, z, cos_i, want_jac=False)[0].mean(axis=0)
+            floor = 0.01 * max(float(np.median(f)), 1e-12)
+            weight_rel = weight / np.maximum(f, floor) ** 2
+            res = lafortune_lm(res.x, t, z, cos_i, reflectance, weight_rel, max_iter=max_iter)
+        weight = weight_rel
+    elif noise != "absolute":
+        raise LafortuneFitError(f"noise must be 'absolute' or 'relative', got {noise!r}")
     cov_c = covariance(res.jac, res.cost, n_used)  # (3, P, P)
     # flat layout: parameter-major, channel-minor (rho_d.r, rho_d.g, rho_d.b, cx1.r, ...)
     cov = np.zeros((P, 3, P, 3))
     for c in range(3):
         cov[:, c, :, c] = cov_c[c]
-    rms = float(np.sqrt(2 * res.cost.sum() / (3 * max(w.sum(), 1e-300))))
+    rms = float(np.sqrt(2 * res.cost.sum() / (3 * max(weight.sum(), 1e-300))))
     return LafortuneFit(model=model_of(res.x), params=res.x.T.ravel().copy(),
                         covariance=cov.reshape(3 * P, 3 * P), names=param_names(n_lobes),
-                        rms=rms, n_samples=len(wi), converged=bool(res.converged.all()),
+                        rms=rms, n_samples=len(t), converged=bool(res.converged.all()),
                         n_iter=int(res.n_iter.max()))

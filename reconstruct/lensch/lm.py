@@ -8,6 +8,7 @@ per-texel normal fits (B = number of texels).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import combinations
 from typing import Callable
 
 import numpy as np
@@ -76,12 +77,13 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
     converged = np.zeros(B, bool)
     n_iter = np.zeros(B, np.int64)
     active = everyone.copy()
-    rA, JA = r, J
+    rA, JA = r.copy(), J.copy()
     for _ in range(max_iter):
         if len(active) == 0:
             break
-        A = np.einsum("bmp,bmq->bpq", JA, JA)
-        g = np.einsum("bmp,bm->bp", JA, rA)
+        JT = JA.transpose(0, 2, 1)
+        A = JT @ JA  # batched BLAS: much faster than einsum for long residual vectors
+        g = (JT @ rA[..., None])[..., 0]
         d = np.einsum("bpp->bp", A)
         d = np.maximum(d, 1e-12 * np.maximum(d.max(axis=1, keepdims=True), 1e-300))
         M = A + (mu[active, None] * d)[:, :, None] * np.eye(P)
@@ -103,8 +105,8 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
         converged[active[done]] = True
         keep = ~done
         # the next iteration linearises at the current point of the items still iterating
-        rA = np.where(better[:, None], r_new, rA)[keep]
-        JA = np.where(better[:, None, None], J_new, JA)[keep]
+        rA[better], JA[better] = r_new[better], J_new[better]
+        rA, JA = rA[keep], JA[keep]
         active = active[keep]
     return LMResult(x=x, cost=cost, jac=jac, converged=converged, n_iter=n_iter)
 
@@ -116,10 +118,37 @@ def covariance(jac: np.ndarray, cost: np.ndarray, n_residuals) -> np.ndarray:
     A parameter the data does not constrain gets a huge variance (a tiny ridge keeps the inverse
     finite), never a misleading zero.
     """
-    A = np.einsum("bmp,bmq->bpq", jac, jac)
+    A = jac.transpose(0, 2, 1) @ jac
     P = A.shape[-1]
     dof = np.maximum(np.asarray(n_residuals, float) - P, 1.0)
     s2 = 2.0 * cost / dof
     ridge = 1e-12 * np.maximum(np.einsum("bpp->b", A), 1e-300)
     inv = np.linalg.inv(A + ridge[:, None, None] * np.eye(P))
     return s2[:, None, None] * inv
+
+
+def nnls_batched(G: np.ndarray, h: np.ndarray, rr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact non-negative least squares for many small problems at once.
+
+    Minimises |A t - r|^2 = rr - 2 h.t + t.G.t over t >= 0 per item, given the normal equations
+    G = A^T A (n, B, B), h = A^T r (n, B) and rr = r.r (n,). The optimum is the unconstrained
+    solution on its own support, so solving on every support (2^B - 1 of them, B small) and
+    keeping the best feasible one is exact, and it is vectorised over items (no per-item solver).
+
+    Returns the weights (n, B) and the residual sum of squares (n,).
+    """
+    n, B = h.shape
+    best_t = np.zeros((n, B))
+    best_cost = rr.copy()
+    scale = np.maximum(np.einsum("nbb->n", G) / B, 1e-300)
+    for k in range(1, B + 1):
+        for support in combinations(range(B), k):
+            idx = np.array(support)
+            Gs = G[:, idx[:, None], idx[None, :]] + (1e-10 * scale)[:, None, None] * np.eye(k)
+            ts = np.linalg.solve(Gs, h[:, idx, None])[..., 0]
+            cost = rr - np.einsum("nb,nb->n", ts, h[:, idx])
+            better = np.all(ts >= 0, axis=1) & (cost < best_cost)
+            best_cost[better] = cost[better]
+            best_t[better] = 0.0
+            best_t[np.ix_(better, idx)] = ts[better]
+    return best_t, np.maximum(best_cost, 0.0)

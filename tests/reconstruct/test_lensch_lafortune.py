@@ -64,7 +64,8 @@ def test_covariance_predicts_the_scatter_of_repeated_noisy_fits():
     # and the truth lies within 4 standard errors of every estimate
     truth = fits[0].params * 0
     truth[:3] = true.rho_d
-    truth[3:6], truth[6:9], truth[9:12] = np.asarray(true.cx)[0], np.asarray(true.cz)[0], np.asarray(true.n)[0]
+    for k, name in enumerate(("cx", "cz", "n")):
+        truth[3 + 3 * k:6 + 3 * k] = np.asarray(getattr(true, name))[0]
     assert np.all(np.abs(est - truth) < 4 * predicted)
 
 

@@ -94,7 +94,7 @@ def test_bunny_falls_back_to_a_procedural_mesh(tmp_path):
 
 
 def test_make_object_names():
-    assert set(OBJECTS) == {"sphere", "hemisphere", "multi", "bunny"}
+    assert set(OBJECTS) == {"sphere", "hemisphere", "multi", "bunny", "bumpy"}
     with pytest.raises(ValueError, match="object must be one of"):
         make_object("teapot")
     sphere = make_object("sphere")

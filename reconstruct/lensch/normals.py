@@ -1,0 +1,150 @@
+"""Normal fitting with the projected BRDFs (Lensch et al. 2003, Sec. 9, Eqs. 14-16).
+
+For each texel the normal is tilted away from the mesh normal and the basis weights re-solved so
+that f_pi(wi', wo') cos(theta_i') matches the samples, where wi', wo' are the sample directions in
+the frame of the tilted normal. The normal is parametrised by its slopes (a, b): n = (a, b, 1) / |.|
+in the texel's current local frame (no pole at the mesh normal, unlike the paper's azimuth /
+zenith). Because the model is isotropic, only n.wi, n.wo and wi.wo enter, so no tangent is needed.
+
+All texels are solved together by the batched Levenberg-Marquardt (texels grouped by sample
+count, samples padded within a group); :func:`fit_normals_chunk` is a pure function of a chunk.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .lafortune_fit import _LOG_CAP
+from .lm import levenberg_marquardt
+
+#: Largest tilt (slope) of a fitted normal from the mesh normal: tan(70 deg).
+MAX_SLOPE = float(np.tan(np.radians(70.0)))
+
+
+def _padded(texel, values, n, counts, members, width):
+    """Rows of ``values`` for the texels ``members`` padded to ``width`` samples: (m, width, ...)."""
+    starts = np.concatenate([[0], np.cumsum(counts)])[members]
+    idx = starts[:, None] + np.arange(width)[None, :]
+    valid = np.arange(width)[None, :] < counts[members][:, None]
+    idx = np.where(valid, idx, 0)
+    return values[idx], valid
+
+
+def _mixture(x, U, V, R, W, basis_t):
+    """Residuals and Jacobian of the tilted-normal model for a group of texels.
+
+    x (m, 2 + B): slopes a, b and weights; U, V, R (m, M, 3); W (m, M) sample weights (0 = pad);
+    basis_t (m, B, 3, P) each texel's basis parameters.
+    """
+    m, M, _ = U.shape
+    B = basis_t.shape[1]
+    P = basis_t.shape[-1]
+    p = np.concatenate([x[:, :2], np.ones((m, 1))], axis=1)
+    norm = np.linalg.norm(p, axis=1)
+    nrm = p / norm[:, None]
+    uz = np.einsum("mk,msk->ms", nrm, U)
+    vz = np.einsum("mk,msk->ms", nrm, V)
+    uv = np.einsum("msk,msk->ms", U, V)
+    zz = uz * vz
+    visible = (uz > 0) & (vz > 0)
+    F = np.zeros((m, M, 3))
+    dF = np.zeros((m, M, 3))
+    fb_all = np.empty((m, M, B, 3))
+    for b in range(B):
+        par = basis_t[:, b]  # (m, 3, P)
+        fb = np.broadcast_to((par[:, None, :, 0]) / np.pi, (m, M, 3)).copy()
+        dfb = np.zeros((m, M, 3))
+        for l in range((P - 1) // 3):
+            cx, cz, N = (par[:, None, :, 1 + 3 * l + k] for k in range(3))
+            base = cx * (uv - zz)[..., None] + cz * zz[..., None]
+            lit = base > 0
+            safe = np.where(lit, base, 1.0)
+            lobe = np.where(lit, np.exp(np.minimum(N * np.log(safe), _LOG_CAP)), 0.0)
+            fb += lobe
+            dfb += np.where(lit, N * lobe / safe, 0.0) * (cz - cx)
+        fb_all[:, :, b] = fb
+        F += x[:, None, None, 2 + b] * fb
+        dF += x[:, None, None, 2 + b] * dfb
+    sw = np.sqrt(W) * visible
+    model = F * uz[..., None]
+    res = (model - R) * np.sqrt(W)[..., None]
+    res = np.where(visible[..., None], res, -R * np.sqrt(W)[..., None])
+    dm_duz = F + (uz * vz)[..., None] * dF
+    dm_dvz = (uz * uz)[..., None] * dF
+    J = np.empty((m, M, 3, 2 + B))
+    for k in range(2):  # d n / d slope_k = (e_k - n n_k) / |p|
+        dn = (np.eye(3)[k][None, :] - nrm * nrm[:, k:k + 1]) / norm[:, None]
+        duz = np.einsum("mk,msk->ms", dn, U)
+        dvz = np.einsum("mk,msk->ms", dn, V)
+        J[..., k] = (dm_duz * duz[..., None] + dm_dvz * dvz[..., None]) * sw[..., None]
+    J[..., 2:] = (fb_all * uz[..., None, None]).transpose(0, 1, 3, 2) * sw[..., None, None]
+    return res.reshape(m, M * 3), J.reshape(m, M * 3, 2 + B)
+
+
+def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis, basis_size, *,
+                      min_samples: int = 3, max_iter: int = 15):
+    """Fit a normal and basis weights per texel of a chunk (Eq. 16), all texels at once.
+
+    Parameters
+    ----------
+    texel : ndarray (S,) int
+        Chunk-local texel per sample, 0..n-1, **sorted**.
+    wi, wo : ndarray (S, 3)
+        Local unit directions (mesh-normal frame).
+    reflectance : ndarray (S, 3)
+        f_r cos(theta_i), 1/sr.
+    weight : ndarray (S,)
+    labels : ndarray (n,) int
+        Cluster per texel.
+    weights : ndarray (n, B)
+        Starting basis weights (from the projection).
+    basis, basis_size
+        Per-cluster bases (see :mod:`reconstruct.lensch.projection`).
+    min_samples : int
+        Texels with fewer samples keep the mesh normal (too few to fix 2 + B unknowns).
+
+    Returns
+    -------
+    normals : ndarray (n, 3)
+        Fitted unit normals in each texel's local (mesh-normal) frame; +z where not fitted.
+    weights : ndarray (n, B)
+        Basis weights found with them.
+    fitted : ndarray (n,) bool
+        Texels whose normal was fitted.
+    converged : ndarray (n,) bool
+    """
+    n, B = weights.shape
+    counts = np.bincount(texel, minlength=n)
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    out_w = weights.copy()
+    converged = np.zeros(n, bool)
+    fitted = counts >= min_samples
+    # groups of similar sample counts, each padded to its largest count
+    edges = [min_samples, 5, 9, 17, 33, 65, np.inf]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        members = np.flatnonzero((counts >= lo) & (counts < hi))
+        if len(members) == 0:
+            continue
+        width = int(counts[members].max())
+        U, valid = _padded(texel, wi, n, counts, members, width)
+        V, _ = _padded(texel, wo, n, counts, members, width)
+        R, _ = _padded(texel, reflectance, n, counts, members, width)
+        Wt, _ = _padded(texel, weight, n, counts, members, width)
+        Wt = Wt * valid
+        basis_t = basis[labels[members]]
+        unused = np.arange(B)[None, :] >= basis_size[labels[members]][:, None]
+
+        def fun(x, items, U=U, V=V, R=R, Wt=Wt, basis_t=basis_t):
+            return _mixture(x, U[items], V[items], R[items], Wt[items], basis_t[items])
+
+        x0 = np.concatenate([np.zeros((len(members), 2)), weights[members]], axis=1)
+        lower = np.concatenate([np.full((len(members), 2), -MAX_SLOPE), np.zeros((len(members), B))], 1)
+        upper = np.concatenate([np.full((len(members), 2), MAX_SLOPE),
+                                np.where(unused, 0.0, np.inf)], 1)
+        # a slope step of 1e-3 is 0.06 deg: below what a dozen noisy samples resolve
+        res = levenberg_marquardt(fun, x0, lower=lower, upper=upper, max_iter=max_iter,
+                                  ftol=1e-5, xtol=1e-3)
+        p = np.concatenate([res.x[:, :2], np.ones((len(members), 1))], axis=1)
+        normals[members] = p / np.linalg.norm(p, axis=1, keepdims=True)
+        out_w[members] = res.x[:, 2:]
+        converged[members] = res.converged
+    return normals, out_w, fitted, converged

@@ -1,0 +1,185 @@
+"""Projection of lumitexels into per-cluster BRDF bases, and principal function analysis
+(Lensch et al. 2003, Sec. 8, Eqs. 11-13).
+
+A texel's BRDF is f = sum_b t_b f_b with non-negative weights t_b shared by the three colour
+channels (Eq. 11); the basis f_1..f_B belongs to the texel's cluster (Sec. 8.1). Bases are held as
+an array ``basis`` (K, B, 3, P) of per-channel Lafortune parameters with ``basis_size`` (K,) slots
+used per cluster (unused slots are ignored).
+
+:func:`project_chunk` and :func:`cluster_residuals` are pure functions of a chunk of texels
+(samples with chunk-local texel indices 0..n-1): a chunked map, local or distributed, runs them
+unchanged.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .clustering import sample_errors, texel_mean
+from .lafortune_fit import N_MAX, N_MIN, model_and_jacobian
+from .lm import levenberg_marquardt, nnls_batched
+
+#: Relative change of rho_d and N in the two variants of a cluster's BRDF (Sec. 8.1).
+VARIANT_STEP = 0.2
+
+
+def make_bases(materials: np.ndarray, similar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cluster bases (Sec. 8.1): the cluster's BRDF, two variants with rho_d and N raised and
+    lowered by :data:`VARIANT_STEP`, and the most similar other cluster's BRDF.
+
+    Parameters
+    ----------
+    materials : ndarray (K, 3, P)
+        Per-channel Lafortune parameters of the clusters.
+    similar : ndarray (K,) int
+        For each cluster, the other cluster that fits its texels best (-1: none).
+
+    Returns
+    -------
+    basis : ndarray (K, 4, 3, P)
+    basis_size : ndarray (K,) int
+    """
+    K, _, P = materials.shape
+    basis = np.zeros((K, 4, 3, P))
+    size = np.full(K, 4)
+    for sign, slot in ((1.0, 1), (-1.0, 2)):
+        v = materials.copy()
+        v[:, :, 0] *= 1 + sign * VARIANT_STEP
+        v[:, :, 3::3] = np.clip(v[:, :, 3::3] * (1 + sign * VARIANT_STEP), N_MIN, N_MAX)
+        basis[:, slot] = v
+    basis[:, 0] = materials
+    has = similar >= 0
+    basis[has, 3] = materials[similar[has]]
+    basis[~has, 3] = materials[~has]
+    size[~has] = 3
+    return basis, size
+
+
+def basis_values(t, z, cos_i, texel, labels, basis, basis_size) -> np.ndarray:
+    """f_b(wi, wo) cos(theta_i) of every sample's basis BRDFs, (S, B, 3); unused slots are 0."""
+    S = len(t)
+    K, B = basis.shape[:2]
+    A = np.zeros((S, B, 3))
+    cluster = labels[texel]
+    for k in range(K):
+        sel = np.flatnonzero(cluster == k)
+        if len(sel) == 0:
+            continue
+        for b in range(basis_size[k]):
+            A[sel, b] = model_and_jacobian(basis[k, b], t[sel], z[sel], cos_i[sel], want_jac=False)[0].T
+    return A
+
+
+def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_size, *,
+                  prior: float = 0.0):
+    """Non-negative projection of a chunk of texels into their clusters' bases (Eqs. 11-12).
+
+    Parameters
+    ----------
+    texel : ndarray (S,) int
+        Chunk-local texel of each sample, 0..n-1.
+    t, z, cos_i : ndarray (S,)
+        Lobe geometry and cos(theta_i) of the samples (local frames).
+    reflectance : ndarray (S, 3)
+        f_r cos(theta_i), 1/sr.
+    weight : ndarray (S,)
+        Sample weights.
+    labels : ndarray (n,) int
+        Cluster of each texel.
+    basis, basis_size
+        From :func:`make_bases`.
+    prior : float
+        Weight of a ridge pulling each texel's weights towards (1, 0, ..., 0) (its cluster's
+        BRDF), relative to the mean diagonal of its normal equations: keeps texels whose samples
+        do not constrain the variants (no highlight seen) from extrapolating. 0: the paper's
+        plain non-negative least squares.
+
+    Returns
+    -------
+    weights : ndarray (n, B)
+        Non-negative weights, the same for the three channels.
+    sse : ndarray (n,)
+        Weighted residual sum of squares over the texel's samples and channels.
+    """
+    n = len(labels)
+    A = basis_values(t, z, cos_i, texel, labels, basis, basis_size) * np.sqrt(weight)[:, None, None]
+    r = reflectance * np.sqrt(weight)[:, None]
+    B = A.shape[1]
+    G = np.empty((n, B, B))
+    for i in range(B):
+        for j in range(i, B):
+            G[:, i, j] = G[:, j, i] = np.bincount(texel, np.einsum("sc,sc->s", A[:, i], A[:, j]),
+                                                  minlength=n)
+    h = np.stack([np.bincount(texel, np.einsum("sc,sc->s", A[:, i], r), minlength=n)
+                  for i in range(B)], axis=1)
+    rr = np.bincount(texel, np.einsum("sc,sc->s", r, r), minlength=n)
+    if prior > 0:
+        lam = prior * np.einsum("nbb->n", G) / B
+        G = G + lam[:, None, None] * np.eye(B)
+        h = h.copy()
+        h[:, 0] += lam
+        t_, cost = nnls_batched(G, h, rr + lam)
+        data = rr - 2 * np.einsum("nb,nb->n", t_, h - lam[:, None] * np.eye(B)[0]) + \
+            np.einsum("nb,nbc,nc->n", t_, G - lam[:, None, None] * np.eye(B), t_)
+        return t_, np.maximum(data, 0.0)
+    return nnls_batched(G, h, rr)
+
+
+def cluster_residuals(texel, t, z, cos_i, reflectance, weight, labels, materials):
+    """Weighted residual sum of squares of each texel under its cluster's BRDF alone, (n,)."""
+    n = len(labels)
+    sse = np.zeros(n)
+    cluster = labels[texel]
+    for k in range(len(materials)):
+        sel = np.flatnonzero(cluster == k)
+        if len(sel):
+            e = sample_errors(materials[k], t[sel], z[sel], cos_i[sel], reflectance[sel])
+            sse += np.bincount(texel[sel], e * weight[sel], minlength=n)
+    return sse
+
+
+def cluster_errors(t, z, cos_i, reflectance, weight, texel, n_texels, materials) -> np.ndarray:
+    """Eq. 6 (s = 1) of every texel under every cluster's BRDF, (K, n)."""
+    return np.stack([texel_mean(sample_errors(m, t, z, cos_i, reflectance), texel, n_texels, weight)
+                     for m in materials])
+
+
+def pfa_refine(basis_k: np.ndarray, texel, t, z, cos_i, reflectance, weight, *, rounds: int = 2,
+               max_iter: int = 15) -> np.ndarray:
+    """Principal function analysis of one cluster's basis (Eq. 13): fit all B basis BRDFs at once
+    to the cluster's samples, re-projecting the texels into the current basis each round.
+
+    ``basis_k`` (B, 3, P); samples of the cluster's texels with local indices ``texel`` 0..n-1.
+    Returns the refined basis (B, 3, P) (the input if no round lowered the error).
+    """
+    B, _, P = basis_k.shape
+    n = int(texel.max()) + 1
+    labels = np.zeros(n, np.int64)
+    size = np.array([B])
+    sw = np.sqrt(weight)
+    lo, hi = np.full(P, -np.inf), np.full(P, np.inf)
+    lo[0] = 0.0
+    lo[3::3], hi[3::3] = N_MIN, N_MAX
+    current = basis_k.copy()
+    wts, sse = project_chunk(texel, t, z, cos_i, reflectance, weight, labels, current[None], size)
+    best = sse.sum()
+    for _ in range(rounds):
+        tw = wts[texel]  # (S, B) weights of each sample's texel
+
+        def fun(x, items, tw=tw):
+            par = x.reshape(len(items), B, P)
+            f = np.zeros((len(items), len(t)))
+            J = np.empty((len(items), len(t), B * P))
+            for b in range(B):
+                fb, Jb = model_and_jacobian(par[:, b], t, z, cos_i)
+                f += tw[:, b] * fb
+                J[:, :, b * P:(b + 1) * P] = Jb * (tw[:, b] * sw)[None, :, None]
+            return f * sw - (reflectance.T * sw)[items], J
+
+        x0 = current.transpose(1, 0, 2).reshape(3, B * P)
+        res = levenberg_marquardt(fun, x0, lower=np.tile(lo, B), upper=np.tile(hi, B), max_iter=max_iter)
+        trial = res.x.reshape(3, B, P).transpose(1, 0, 2)
+        w_new, sse_new = project_chunk(texel, t, z, cos_i, reflectance, weight, labels, trial[None], size)
+        if sse_new.sum() >= best * (1 - 1e-6):
+            break
+        current, wts, best = trial, w_new, sse_new.sum()
+    return current
