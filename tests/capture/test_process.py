@@ -148,7 +148,9 @@ def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
 def processed(captured, tmp_path_factory):
     store, lab, _ = captured
     kw = dict(**lab.process_options(), report_path=tmp_path_factory.mktemp("report") / "r.html")
-    return process_session(store, "proc", methods=["lambertian", "lensch", "sharing"], **kw), kw
+    # (Lensch runs in the demo test; here the reference and a small sharing fit keep it quick)
+    return process_session(store, "proc", methods=["lambertian", "sharing"],
+                           method_options={"sharing": {"max_centers": 200}}, **kw), kw
 
 
 def test_process_stores_scored_results_with_provenance(processed, captured, inputs):
@@ -169,11 +171,14 @@ def test_process_stores_scored_results_with_provenance(processed, captured, inpu
     model = np.load(io.BytesIO(store.read_object(r["artifacts"]["model.npz"])))
     train = inputs[2]
     assert model["albedo"].shape == (train.n_texels, 3)
-    # the matte material's albedo (Oren-Nayar, sigma 0.35: its mean response is 0.87-1.0 x albedo)
+    # a material's fitted albedo: at least its diffuse albedo (Lafortune rho_d), the highlights
+    # seen add to it (seen for the red glossy: 1.05-1.3 x rho_d)
     ids, materials = lab.truth().materials(train.position)
-    np.testing.assert_allclose(np.median(model["albedo"][ids == 1], axis=0), materials[1].albedo, rtol=0.2)
-    for name in ("lensch", "sharing"):  # not landed in this tree yet, or landed: never a crash
-        assert rep.method(name).status in ("ok", "skipped"), rep.method(name).reason
+    rho = np.asarray(materials[0].rho_d, float).ravel()
+    med = np.median(model["albedo"][ids == 0], axis=0)
+    assert np.all(med > 0.9 * rho) and np.all(med < 2.0 * rho + 0.05), (med, rho)
+    assert rep.method("sharing").status == "ok", rep.method("sharing").reason
+    assert rep.method("sharing").figures["mode"] == "dichromatic"   # parallel + crossed captures
 
 
 def test_process_skips_what_is_stored_unless_forced(processed, captured):
