@@ -145,14 +145,31 @@ def _slices_figure(pics: dict[str, np.ndarray], theta_i: float) -> str:
 
 
 def _normals_figure(pics: dict[str, np.ndarray]) -> str:
+    """The fitted normals as colour, and how far the fitted (and true) normals lean from the
+    mesh's: the relief the mesh lacks, recovered from the shading."""
     import matplotlib.pyplot as plt
-    panels = [(k, t) for k, t in (("normals_mesh", "mesh normals"), ("normals_fitted", "fitted normals"),
-                                  ("normals_true", "true normals")) if k in pics]
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.5 * len(panels), 3.4), squeeze=False)
-    for ax, (key, title) in zip(axes[0], panels):
-        ax.imshow(np.nan_to_num((pics[key] + 1) / 2, nan=1.0).clip(0, 1))
-        ax.set_title(title)
+    mesh = pics["normals_mesh"]
+    on = ~np.isnan(mesh).any(axis=2)
+    ys, xs = np.nonzero(on)
+    crop = (slice(max(ys.min() - 2, 0), ys.max() + 3), slice(max(xs.min() - 2, 0), xs.max() + 3))
+
+    def lean(key):
+        cos = np.clip(np.sum(pics[key] * mesh, axis=2), -1, 1)
+        return np.where(on, np.degrees(np.arccos(cos)), np.nan)[crop]
+
+    panels = [("fitted normals (colour: x, y, z)", np.nan_to_num((pics["normals_fitted"] + 1) / 2, nan=1.0)
+               .clip(0, 1)[crop], None)]
+    panels.append(("fitted: lean from the mesh (deg)", lean("normals_fitted"), "viridis"))
+    if "normals_true" in pics:
+        panels.append(("truth: lean from the mesh (deg)", lean("normals_true"), "viridis"))
+    top = max(float(np.nanpercentile(p[1], 99)) for p in panels[1:])
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.6), squeeze=False)
+    for ax, (title, img, cmap) in zip(axes[0], panels):
+        im = ax.imshow(img, cmap=cmap, vmin=0 if cmap else None, vmax=top if cmap else None)
+        ax.set_title(title, fontsize=9)
         ax.axis("off")
+        if cmap:
+            fig.colorbar(im, ax=ax, fraction=0.046)
     return _img(_png(fig), "normal maps")
 
 
@@ -249,8 +266,9 @@ def _method_section(i: int, outcome, stored: dict | None, pics: dict[str, np.nda
             parts.append("<p>How much light the surface reflects towards each viewing angle when lit from "
                          f"{SLICE_THETA_I_DEG:g}° (the peak near +{SLICE_THETA_I_DEG:g}° is the highlight).</p>" + s)
         if "normals_fitted" in pics:
-            parts.append("<p>Surface orientation as colour (red: x, green: y, blue: z): the mesh's normals and "
-                         "the normals the method recovered from the shading.</p>" + _normals_figure(pics))
+            parts.append("<p>The surface orientation the method recovered from the shading (as colour), and how "
+                         "far it leans from the smooth mesh it was given: bumps and engravings the mesh lacks "
+                         "show up here (beside the truth, in a simulation).</p>" + _normals_figure(pics))
     return "\n".join(parts)
 
 
