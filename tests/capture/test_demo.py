@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -90,4 +91,14 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(tmp_
         # the 320 x 240 probe (a 19 px ball) cannot explain the image: the method must say so
         # rather than return a confident answer (seen: relative residual 83 %)
         assert any("residual" in w for w in methods["passive"]["warnings"]), methods["passive"]["warnings"]
+    # `gonio process` on the stored session recomputes the demo's figures (a fresh calibration
+    # included: --force)
+    again = subprocess.run([sys.executable, "-m", "capture.cli", "process", "demo-quick", "--store",
+                            str(out / "store"), "--demo-lab", "--methods", "lambertian", "--force", "-q",
+                            "--json", "--out", str(out / "again.html")],
+                           cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stdout + again.stderr
+    redo = {m["method"]: m for m in json.loads(again.stdout)["methods"]}["lambertian"]["figures"]
+    for key in ("held_out_rel_rms", "truth_rel_rms"):
+        assert redo[key] == pytest.approx(lam[key], rel=0.01), key   # OpenCV fits: not bit-exact
     print(f"gonio demo --quick: {wall:.0f} s wall; stages {summary['timings']}")
