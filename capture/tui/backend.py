@@ -120,10 +120,10 @@ def make_runner(rig: Rig, store: Store, *, plan: Plan | None = None, plan_path: 
 
 
 def process(store: Store, session: str, *, progress: Callable[[str, int, int], None] | None = None,
-            mesh: Any = None, demo_lab: bool = False) -> Any:
+            mesh: Any = None, demo_lab: bool = False, **options: Any) -> Any:
     """``gonio process`` on ``session``: ``mesh`` (the object's, trimesh) or ``demo_lab`` (a
-    session of the simulated demo lab: mesh, targets and truth from it). Returns the
-    :class:`capture.pipeline.ProcessReport`."""
+    session of the simulated demo lab: mesh, targets and truth from it); ``options`` go to
+    :func:`capture.pipeline.process_session` (``methods`` ...). Returns its ``ProcessReport``."""
     from ..pipeline import process_session
     kw: dict[str, Any] = {}
     if demo_lab:
@@ -134,7 +134,7 @@ def process(store: Store, session: str, *, progress: Callable[[str, int, int], N
     if "mesh" not in kw:
         raise ValueError("processing needs the object's mesh: start the console with --mesh FILE "
                          "(or --demo-lab for sessions of the simulated demo lab)")
-    return process_session(store, session, progress=progress, **kw)
+    return process_session(store, session, progress=progress, **kw, **options)
 
 
 def headline(report: Any) -> list[tuple[str, str, str]]:
