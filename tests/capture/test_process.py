@@ -282,3 +282,16 @@ async def test_console_processes_the_selected_session(captured):
         rms = stored["lambertian"]["result"]["figures"]["held_out_rel_rms"]
         assert re.search(rf"lambertian: (ok|done) held-out rel\. RMS {rms:.3f}", text), text
         assert "passive: skipped" in text
+
+
+def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captured, tmp_path):
+    """A real session has no ground truth: nothing about it is shown, nothing faked."""
+    store, lab, _ = captured
+    opts = {k: v for k, v in lab.process_options().items() if k != "truth"}
+    rep = process_session(store, "proc", methods=["lambertian"], force=True, report_path=tmp_path / "real.html",
+                          **opts)
+    text = rep.report_path.read_text()
+    assert "ground truth" not in text and "vs truth" not in text and "true normals" not in text
+    assert not rep.calibration_truth and "measured_vs_truth_rel_rms" not in rep.inputs
+    assert "truth_rel_rms" not in rep.method("lambertian").figures
+    assert "held-out rel. RMS" in text
