@@ -641,13 +641,14 @@ class Store:
             try:
                 self._db.execute("BEGIN")
                 yield self._db
-            except sqlite3.Error as exc:
-                if self._translate(exc) is not exc:
+                self._db.execute("COMMIT")
+            except BaseException as exc:
+                if self._db.in_transaction:  # a damaged page fails COMMIT too: keep the first error
+                    with contextlib.suppress(sqlite3.Error):
+                        self._db.execute("ROLLBACK")
+                if isinstance(exc, sqlite3.Error) and self._translate(exc) is not exc:
                     raise self._translate(exc) from exc
                 raise
-            finally:
-                if self._db.in_transaction:
-                    self._db.execute("COMMIT")
 
     def _query(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
         with self._read() as db:

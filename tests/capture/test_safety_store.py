@@ -124,8 +124,21 @@ def _damage_pages(db: Path) -> None:
     db.write_bytes(bytes(data))
 
 
+def _damage_sessions_root(db: Path) -> None:
+    """Zero the first 8 bytes of the sessions table's root page, header intact: the schema reads,
+    the first query of a row fails, and so did the COMMIT after it (a second error)."""
+    con = sqlite3.connect(db)
+    root_page = con.execute("SELECT rootpage FROM sqlite_master WHERE name = 'sessions'").fetchone()[0]
+    con.close()
+    data = bytearray(db.read_bytes())
+    page = int.from_bytes(data[16:18], "big")
+    data[(root_page - 1) * page:(root_page - 1) * page + 8] = bytes(8)
+    db.write_bytes(bytes(data))
+
+
 @pytest.mark.parametrize("damage, words", [(_damage_header, "file is not a database"),
-                                           (_damage_pages, "malformed")])
+                                           (_damage_pages, "malformed"),
+                                           (_damage_sessions_root, "malformed")])
 def test_a_damaged_database_gives_a_clear_message_and_changes_nothing(tmp_path, damage, words):
     root = tmp_path / "st"
     _store_with_frames(root)
