@@ -94,6 +94,10 @@ class InvalidName(StoreError, ValueError):
 #: character or a leading ``-`` (read as an option); names become folder names in exports
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 NAME_MAX = 100
+#: an object's name: its SHA-256 as 64 lowercase hex digits (paths are built from it)
+_SHA_RE = re.compile(r"[0-9a-f]{64}")
+#: SQL condition true for a ``sha256`` column value that is not such a hash
+_BAD_SHA_SQL = "(typeof({0}) != 'text' OR length({0}) != 64 OR {0} GLOB '*[^0-9a-f]*')"
 
 
 def check_session_name(name: object, argument: str = "session name") -> str:
@@ -364,9 +368,11 @@ def _fsync_dir(path: Path) -> None:
 
 
 def _copy_hashed(src: Path, dst: Path, chunk: int = 1 << 22) -> str:
-    """Copy ``src`` to ``dst`` in one pass, returning the SHA-256 hex of the bytes copied."""
+    """Copy ``src`` to a new file ``dst`` in one pass, returning the SHA-256 hex of the bytes
+    copied. ``dst`` is created exclusively ("xb"): an existing file (the source itself, say) is
+    never truncated."""
     h = hashlib.sha256()
-    with open(src, "rb") as fin, open(dst, "wb") as fout:
+    with open(src, "rb") as fin, open(dst, "xb") as fout:
         while block := fin.read(chunk):
             h.update(block)
             fout.write(block)
@@ -509,6 +515,7 @@ class Store:
             self._db.execute("PRAGMA busy_timeout = 30000")
             if self.readonly:
                 self._check_version(self._db)
+                self._check_hashes()
                 return
             if self._db.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
                 self._db.execute("PRAGMA journal_mode = WAL")
@@ -516,9 +523,27 @@ class Store:
             self._db.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
             self._db.execute("PRAGMA foreign_keys = ON")
             self._migrate()
+            self._check_hashes()
         except sqlite3.Error as exc:
             error = self._translate(exc)
             raise (StoreError(f"cannot open {self.db_path}: {exc}") if error is exc else error) from None
+
+    def _check_hashes(self) -> None:
+        """Refuse a store with rows whose object hash is not 64 lowercase hex digits: file paths
+        are built from it (a crafted ``'../x'`` would lead outside ``objects/``)."""
+        bad = self._db.execute(
+            f"SELECT 'frame', s.name, f.step, f.sha256 FROM frames f JOIN sessions s ON "
+            f"s.id = f.session_id WHERE {_BAD_SHA_SQL.format('f.sha256')} UNION ALL "
+            f"SELECT 'result artifact', s.name, o.name, o.sha256 FROM result_objects o JOIN "
+            f"results r ON r.id = o.result_id JOIN sessions s ON s.id = r.session_id WHERE "
+            f"{_BAD_SHA_SQL.format('o.sha256')}").fetchall()
+        if bad:
+            what, session, where, sha = bad[0]
+            raise StoreDamaged(
+                f"{self.db_path} has {len(bad)} row(s) whose object hash is not 64 lowercase hex "
+                f"digits (first: {what} {str(where)[:40]!r} of session {str(session)[:40]!r}, hash "
+                f"{str(sha)[:80]!r}); the database is damaged or was crafted, and gonio builds no "
+                "file path from it. Nothing was changed: restore gonio.sqlite from a backup")
 
     def _translate(self, exc: sqlite3.Error) -> Exception:
         """An SQLite error as the store error that says what to do, or ``exc`` itself."""
@@ -838,6 +863,11 @@ class Store:
 
     # -- objects ------------------------------------------------------------------------------
     def object_path(self, sha256: str) -> Path:
+        """``objects/ab/cdef...`` for a SHA-256 hex; :class:`StoreDamaged` for anything else
+        (a path is never built from a malformed hash read from the database)."""
+        if not isinstance(sha256, str) or not _SHA_RE.fullmatch(sha256):
+            raise StoreDamaged(f"{self.db_path}: refusing object hash {str(sha256)[:80]!r}: not 64 "
+                               "lowercase hex digits (a damaged or crafted row)")
         return self.objects / sha256[:2] / sha256[2:]
 
     def read_object(self, sha256: str) -> bytes:
@@ -1274,7 +1304,8 @@ class Store:
             finally:
                 copy.close()
             for sha in sorted(shas):
-                src, dst = self.object_path(sha), folder / "objects" / sha[:2] / sha[2:]
+                src = self.object_path(sha)  # checks the hash before any path is built
+                dst = folder / "objects" / src.relative_to(self.objects)
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 if not src.is_file():
                     raise StoreError(f"cannot export {session!r}: object {sha} is missing; "
