@@ -1326,11 +1326,19 @@ class Store:
                 with tarfile.open(dest, mode) as t:
                     t.add(folder, arcname=folder.name)
             return dest
-        except BaseException:  # leave nothing half-exported behind
+        except BaseException as exc:  # leave nothing half-exported behind
             if archive and dest.exists():
                 dest.unlink()
             elif not archive and created:
                 shutil.rmtree(dest, ignore_errors=True)
+            elif not archive:  # it was an empty folder: empty it again
+                for child in dest.iterdir():
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
+            if (isinstance(exc, sqlite3.Error) and _is_full(exc)
+                    or isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)):
+                raise StoreFull(f"no space left on the disk holding {dest} to export {session!r}; "
+                                "nothing was left there: free space (or choose another disk) and "
+                                "export again") from None
             raise
         finally:
             if archive:

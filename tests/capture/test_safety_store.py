@@ -310,3 +310,21 @@ def test_code_version_is_computed_outside_the_write_lock(tmp_path, monkeypatch):
         sid = store.create_session("s", plan={}, plan_hash="h", steps=[]).id
         store.add_calibration(sid, "dark", result={"level": 1})
         assert seen == [False] and store.results(sid)[0]["code_version"] == "gonio test"
+
+
+@pytest.mark.parametrize("size, frame_bytes", [("16k", 500), ("400k", 300_000)])
+@pytest.mark.parametrize("target", ["out", "out.tar", "out.zip", "."])
+def test_export_to_a_full_disk_says_so_and_leaves_no_partial_files(tmp_path, size, frame_bytes,
+                                                                   target):
+    """16k: the database copy itself fails (SQLite backup); 400k: a frame file does."""
+    root = tmp_path / "st"
+    with Store(root) as st:
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"frames": 2}]).id
+        for i in range(2):
+            st.add_frame(sid, 0, i, 0, data=os.urandom(frame_bytes), filename=f"f{i}.dng",
+                         format="dng", exposure_requested_s=0.01, exposure_s=0.01,
+                         completes_step=i == 1)
+    with _small_tmpfs(tmp_path / "disk", size) as disk:
+        r = _run("export", "s1", str(disk / target), "--store", str(root))
+        assert r.exit_code == 2 and "no space left" in r.output and str(disk) in r.output, r.output
+        assert list(disk.iterdir()) == []  # "." : the disk's own empty folder is emptied again
