@@ -41,12 +41,28 @@ base_s = 0.01
     ('[polarizer]\ndriver = "elliptec"\nport = "/dev/ttyUSB0"\ntimeout_s = "1"\n',
      ["[polarizer] timeout_s = '1' must be a number"]),
     ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\n[polarizer]\ndriver = "elliptec"\n'
-     'port = "/dev/ttyUSB0"\n', ["[polarizer] port = '/dev/ttyUSB0' is also the [turntable] port"]),
+     'port = "/dev/ttyUSB0"\n', ["[polarizer] port = '/dev/ttyUSB0' is the same device as the "
+                                  "[turntable] port"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\n[polarizer]\ndriver = "elliptec"\n'
+     'port = "/dev/./ttyUSB0"\n', ["[polarizer] port = '/dev/./ttyUSB0' is the same device as the "
+                                    "[turntable] port = '/dev/ttyUSB0'"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\ntimeout_s = inf\n',
+     ["[turntable] timeout_s = inf must be a finite number"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\ntimeout_s = nan\n',
+     ["[turntable] timeout_s = nan must be a finite number"]),
+    ('[positioner]\ndriver = "grbl"\nport = "/dev/ttyUSB0"\nbaudrate = -5\n',
+     ["[positioner] baudrate = -5 must be greater than 0"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\npoll_retries = -1\n',
+     ["[turntable] poll_retries = -1 must be 0 or more"]),
+    ('[turntable]\ndriver = ["zaber"]\nport = "/dev/ttyUSB0"\n',
+     ["[turntable] driver = ['zaber'] is unknown"]),
     ('[camera]\ndriver = "zaber"\nport = "sim"\n',
      ["[camera] driver = 'zaber' with port = 'sim'", "speaks the 'ptp' protocol"]),
     ('[turntable]\ndriver = "grbl"\nport = "sim"\n',
      ["[turntable] driver = 'grbl' with port = 'sim'", "'zaber'"]),
-], ids=["port-int", "baudrate-text", "timeout-text", "same-port", "zaber-as-camera", "grbl-as-turntable"])
+], ids=["port-int", "baudrate-text", "timeout-text", "same-port", "same-port-spelled-twice",
+        "timeout-inf", "timeout-nan", "baudrate-negative", "retries-negative", "driver-list",
+        "zaber-as-camera", "grbl-as-turntable"])
 def test_rig_file_mistakes_are_named_by_file_section_and_key(tmp_path, text, words):
     rig = tmp_path / "lab.toml"
     rig.write_text(text)
@@ -54,6 +70,7 @@ def test_rig_file_mistakes_are_named_by_file_section_and_key(tmp_path, text, wor
     out = " ".join(r.output.split())
     assert r.exit_code == 2, out
     assert str(rig) in out and all(w in out for w in words), out
+    assert "rig config" not in out  # the file's name, in the inner message too
     assert "cable" not in out and "Traceback" not in out
 
 
