@@ -135,3 +135,28 @@ def test_a_second_ctrl_c_soon_after_the_first_stops_and_exits_3(tmp_path):
     with Store(tmp_path / "st") as st:
         assert st.session("c").state == "paused"
     assert list(private.iterdir()) == []  # Ctrl-C too leaves no simulator folder
+
+
+def test_sigterm_during_a_simulated_capture_pauses_it_and_leaves_no_folder(tmp_path):
+    plan, private = tmp_path / "plan.toml", tmp_path / "tmp"
+    plan.write_text(PLAN)
+    private.mkdir()
+    p = subprocess.Popen([sys.executable, "-m", "capture.cli", "capture", "run", str(plan), "--rig",
+                          "sim", "--store", str(tmp_path / "st"), "--session", "t", "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "TMPDIR": str(private), "PYTHONUNBUFFERED": "1"})
+    said = []
+    for line in p.stdout:
+        said.append(line)
+        if line.startswith("session t:"):  # the session is recorded and about to run
+            break
+    assert len(list(private.glob("gonio-sim-*"))) == 3  # the simulators are up
+    p.send_signal(signal.SIGTERM)
+    out, err = p.communicate(timeout=120)
+    out = "".join(said) + out
+    assert p.returncode == 3 and "paused; continue with" in out, out + err
+    assert f"gonio capture resume t --rig sim --store {tmp_path / 'st'}" in out  # not '<rig>'
+    assert "Traceback" not in err
+    with Store(tmp_path / "st") as st:
+        assert st.session("t").state == "paused" and st.progress(st.session("t").id).steps_done < 8
+    assert list(private.iterdir()) == []
