@@ -379,6 +379,15 @@ def _copy_hashed(src: Path, dst: Path, chunk: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
+def _try_lock(fd: int) -> bool:
+    """Take ``fd``'s exclusive flock without waiting; False when another holder has it."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
+
+
 def sha256_file(path: Path) -> str:
     with open(path, "rb") as f:
         return hashlib.file_digest(f, "sha256").hexdigest()
@@ -705,19 +714,12 @@ class Store:
         info = self.session(session)
         sfd = self._lock_file(f"session-{info.id}.lock")
         try:
-            try:
-                fcntl.flock(sfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not _try_lock(sfd):
                 raise SessionBusy(f"session {session!r} is being written by another process; "
-                                  "wait for it to finish or pause it there") from None
+                                  "wait for it to finish or pause it there")
             wfd = self._lock_file("writers.lock")
             try:
-                removed: list[str] | None = None
-                try:
-                    fcntl.flock(wfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    removed = self.collect_garbage()
-                except BlockingIOError:
-                    pass
+                removed = self.collect_garbage() if _try_lock(wfd) else None
                 fcntl.flock(wfd, fcntl.LOCK_SH)  # converts the exclusive lock if we held it
                 self._keep_reserve()
                 yield removed
@@ -1160,12 +1162,9 @@ class Store:
         except FileNotFoundError:
             return False
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
+            return not _try_lock(fd)
         finally:
             os.close(fd)  # closing releases the probe's lock
-        return False
 
     def session_active(self, session: str) -> bool:
         """True while a runner (this process or another) holds ``session``'s writer lock. A
@@ -1197,11 +1196,9 @@ class Store:
         """
         fd = self._lock_file("writers.lock")
         try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not _try_lock(fd):
                 raise SessionBusy(f"a session in {self.root} is being written; orphans are removed "
-                                  "when the next runner starts, or try again once it ends") from None
+                                  "when the next runner starts, or try again once it ends")
             return self.collect_garbage()
         finally:
             os.close(fd)
