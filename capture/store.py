@@ -110,7 +110,7 @@ def check_session_name(name: object, argument: str = "session name") -> str:
         raise InvalidName(f"{argument} must be a non-empty string, not {name!r}")
     if len(name) > NAME_MAX or not _NAME_RE.fullmatch(name):
         raise InvalidName(f"{argument} {name[:NAME_MAX + 20]!r} is not allowed: use 1-{NAME_MAX} "
-                          "letters, digits, '_', '.' or '-', starting with a letter, digit or '_'")
+                          "ASCII letters, digits, '_', '.' or '-', starting with a letter, digit or '_'")
     return name
 
 

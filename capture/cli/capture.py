@@ -278,7 +278,7 @@ def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]
 def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         rig: str = typer.Option(..., "--rig", help=RIG_HELP),
         store: str = STORE_OPTION,
-        session: Optional[str] = typer.Option(None, "--session", help="Session name: letters, digits, "
+        session: Optional[str] = typer.Option(None, "--session", help="Session name: ASCII letters, digits, "
                                               "'_', '.', '-' (default: <plan name>-<date>-<time>)."),
         operator: Optional[str] = typer.Option(None, help="Operator (overrides the plan's)."),
         fast: bool = typer.Option(True, help="Simulated devices move instantly."),
@@ -305,10 +305,13 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         except StoreError as exc:
             raise fail(str(exc)) from None
     p = _load_plan(plan_file)
-    st = open_store(store, create=True)
-    with st:
-        opened = _open_rig(rig, fast)
-        with _ctrl_c_counted() as interrupts, opened:
+    opened = _open_rig(rig, fast)
+    with _ctrl_c_counted() as interrupts, opened:
+        try:  # before the store is created: a plan the rig cannot run leaves no empty store
+            p.check_rig(opened.rig)
+        except PlanError as exc:
+            raise fail(f"{plan_file}: {exc}") from None
+        with open_store(store, create=True) as st:
             try:
                 info = create_session(st, p, opened.rig, name=session, operator=operator,
                                       plan_path=str(plan_file.resolve()))
