@@ -541,16 +541,17 @@ class Store:
         """Refuse a store with rows whose object hash is not 64 lowercase hex digits: file paths
         are built from it (a crafted ``'../x'`` would lead outside ``objects/``)."""
         bad = self._db.execute(
-            f"SELECT 'frame', s.name, f.step, f.sha256 FROM frames f JOIN sessions s ON "
+            f"SELECT 'frame', s.name, f.step, f.sha256 FROM frames f LEFT JOIN sessions s ON "
             f"s.id = f.session_id WHERE {_BAD_SHA_SQL.format('f.sha256')} UNION ALL "
-            f"SELECT 'result artifact', s.name, o.name, o.sha256 FROM result_objects o JOIN "
-            f"results r ON r.id = o.result_id JOIN sessions s ON s.id = r.session_id WHERE "
+            f"SELECT 'result artifact', s.name, o.name, o.sha256 FROM result_objects o LEFT JOIN "
+            f"results r ON r.id = o.result_id LEFT JOIN sessions s ON s.id = r.session_id WHERE "
             f"{_BAD_SHA_SQL.format('o.sha256')}").fetchall()
         if bad:
             what, session, where, sha = bad[0]
+            place = f"frame of step {where}" if what == "frame" else f"{what} {str(where)[:40]!r}"
             raise StoreDamaged(
                 f"{self.db_path} has {len(bad)} row(s) whose object hash is not 64 lowercase hex "
-                f"digits (first: {what} {str(where)[:40]!r} of session {str(session)[:40]!r}, hash "
+                f"digits (first: {place} of session {str(session)[:40]!r}, hash "
                 f"{str(sha)[:80]!r}); the database is damaged or was crafted, and gonio builds no "
                 "file path from it. Nothing was changed: restore gonio.sqlite from a backup")
 
