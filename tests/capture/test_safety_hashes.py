@@ -79,3 +79,23 @@ def test_object_path_refuses_a_malformed_hash_even_after_the_open(tmp_path):
             with pytest.raises(StoreDamaged, match="not 64 lowercase hex"):
                 call()
     assert victim.read_text() == "precious" and not (tmp_path / "out").exists()
+
+
+def test_a_crafted_archive_is_refused_and_its_temporary_folder_removed(tmp_path, monkeypatch):
+    import tarfile
+    import tempfile
+    private = tmp_path / "tmp"
+    private.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(private))
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    root = tmp_path / "st"
+    _store(root)
+    _craft(root, ".." + str(victim))
+    archive = tmp_path / "crafted.tar"
+    with tarfile.open(archive, "w") as t:
+        t.add(root, arcname="st")
+    for args in (["verify", "s1"], ["export", "s1", str(tmp_path / "out")]):
+        r = cli.invoke(session_app, [*args, "--store", str(archive)])
+        assert r.exit_code == 2 and "not 64 lowercase hex" in r.output, (args, r.output)
+    assert victim.read_text() == "precious" and list(private.iterdir()) == []
