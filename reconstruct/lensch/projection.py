@@ -147,7 +147,7 @@ def loo_sse(A, r, texel, G, weights) -> np.ndarray:
     huge leave-one-out residual.
     """
     B = G.shape[1]
-    both = (weights > 0)[:, :, None] & (weights > 0)[:, None, :]
+    both = (weights != 0)[:, :, None] & (weights != 0)[:, None, :]  # the support
     scale = np.maximum(np.einsum("nbb->n", G) / B, 1e-300)[:, None, None]
     Gi = np.linalg.inv(np.where(both, G + 1e-10 * scale * np.eye(B), np.eye(B))) * both
     e = np.einsum("sbc,sb->sc", A, weights[texel]) - r
