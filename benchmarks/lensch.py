@@ -107,7 +107,6 @@ def bumpy_object(width: int, png: str | None):
     for name, p in (("full fit (projection + normals)", fit.predict(tx, wi, wo)),
                     ("cluster BRDFs on mesh normals", cl), ("true BRDFs on true normals", oracle)):
         print(f"    {name:32s} {_held_out_errors(p, r)}")
-    true_n = obj.normal_at(lt.position)
 
     def ang(a, b):
         return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1, 1)))
