@@ -297,7 +297,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     report = None if progress is None else (lambda k, _: progress(k, total))
     L = lighting_matrix(n, d, E, omega, view_dirs=v, grid=(n_t, n_s),
                         progress=report)
-    irr = np.einsum("crk->c", L.astype(np.float64)) / len(n)      # mean irradiance per channel
+    irr = L.sum(axis=(1, 2), dtype=np.float64) / len(n)           # mean irradiance per channel
     if not np.all(irr > 0):
         raise PassiveInputError("environment gives no light to the observed normals")
     scale = 1.0 / (irr * np.sqrt(len(n)))
