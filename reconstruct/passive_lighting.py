@@ -153,8 +153,9 @@ def lighting_matrix(normals, directions, radiance, solid_angle, *, view_dirs=(0.
         # ~half the sphere, so each normal's pairs are its visible hemisphere and a thin rim
         axis = nc.sum(axis=0)
         axis /= max(np.linalg.norm(axis), 1e-12)
-        spread = np.sqrt(max(0.0, 1.0 - float(np.min(nc @ axis)) ** 2))
-        src = per_source[_dot3(axis[None], dT_all)[0] > -spread - 1e-6]
+        lowest = float(np.min(nc @ axis))                     # cos of the cone's half-angle
+        reach = np.sqrt(max(0.0, 1.0 - lowest ** 2)) if lowest > 0 else np.inf
+        src = per_source[_dot3(axis[None], dT_all)[0] > -reach - 1e-6]
         k = len(src)
         dT = np.ascontiguousarray(src[:, :3].T)
         weights = np.empty((len(offsets), m, k), np.float32)
