@@ -63,7 +63,7 @@ RESIDUAL_WARN = 0.05
 #: Observations seeing more untrusted (``environment_weight`` < 1) hemisphere than this drop.
 MAX_UNTRUSTED = 0.02
 #: Effective rank below this fraction of the nodes warns (one orthographic image of a sphere
-#: under real probes: Grace 324 / 1024 at 8000 normals; three point lights: ~10 %).
+#: under real probes: Grace 328 / 1024 at 8000 normals; three point lights: ~10 %).
 RANK_WARN = 0.25
 #: Fewer sources than this carrying 95 % of the light is "a few point sources".
 FEW_SOURCES = 30
