@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import io
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Callable
 
 import cv2
@@ -304,6 +304,11 @@ CALIBRATION_STEP_KINDS = tuple(CALIBRATION_KINDS)
 
 class NothingToCalibrate(ValueError):
     """The session has no stored calibration captures (the message says what to add)."""
+
+
+class TargetsNeeded(ValueError):
+    """No targets were given for a session not recorded on the simulated lab: its target sizes
+    are the lab's own, which only the user knows (the message names the fields)."""
 
 
 class _Skip(Exception):
@@ -883,6 +888,19 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
     return StageResult(name, "failed" if out.errors else "ok", "; ".join(out.errors), out.figures, cid)
 
 
+def _session_targets(store: Store, info) -> LabTargets:
+    """The simulator's targets for a session recorded on the simulated lab; else TargetsNeeded."""
+    from sims.lab import LAB_NAME
+    rigs = {str(s["config"].get("rig", {}).get("name", "a rig file")) for s in store.rig_snapshots(info.id)}
+    if rigs == {LAB_NAME}:
+        return LabTargets.simulated()
+    fields_ = ", ".join(f.name for f in fields(LabTargets))
+    raise TargetsNeeded(
+        f"session {info.name!r} was recorded on {', '.join(sorted(rigs)) or 'an unrecorded rig'}, "
+        f"not on the simulated lab, so its targets' sizes are unknown: state them with --targets "
+        f"FILE (gonio calibrate; targets= in Python), a TOML file of LabTargets fields: {fields_}")
+
+
 def calibrate_session(store: Store, session_name: str, *,
                       progress: Callable[[str, int, int], None] | None = None,
                       targets: LabTargets | None = None, stages: tuple[str, ...] = STAGES,
@@ -899,7 +917,8 @@ def calibrate_session(store: Store, session_name: str, *,
         the long hdr stage with ``'hdr k/n steps'``, and once with ``('done', total, total)``.
     targets : LabTargets, optional
         Physical targets (board geometry, sphere radius, card albedo); default: the simulated
-        lab's (:meth:`LabTargets.simulated`).
+        lab's (:meth:`LabTargets.simulated`) when every rig snapshot of the session says it was
+        recorded on the simulated lab, else :class:`TargetsNeeded`.
     stages : tuple of str
         Subset of :data:`STAGES` to run (later stages skip when an earlier one they need is
         left out).
@@ -920,13 +939,15 @@ def calibrate_session(store: Store, session_name: str, *,
         No session of that name in the store.
     NothingToCalibrate
         The session has no stored frames, or none of a calibration kind.
+    TargetsNeeded
+        ``targets`` is None and the session was not recorded on the simulated lab.
     ValueError
         ``stages`` names an unknown stage.
     """
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
         raise ValueError(f"stages: unknown {unknown}; known: {', '.join(STAGES)}")
-    ctx = _Context(store, session_name, targets or LabTargets.simulated(), measurement_hdr)
+    ctx = _Context(store, session_name, targets, measurement_hdr)
     if not ctx.frames:
         raise NothingToCalibrate(f"session {session_name!r} has no stored frames yet; capture it first "
                                  f"(gonio capture run / resume)")
@@ -936,6 +957,8 @@ def calibrate_session(store: Store, session_name: str, *,
             f"session {session_name!r} has no calibration captures (its stored steps are "
             f"{', '.join(kinds)}); add [[calibration]] captures of kind "
             f"{', '.join(CALIBRATION_STEP_KINDS)} to the plan")
+    if ctx.targets is None:
+        ctx.targets = _session_targets(store, ctx.info)
     rep = CalibrationReport(session=session_name)
     total = len(STAGES)
     for i, name in enumerate(STAGES):

@@ -85,6 +85,7 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
     """
     lab = None
     prepare_target = lab_options.pop("prepare_target", None)
+    where = "rig config" if isinstance(spec, dict) or spec == "sim" else str(spec)  # for messages
     if isinstance(spec, str) and spec == "sim":
         prepare_target = _sim_scene(fast, lab_options, prepare_target)
         lab = SimLab(fast=fast, **lab_options).start()
@@ -92,7 +93,6 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
     else:
         cfg = load_config(spec)
         sim_roles = [role for role, section in cfg.items() if role in ROLES and section.get("port") == "sim"]
-        where = "rig config" if isinstance(spec, dict) else str(spec)
         for role in sim_roles:
             if cfg[role]["driver"] != SIM_DRIVERS[role]:
                 raise ConfigError(f"{where}: [{role}] driver = {cfg[role]['driver']!r} with port = "
@@ -109,7 +109,7 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
                    for role, section in cfg.items()}
     try:
         context = {"usb_backend": lab.usb_backend} if lab is not None and lab.usb_backend is not None else {}
-        rig = Rig.from_config(cfg, **context)
+        rig = Rig.from_config(cfg, where=where, **context)
         if connect:
             rig.connect()
             if home:

@@ -94,6 +94,10 @@ class InvalidName(StoreError, ValueError):
 #: character or a leading ``-`` (read as an option); names become folder names in exports
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 NAME_MAX = 100
+#: an object's name: its SHA-256 as 64 lowercase hex digits (paths are built from it)
+_SHA_RE = re.compile(r"[0-9a-f]{64}")
+#: SQL condition true for a ``sha256`` column value that is not such a hash
+_BAD_SHA_SQL = "(typeof({0}) != 'text' OR length({0}) != 64 OR {0} GLOB '*[^0-9a-f]*')"
 
 
 def check_session_name(name: object, argument: str = "session name") -> str:
@@ -106,7 +110,7 @@ def check_session_name(name: object, argument: str = "session name") -> str:
         raise InvalidName(f"{argument} must be a non-empty string, not {name!r}")
     if len(name) > NAME_MAX or not _NAME_RE.fullmatch(name):
         raise InvalidName(f"{argument} {name[:NAME_MAX + 20]!r} is not allowed: use 1-{NAME_MAX} "
-                          "letters, digits, '_', '.' or '-', starting with a letter, digit or '_'")
+                          "ASCII letters, digits, '_', '.' or '-', starting with a letter, digit or '_'")
     return name
 
 
@@ -364,13 +368,24 @@ def _fsync_dir(path: Path) -> None:
 
 
 def _copy_hashed(src: Path, dst: Path, chunk: int = 1 << 22) -> str:
-    """Copy ``src`` to ``dst`` in one pass, returning the SHA-256 hex of the bytes copied."""
+    """Copy ``src`` to a new file ``dst`` in one pass, returning the SHA-256 hex of the bytes
+    copied. ``dst`` is created exclusively ("xb"): an existing file (the source itself, say) is
+    never truncated."""
     h = hashlib.sha256()
-    with open(src, "rb") as fin, open(dst, "wb") as fout:
+    with open(src, "rb") as fin, open(dst, "xb") as fout:
         while block := fin.read(chunk):
             h.update(block)
             fout.write(block)
     return h.hexdigest()
+
+
+def _try_lock(fd: int) -> bool:
+    """Take ``fd``'s exclusive flock without waiting; False when another holder has it."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
 
 
 def sha256_file(path: Path) -> str:
@@ -509,6 +524,7 @@ class Store:
             self._db.execute("PRAGMA busy_timeout = 30000")
             if self.readonly:
                 self._check_version(self._db)
+                self._check_hashes()
                 return
             if self._db.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
                 self._db.execute("PRAGMA journal_mode = WAL")
@@ -516,9 +532,28 @@ class Store:
             self._db.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
             self._db.execute("PRAGMA foreign_keys = ON")
             self._migrate()
+            self._check_hashes()
         except sqlite3.Error as exc:
             error = self._translate(exc)
             raise (StoreError(f"cannot open {self.db_path}: {exc}") if error is exc else error) from None
+
+    def _check_hashes(self) -> None:
+        """Refuse a store with rows whose object hash is not 64 lowercase hex digits: file paths
+        are built from it (a crafted ``'../x'`` would lead outside ``objects/``)."""
+        bad = self._db.execute(
+            f"SELECT 'frame', s.name, f.step, f.sha256 FROM frames f LEFT JOIN sessions s ON "
+            f"s.id = f.session_id WHERE {_BAD_SHA_SQL.format('f.sha256')} UNION ALL "
+            f"SELECT 'result artifact', s.name, o.name, o.sha256 FROM result_objects o LEFT JOIN "
+            f"results r ON r.id = o.result_id LEFT JOIN sessions s ON s.id = r.session_id WHERE "
+            f"{_BAD_SHA_SQL.format('o.sha256')}").fetchall()
+        if bad:
+            what, session, where, sha = bad[0]
+            place = f"frame of step {where}" if what == "frame" else f"{what} {str(where)[:40]!r}"
+            raise StoreDamaged(
+                f"{self.db_path} has {len(bad)} row(s) whose object hash is not 64 lowercase hex "
+                f"digits (first: {place} of session {str(session)[:40]!r}, hash "
+                f"{str(sha)[:80]!r}); the database is damaged or was crafted, and gonio builds no "
+                "file path from it. Nothing was changed: restore gonio.sqlite from a backup")
 
     def _translate(self, exc: sqlite3.Error) -> Exception:
         """An SQLite error as the store error that says what to do, or ``exc`` itself."""
@@ -641,13 +676,14 @@ class Store:
             try:
                 self._db.execute("BEGIN")
                 yield self._db
-            except sqlite3.Error as exc:
-                if self._translate(exc) is not exc:
+                self._db.execute("COMMIT")
+            except BaseException as exc:
+                if self._db.in_transaction:  # a damaged page fails COMMIT too: keep the first error
+                    with contextlib.suppress(sqlite3.Error):
+                        self._db.execute("ROLLBACK")
+                if isinstance(exc, sqlite3.Error) and self._translate(exc) is not exc:
                     raise self._translate(exc) from exc
                 raise
-            finally:
-                if self._db.in_transaction:
-                    self._db.execute("COMMIT")
 
     def _query(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
         with self._read() as db:
@@ -679,19 +715,12 @@ class Store:
         info = self.session(session)
         sfd = self._lock_file(f"session-{info.id}.lock")
         try:
-            try:
-                fcntl.flock(sfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not _try_lock(sfd):
                 raise SessionBusy(f"session {session!r} is being written by another process; "
-                                  "wait for it to finish or pause it there") from None
+                                  "wait for it to finish or pause it there")
             wfd = self._lock_file("writers.lock")
             try:
-                removed: list[str] | None = None
-                try:
-                    fcntl.flock(wfd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    removed = self.collect_garbage()
-                except BlockingIOError:
-                    pass
+                removed = self.collect_garbage() if _try_lock(wfd) else None
                 fcntl.flock(wfd, fcntl.LOCK_SH)  # converts the exclusive lock if we held it
                 self._keep_reserve()
                 yield removed
@@ -837,6 +866,11 @@ class Store:
 
     # -- objects ------------------------------------------------------------------------------
     def object_path(self, sha256: str) -> Path:
+        """``objects/ab/cdef...`` for a SHA-256 hex; :class:`StoreDamaged` for anything else
+        (a path is never built from a malformed hash read from the database)."""
+        if not isinstance(sha256, str) or not _SHA_RE.fullmatch(sha256):
+            raise StoreDamaged(f"{self.db_path}: refusing object hash {str(sha256)[:80]!r}: not 64 "
+                               "lowercase hex digits (a damaged or crafted row)")
         return self.objects / sha256[:2] / sha256[2:]
 
     def read_object(self, sha256: str) -> bytes:
@@ -1129,12 +1163,9 @@ class Store:
         except FileNotFoundError:
             return False
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
+            return not _try_lock(fd)
         finally:
             os.close(fd)  # closing releases the probe's lock
-        return False
 
     def session_active(self, session: str) -> bool:
         """True while a runner (this process or another) holds ``session``'s writer lock. A
@@ -1166,11 +1197,9 @@ class Store:
         """
         fd = self._lock_file("writers.lock")
         try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not _try_lock(fd):
                 raise SessionBusy(f"a session in {self.root} is being written; orphans are removed "
-                                  "when the next runner starts, or try again once it ends") from None
+                                  "when the next runner starts, or try again once it ends")
             return self.collect_garbage()
         finally:
             os.close(fd)
@@ -1273,7 +1302,8 @@ class Store:
             finally:
                 copy.close()
             for sha in sorted(shas):
-                src, dst = self.object_path(sha), folder / "objects" / sha[:2] / sha[2:]
+                src = self.object_path(sha)  # checks the hash before any path is built
+                dst = folder / "objects" / src.relative_to(self.objects)
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 if not src.is_file():
                     raise StoreError(f"cannot export {session!r}: object {sha} is missing; "
@@ -1294,11 +1324,19 @@ class Store:
                 with tarfile.open(dest, mode) as t:
                     t.add(folder, arcname=folder.name)
             return dest
-        except BaseException:  # leave nothing half-exported behind
+        except BaseException as exc:  # leave nothing half-exported behind
             if archive and dest.exists():
                 dest.unlink()
             elif not archive and created:
                 shutil.rmtree(dest, ignore_errors=True)
+            elif not archive:  # it was an empty folder: empty it again
+                for child in dest.iterdir():
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
+            if (isinstance(exc, sqlite3.Error) and _is_full(exc)
+                    or isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)):
+                raise StoreFull(f"no space left on the disk holding {dest} to export {session!r}; "
+                                "nothing was left there: free space (or choose another disk) and "
+                                "export again") from None
             raise
         finally:
             if archive:

@@ -63,7 +63,7 @@ RESIDUAL_WARN = 0.05
 #: Observations seeing more untrusted (``environment_weight`` < 1) hemisphere than this drop.
 MAX_UNTRUSTED = 0.02
 #: Effective rank below this fraction of the nodes warns (one orthographic image of a sphere
-#: under real probes: Grace 324 / 1024 at 8000 normals; three point lights: ~10 %).
+#: under real probes: Grace 328 / 1024 at 8000 normals; three point lights: ~10 %).
 RANK_WARN = 0.25
 #: Fewer sources than this carrying 95 % of the light is "a few point sources".
 FEW_SOURCES = 30
@@ -297,7 +297,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     report = None if progress is None else (lambda k, _: progress(k, total))
     L = lighting_matrix(n, d, E, omega, view_dirs=v, grid=(n_t, n_s),
                         progress=report)
-    irr = np.einsum("crk->c", L.astype(np.float64)) / len(n)      # mean irradiance per channel
+    irr = L.sum(axis=(1, 2), dtype=np.float64) / len(n)           # mean irradiance per channel
     if not np.all(irr > 0):
         raise PassiveInputError("environment gives no light to the observed normals")
     scale = 1.0 / (irr * np.sqrt(len(n)))

@@ -8,11 +8,15 @@ with f the unknown bivariate BRDF on a uniform (t, s) grid (``reconstruct.brdf.B
 s = 2 theta_d / pi and t = sqrt(2 theta_h / pi) of the pair (u_k, v) (``coords.romeiro_st``).
 Interpolating f bilinearly between its four nearest nodes makes I linear in the node values:
 I = L f, one row per observed normal, one column per node. Both angles come from dot products,
-without a local frame: cos(2 theta_d) = u . v and cos(theta_h) = n . (u + v) / |u + v|, so an
-(n, u) pair costs a few array operations and the pairs are never materialised as local
-direction pairs. The scatter of every pair's two t-corners onto the nodes is a sparse (CSC)
-product that also sums over the s-corners and colours, which numpy's ``bincount`` does ~3x
-slower (12 passes instead of one).
+without a local frame: cos(2 theta_d) = u . v and cos(theta_h) = n . h with h = (u + v) /
+|u + v|. For one view direction (an orthographic camera) s and h belong to the source alone,
+so s and its corner weights are computed once per source (folded into the fluxes) and theta_h
+is one dot product per pair. Normals are processed in chunks of neighbours (bands of polar
+angle, then azimuth), and each chunk only meets the sources inside its normals' cone widened
+to a hemisphere: the pairs are each normal's visible hemisphere and a thin rim. The scatter
+of a chunk's pairs onto the nodes is one sparse COO x (K, 3 or 6) product (all corners and
+colours at once). The dot products are broadcast products, not BLAS calls: threaded BLAS on
+such thin (m, 3) x (3, K) products from several threads was 10-50x slower on a loaded box.
 
 Directions, normals and view directions are unit vectors in one frame; sources are not
 occluded (exact for convex objects).
@@ -25,8 +29,11 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.sparse as sp
 
-#: (normal, source) pairs per chunk: ~25 bytes a pair of temporaries (~6 MB), cache-friendly.
-CHUNK_PAIRS = 1 << 18
+#: (normal, source) pairs per chunk (counting half the sources: each normal's hemisphere):
+#: ~8 normals of a 32,768-texel map. Measured on the shared 2-core box, 1000 normals x Grace:
+#: 2^16-2^17 0.73-0.79 s CPU, 2^18 0.96-0.99 s (megabyte temporaries page-fault on every
+#: allocation), 2^14 (one normal a chunk) 1.8 s (Python overhead).
+CHUNK_PAIRS = 1 << 17
 
 
 def _unit_rows(name: str, v, n: int | None = None) -> np.ndarray:
@@ -119,64 +126,114 @@ def lighting_matrix(normals, directions, radiance, solid_angle, *, view_dirs=(0.
     n_nodes = n_t * n_s
     out = np.zeros((3, len(n), n_nodes), np.float32)
     lit = (E.max(axis=1) > 0) & (omega > 0)  # dark sources add nothing
-    dT = np.ascontiguousarray(d[lit].T, dtype=np.float32)
-    flux = (E[lit] * omega[lit, None]).astype(np.float32)  # (K, 3) radiance x sr
-    uv_const = (v[0] @ d[lit].T).astype(np.float32) if constant_view else None
-    n32, v32, nv32 = n.astype(np.float32), v.astype(np.float32), nv.astype(np.float32)
-    step = max(1, CHUNK_PAIRS // max(int(lit.sum()), 1))
+    d, flux = d[lit], E[lit] * omega[lit, None]  # (K, 3) radiance x sr
+    if constant_view:
+        # s and the halfway vector depend on the source alone: theta_h is one dot product and
+        # the s-corner weights fold into the fluxes (6 columns: lower, upper s-node)
+        uv = d @ v[0]
+        j0, ws = _lower_node(np.arccos(np.clip(uv, -1.0, 1.0)) / np.pi, n_s)
+        h = d + v[0]
+        h /= np.sqrt(np.maximum(2.0 + 2.0 * uv, 1e-12))[:, None]
+        flux = np.concatenate([flux * (1 - ws)[:, None], flux * ws[:, None]], axis=1)
+        per_source = np.concatenate([d, -0.5 * h, j0[:, None]], axis=1)
+    else:
+        per_source = d
+    per_source = np.concatenate([per_source, flux], axis=1)   # one gather per chunk
+    n_flux = flux.shape[1]
+    order = _neighbour_order(n)
+    dT_all = np.ascontiguousarray(d.T)
+    step = max(1, CHUNK_PAIRS // max(len(d) // 2, 1))
+    offsets = [0, n_s] if constant_view else [0, 1, n_s, n_s + 1]  # rows of the cell corners
 
     def chunk(start):
-        sl = slice(start, min(start + step, len(n)))
-        m = sl.stop - sl.start
-        cos_i = n32[sl] @ dT                                  # (m, K) n . u
-        keep = cos_i.max(axis=0) > 0                          # sources some normal here sees
-        cos_i = cos_i[:, keep]
-        uv = (uv_const[keep][None] if constant_view else v32[sl] @ dT[:, keep])  # u . v
-        rows, weights = _chunk_pairs(cos_i, uv, nv32[sl], n_t, n_s)
-        cols = np.broadcast_to(np.arange(cos_i.shape[1], dtype=np.int32), cos_i.shape).ravel()
-        corners = [sp.coo_matrix((w, (rows, cols)), shape=(m * n_nodes, cos_i.shape[1]))
-                   @ flux[keep] for w in weights]                # 4 x (m * n_nodes, 3)
-        acc = corners[0].reshape(m, n_t, n_s, 3)               # each at its lower-left node
-        acc[:, :, 1:] += corners[1].reshape(m, n_t, n_s, 3)[:, :, :-1]
-        acc[:, 1:] += corners[2].reshape(m, n_t, n_s, 3)[:, :-1]
-        acc[:, 1:, 1:] += corners[3].reshape(m, n_t, n_s, 3)[:, :-1, :-1]
-        out[:, sl] = np.moveaxis(acc, -1, 0).reshape(3, m, n_nodes)
-        return sl.stop
+        rows_out = order[start:start + step]
+        m = len(rows_out)
+        nc = n[rows_out]
+        # the sources some normal of this chunk sees (its normals lie within a small cone):
+        # ~half the sphere, so each normal's pairs are its visible hemisphere and a thin rim
+        axis = nc.sum(axis=0)
+        axis /= max(np.linalg.norm(axis), 1e-12)
+        lowest = float(np.min(nc @ axis))                     # cos of the cone's half-angle
+        reach = np.sqrt(max(0.0, 1.0 - lowest ** 2)) if lowest > 0 else np.inf
+        src = per_source[_dot3(axis[None], dT_all)[0] > -reach - 1e-6]
+        k = len(src)
+        dT = np.ascontiguousarray(src[:, :3].T)
+        weights = np.empty((len(offsets), m, k), np.float32)
+        rows = np.empty((len(offsets), m, k), np.int32)
+        cos_i = np.maximum(_dot3(nc, dT), 0.0, out=weights[0])  # invisible pairs weigh nothing
+        # half = (1 - cos theta_h) / 2, in float64: it is small near the specular peak
+        if constant_view:
+            half = _dot3(nc, np.ascontiguousarray(src[:, 3:6].T), 0.5)
+            base = src[:, 6].astype(np.int32)                 # lower s-node
+        else:
+            uv = _dot3(v[rows_out], dT)
+            half = (cos_i + nv[rows_out, None]) / np.sqrt(np.maximum(2.0 + 2.0 * uv, 1e-12))
+            np.subtract(0.5, 0.5 * half, out=half)
+            base, ws = _lower_node(np.arccos(np.clip(uv, -1.0, 1.0), out=uv) / np.pi, n_s)
+        # t = sqrt(2 theta_h / pi) with theta_h = 2 asin(sqrt(half)): no cancellation (arccos
+        # of a float32 cos theta_h near 1 would lose ~half a node next to the peak)
+        t = np.clip(half, 0.0, 1.0, out=half).astype(np.float32)
+        np.sqrt(t, out=t)
+        np.arcsin(t, out=t)
+        t *= np.float32(4 / np.pi)
+        np.sqrt(t, out=t)
+        i0, upper = _lower_node(t, n_t)
+        np.multiply(i0, n_s, out=rows[0])
+        rows[0] += base
+        rows[0] += (np.arange(m, dtype=np.int32) * n_nodes)[:, None]
+        for c in range(1, len(offsets)):
+            np.add(rows[0], offsets[c], out=rows[c])
+        # cos theta_i x the corner weights
+        hi = len(offsets) // 2                                # first upper-t block
+        np.multiply(cos_i, upper, out=weights[hi])
+        weights[0] -= weights[hi]
+        if not constant_view:
+            ws = ws.astype(np.float32)
+            np.multiply(weights[2], ws, out=weights[3])
+            weights[2] -= weights[3]
+            np.multiply(weights[0], ws, out=weights[1])
+            weights[0] -= weights[1]
+        A = sp.coo_matrix((weights.ravel(), (rows.ravel(), np.tile(
+            np.arange(k, dtype=np.int32), m * len(offsets)))), shape=(m * n_nodes, k))
+        acc = (A @ src[:, -n_flux:].astype(np.float32)).reshape(m, n_t, n_s, -1)
+        if constant_view:  # the upper-s columns belong one node to the right
+            acc[:, :, 1:, :3] += acc[:, :, :-1, 3:]
+        out[:, rows_out] = np.moveaxis(acc[..., :3], -1, 0).reshape(3, m, n_nodes)
+        return m
 
     # numpy's ufuncs and scipy's sparse kernels release the GIL: chunks run on threads
+    done = 0
     with ThreadPoolExecutor(max_workers=workers or min(os.cpu_count() or 1, 4)) as pool:
-        for done in pool.map(chunk, range(0, len(n), step)):
+        for m in pool.map(chunk, range(0, len(n), step)):
+            done += m
             if progress is not None:
                 progress(done, len(n))
     return out
 
 
-def _chunk_pairs(cos_i, uv, nv, n_t, n_s):
-    """Bilinear scatter of one chunk's m x K (normal, source) pairs: ``rows`` (m K,), the flat
-    index (normal, lower t-node, lower s-node) of each pair, and four ``weights`` (m K,)
-    (cos theta_i times the corner weight) for its corners (t, s), (t, s+1), (t+1, s),
-    (t+1, s+1). ``cos_i`` (m, K) = n . u, ``uv`` (m or 1, K) = u . v, ``nv`` (m,) = n . v."""
-    m, k = cos_i.shape
-    # s = 2 theta_d / pi with cos(2 theta_d) = u . v
-    sj = np.arccos(np.clip(uv, -1.0, 1.0)) * np.float32((n_s - 1) / np.pi)
-    j0 = np.minimum(sj.astype(np.int32), n_s - 2)
-    ws = sj - j0
-    # t = sqrt(2 theta_h / pi) with cos(theta_h) = n . (u + v) / |u + v|
-    x = cos_i + nv[:, None]
-    x *= 1.0 / np.sqrt(np.maximum(2.0 + 2.0 * uv, 1e-12))
-    np.clip(x, 0.0, 1.0, out=x)
-    ti = np.arccos(x, out=x)
-    ti *= np.float32(2 / np.pi)
-    np.sqrt(ti, out=ti)
-    ti *= n_t - 1
-    i0 = np.minimum(ti.astype(np.int32), n_t - 2)
-    b = ti - i0
-    b *= np.maximum(cos_i, 0.0)                        # cos(theta_i) x upper-t weight
-    a = np.maximum(cos_i, 0.0)
-    a -= b                                             # cos(theta_i) x lower-t weight
-    rows = i0
-    rows += np.arange(m, dtype=np.int32)[:, None] * n_t
-    rows *= n_s
-    rows += j0
-    weights = [a - a * ws, a * ws, b - b * ws, b * ws]
-    return rows.ravel(), [w.ravel() for w in weights]
+def _dot3(a, bT, plus=0.0):
+    """``plus + a @ bT`` for a (m, 3), bT (3, k) as three broadcast products: no BLAS call,
+    whose threads (one team per calling thread) thrash a loaded machine on such thin
+    products."""
+    out = a[:, :1] * bT[0]
+    if plus:
+        out += plus
+    out += a[:, 1:2] * bT[1]
+    out += a[:, 2:3] * bT[2]
+    return out
+
+
+def _neighbour_order(n):
+    """An order of the unit vectors ``n`` (N, 3) in which consecutive ones are close: bands
+    of polar angle ~4 deg wide, each by azimuth."""
+    band = np.floor(np.arccos(np.clip(n[:, 2], -1.0, 1.0)) / np.radians(4))
+    return np.lexsort((np.arctan2(n[:, 1], n[:, 0]), band))
+
+
+def _lower_node(x, n_nodes):
+    """Lower node index (int32) and upper-node weight of coordinates ``x`` in [0, 1] on
+    ``n_nodes`` uniform nodes."""
+    xs = x * np.asarray(n_nodes - 1, x.dtype)
+    i0 = np.minimum(xs.astype(np.int32), n_nodes - 2)
+    xs -= i0.astype(x.dtype)
+    return i0, xs

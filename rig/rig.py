@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -68,7 +70,7 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
         if not isinstance(section, dict):
             raise ConfigError(f"{where}: [{role}] must be a table")
         driver = section.get("driver")
-        if driver not in DRIVERS:
+        if not isinstance(driver, str) or driver not in DRIVERS:
             raise ConfigError(f"{where}: [{role}] driver = {driver!r} is unknown; "
                               f"known drivers: {', '.join(sorted(DRIVERS))}")
         port = section.get("port")
@@ -81,10 +83,14 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
     ports: dict[str, str] = {}
     for role, section in cfg.items():  # one device cannot serve two roles
         if role != "rig" and section["port"] not in ("sim", "auto"):
-            if section["port"] in ports:
-                raise ConfigError(f"{where}: [{role}] port = {section['port']!r} is also the "
-                                  f"[{ports[section['port']]}] port; each device needs its own")
-            ports[section["port"]] = role
+            # a device path by any spelling (/dev/./ttyUSB0, a /dev/serial/by-id link) is one device
+            device = os.path.realpath(section["port"]) if section["port"].startswith("/") else section["port"]
+            if device in ports:
+                other = ports[device]
+                raise ConfigError(f"{where}: [{role}] port = {section['port']!r} is the same device "
+                                  f"as the [{other}] port = {cfg[other]['port']!r}; each device "
+                                  "needs its own")
+            ports[device] = role
     return cfg
 
 
@@ -103,7 +109,18 @@ def driver_options(name: str, section: dict[str, Any], driver: str,
         want = _KINDS.get(str(params[key].annotation).replace(" | None", "")) if key in params else None
         if want is not None and not (isinstance(value, want[0]) and not isinstance(value, want[1])):
             raise ConfigError(f"[{name}] {key} = {value!r} must be {want[2]}")
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise ConfigError(f"[{name}] {key} = {value!r} must be a finite number")
+            if key.endswith(_POSITIVE) and not value > 0:
+                raise ConfigError(f"[{name}] {key} = {value!r} must be greater than 0")
+            if key.endswith("_retries") and value < 0:
+                raise ConfigError(f"[{name}] {key} = {value!r} must be 0 or more")
     return options
+
+
+#: option names (by ending) whose value must be > 0: rates, durations, steps, sizes
+_POSITIVE = ("baudrate", "_s", "_s2", "_deg", "_bytes", "_tolerance")
 
 
 #: a driver parameter's annotation -> (accepted types, refused types, what to write)
@@ -131,14 +148,16 @@ class Rig:
     config: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def from_config(cls, source: str | Path | dict[str, Any], **context: Any) -> "Rig":
+    def from_config(cls, source: str | Path | dict[str, Any], *, where: str | None = None,
+                    **context: Any) -> "Rig":
         """Build (not connect) the devices named in a rig file or dict.
 
+        ``where`` names a dict's file in error messages (default: the file, or "rig config").
         ``context`` is passed to every driver's ``from_config`` (e.g. ``usb_backend=`` for the
         camera, so a simulated or custom pyusb backend can be used).
         """
         cfg = load_config(source)
-        where = "rig config" if isinstance(source, dict) else str(source)
+        where = where or ("rig config" if isinstance(source, dict) else str(source))
         devices: dict[str, Device] = {}
         for role, section in cfg.items():
             if role == "rig":

@@ -33,6 +33,10 @@ KINEMATICS: dict[str, dict[str, Any]] = {
 }
 
 
+#: the ``[rig] name`` of the simulated lab's config: a session's rig snapshot says by it that the
+#: session was recorded on the simulated lab (whose targets the simulator knows)
+LAB_NAME = "simulated lab"
+
 class SimLab:
     """All simulators of the lab.
 
@@ -128,7 +132,7 @@ class SimLab:
         """Driver and port per role, in the form ``rig.Rig.from_config`` reads."""
         if not self.started:
             raise RuntimeError("SimLab.rig_config(): start() the lab first")
-        cfg: dict[str, Any] = {"rig": {"name": "simulated lab", "fast": self.fast}}
+        cfg: dict[str, Any] = {"rig": {"name": LAB_NAME, "fast": self.fast}}
         for role, sim in self.sims.items():
             if role == "turntable":
                 cfg[role] = {"driver": "zaber", "port": sim.port}

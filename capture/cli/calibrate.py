@@ -12,7 +12,6 @@ Exit status: 0 every stage that ran succeeded; 1 a stage failed (the table names
 from __future__ import annotations
 
 import json
-import tomllib
 from dataclasses import fields
 from pathlib import Path
 
@@ -22,21 +21,24 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from ..calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
+from rig.tomlfile import read_toml
+
+from ..calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
 from .session import STORE_OPTION, fail, open_store
 from ..store import SessionNotFound, StoreError, check_session_name, inside
 
 EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
 
 
-def _targets(path: Path | None) -> LabTargets:
-    """LabTargets from a TOML file of its field names (``sphere_radius_mm = 25.0`` ...)."""
-    if path is None:  # the simulated lab's targets, as the simulator states them
-        return LabTargets.simulated()
+def _targets(path: Path | None) -> LabTargets | None:
+    """LabTargets from a TOML file of its field names (``sphere_radius_mm = 25.0`` ...); None
+    without a file (the simulator's, for a session recorded on the simulated lab only)."""
+    if path is None:
+        return None
     try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise fail(f"--targets {path}: cannot read it as TOML ({exc})") from None
+        data = read_toml(path, what="--targets file")
+    except ValueError as exc:
+        raise fail(str(exc)) from None
     known = {f.name for f in fields(LabTargets)}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -54,8 +56,8 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                                        "(default: the folder holding the store)."),
               targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
                                            "targets (board size and height, sphere radius and lab "
-                                           "positions ...: LabTargets fields); default: the "
-                                           "simulated lab's."),
+                                           "positions ...: LabTargets fields); needed unless the "
+                                           "session was recorded on the simulated lab (--rig sim)."),
               measurement_hdr: bool = typer.Option(True, "--measurement-hdr/--calibration-hdr-only",
                                                    help="Merge every measurement step's bracket too "
                                                    "(slow for big sessions) or only the calibration steps."),
@@ -80,6 +82,9 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             try:
                 report = calibrate_session(st, session, progress=advance, targets=lab_targets,
                                            measurement_hdr=measurement_hdr)
+            except TargetsNeeded as exc:
+                progress.stop()
+                raise fail(str(exc)) from None
             except NothingToCalibrate as exc:
                 progress.stop()
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)

@@ -13,6 +13,7 @@ interrupted step is re-done on resume). Exit status: 0 done, 3 paused, 4 aborted
 from __future__ import annotations
 
 import contextlib
+import shlex
 import signal
 import sys
 import threading
@@ -199,21 +200,27 @@ def _target_handler(opened: OpenedRig, yes: bool):
 def _ctrl_c_counted() -> Iterator[list[int]]:
     """While a session runs and until the rig is closed, Ctrl-C only appends to the yielded list
     (a handler that never raises): a second one landing anywhere, even while the first is being
-    handled or the rig closes, stops motion instead of killing gonio with SIGINT."""
+    handled or the rig closes, stops motion instead of killing gonio with SIGINT. SIGTERM (a
+    system shutdown, ``kill``) counts as two: stop now, pause (resumable), close the rig and the
+    simulators (which remove their folders), then exit 3."""
     interrupts: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield interrupts
         return
     restore = signal.signal(signal.SIGINT, lambda *_: interrupts.append(1))
+    restore_term = signal.signal(signal.SIGTERM, lambda *_: interrupts.extend((1, 1)))
     try:
         yield interrupts
     finally:
         signal.signal(signal.SIGINT, restore)
+        signal.signal(signal.SIGTERM, restore_term)
 
 
-def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]) -> None:
+def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int],
+             rig_spec: str) -> None:
     """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly;
-    ``interrupts`` is :func:`_ctrl_c_counted`'s list."""
+    ``interrupts`` is :func:`_ctrl_c_counted`'s list; ``rig_spec`` the --rig given (for the
+    resume hint)."""
     columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("steps"), TextColumn("{task.fields[frames]}"), TimeElapsedColumn(),
                TextColumn("{task.fields[eta]}")]
@@ -260,7 +267,8 @@ def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]
         typer.secho(f"session {runner.name} done", fg=typer.colors.GREEN)
     elif state == "paused":
         typer.secho(f"session {runner.name} paused; continue with:\n  gonio capture resume "
-                    f"{runner.name} --rig <rig> --store {store_path}", fg=typer.colors.YELLOW)
+                    f"{runner.name} --rig {shlex.quote(rig_spec)} --store {shlex.quote(store_path)}",
+                    fg=typer.colors.YELLOW)
     else:
         typer.secho(f"session {runner.name} aborted", fg=typer.colors.RED)
     raise typer.Exit(EXIT[state])
@@ -270,7 +278,7 @@ def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]
 def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         rig: str = typer.Option(..., "--rig", help=RIG_HELP),
         store: str = STORE_OPTION,
-        session: Optional[str] = typer.Option(None, "--session", help="Session name: letters, digits, "
+        session: Optional[str] = typer.Option(None, "--session", help="Session name: ASCII letters, digits, "
                                               "'_', '.', '-' (default: <plan name>-<date>-<time>)."),
         operator: Optional[str] = typer.Option(None, help="Operator (overrides the plan's)."),
         fast: bool = typer.Option(True, help="Simulated devices move instantly."),
@@ -297,10 +305,13 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         except StoreError as exc:
             raise fail(str(exc)) from None
     p = _load_plan(plan_file)
-    st = open_store(store, create=True)
-    with st:
-        opened = _open_rig(rig, fast)
-        with _ctrl_c_counted() as interrupts, opened:
+    opened = _open_rig(rig, fast)
+    with _ctrl_c_counted() as interrupts, opened:
+        try:  # before the store is created: a plan the rig cannot run leaves no empty store
+            p.check_rig(opened.rig)
+        except PlanError as exc:
+            raise fail(f"{plan_file}: {exc}") from None
+        with open_store(store, create=True) as st:
             try:
                 info = create_session(st, p, opened.rig, name=session, operator=operator,
                                       plan_path=str(plan_file.resolve()))
@@ -315,7 +326,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
             typer.echo(_frame_size_text(est, True, running=True))
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
-            _execute(runner, store, quiet, interrupts)
+            _execute(runner, store, quiet, interrupts, rig)
 
 
 @_command
@@ -368,5 +379,5 @@ def resume(name: str = typer.Argument(..., help="Session name."),
                        f"{human_bytes(est.bytes)} and {human_time(est.seconds)}")
             runner = Runner(opened.rig, st, info, home=home,
                             prepare_target=_target_handler(opened, yes))
-            _execute(runner, store, quiet, interrupts)
+            _execute(runner, store, quiet, interrupts, rig)
 

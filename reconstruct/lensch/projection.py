@@ -70,7 +70,7 @@ def basis_values(t, z, cos_i, texel, labels, basis, basis_size) -> np.ndarray:
 
 
 def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_size, *,
-                  prior: float = 0.0):
+                  prior: float = 0.0, select: bool = False):
     """Non-negative projection of a chunk of texels into their clusters' bases (Eqs. 11-12).
 
     Parameters
@@ -92,6 +92,12 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         BRDF), relative to the mean diagonal of its normal equations: keeps texels whose samples
         do not constrain the variants (no highlight seen) from extrapolating. 0: the paper's
         plain non-negative least squares.
+    select : bool
+        Keep a texel's projection only where it predicts its own samples better than the cluster's
+        BRDF alone when each sample is left out in turn (leave-one-out residuals of the weights'
+        least squares on their support, see :func:`loo_sse`); elsewhere the weights become
+        (1, 0, ..., 0). A texel whose highlight only one sample shows can otherwise fit it exactly
+        with a sharper or brighter basis BRDF, and predicts other light positions badly.
 
     Returns
     -------
@@ -117,11 +123,40 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         G = G + lam[:, None, None] * np.eye(B)
         h = h.copy()
         h[:, 0] += lam
-        t_, cost = nnls_batched(G, h, rr + lam)
-        data = rr - 2 * np.einsum("nb,nb->n", t_, h - lam[:, None] * np.eye(B)[0]) + \
+        t_, _ = nnls_batched(G, h, rr + lam)
+        sse = rr - 2 * np.einsum("nb,nb->n", t_, h - lam[:, None] * np.eye(B)[0]) + \
             np.einsum("nb,nbc,nc->n", t_, G - lam[:, None, None] * np.eye(B), t_)
-        return t_, np.maximum(data, 0.0)
-    return nnls_batched(G, h, rr)
+        sse = np.maximum(sse, 0.0)
+    else:
+        t_, sse = nnls_batched(G, h, rr)
+    if select:
+        own = np.bincount(texel, np.sum((A[:, 0] - r) ** 2, axis=1), minlength=n)
+        worse = loo_sse(A, r, texel, G, t_) > own
+        t_[worse] = np.eye(B)[0]
+        sse[worse] = own[worse]
+    return t_, sse
+
+
+def loo_sse(A, r, texel, G, weights) -> np.ndarray:
+    """Leave-one-out residual sum of squares of each texel's weights, (n,).
+
+    ``A`` (S, B, 3) weighted basis values, ``r`` (S, 3) weighted reflectance, ``G`` (n, B, B) the
+    normal equations, ``weights`` (n, B). The least squares on the weights' support left without
+    sample s (its three channels) misses it by (I - M_s)^-1 e_s, M_s = A_s G^-1 A_s^T the 3 x 3
+    leverage of the sample; a sample with leverage ~1 (the only one that sees a highlight) gives a
+    huge leave-one-out residual.
+    """
+    B = G.shape[1]
+    both = (weights != 0)[:, :, None] & (weights != 0)[:, None, :]  # the support
+    scale = np.maximum(np.einsum("nbb->n", G) / B, 1e-300)[:, None, None]
+    Gi = np.linalg.inv(np.where(both, G + 1e-10 * scale * np.eye(B), np.eye(B))) * both
+    e = np.einsum("sbc,sb->sc", A, weights[texel]) - r
+    M = np.einsum("sbc,sbd,sde->sce", A, Gi[texel], A)
+    I_M = np.eye(3) - M
+    ok = np.linalg.det(I_M) > 1e-9
+    loo = np.full(len(r), np.inf)
+    loo[ok] = np.sum(np.linalg.solve(I_M[ok], e[ok, :, None])[..., 0] ** 2, axis=1)
+    return np.bincount(texel, loo, minlength=len(G))
 
 
 def cluster_residuals(texel, t, z, cos_i, reflectance, weight, labels, materials):

@@ -168,34 +168,34 @@ def _highlight_score(t, z, texel, T):
     return score
 
 
-def _no_highlight(t, z, wi, texel, T, labels, materials):
-    """True where no sample reached 10 % of the lobe's peak for its light direction.
+def _no_highlight(t, z, wi, w, texel, T, labels, mats):
+    """True where no sample with weight > 0 (held-out samples do not count) reached 10 % of the
+    lobe's peak for its light direction, (T,) bool.
 
     For light u the lobe base C_x (u_x v_x + u_y v_y) + C_z u_z v_z peaks over v at
     |(C_x u_x, C_x u_y, C_z u_z)|; the ratio of a sample's base to that, to the power N, is how far
-    up the highlight it sits.
+    up the highlight it sits. ``mats`` (K, 3, P) per-channel parameters (channel mean used).
     """
-    seen = np.zeros(T)
+    seen = np.zeros(len(t))
     cl = labels[texel]
-    for k, m in enumerate(materials):
-        sel = np.flatnonzero(cl == k)
-        if len(sel) == 0:
-            continue
-        p = params_of(m).mean(axis=0)
+    for k, m in enumerate(mats):
+        sel = np.flatnonzero((cl == k) & (w > 0))
+        p = m.mean(axis=0)
         for l in range((len(p) - 1) // 3):
             cx, cz, N = p[1 + 3 * l:4 + 3 * l]
             peak = np.sqrt(cx ** 2 * (wi[sel, 0] ** 2 + wi[sel, 1] ** 2) + cz ** 2 * wi[sel, 2] ** 2)
             base = cx * t[sel] + cz * z[sel]
             frac = np.where(base > 0, (np.maximum(base, 0) / np.maximum(peak, 1e-300)) ** N, 0.0)
-            np.maximum.at(seen, texel[sel], frac)
-    return seen < 0.1
+            seen[sel] = np.maximum(seen[sel], frac)
+    return np.bincount(texel, seen >= 0.1, minlength=T) == 0
 
 
 def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_lobes: int = 1,
                normals=None, fit_normals: bool = False, pfa: bool = False, rng=0, progress=None,
                weight=None, noise: str = "absolute", max_materials: int = 12,
                cluster_texels: int = 4000, fit_texels: int = 20000, min_samples: int = 3,
-               normal_rounds: int = 2, weight_prior: float = 0.0,
+               normal_rounds: int = 2, weight_prior: float = 1e-3,
+               select_projection: bool = True,
                chunk_texels: int = 100_000) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
@@ -241,7 +241,14 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         broaden the lobes, so a second round sharpens both.
     weight_prior : float
         Ridge on the projection weights towards the cluster's BRDF (see
-        :func:`~reconstruct.lensch.projection.project_chunk`); 0 = the paper's projection.
+        :func:`~reconstruct.lensch.projection.project_chunk`); the default 1e-3 only stops a basis
+        BRDF that is ~0 at a texel's samples from taking a weight of 10^5 (it would blow up under
+        any other light); 0 = the paper's plain projection.
+    select_projection : bool
+        Keep a texel's projected weights only where their leave-one-out error over its own samples
+        beats its cluster's BRDF alone (``select`` of ``project_chunk``); otherwise the texel gets
+        the cluster's BRDF. Without it, texels whose highlight a single sample shows fit that
+        sample exactly with a sharper / brighter basis BRDF and mispredict held-out lights.
     chunk_texels : int
         Texels per chunk of the per-texel steps.
 
@@ -313,13 +320,15 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     similar = _most_similar(errors, labels, len(mats))
     basis, size = make_bases(mats, similar)
     weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
-                                 weight_prior)
+                                 weight_prior, select_projection)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
-    if pfa:
-        basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
-        weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
-                                 weight_prior)
+    if pfa:  # Eq. 13 lowers the plain projection's error; kept if the selected one drops too
+        trial = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
+        w_pfa, sse_pfa = _project(trial, size, labels, offsets, tx, t, z, cos_i, r, w, T,
+                                  chunk_texels, weight_prior, select_projection)
+        if sse_pfa.sum() < sse.sum():
+            basis, weights, sse = trial, w_pfa, sse_pfa
         rms["pfa"] = _rms(sse.sum(), n_res)
         tick()
 
@@ -348,7 +357,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
             if pfa:
                 basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
             weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
-                                 weight_prior)
+                                 weight_prior, select_projection)
             tick()
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
@@ -363,7 +372,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         basis=tuple(tuple(model_of(basis[k, b]) for b in range(size[k])) for k in range(len(mats))),
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
         relative_rms=rel, too_few_samples=counts < min_samples,
-        no_highlight=_no_highlight(t, z, wi, tx, T, labels, materials), n_samples=counts,
+        no_highlight=_no_highlight(t, z, wi, w, tx, T, labels, mats), n_samples=counts,
         history=clus.history)
 
 
@@ -463,12 +472,13 @@ def _most_similar(errors, labels, K):
     return similar
 
 
-def _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk, prior=0.0):
+def _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk, prior, select):
     weights = np.zeros((T, basis.shape[1]))
     sse = np.zeros(T)
     for c in _chunks(T, chunk):
         ct, ctt, cz, cc, cr, cw = _chunk(c, offsets, tx, t, z, cos_i, r, w)
-        weights[c], sse[c] = project_chunk(ct, ctt, cz, cc, cr, cw, labels[c], basis, size, prior=prior)
+        weights[c], sse[c] = project_chunk(ct, ctt, cz, cc, cr, cw, labels[c], basis, size,
+                                           prior=prior, select=select)
     return weights, sse
 
 

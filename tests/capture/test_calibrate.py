@@ -426,7 +426,7 @@ def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
     the turntable skips for want of intrinsics; dark runs regardless."""
     store = _bad_session(tmp_path)
     sid = store.session("bad").id
-    report = calibrate_session(store, "bad")
+    report = calibrate_session(store, "bad", targets=LabTargets.simulated())
     bad_frame = store.frames(sid, step=3)[0].id
     assert report.stage("dark").status == "ok"
     assert report.stage("hdr").status == "failed"
@@ -450,7 +450,7 @@ def test_a_programming_error_in_a_stage_raises(tmp_path, monkeypatch):
     monkeypatch.setattr(cal, "master_frame", broken)
     store = _bad_session(tmp_path)
     with pytest.raises(ValueError, match="operands could not be broadcast"):
-        calibrate_session(store, "bad")
+        calibrate_session(store, "bad", targets=LabTargets.simulated())
     store.close()
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+import sqlite3
 import string
 from pathlib import Path
 
@@ -114,7 +115,7 @@ def test_random_plan_texts(tmp_path, seed):
 
 
 RIG_KEYS = ["driver", "port", "baudrate", "timeout_s", "device", "axis", "address", "kinematics",
-            "use_checksum", "x"]
+            "use_checksum", "poll_retries", "poll_interval_s", "speed_deg_s", "microstep_deg", "x"]
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -127,11 +128,39 @@ def test_random_rig_values(tmp_path, seed):
                                rng.randint(1, 3)):
             lines.append(f"[{role}]")
             lines.append("driver = " + rng.choice(['"zaber"', '"grbl"', '"elliptec"', '"ptp"',
-                                                   '"gphoto2"', '"[bold]"', "3"]))
+                                                   '"gphoto2"', '"[bold]"', "3", '["zaber"]',
+                                                   '{ name = "grbl" }']))
             lines.append("port = " + rng.choice(['"/nonexistent/tty0"', '"/dev/null"', '"/"',
                                                  '"usb:zz:1"', '"usb:1:2"', '""', "5", "[1]",
-                                                 '"[/bold]"', f'"{tmp_path}"']))
+                                                 '"[/bold]"', f'"{tmp_path}"', '"/dev/./null"',
+                                                 '"/dev//null"', '"/dev/../dev/null"']))
             for key in rng.sample(RIG_KEYS[2:], rng.randint(0, 3)):
                 lines.append(f"{key} = {_random_value(rng)}")
         rig.write_text("\n".join(lines))
         _check(["rig", "check", "--rig", str(rig)])
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_random_and_hostile_object_hashes(tmp_path, seed):
+    """Rows whose sha256 text is random or a path: every command answers with a message and no
+    file outside the store is read, written or deleted."""
+    rng = random.Random(seed)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    root = tmp_path / "st"
+    with Store(root) as st:
+        sid = st.create_session("s", plan={}, plan_hash="h", steps=[{"frames": 1}]).id
+        st.add_frame(sid, 0, 0, 0, data=b"x" * 100, filename="f.dng", format="dng",
+                     exposure_requested_s=0.01, exposure_s=0.01, completes_step=True)
+    shas = [".." + str(victim), "../../victim.txt", "..", "/", "", "0" * 64 + "/..", "F" * 64,
+            " " + "0" * 63] if seed == SEEDS[0] else [_random_text(rng, 70) for _ in range(6)]
+    for sha in shas:
+        db = sqlite3.connect(root / "gonio.sqlite")
+        db.execute("UPDATE frames SET sha256 = ?", (sha,))
+        db.commit()
+        db.close()
+        for args in (["session", "list"], ["session", "show", "s"], ["session", "verify", "s"],
+                     ["session", "export", "s", str(tmp_path / "out")], ["calibrate", "s"]):
+            r = _check([*args, "--store", str(root)])
+            assert r.exit_code == 2 and "hash" in r.output, (sha, args, r.output)
+        assert victim.read_text() == "precious" and not (tmp_path / "out").exists()

@@ -101,3 +101,9 @@ def test_exporting_into_the_store_itself_is_refused(tmp_path, dest):
     r = cli.invoke(session_app, ["export", "keep", str(root / dest), "--store", str(root)])
     assert r.exit_code == 2 and "inside the store" in r.output, r.output
     assert _files(root) == before
+
+
+def test_the_name_rule_says_ascii_letters():
+    """'é' is a letter but not an ASCII one: the message must not say plain 'letters'."""
+    with pytest.raises(InvalidName, match="ASCII letters"):
+        check_session_name("café")

@@ -74,3 +74,13 @@ def test_capture_run_names_the_plan_file_in_its_errors(tmp_path):
     r = CliRunner().invoke(capture_app, ["run", str(p), "--rig", str(rig), "--store",
                                          str(tmp_path / "st"), "--quiet"])
     assert r.exit_code == 2 and f"{p}: light is given but the rig has no positioner" in " ".join(r.output.split())
+
+
+def test_a_plan_the_rig_cannot_reach_leaves_no_store_folder(tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('name = "p"\n[turntable]\nangles_deg = [0]\n[light]\nazimuth_deg = [0]\n'
+                    'elevation_deg = [40]\ndistance_mm = 5000\n[exposure]\nbase_s = 0.01\n')
+    r = CliRunner().invoke(capture_app, ["run", str(plan), "--rig", "sim", "--store",
+                                         str(tmp_path / "st"), "--quiet"])
+    assert r.exit_code == 2 and "out of the positioner's reach" in r.output, r.output
+    assert str(plan) in r.output and not (tmp_path / "st").exists()

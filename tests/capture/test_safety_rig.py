@@ -41,12 +41,28 @@ base_s = 0.01
     ('[polarizer]\ndriver = "elliptec"\nport = "/dev/ttyUSB0"\ntimeout_s = "1"\n',
      ["[polarizer] timeout_s = '1' must be a number"]),
     ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\n[polarizer]\ndriver = "elliptec"\n'
-     'port = "/dev/ttyUSB0"\n', ["[polarizer] port = '/dev/ttyUSB0' is also the [turntable] port"]),
+     'port = "/dev/ttyUSB0"\n', ["[polarizer] port = '/dev/ttyUSB0' is the same device as the "
+                                  "[turntable] port"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\n[polarizer]\ndriver = "elliptec"\n'
+     'port = "/dev/./ttyUSB0"\n', ["[polarizer] port = '/dev/./ttyUSB0' is the same device as the "
+                                    "[turntable] port = '/dev/ttyUSB0'"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\ntimeout_s = inf\n',
+     ["[turntable] timeout_s = inf must be a finite number"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\ntimeout_s = nan\n',
+     ["[turntable] timeout_s = nan must be a finite number"]),
+    ('[positioner]\ndriver = "grbl"\nport = "/dev/ttyUSB0"\nbaudrate = -5\n',
+     ["[positioner] baudrate = -5 must be greater than 0"]),
+    ('[turntable]\ndriver = "zaber"\nport = "/dev/ttyUSB0"\npoll_retries = -1\n',
+     ["[turntable] poll_retries = -1 must be 0 or more"]),
+    ('[turntable]\ndriver = ["zaber"]\nport = "/dev/ttyUSB0"\n',
+     ["[turntable] driver = ['zaber'] is unknown"]),
     ('[camera]\ndriver = "zaber"\nport = "sim"\n',
      ["[camera] driver = 'zaber' with port = 'sim'", "speaks the 'ptp' protocol"]),
     ('[turntable]\ndriver = "grbl"\nport = "sim"\n',
      ["[turntable] driver = 'grbl' with port = 'sim'", "'zaber'"]),
-], ids=["port-int", "baudrate-text", "timeout-text", "same-port", "zaber-as-camera", "grbl-as-turntable"])
+], ids=["port-int", "baudrate-text", "timeout-text", "same-port", "same-port-spelled-twice",
+        "timeout-inf", "timeout-nan", "baudrate-negative", "retries-negative", "driver-list",
+        "zaber-as-camera", "grbl-as-turntable"])
 def test_rig_file_mistakes_are_named_by_file_section_and_key(tmp_path, text, words):
     rig = tmp_path / "lab.toml"
     rig.write_text(text)
@@ -54,6 +70,7 @@ def test_rig_file_mistakes_are_named_by_file_section_and_key(tmp_path, text, wor
     out = " ".join(r.output.split())
     assert r.exit_code == 2, out
     assert str(rig) in out and all(w in out for w in words), out
+    assert "rig config" not in out  # the file's name, in the inner message too
     assert "cable" not in out and "Traceback" not in out
 
 
@@ -118,3 +135,28 @@ def test_a_second_ctrl_c_soon_after_the_first_stops_and_exits_3(tmp_path):
     with Store(tmp_path / "st") as st:
         assert st.session("c").state == "paused"
     assert list(private.iterdir()) == []  # Ctrl-C too leaves no simulator folder
+
+
+def test_sigterm_during_a_simulated_capture_pauses_it_and_leaves_no_folder(tmp_path):
+    plan, private = tmp_path / "plan.toml", tmp_path / "tmp"
+    plan.write_text(PLAN)
+    private.mkdir()
+    p = subprocess.Popen([sys.executable, "-m", "capture.cli", "capture", "run", str(plan), "--rig",
+                          "sim", "--store", str(tmp_path / "st"), "--session", "t", "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "TMPDIR": str(private), "PYTHONUNBUFFERED": "1"})
+    said = []
+    for line in p.stdout:
+        said.append(line)
+        if line.startswith("session t:"):  # the session is recorded and about to run
+            break
+    assert len(list(private.glob("gonio-sim-*"))) == 3  # the simulators are up
+    p.send_signal(signal.SIGTERM)
+    out, err = p.communicate(timeout=120)
+    out = "".join(said) + out
+    assert p.returncode == 3 and "paused; continue with" in out, out + err
+    assert f"gonio capture resume t --rig sim --store {tmp_path / 'st'}" in out  # not '<rig>'
+    assert "Traceback" not in err
+    with Store(tmp_path / "st") as st:
+        assert st.session("t").state == "paused" and st.progress(st.session("t").id).steps_done < 8
+    assert list(private.iterdir()) == []

@@ -124,8 +124,21 @@ def _damage_pages(db: Path) -> None:
     db.write_bytes(bytes(data))
 
 
+def _damage_sessions_root(db: Path) -> None:
+    """Zero the first 8 bytes of the sessions table's root page, header intact: the schema reads,
+    the first query of a row fails, and so did the COMMIT after it (a second error)."""
+    con = sqlite3.connect(db)
+    root_page = con.execute("SELECT rootpage FROM sqlite_master WHERE name = 'sessions'").fetchone()[0]
+    con.close()
+    data = bytearray(db.read_bytes())
+    page = int.from_bytes(data[16:18], "big")
+    data[(root_page - 1) * page:(root_page - 1) * page + 8] = bytes(8)
+    db.write_bytes(bytes(data))
+
+
 @pytest.mark.parametrize("damage, words", [(_damage_header, "file is not a database"),
-                                           (_damage_pages, "malformed")])
+                                           (_damage_pages, "malformed"),
+                                           (_damage_sessions_root, "malformed")])
 def test_a_damaged_database_gives_a_clear_message_and_changes_nothing(tmp_path, damage, words):
     root = tmp_path / "st"
     _store_with_frames(root)
@@ -297,3 +310,21 @@ def test_code_version_is_computed_outside_the_write_lock(tmp_path, monkeypatch):
         sid = store.create_session("s", plan={}, plan_hash="h", steps=[]).id
         store.add_calibration(sid, "dark", result={"level": 1})
         assert seen == [False] and store.results(sid)[0]["code_version"] == "gonio test"
+
+
+@pytest.mark.parametrize("size, frame_bytes", [("16k", 500), ("400k", 300_000)])
+@pytest.mark.parametrize("target", ["out", "out.tar", "out.zip", "."])
+def test_export_to_a_full_disk_says_so_and_leaves_no_partial_files(tmp_path, size, frame_bytes,
+                                                                   target):
+    """16k: the database copy itself fails (SQLite backup); 400k: a frame file does."""
+    root = tmp_path / "st"
+    with Store(root) as st:
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"frames": 2}]).id
+        for i in range(2):
+            st.add_frame(sid, 0, i, 0, data=os.urandom(frame_bytes), filename=f"f{i}.dng",
+                         format="dng", exposure_requested_s=0.01, exposure_s=0.01,
+                         completes_step=i == 1)
+    with _small_tmpfs(tmp_path / "disk", size) as disk:
+        r = _run("export", "s1", str(disk / target), "--store", str(root))
+        assert r.exit_code == 2 and "no space left" in r.output and str(disk) in r.output, r.output
+        assert list(disk.iterdir()) == []  # "." : the disk's own empty folder is emptied again

@@ -49,7 +49,10 @@ def test_table2_columns_decrease_and_held_out_views_are_predicted(bumpy_fit):
     _, lt, held_out, fit = bumpy_fit
     rel = fit.relative_rms
     assert rel["single"] > 1.5 * rel["cluster"]
-    assert rel["cluster"] >= rel["projection"] > 2 * rel["normal_fit"]
+    # the paper's Table II falls by 1.36-1.44 x from projection to normal fitting on the bird and
+    # the elk (more on the others); texels whose own samples do not support their projection
+    # (leave-one-out) keep the cluster BRDF, so training residuals drop less than by plain NNLS
+    assert rel["cluster"] >= rel["projection"] > 1.3 * rel["normal_fit"]
     # held-out frames: most samples are predicted within a few per cent (highlights that the
     # training frames never showed at a texel cannot be, Sec. 11)
     pred = fit.predict(lt.texel[held_out], lt.wi[held_out], lt.wo[held_out])
@@ -82,3 +85,24 @@ def test_bumpy_ground_truth_describes_the_rendered_surface():
     ids = obj.material_at(smooth.vertices)
     assert set(np.unique(ids)) == {0, 1, 2}
     assert np.all(np.bincount(ids) > 0.25 * len(ids))
+
+
+def test_full_fit_generalises_to_held_out_lights_at_least_as_well_as_the_cluster_brdfs(bumpy_fit):
+    """Projection + normal fitting must not overfit: under the held-out lights its renders are no
+    worse than each texel's cluster BRDF on the mesh normal, pooled and per sample (median)."""
+    _, lt, held_out, fit = bumpy_fit
+    tx, wi, wo = lt.texel[held_out], lt.wi[held_out], lt.wo[held_out]
+    r = lt.reflectance[held_out]
+    baseline = np.zeros_like(r)
+    for k, m in enumerate(fit.materials):
+        s = fit.labels[tx] == k
+        baseline[s] = m.evaluate(wi[s], wo[s]) * wi[s, 2:3]
+    full = fit.predict(tx, wi, wo)
+
+    def pooled(p):
+        return np.sqrt(np.sum((p - r) ** 2) / np.sum(r ** 2))
+
+    def median(p):
+        return np.median(np.linalg.norm(p - r, axis=1) / np.linalg.norm(r, axis=1))
+    assert pooled(full) <= pooled(baseline)
+    assert median(full) < median(baseline)

@@ -4,7 +4,7 @@ from scipy.optimize import nnls
 
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.lm import nnls_batched
-from reconstruct.lensch.projection import basis_values, make_bases, project_chunk
+from reconstruct.lensch.projection import basis_values, loo_sse, make_bases, project_chunk
 from sims.objects import BUMPY_MATERIALS
 
 
@@ -58,3 +58,33 @@ def test_project_chunk_recovers_known_mixtures_and_the_prior_pulls_to_the_cluste
                                rtol=1e-8, atol=1e-12)
     e0 = np.eye(4)[0]
     assert np.abs(w1 - e0).mean() < 0.2 * np.abs(w0 - e0).mean()
+
+
+def test_leave_one_out_errors_equal_refits_without_each_sample():
+    """loo_sse against brute force: refit each texel's weights on its support without sample s
+    (its three channels) by plain least squares and predict s."""
+    rng = np.random.default_rng(3)
+    n, per, B = 40, 7, 3
+    texel = np.repeat(np.arange(n), per)
+    A = rng.random((n * per, B, 3))
+    r = rng.random((n * per, 3))
+    weights = rng.random((n, B)) * (rng.random((n, B)) > 0.3)
+    G = np.zeros((n, B, B))
+    np.add.at(G, texel, np.einsum("sbc,sdc->sbd", A, A))
+    for k in range(n):  # loo_sse takes ``weights`` as the least squares on their support
+        act = np.flatnonzero(weights[k])
+        rows = np.flatnonzero(texel == k)
+        if len(act):
+            X = A[rows][:, act].transpose(0, 2, 1).reshape(-1, len(act))
+            weights[k, act] = np.linalg.lstsq(X, r[rows].ravel(), rcond=None)[0]
+    got = loo_sse(A, r, texel, G, weights)
+    for k in range(n):
+        act = np.flatnonzero(weights[k])
+        rows = np.flatnonzero(texel == k)
+        want = 0.0
+        for s in rows:
+            others = rows[rows != s]
+            X = A[others][:, act].transpose(0, 2, 1).reshape(-1, len(act))
+            w = np.linalg.lstsq(X, r[others].ravel(), rcond=None)[0]
+            want += np.sum((A[s][act].T @ w - r[s]) ** 2)
+        np.testing.assert_allclose(got[k], want, rtol=1e-8, atol=1e-12)

@@ -54,6 +54,28 @@ def test_lighting_matrix_matches_an_independent_renderer():
         np.testing.assert_allclose(got, want, rtol=1e-4)
 
 
+@pytest.mark.parametrize("n_normals", [3, 50, 700])
+def test_lighting_matrix_normals_over_the_whole_sphere(n_normals):
+    """Normals in every direction, each with its own camera (chunks of normals far apart, whose
+    sources are culled per chunk): L @ table equals shade_distant to 1e-4."""
+    rng = np.random.default_rng(n_normals)
+    normals = rng.normal(size=(n_normals, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    views = normals + rng.normal(scale=0.4, size=normals.shape)
+    views /= np.linalg.norm(views, axis=1, keepdims=True)
+    views[np.einsum("ij,ij->i", views, normals) < 0.05] = normals[
+        np.einsum("ij,ij->i", views, normals) < 0.05]
+    dirs = rng.normal(size=(1200, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    radiance = rng.uniform(0, 2, (1200, 3))
+    omega = np.full(1200, 4 * np.pi / 1200)
+    table = rng.uniform(0.1, 1.0, (10, 14, 3))
+    L = lighting_matrix(normals, dirs, radiance, omega, view_dirs=views, grid=(10, 14))
+    got = np.stack([L[c] @ table[..., c].ravel() for c in range(3)], axis=1)
+    want = shade_distant(Bivariate(table), normals, dirs, radiance, omega, view_dirs=views)
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+
+
 def test_lambertian_sphere_comes_back_constant(grace):
     """A Lambertian sphere under Grace Cathedral: every node within 2 % of albedo / pi
     (measured 0.001 %)."""
