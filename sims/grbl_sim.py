@@ -39,9 +39,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from motionprofile import trapezoid_distance, trapezoid_duration, trapezoid_speed
-
 from .serial_sim import SerialSim
+from .zaber_sim import trapezoid_distance, trapezoid_duration, trapezoid_speed
 
 VERSION = "1.1h"
 BUILD = "1.1h.20190825"

@@ -31,14 +31,58 @@ import math
 import re
 import time
 
-from motionprofile import trapezoid_distance, trapezoid_duration, trapezoid_speed
-
 from .serial_sim import SerialSim
 
 SPEED_UNITS = 1.6384            # data units per microstep/s (firmware 7)
 ACCEL_UNITS = 1.6384 / 10000.0  # data units per microstep/s^2
 
 _FLAG_ORDER = ("F", "W", "N")  # most urgent first
+
+
+def trapezoid_duration(distance: float, vmax: float, amax: float) -> float:
+    """Duration (s) of a rest-to-rest trapezoidal move over ``distance`` (any length unit)."""
+    distance = abs(distance)
+    if distance == 0.0:
+        return 0.0
+    if distance <= vmax * vmax / amax:
+        return 2.0 * math.sqrt(distance / amax)
+    return vmax / amax + distance / vmax
+
+
+def trapezoid_distance(distance: float, vmax: float, amax: float, t: float) -> float:
+    """Distance covered after ``t`` seconds of a rest-to-rest trapezoidal move.
+
+    Parameters
+    ----------
+    distance : float
+        Total (unsigned) distance of the move.
+    vmax, amax : float
+        Speed and acceleration limits in the same length unit per s and per s^2.
+    t : float
+        Time since the start of the move, seconds (clipped to the move's duration).
+    """
+    distance = abs(distance)
+    total = trapezoid_duration(distance, vmax, amax)
+    if t >= total:
+        return distance
+    if t <= 0.0:
+        return 0.0
+    t_acc = min(vmax / amax, total / 2.0)
+    v_peak = amax * t_acc
+    if t < t_acc:
+        return 0.5 * amax * t * t
+    if t > total - t_acc:
+        rest = total - t
+        return distance - 0.5 * amax * rest * rest
+    return 0.5 * amax * t_acc * t_acc + v_peak * (t - t_acc)
+
+
+def trapezoid_speed(distance: float, vmax: float, amax: float, t: float) -> float:
+    """Speed (length unit per s) ``t`` seconds into a rest-to-rest trapezoidal move."""
+    total = trapezoid_duration(distance, vmax, amax)
+    if t <= 0.0 or t >= total:
+        return 0.0
+    return amax * min(t, vmax / amax, total - t)
 
 
 def _checksum(body: str) -> str:
