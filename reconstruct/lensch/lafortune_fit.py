@@ -28,6 +28,11 @@ N_MIN, N_MAX = 0.5, 5000.0
 _START_EXPONENTS = np.array([1.0, 3.0, 8.0, 20.0, 50.0, 120.0, 300.0, 800.0])
 #: b^n is evaluated as exp(min(n ln b, _LOG_CAP)) so that wild trial steps stay finite.
 _LOG_CAP = 60.0
+#: A lobe's peak max(|C_x|, |C_z|)^N may exceed the energy-normalised Phong peak (N + 2) / 2 pi
+#: by at most this factor. Samples that never reach the peak (b < 1 everywhere) otherwise let a
+#: fit trade a large C against a large N, and the model explodes (1e49 seen) at untried angles.
+#: 1e3 leaves every physical lobe free (an off-specular -C_x = 1.12 C_z at N = 30: 30x).
+PEAK_FACTOR = 1e3
 
 
 def lobe_geometry(wi: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -222,6 +227,27 @@ def initial_params(t, z, cos_i, reflectance, weight, n_lobes: int) -> np.ndarray
     return out
 
 
+def peak_penalty(params: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hinge residual per lobe on ``N ln max(|C_x|, |C_z|) - ln(PEAK_FACTOR (N + 2) / 2 pi)``
+    (zero for any physical lobe), times ``scale`` (B,); returns (B, L) and its Jacobian (B, L, P)."""
+    B, P = params.shape
+    L = (P - 1) // 3
+    pen = np.zeros((B, L))
+    dpen = np.zeros((B, L, P))
+    for l in range(L):
+        c = params[:, 1 + 3 * l:3 + 3 * l]
+        n = params[:, 3 + 3 * l]
+        k = np.argmax(np.abs(c), axis=1)
+        cm = np.maximum(np.abs(c[np.arange(B), k]), 1e-300)
+        excess = n * np.log(cm) - np.log(PEAK_FACTOR * (n + 2) / (2 * np.pi))
+        on = excess > 0
+        pen[:, l] = np.where(on, scale * excess, 0.0)
+        dpen[:, l, 3 + 3 * l] = np.where(on, scale * (np.log(cm) - 1 / (n + 2)), 0.0)
+        sign = np.sign(c[np.arange(B), k])
+        dpen[np.arange(B), l, 1 + 3 * l + k] = np.where(on, scale * n / cm * sign, 0.0)
+    return pen, dpen
+
+
 def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_iter: int = 200):
     """Levenberg-Marquardt of the per-channel parameters (3, P) on given samples.
 
@@ -232,9 +258,13 @@ def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_i
     sw = np.sqrt(weight)
     target = (reflectance.T * sw)  # (3, S)
 
+    scale = np.sqrt(np.sum(target * target, axis=1)) + 1e-12  # penalty ~ the whole signal
+
     def fun(x, items):
         f, J = model_and_jacobian(x, t, z, cos_i)
-        return f * sw - target[items], J * sw[:, None]
+        pen, dpen = peak_penalty(x, scale[items])
+        return (np.concatenate([f * sw - target[items], pen], axis=1),
+                np.concatenate([J * sw[:, None], dpen], axis=1))
 
     lower = np.full(P, -np.inf)
     upper = np.full(P, np.inf)

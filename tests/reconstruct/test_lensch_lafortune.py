@@ -125,3 +125,25 @@ def test_bad_input_names_the_argument():
         fit_lafortune(wi, wo, r, weight=np.ones(3))
     with pytest.raises(LafortuneFitError, match="init has 1 lobes"):
         fit_lafortune(wi, wo, r, n_lobes=2, init=Lafortune.phong())
+
+
+def test_fitted_lobe_peak_stays_physical_when_samples_miss_the_highlight():
+    # samples only far from the mirror direction cannot pin C against N: the fit must not trade a
+    # large C for a large N (such a lobe explodes at the untried mirror angle)
+    from reconstruct.lensch.lafortune_fit import PEAK_FACTOR, peak_penalty
+    rng = np.random.default_rng(5)
+    wi = _directions(rng, 4000)
+    wo = _directions(rng, 4000)
+    mirror = wi * np.array([-1, -1, 1])
+    far = np.einsum("ij,ij->i", mirror, wo) < 0.6
+    wi, wo = wi[far], wo[far]
+    true = Lafortune(rho_d=0.2, cx=-1.0, cz=1.0, n=60.0)
+    r = true.evaluate(wi, wo) * wi[:, 2:3] * (1 + 0.05 * rng.standard_normal((len(wi), 1)))
+    fit = fit_lafortune(wi, wo, r)
+    cx, cz, n = (np.asarray(getattr(fit.model, k), float).reshape(-1) for k in ("cx", "cz", "n"))
+    peak = np.maximum(np.abs(cx), np.abs(cz)) ** n
+    assert np.all(peak <= 1.01 * PEAK_FACTOR * (n + 2) / (2 * np.pi))
+    # physical lobes (the paper's normalised Phong, an off-specular lobe) are never penalised
+    lobes = np.array([[0.1, -1.07, 1.07, 10.0], [0.1, -1.12, 1.0, 30.0], [0.1, -1.0, 1.0, 5000.0]])
+    assert np.all(peak_penalty(lobes, np.ones(3))[0] == 0)
+    assert np.all(peak_penalty(np.array([[0.1, -5.0, 5.0, 70.0]]), np.ones(1))[0] > 0)
