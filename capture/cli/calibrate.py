@@ -23,7 +23,7 @@ from rich.table import Table
 
 from rig.tomlfile import read_toml
 
-from ..calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
+from ..pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
 from .session import STORE_OPTION, fail, open_store
 from ..store import SessionNotFound, StoreError, check_session_name, inside
 
@@ -89,7 +89,7 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 progress.stop()
                 typer.secho(f"nothing to calibrate: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NOTHING) from None
-        from ..report import write_report  # here, not at the top: matplotlib would slow every gonio start
+        from ..pipeline.calibration_report import write_report  # here, not at the top: matplotlib would slow every gonio start
         folder = out if out is not None else Path(st.root).resolve().parent
         try:  # a name from before names were checked may not be a safe file name
             png_path = inside(folder, f"{check_session_name(session)}-calibration.png")

@@ -1,4 +1,4 @@
-"""``gonio demo``: the whole job on the simulated lab in one command (see :mod:`capture.demo`).
+"""``gonio demo``: the whole job on the simulated lab in one command (see :mod:`capture.pipeline.demo`).
 
 Prints the folder it works in, a progress bar per stage, the methods table and the path of
 ``report.html``. Exit status: 0 done; 1 a method failed.
@@ -20,7 +20,7 @@ def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 
                                   "new temporary folder)."),
          quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Capture, calibrate and reconstruct on the simulated lab, then write report.html."""
-    from ..demo import run_demo
+    from ..pipeline.demo import run_demo
     console = Console()
     bar, update = progress_bar(quiet)
     with bar:

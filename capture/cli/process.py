@@ -1,6 +1,6 @@
 """``gonio process SESSION``: calibrate (if needed), reconstruct with every method, write the report.
 
-Runs :func:`capture.pipeline.process_session` with a progress bar, prints one row per method
+Runs :func:`capture.pipeline.run.process_session` with a progress bar, prints one row per method
 (stored, skipped with the reason, failed with the error; held-out relative RMS) and the path of
 the HTML report (``<session>-report.html`` beside the store, or ``--out``).
 
@@ -70,9 +70,9 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
             quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Reconstruct a captured session with every method its captures allow and write the report."""
-    from ..methods import DEFAULT_METHODS, METHODS
-    from ..pipeline import process_session
-    from ..process import ProcessError, load_mesh
+    from ..pipeline.methods import DEFAULT_METHODS, METHODS
+    from ..pipeline.run import process_session
+    from ..pipeline.process import ProcessError, load_mesh
     names = DEFAULT_METHODS if not methods else tuple(m.strip() for m in methods.split(",") if m.strip())
     unknown = [m for m in names if m not in METHODS]
     if unknown:
@@ -94,7 +94,7 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         except SessionNotFound as exc:
             raise fail(str(exc)) from None
         if demo_lab:
-            from ..demo_lab import demo_lab_for
+            from ..pipeline.demo_lab import demo_lab_for
             kw = {**demo_lab_for(st, session).process_options(), **kw}
         report_path = out if out is not None else Path(st.root).resolve().parent / f"{session}-report.html"
         bar, update = progress_bar(quiet)

@@ -30,7 +30,7 @@ def tui(rig: str = typer.Option("sim", "--rig",
         raise typer.BadParameter(f"plan file {plan} does not exist", param_hint="--plan")
     process_options: dict = {"demo_lab": demo_lab}
     if mesh is not None:
-        from ..process import ProcessError, load_mesh
+        from ..pipeline.process import ProcessError, load_mesh
         try:
             process_options["mesh"] = load_mesh(mesh)
         except ProcessError as exc:

@@ -123,11 +123,11 @@ def process(store: Store, session: str, *, progress: Callable[[str, int, int], N
             mesh: Any = None, demo_lab: bool = False, **options: Any) -> Any:
     """``gonio process`` on ``session``: ``mesh`` (the object's, trimesh) or ``demo_lab`` (a
     session of the simulated demo lab: mesh, targets and truth from it); ``options`` go to
-    :func:`capture.pipeline.process_session` (``methods`` ...). Returns its ``ProcessReport``."""
-    from ..pipeline import process_session
+    :func:`capture.pipeline.run.process_session` (``methods`` ...). Returns its ``ProcessReport``."""
+    from ..pipeline.run import process_session
     kw: dict[str, Any] = {}
     if demo_lab:
-        from ..demo_lab import demo_lab_for
+        from ..pipeline.demo_lab import demo_lab_for
         kw = demo_lab_for(store, session).process_options()
     if mesh is not None:
         kw["mesh"] = mesh

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from capture.calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
+from capture.pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
 from capture.cli import app
 from capture.plan import Plan
 from capture.rigs import open_rig
@@ -339,7 +339,7 @@ def test_polarization_gray_card_and_probe(session):
 
 
 def test_report_png_written(session, tmp_path):
-    from capture.report import write_report
+    from capture.pipeline.calibration_report import write_report
     _, report, _, _ = session
     png = write_report(report, tmp_path / "r" / "cal.png")
     data = png.read_bytes()
@@ -443,7 +443,7 @@ def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
 def test_a_programming_error_in_a_stage_raises(tmp_path, monkeypatch):
     """Only bad data fails a stage: a bug (here a ValueError that is no CalibrationError, as a
     wrong numpy call would raise) must surface, not be reported as a failed stage."""
-    import capture.calibrate as cal
+    import capture.pipeline.calibrate as cal
 
     def broken(*args, **kwargs):
         raise ValueError("operands could not be broadcast together")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from typer.testing import CliRunner
 
-from capture.calibrate import TargetsNeeded, calibrate_session
+from capture.pipeline.calibrate import TargetsNeeded, calibrate_session
 from capture.cli import app
 from capture.plan import Plan
 from capture.runner import create_session

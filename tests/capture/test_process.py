@@ -17,10 +17,10 @@ import pytest
 from typer.testing import CliRunner
 
 from capture.cli import app
-from capture.demo_lab import DemoLab, fitter_mesh
-from capture.pipeline import process_session, relative_rms
+from capture.pipeline.demo_lab import DemoLab, fitter_mesh
+from capture.pipeline.run import process_session, relative_rms
 from capture.plan import Plan
-from capture.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, read_calibration,
+from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, read_calibration,
                              session_inputs)
 from capture.rigs import open_rig
 from capture.runner import Runner, create_session
@@ -49,7 +49,7 @@ def captured(tmp_path_factory):
     with open_rig("sim", fast=True, home=True, frame_source=lab) as opened:
         create_session(store, Plan.from_dict(PLAN), opened.rig, name="proc", reserve_bytes=0)
         assert Runner(opened.rig, store, "proc", reserve_bytes=0, prepare_target=lab.prepare_target).run() == "done"
-    from capture.calibrate import calibrate_session
+    from capture.pipeline.calibrate import calibrate_session
     calibrate_session(store, "proc", targets=lab.targets(), measurement_hdr=False)
     yield store, lab, root
     store.close()

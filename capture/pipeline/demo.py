@@ -5,7 +5,7 @@ camera rendering :class:`capture.demo_lab.DemoLab`), creates a store, captures t
 (``examples/demo-quick.toml`` or ``examples/demo.toml``: dark frames, board views at many
 turntable angles, mirror balls at every light, gray card, mirror probe, the object over
 turntable angles x lights x polarizer states x exposures, the passive capture and a held-out
-light), then runs :func:`capture.pipeline.process_session` with the simulation's ground truth and
+light), then runs :func:`capture.pipeline.run.process_session` with the simulation's ground truth and
 writes ``report.html``.
 """
 from __future__ import annotations
@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import Callable
 
 from .demo_lab import DemoLab
-from .events import EventKind
-from .pipeline import ProcessReport, process_session
-from .plan import Plan
-from .rigs import open_rig
-from .runner import Runner, create_session
-from .store import Store
+from ..events import EventKind
+from .run import ProcessReport, process_session
+from ..plan import Plan
+from ..rigs import open_rig
+from ..runner import Runner, create_session
+from ..store import Store
 
 __all__ = ["DEMO_PLANS", "DemoSettings", "run_demo", "demo_plan"]
 

@@ -71,8 +71,8 @@ from calibration.spheres import (find_mirror_sphere, lamp_spots, pick_lamp_highl
 from calibration.targets import TargetDetection, detect_charuco, detect_chessboard, make_charuco_board, to_gray_u8
 from calibration.turntable import TurntableFit, consistent_corner_order, fit_turntable, lab_frame
 
-from .plan import CALIBRATION_KINDS
-from .store import FrameRecord, SessionNotFound, Store, StoreError
+from ..plan import CALIBRATION_KINDS
+from ..store import FrameRecord, SessionNotFound, Store, StoreError
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
            "NothingToCalibrate", "calibrate_session", "SessionNotFound"]

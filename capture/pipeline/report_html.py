@@ -1,8 +1,8 @@
 """The session report: one self-contained HTML file (every picture an embedded PNG).
 
-:func:`write_html_report` draws what :func:`capture.pipeline.process_session` did from the store
+:func:`write_html_report` draws what :func:`capture.pipeline.run.process_session` did from the store
 (the plan, the frames' capture times, the stored reconstructions and their ``report.npz``
-pictures) and the run's :class:`capture.pipeline.ProcessReport` (calibration stages, timings,
+pictures) and the run's :class:`capture.pipeline.run.ProcessReport` (calibration stages, timings,
 truth comparisons). Each section says in plain words what its pictures show, for a reader who has
 never heard of the papers. Without ground truth the truth columns are left out.
 """
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from .store import Store
+from ..store import Store
 
 __all__ = ["write_html_report", "METHOD_NOTES"]
 
@@ -238,7 +238,7 @@ def _calibration_section(rep, truth, store: Store, session_id: int) -> str:
 
 
 def _method_section(i: int, outcome, stored: dict | None, pics: dict[str, np.ndarray] | None) -> str:
-    from .pipeline import SLICE_THETA_I_DEG
+    from .run import SLICE_THETA_I_DEG
     name = outcome.method
     parts = [f"<h3>{i}. {html.escape(name)}</h3>", f"<p>{html.escape(METHOD_NOTES.get(name, ''))}</p>"]
     if outcome.status in ("skipped", "failed"):

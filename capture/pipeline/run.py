@@ -1,8 +1,8 @@
 """``gonio process``: a captured session -> calibration -> every method -> stored results -> report.
 
 :func:`process_session` runs, in order: the calibration (when none is stored, or ``force``), the
-reconstruction inputs (:mod:`capture.process`), the lumitexels over the object's mesh with the
-held-out samples split off, then each requested method (:mod:`capture.methods`). Every method's
+reconstruction inputs (:mod:`capture.pipeline.process`), the lumitexels over the object's mesh with the
+held-out samples split off, then each requested method (:mod:`capture.pipeline.methods`). Every method's
 model is scored on the held-out lights (relative RMS of predicted against captured reflectance)
 and stored with :meth:`capture.store.Store.add_reconstruction`: its figures and parameters, the
 ids of the frames and calibrations it used, the code version, and its arrays (``model.npz``) and
@@ -33,7 +33,7 @@ from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .methods import DEFAULT_METHODS, METHODS, Fitted, MethodSkipped, fit_method
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, select_samples, session_inputs)
-from .store import Store
+from ..store import Store
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session", "relative_rms", "SLICE_THETA_I_DEG"]
 

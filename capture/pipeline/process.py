@@ -24,7 +24,7 @@ models. A ``passive`` capture (lamp off, room lit) becomes a :class:`PassiveInpu
 the object's normals and view directions per pixel from the mesh, and the environment map, all
 in the lab frame.
 
-Frames and units: the lab frame of :mod:`capture.calibrate` (origin on the turntable axis at the
+Frames and units: the lab frame of :mod:`capture.pipeline.calibrate` (origin on the turntable axis at the
 platter, +z up, +x towards the camera), mm; radiance in DN/s; light intensity in DN/s * mm^2 per
 unit of ``f_r cos`` (so lumitexel reflectance is ``f_r cos theta_i``, 1/sr, when the gray card
 gave the absolute scale).
@@ -47,7 +47,7 @@ from reconstruct.envmap import EnvironmentMap
 from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
 from reconstruct.raycast import Mesh, Surface, first_hits
 
-from .store import FrameRecord, Store
+from ..store import FrameRecord, Store
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
            "PassiveInput", "ProcessInputs", "read_calibration", "merge_step", "session_inputs",

@@ -155,7 +155,7 @@ class DemoLab:
         return GrayCardPose(tuple(pose[:3, 3]), tuple(-pose[:3, 2]))
 
     def process_options(self) -> dict[str, Any]:
-        """What :func:`capture.pipeline.process_session` takes from this lab: the fitter's
+        """What :func:`capture.pipeline.run.process_session` takes from this lab: the fitter's
         ``mesh``, the ``targets``, the ``gray_card`` pose, the probe ball's mirror reflectance
         and the ``truth``."""
         return {"mesh": fitter_mesh(self.object), "targets": self.targets(),
