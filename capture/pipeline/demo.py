@@ -25,7 +25,7 @@ from ..store import Store
 
 __all__ = ["DEMO_PLANS", "DemoSettings", "run_demo", "demo_plan"]
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 #: the demo's two sizes: plan file, simulated camera resolution, methods' options (the quick one
 #: gives reflectance sharing 300 centres per RBF: ~7 s instead of ~100 s for 1000 on 140k samples,
 #: held-out error 0.51 instead of 0.44 on the bunny; the full one 500)
