@@ -247,7 +247,8 @@ def _method_section(i: int, outcome, stored: dict | None, pics: dict[str, np.nda
     figures = (stored or {}).get("result", {}).get("figures", outcome.figures)
     rows = [{"measure": k, "value": v} for k, v in figures.items() if k != "table_ii_rms"]
     parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
-                 "the captures under lights it never saw; <b>truth_rel_rms</b>: the same against the "
+                 "the captures under lights it never saw (<b>_trimmed</b>: without the 1 % worst samples, which "
+                 "carry most of a glossy object's pooled error); <b>truth_rel_rms</b>: the same against the "
                  "true reflectance (simulation only).</p>" + _table(rows))
     if figures.get("table_ii_rms"):
         parts.append("<p>Lensch Table II: the RMS fitting error after each stage (single average BRDF, "
