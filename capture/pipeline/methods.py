@@ -109,7 +109,8 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> 
                   params={"n_materials": "from the data", "fit_normals": True, "rng": rng},
                   figures={"materials": fit.n_materials, "table_ii_rms": dict(fit.rms),
                            "table_ii_relative_rms": dict(fit.relative_rms), "flagged_texels": flags},
-                  normals=None if fit.normals is None else np.asarray(fit.normals, float))
+                  normals=None if fit.normals is None else np.asarray(fit.normals, float),
+                  warnings=[h for h in fit.history if h.startswith("normal-fitting round")])
 
 
 # -- Zickler et al. 2005 ------------------------------------------------------------------------

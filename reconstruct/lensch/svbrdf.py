@@ -69,7 +69,7 @@ class SvbrdfFit:
     n_samples : ndarray (T,) int
         Samples per texel.
     history : tuple of str
-        The clustering's split decisions.
+        The clustering's split decisions, then any normal-fitting round that was undone.
     """
 
     labels: np.ndarray
@@ -333,10 +333,11 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         tick()
 
     normals_local = normals_out = None
+    undone: list[str] = []
     if fit_normals:  # Sec. 9, then refit the clusters' BRDFs in the new frames and project again
         normals_local = np.tile([0.0, 0.0, 1.0], (T, 1))
         wi0, wo0 = wi, wo  # the samples in the mesh normals' frames
-        for _ in range(normal_rounds):
+        for round_ in range(normal_rounds):
             # a round that raises the total error is undone and ends the fitting (on some
             # clusterings of the demo object a round's refit blew the training error up 10x)
             before = (normals_local, fits, mats, basis, size, weights, sse, wi, wo, t, z, cos_i)
@@ -363,6 +364,8 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
                                  weight_prior, select_projection)
             tick()
             if sse.sum() > 1.05 * before[6].sum():
+                undone.append(f"normal-fitting round {round_ + 1} raised the error "
+                              f"{sse.sum() / before[6].sum():.2f}x: undone")
                 normals_local, fits, mats, basis, size, weights, sse, wi, wo, t, z, cos_i = before
                 break
         rms["normal_fit"] = _rms(sse.sum(), n_res)
@@ -379,7 +382,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
         relative_rms=rel, too_few_samples=counts < min_samples,
         no_highlight=_no_highlight(t, z, wi, w, tx, T, labels, mats), n_samples=counts,
-        history=clus.history)
+        history=(*clus.history, *undone))
 
 
 def fit_svbrdf_lumitexels(lt, **kw) -> SvbrdfFit:

@@ -81,8 +81,14 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(tmp_
         # fixed draws in tests/reconstruct/test_lensch_object.py
         assert t2["single"] > t2["cluster"] > t2["projection"], t2
         assert t2["normal_fit"] < t2["single"], t2
-        # normal fitting recovers relief the smooth mesh lacks (seen: 1.41 -> 0.82 deg median)
-        assert f["normal_error_fitted_deg"] < 0.8 * f["normal_error_mesh_deg"], f
+        # normal fitting recovers relief the smooth mesh lacks (seen: 1.41 -> 0.82 deg median),
+        # or, on the clusterings where its first round raised the error (about one run in
+        # four; docs/architecture.md), the method says it undid it and keeps the mesh normals
+        undone = [w for w in methods["lensch"]["warnings"] if "normal-fitting round 1" in w]
+        if undone:
+            assert abs(f["normal_error_fitted_deg"] - f["normal_error_mesh_deg"]) < 1e-6, f
+        else:
+            assert f["normal_error_fitted_deg"] < 0.8 * f["normal_error_mesh_deg"], f
         # better than the matte reference under lights it never saw and against the truth (seen:
         # 0.63 vs 0.80 held out, 0.65 vs 0.83 vs truth; the measured samples themselves are
         # 0.27 from the truth at 320 x 240)
