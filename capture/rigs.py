@@ -2,8 +2,9 @@
 
 Every command that needs hardware calls :func:`open_rig`::
 
-    with open_rig("sim") as opened:            # the whole simulated lab
+    with open_rig("sim") as opened:            # the whole simulated lab (DemoLab's scenes)
         opened.rig.turntable.move_to(30).wait()
+    with open_rig("sim", resolution=(640, 480)) as opened:  # its camera at 640 x 480
     with open_rig("lab.toml") as opened:       # real devices; any role with port = "sim"
         ...                                    # gets a simulator of its own
 
@@ -20,11 +21,17 @@ from typing import Any, Callable
 
 from rig import Axis, Rig, load_config, wait_all
 from rig.rig import ROLES, ConfigError
-from sims.lab import SimLab
+from sims.lab import LAB_NAME, SimLab
 
 
 #: the driver that speaks each simulated device's protocol (what ``port = "sim"`` serves)
 SIM_DRIVERS = {"turntable": "zaber", "positioner": "grbl", "polarizer": "elliptec", "camera": "ptp"}
+
+
+#: ``[rig] camera_scene`` in the config of ``open_rig("sim")`` when its camera renders the
+#: built-in lab (:class:`capture.pipeline.demo_lab.DemoLab`): a session's rig snapshots say by it
+#: whose targets, mesh and ground truth its frames show
+BUILT_IN_SCENE = "demo lab"
 
 
 @dataclass
@@ -74,22 +81,31 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
         Time allowed for homing, seconds.
     lab_options
         Passed to :class:`SimLab` (``frame_source``, ``kinematics``, ``options``), but for
-        ``prepare_target``: the scene changer that goes with a given ``frame_source``. Without a
-        ``frame_source`` a simulated camera renders :func:`sims.world.lab_world`, whose
-        ``prepare_target`` the result carries.
+        ``prepare_target``: the scene changer that goes with a given ``frame_source``, and
+        ``resolution``: (width, height) of the built-in lab's camera. Without a ``frame_source``
+        a simulated camera renders :class:`capture.pipeline.demo_lab.DemoLab` (the lab
+        ``gonio demo`` captures), at ``resolution`` (default 320 x 240 when ``fast``, else
+        640 x 480: ``demo_lab.FAST_RESOLUTION`` / ``FULL_RESOLUTION``), and the result carries
+        its ``prepare_target``; for ``"sim"`` the config's ``[rig]`` table then says so
+        (``camera_scene`` = :data:`BUILT_IN_SCENE`, ``camera_resolution``).
 
     Raises
     ------
     rig.ConfigError
         For a malformed rig file; ``RigError`` subclasses for device faults.
+    ValueError
+        ``resolution`` beside a ``frame_source``, or not two even pixel counts >= 16.
     """
     lab = None
     prepare_target = lab_options.pop("prepare_target", None)
     where = "rig config" if isinstance(spec, dict) or spec == "sim" else str(spec)  # for messages
     if isinstance(spec, str) and spec == "sim":
-        prepare_target = _sim_scene(fast, lab_options, prepare_target)
+        prepare_target, scene = _sim_scene(fast, lab_options, prepare_target)
         lab = SimLab(fast=fast, **lab_options).start()
         cfg = lab.rig_config()
+        if scene is not None:
+            cfg["rig"].update(camera_scene=BUILT_IN_SCENE,
+                              camera_resolution=[scene.camera.width, scene.camera.height])
     else:
         cfg = load_config(spec)
         sim_roles = [role for role, section in cfg.items() if role in ROLES and section.get("port") == "sim"]
@@ -102,7 +118,9 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
             if "positioner" in sim_roles and "kinematics" in cfg["positioner"]:
                 lab_options.setdefault("kinematics", _kinematics_table(cfg["positioner"]["kinematics"]))
             if "camera" in sim_roles:
-                prepare_target = _sim_scene(fast, lab_options, prepare_target)
+                prepare_target, _ = _sim_scene(fast, lab_options, prepare_target)
+            elif "resolution" in lab_options:
+                raise ValueError(f"resolution: {where} simulates no camera")
             lab = SimLab(fast=fast, roles=sim_roles, **lab_options).start()
             served = lab.rig_config()
             cfg = {role: ({**section, "port": served[role]["port"]} if role in sim_roles else section)
@@ -122,14 +140,35 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
 
 
 def _sim_scene(fast: bool, lab_options: dict[str, Any], prepare_target):
-    """The simulated camera's scene changer: the given one beside a given ``frame_source``,
-    else the default world's (whose frame source goes into ``lab_options``)."""
+    """(scene changer, built-in lab or None) of the simulated camera: the given changer beside a
+    given ``frame_source``, else a new :class:`DemoLab` (which goes into ``lab_options`` as the
+    frame source) and its own."""
+    resolution = lab_options.pop("resolution", None)
     if lab_options.get("frame_source") is not None:
-        return prepare_target
-    from sims.world import lab_world  # imported lazily: it loads the renderer
-    world = lab_world(fast)
-    lab_options["frame_source"] = world.frame_source
-    return world.prepare_target
+        if resolution is not None:
+            raise ValueError("resolution: sets the built-in lab's camera; a given frame_source renders "
+                             "at its own")
+        return prepare_target, None
+    from .pipeline.demo_lab import FAST_RESOLUTION, FULL_RESOLUTION, DemoLab  # loads the renderer
+    if resolution is None:
+        resolution = FAST_RESOLUTION if fast else FULL_RESOLUTION
+    if not isinstance(resolution, (tuple, list)) or len(resolution) != 2:
+        raise ValueError(f"resolution: (width, height) in pixels, got {resolution!r}")
+    try:
+        scene = DemoLab(*resolution)
+    except ValueError as exc:
+        raise ValueError(f"resolution: {exc}") from None
+    lab_options["frame_source"] = scene
+    return scene.prepare_target, scene
+
+
+def recorded_in_built_in_lab(snapshots: list[dict[str, Any]]) -> bool:
+    """Whether every rig snapshot of a session (:meth:`capture.store.Store.rig_snapshots`) says
+    it was recorded on ``--rig sim`` with the camera rendering the built-in lab (see
+    :func:`open_rig`), whose targets, mesh and ground truth are then known."""
+    tables = [s["config"].get("rig", {}) for s in snapshots]
+    return bool(tables) and all(t.get("name") == LAB_NAME and t.get("camera_scene") == BUILT_IN_SCENE
+                                for t in tables)
 
 
 def _kinematics_table(value: Any) -> Any:

@@ -46,7 +46,9 @@ class SimLab:
         Moves, homing and exposures complete at once (tests). ``False`` models motion time.
     frame_source : callable, optional
         ``frame_source(state) -> bytes`` (DNG) for the camera; ``state`` includes
-        :meth:`state`. Default: :func:`sims.world.lab_frame_source` (the rendered rig).
+        :meth:`state`. Default: the camera simulator's stand-in gradient
+        (:func:`sims.ptp_sim.placeholder_frame`); the rendered lab, its scenes and targets, is
+        what ``capture.rigs.open_rig("sim")`` hands in (``capture.pipeline.demo_lab.DemoLab``).
     kinematics : str or mapping
         ``"arm"``, ``"gantry"`` (the defaults in :data:`KINEMATICS`) or a full table.
     roles : iterable of str, optional
@@ -103,8 +105,6 @@ class SimLab:
             elliptec = importlib.import_module("sims.elliptec_sim")
             return elliptec.ElliptecSim(role, fast=self.fast, **opts)
         ptp = importlib.import_module("sims.ptp_sim")
-        if self.frame_source is None:  # the rendered rig (imported lazily: it loads the renderer)
-            self.frame_source = importlib.import_module("sims.world").lab_frame_source(self.fast)
         kwargs = {"extra_state": self.state, "fast": self.fast, "frame_source": self.frame_source, **opts}
         return ptp.PtpCameraSim(**kwargs)
 

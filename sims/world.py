@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, replace
-from datetime import datetime, timezone
+from datetime import datetime, timedelta
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -39,6 +39,8 @@ LIGHT_INTENSITY = (8.0e5, 7.5e5, 6.8e5)
 #: The ring flash around the lens: intensity (renderer units / sr) and radius of its emitter, mm.
 RING_FLASH_INTENSITY = 2.0e5
 RING_FLASH_RADIUS_MM = 40.0
+#: What the simulated camera's clock reads at its first capture (see :func:`camera_clock`).
+CAMERA_CLOCK_START = datetime(2026, 1, 1)
 #: Default light arm: radius about its centre (mm) and the centre (world, mm).
 ARM_RADIUS_MM = 500.0
 ARM_CENTER_MM = (0.0, 0.0, 0.0)
@@ -470,9 +472,8 @@ class SimWorld:
         with self._lock:  # one frame at a time: a scene change (set_scene) waits for it
             rad = self.radiance(st)
             raw = self.sensor.expose(rad, st.exposure_s, st.iso, self._rng, **self._optics(st))
-        stamp = datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S")
         return self.sensor.to_dng(raw, exposure_s=st.exposure_s, iso=st.iso, fnumber=st.fnumber,
-                                  datetime=stamp)
+                                  datetime=camera_clock(state))
 
     __call__ = frame_source
 
@@ -520,19 +521,12 @@ def capture_targets() -> dict[str, Any]:
             "gray_card_albedo": gray_card_target().spec.albedo}
 
 
-def lab_world(fast: bool = True, object: GroundTruthObject | str | None = "sphere") -> "SimWorld":
-    """The simulated lab's default scene: a :class:`SimWorld` with ``object`` on the turntable,
-    its ground-truth camera at 320 x 240 in ``fast`` mode (tests: ~0.1 s per frame) or the full
-    1200 x 800 otherwise. Its :meth:`SimWorld.frame_source` feeds the camera simulator and its
-    :meth:`SimWorld.prepare_target` stages each scene target."""
-    camera = default_camera(320, 240) if fast else default_camera()
-    return SimWorld(object, camera=camera)
-
-
-def lab_frame_source(fast: bool = True, object: GroundTruthObject | str | None = "sphere"):
-    """The default frame source of :class:`sims.lab.SimLab`: :func:`lab_world`'s bound
-    :meth:`SimWorld.frame_source`."""
-    return lab_world(fast, object).frame_source
+def camera_clock(state: Mapping[str, Any] | None) -> str:
+    """The DNG ``DateTime`` of a frame: the simulated camera's clock, never set, reads
+    :data:`CAMERA_CLOCK_START` plus one second per capture (``state["capture_number"]``), so the
+    same plan captured twice gives byte-identical files (the store records the real times)."""
+    n = int((state or {}).get("capture_number", 0))
+    return (CAMERA_CLOCK_START + timedelta(seconds=n)).strftime("%Y:%m:%d %H:%M:%S")
 
 
 def supersampled_camera(camera: CameraModel, s: int) -> CameraModel:

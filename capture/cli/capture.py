@@ -68,6 +68,8 @@ def _command(f):
     return app.command(help=unwrap(f.__doc__))(f)
 
 RIG_HELP = "'sim' for the built-in simulated lab, or a rig TOML file (driver and port per device)."
+SIM_CAMERA_HELP = ("Resolution WIDTHxHEIGHT of the simulated lab's camera (--rig sim; default 320x240, "
+                   "640x480 with --no-fast; examples/demo.toml is made for 640x480).")
 EXIT = {"done": 0, "paused": 3, "aborted": 4}
 
 
@@ -78,9 +80,22 @@ def _load_plan(path: Path) -> Plan:
         raise fail(str(exc)) from None
 
 
-def _open_rig(spec: str, fast: bool) -> OpenedRig:
+def _sim_camera(text: str | None, rig: str | None) -> dict[str, Any]:
+    """``--sim-camera 640x480`` -> ``open_rig``'s ``resolution`` option (empty when not given)."""
+    if text is None:
+        return {}
+    if rig != "sim":
+        raise fail(f"--sim-camera sets the simulated lab's camera; it needs --rig sim, got --rig {rig!r}")
+    width, _, height = text.lower().partition("x")
+    if not (width.isdigit() and height.isdigit()):
+        raise fail(f"--sim-camera must be WIDTHxHEIGHT in pixels (e.g. 640x480), got {text!r}")
+    return {"resolution": (int(width), int(height))}
+
+
+def _open_rig(spec: str, fast: bool, sim_camera: str | None = None) -> OpenedRig:
+    options = _sim_camera(sim_camera, spec)
     try:
-        return open_rig(spec, fast=fast)
+        return open_rig(spec, fast=fast, **options)
     except (RigError, ValueError, OSError) as exc:
         raise fail(f"cannot open rig {spec!r}: {exc}") from None
 
@@ -98,7 +113,8 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
          rig: Optional[str] = typer.Option(None, "--rig", help=RIG_HELP + " Checks limits and uses "
                                            "the devices' speeds; without it, default speeds."),
          steps: bool = typer.Option(False, "--steps", help="Also list every step."),
-         fast: bool = typer.Option(True, help="Simulated devices move instantly.")) -> None:
+         fast: bool = typer.Option(True, help="Simulated devices move instantly."),
+         sim_camera: Optional[str] = typer.Option(None, "--sim-camera", help=SIM_CAMERA_HELP)) -> None:
     """Validate a plan and print its steps, frames, bytes and estimated time.
 
     With --rig the plan is checked against the devices' limits and timed with their speeds;
@@ -106,7 +122,8 @@ def plan(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
     field, e.g. light.elevation_deg[3]).
     """
     p = _load_plan(plan_file)
-    opened = _open_rig(rig, fast) if rig else None
+    _sim_camera(sim_camera, rig)  # --sim-camera without --rig sim: an error before anything opens
+    opened = _open_rig(rig, fast, sim_camera) if rig else None
     try:
         if opened is not None:
             try:
@@ -282,6 +299,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
                                               "'_', '.', '-' (default: <plan name>-<date>-<time>)."),
         operator: Optional[str] = typer.Option(None, help="Operator (overrides the plan's)."),
         fast: bool = typer.Option(True, help="Simulated devices move instantly."),
+        sim_camera: Optional[str] = typer.Option(None, "--sim-camera", help=SIM_CAMERA_HELP),
         home: bool = typer.Option(True, help="Home axes that report not homed before starting."),
         yes: bool = typer.Option(False, "--yes", "-y", help="Do not prompt for target changes."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
@@ -305,7 +323,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         except StoreError as exc:
             raise fail(str(exc)) from None
     p = _load_plan(plan_file)
-    opened = _open_rig(rig, fast)
+    opened = _open_rig(rig, fast, sim_camera)
     with _ctrl_c_counted() as interrupts, opened:
         try:  # before the store is created: a plan the rig cannot run leaves no empty store
             p.check_rig(opened.rig)
@@ -336,6 +354,8 @@ def resume(name: str = typer.Argument(..., help="Session name."),
            plan_file: Optional[Path] = typer.Option(None, "--plan", help="Plan file to compare "
                                                     "against (default: the one the session was planned from)."),
            fast: bool = typer.Option(True, help="Simulated devices move instantly."),
+           sim_camera: Optional[str] = typer.Option(None, "--sim-camera", help=SIM_CAMERA_HELP + " Default: "
+                                                    "the one the session was recorded with."),
            home: bool = typer.Option(True, help="Home axes that report not homed before resuming."),
            yes: bool = typer.Option(False, "--yes", "-y", help="Do not prompt for target changes."),
            quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
@@ -367,7 +387,10 @@ def resume(name: str = typer.Argument(..., help="Session name."),
         elif path is not None:
             typer.secho(f"note: plan file {path} is gone; resuming from the plan stored with "
                         "the session", fg=typer.colors.YELLOW)
-        opened = _open_rig(rig, fast)
+        if rig == "sim" and sim_camera is None:  # the camera the session's frames were taken with
+            recorded = [s["config"].get("rig", {}).get("camera_resolution") for s in st.rig_snapshots(info.id)]
+            sim_camera = next(("{}x{}".format(*r) for r in reversed(recorded) if r), None)
+        opened = _open_rig(rig, fast, sim_camera)
         with _ctrl_c_counted() as interrupts, opened:
             try:
                 Plan.from_dict(info.plan).check_rig(opened.rig)

@@ -57,12 +57,11 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             methods: str = typer.Option(None, "--methods", help="Comma-separated methods to run "
                                         "(default: lambertian,lensch,sharing,passive)."),
             mesh: Path = typer.Option(None, "--mesh", help="The object's mesh (any format trimesh "
-                                      "reads), object frame = lab frame at turntable reading 0, mm."),
+                                      "reads), object frame = lab frame at turntable reading 0, mm. "
+                                      "A session recorded on --rig sim brings its own (with targets, "
+                                      "gray-card pose and ground truth)."),
             targets: Path = typer.Option(None, "--targets", help="TOML file of the lab's targets "
                                          "(LabTargets fields), for a calibration run here."),
-            demo_lab: bool = typer.Option(False, "--demo-lab", help="The session was captured in the "
-                                          "simulated demo lab: take the mesh, targets, gray-card pose and "
-                                          "ground truth from it."),
             force: bool = typer.Option(False, "--force", help="Re-run the calibration and every method "
                                        "even when stored."),
             out: Path = typer.Option(None, "--out", help="Report file (default: <session>-report.html "
@@ -77,25 +76,24 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
     unknown = [m for m in names if m not in METHODS]
     if unknown:
         raise fail(f"--methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
+    from ..rigs import recorded_in_built_in_lab
     kw = {}
     if mesh is not None:
         try:
             kw["mesh"] = load_mesh(mesh)
         except ProcessError as exc:
             raise fail(str(exc)) from None
-    elif not demo_lab:
-        raise fail("--mesh FILE is needed: the object's mesh (or --demo-lab for a demo-lab session)")
     if targets is not None:
         kw["targets"] = _targets(targets)
     console = Console()
     with open_store(store) as st:
         try:
-            st.session(session)
+            info = st.session(session)
         except SessionNotFound as exc:
             raise fail(str(exc)) from None
-        if demo_lab:
-            from ..pipeline.demo_lab import demo_lab_for
-            kw = {**demo_lab_for(st, session).process_options(), **kw}
+        if mesh is None and not recorded_in_built_in_lab(st.rig_snapshots(info.id)):
+            raise fail("--mesh FILE is needed: the object's mesh (sessions recorded on --rig sim bring "
+                       "their own)")
         report_path = out if out is not None else Path(st.root).resolve().parent / f"{session}-report.html"
         bar, update = progress_bar(quiet)
         with bar:

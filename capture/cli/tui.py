@@ -19,16 +19,15 @@ def tui(rig: str = typer.Option("sim", "--rig",
         fast: bool = typer.Option(False, help="Simulated devices move instantly."),
         poll: float = typer.Option(0.25, help="Device table refresh period, seconds."),
         mesh: Optional[Path] = typer.Option(None, "--mesh", help="The object's mesh, for processing "
-                                            "sessions (P on the Session tab)."),
-        demo_lab: bool = typer.Option(False, "--demo-lab", help="Process sessions of the simulated demo "
-                                      "lab (mesh, targets and truth from it).")) -> None:
+                                            "sessions (P on the Session tab); sessions recorded on "
+                                            "--rig sim bring their own.")) -> None:
     """Devices (jog, home, stop, camera test shot), sessions (plan, start, pause, resume, abort,
     progress), preview with histograms, and the event log. Press F1 inside for the keys."""
     if poll <= 0:
         raise typer.BadParameter(f"must be > 0 seconds, got {poll}", param_hint="--poll")
     if plan is not None and not plan.is_file():
         raise typer.BadParameter(f"plan file {plan} does not exist", param_hint="--plan")
-    process_options: dict = {"demo_lab": demo_lab}
+    process_options: dict = {}
     if mesh is not None:
         from ..pipeline.process import ProcessError, load_mesh
         try:

@@ -107,9 +107,9 @@ class LabTargets:
     """The lab's physical calibration targets (what the pipeline looks for), millimetres.
 
     A real lab states its own (``gonio calibrate --targets FILE``, a TOML file of these field
-    names): the board's square size sets the metric scale of the turntable frame. The simulated
-    lab's come from the simulator itself (:meth:`simulated`). A board is given by all of its
-    fields or none; at least one board is needed.
+    names): the board's square size sets the metric scale of the turntable frame. The built-in
+    simulated lab states its own (:meth:`capture.pipeline.demo_lab.DemoLab.targets`). A board is
+    given by all of its fields or none; at least one board is needed.
     """
 
     chessboard_inner: tuple[int, int] | None = None
@@ -134,13 +134,6 @@ class LabTargets:
     #: cv2.CALIB_* flags for the intrinsics fit; with k3 free the fit fixes it at 0 when the
     #: views do not determine it (a turntable-only board sweep covers only the image centre)
     intrinsics_flags: int = 0
-
-    @classmethod
-    def simulated(cls, **overrides) -> "LabTargets":
-        """The targets of the simulated lab's capture scenes, as the simulator states them
-        (:func:`sims.world.capture_targets`), with ``overrides`` (field names) applied."""
-        from sims.world import capture_targets
-        return cls(**{**capture_targets(), **overrides})
 
     def has_board(self, kind: str) -> bool:
         """Whether the ``'chessboard'`` or ``'charuco'`` board is described."""
@@ -889,16 +882,19 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
 
 
 def _session_targets(store: Store, info) -> LabTargets:
-    """The simulator's targets for a session recorded on the simulated lab; else TargetsNeeded."""
-    from sims.lab import LAB_NAME
-    rigs = {str(s["config"].get("rig", {}).get("name", "a rig file")) for s in store.rig_snapshots(info.id)}
-    if rigs == {LAB_NAME}:
-        return LabTargets.simulated()
+    """The built-in simulated lab's targets for a session recorded in it; else TargetsNeeded."""
+    from ..rigs import recorded_in_built_in_lab
+    snapshots = store.rig_snapshots(info.id)
+    if recorded_in_built_in_lab(snapshots):
+        from .demo_lab import DemoLab
+        return DemoLab().targets()
+    rigs = {str(s["config"].get("rig", {}).get("name", "a rig file")) for s in snapshots}
     fields_ = ", ".join(f.name for f in fields(LabTargets))
     raise TargetsNeeded(
         f"session {info.name!r} was recorded on {', '.join(sorted(rigs)) or 'an unrecorded rig'}, "
-        f"not on the simulated lab, so its targets' sizes are unknown: state them with --targets "
-        f"FILE (gonio calibrate; targets= in Python), a TOML file of LabTargets fields: {fields_}")
+        f"not in the built-in simulated lab (gonio capture run --rig sim), so its targets' sizes are "
+        f"unknown: state them with --targets FILE (gonio calibrate; targets= in Python), a TOML "
+        f"file of LabTargets fields: {fields_}")
 
 
 def calibrate_session(store: Store, session_name: str, *,
@@ -916,9 +912,10 @@ def calibrate_session(store: Store, session_name: str, *,
         Called before each stage with its name (``index`` 0-based of ``total`` stages), during
         the long hdr stage with ``'hdr k/n steps'``, and once with ``('done', total, total)``.
     targets : LabTargets, optional
-        Physical targets (board geometry, sphere radius, card albedo); default: the simulated
-        lab's (:meth:`LabTargets.simulated`) when every rig snapshot of the session says it was
-        recorded on the simulated lab, else :class:`TargetsNeeded`.
+        Physical targets (board geometry, sphere radius, card albedo); default: the built-in
+        simulated lab's (:meth:`capture.pipeline.demo_lab.DemoLab.targets`) when every rig
+        snapshot of the session says it was recorded in it
+        (:func:`capture.rigs.recorded_in_built_in_lab`), else :class:`TargetsNeeded`.
     stages : tuple of str
         Subset of :data:`STAGES` to run (later stages skip when an earlier one they need is
         left out).

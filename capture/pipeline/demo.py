@@ -1,12 +1,14 @@
 """``gonio demo``: the whole job on the simulated lab, start to finish, in a fresh folder.
 
-:func:`run_demo` starts the simulated rig (all four devices on their real protocols, the
-camera rendering :class:`capture.demo_lab.DemoLab`), creates a store, captures the demo plan
+:func:`run_demo` does what ``gonio capture run PLAN --rig sim --sim-camera WxH`` and then ``gonio
+process`` do: it starts the simulated rig (all four devices on their real protocols, the camera
+rendering :class:`capture.pipeline.demo_lab.DemoLab`), creates a store, captures the demo plan
 (``examples/demo-quick.toml`` or ``examples/demo.toml``: dark frames, board views at many
 turntable angles, mirror balls at every light, gray card, mirror probe, the object over
 turntable angles x lights x polarizer states x exposures, the passive capture and a held-out
-light), then runs :func:`capture.pipeline.run.process_session` with the simulation's ground truth and
-writes ``report.html``.
+light), then runs :func:`capture.pipeline.run.process_session`, which takes the lab's mesh,
+targets and ground truth from the session's rig snapshots, and writes ``report.html``. The same
+plan captured by ``gonio capture run`` gives the same frames, byte for byte.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .demo_lab import DemoLab
+from .demo_lab import FAST_RESOLUTION, FULL_RESOLUTION
 from ..events import EventKind
 from .run import ProcessReport, process_session
 from ..plan import Plan
@@ -26,26 +28,23 @@ from ..store import Store
 __all__ = ["DEMO_PLANS", "DemoSettings", "run_demo", "demo_plan"]
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-#: the demo's two sizes: plan file, simulated camera resolution, methods' options (the quick one
-#: gives reflectance sharing 300 centres per RBF: ~7 s instead of ~100 s for 1000 on 140k samples,
-#: held-out error 0.51 instead of 0.44 on the bunny; the full one 500)
-DEMO_PLANS = {"quick": ("demo-quick.toml", (320, 240), {"sharing": {"max_centers": 300}}),
-              "full": ("demo.toml", (640, 480), {"sharing": {"max_centers": 500}})}
+#: the demo's two sizes: plan file and simulated camera resolution (the methods' options follow
+#: the resolution: :meth:`capture.pipeline.demo_lab.DemoLab.method_options`)
+DEMO_PLANS = {"quick": ("demo-quick.toml", FAST_RESOLUTION), "full": ("demo.toml", FULL_RESOLUTION)}
 
 
 @dataclass(frozen=True)
 class DemoSettings:
-    """Which demo: ``plan`` file, camera ``resolution`` (width, height), ``method_options``."""
+    """Which demo: ``plan`` file, camera ``resolution`` (width, height)."""
 
     plan: Path
     resolution: tuple[int, int]
-    method_options: dict
 
 
 def demo_plan(quick: bool) -> DemoSettings:
-    """The demo's plan file, camera resolution and method options (``--quick`` or the full demo)."""
-    name, res, options = DEMO_PLANS["quick" if quick else "full"]
-    return DemoSettings(EXAMPLES / name, res, options)
+    """The demo's plan file and camera resolution (``--quick`` or the full demo)."""
+    name, res = DEMO_PLANS["quick" if quick else "full"]
+    return DemoSettings(EXAMPLES / name, res)
 
 
 def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
@@ -73,13 +72,12 @@ def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
     out.mkdir(parents=True, exist_ok=True)
     settings = demo_plan(quick)
     plan = Plan.from_toml(settings.plan)
-    lab = DemoLab(*settings.resolution)
     store = Store(out / "store", durable=False)
     say(f"store: {store.root}")
     try:
-        with open_rig("sim", fast=True, home=True, frame_source=lab) as opened:
+        with open_rig("sim", fast=True, home=True, resolution=settings.resolution) as opened:
             name = create_session(store, plan, opened.rig, name=plan.name, reserve_bytes=0).name
-            runner = Runner(opened.rig, store, name, reserve_bytes=0, prepare_target=lab.prepare_target)
+            runner = Runner(opened.rig, store, name, reserve_bytes=0, prepare_target=opened.prepare_target)
             if progress is not None:
                 runner.bus.subscribe(lambda e: progress("capture", e.data.get("frames_done", 0),
                                                         e.data.get("frames_total", 1))
@@ -91,7 +89,6 @@ def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
                 raise RuntimeError(f"the demo capture ended {state}; see `gonio session show {name} "
                                    f"--store {store.root}`")
         say("processing: calibration, reconstruction inputs, methods, report")
-        return process_session(store, name, progress=progress, report_path=out / "report.html",
-                               method_options=settings.method_options, **lab.process_options())
+        return process_session(store, name, progress=progress, report_path=out / "report.html")
     finally:
         store.close()

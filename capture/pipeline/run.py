@@ -130,12 +130,17 @@ class _Clock:
 
 def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFAULT_METHODS,
                     mesh: trimesh.Trimesh | None = None, targets: LabTargets | None = None,
-                    gray_card: GrayCardPose | None = None, probe_reflectance: float = 1.0, truth=None,
+                    gray_card: GrayCardPose | None = None, probe_reflectance: float | None = None, truth=None,
                     force: bool = False, rng: int = 0,
                     method_options: dict[str, dict[str, Any]] | None = None,
                     progress: Callable[[str, int, int], None] | None = None,
                     report_path: str | Path | None = None) -> ProcessReport:
     """Calibrate (if needed), build the inputs, run and store each method, write the report.
+
+    A session recorded in the built-in simulated lab (``gonio capture run --rig sim``, ``gonio
+    demo``; :func:`capture.rigs.recorded_in_built_in_lab`) takes every option not given here from
+    the lab itself (:meth:`capture.pipeline.demo_lab.DemoLab.process_options`: mesh, targets,
+    gray-card pose, probe reflectance, truth, method options).
 
     Parameters
     ----------
@@ -144,13 +149,14 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     methods : sequence of str
         Names from :data:`capture.methods.METHODS`; each is run if the captures allow it.
     mesh : trimesh.Trimesh
-        The object's mesh in the object frame (the lab frame at turntable reading 0), mm.
+        The object's mesh in the object frame (the lab frame at turntable reading 0), mm (needed
+        unless the session was recorded in the built-in simulated lab).
     targets : LabTargets, optional
         The lab's calibration targets (for a calibration run here).
     gray_card : GrayCardPose, optional
         The card's pose, for the lamp's absolute intensity.
-    probe_reflectance : float
-        The mirror probe's reflectance (divided out of the environment map).
+    probe_reflectance : float, optional
+        The mirror probe's reflectance (divided out of the environment map; default 1).
     truth : capture.demo_lab.DemoTruth, optional
         Ground truth of a simulated session (adds truth columns).
     force : bool
@@ -158,7 +164,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     rng : int
         Seed handed to the methods.
     method_options : dict of str -> dict, optional
-        Per method, its own options (:func:`capture.methods.fit_method`).
+        Per method, its own options (:func:`capture.methods.fit_method`; they replace the built-in
+        lab's for that method).
     progress : callable(stage, done, total), optional
         Stage name and progress within it.
     report_path : path, optional
@@ -174,9 +181,18 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
+    info = store.session(session)
+    given = {"mesh": mesh, "targets": targets, "gray_card": gray_card, "probe_reflectance": probe_reflectance,
+             "truth": truth, "method_options": method_options}
+    lab = _built_in_lab_options(store, session)
+    if lab is not None:
+        given = {k: lab[k] if v is None else v for k, v in given.items()}
+        given["method_options"] = {**lab["method_options"], **(method_options or {})}
+    mesh, targets, gray_card, truth, method_options = (given[k] for k in ("mesh", "targets", "gray_card",
+                                                                          "truth", "method_options"))
+    probe_reflectance = 1.0 if given["probe_reflectance"] is None else given["probe_reflectance"]
     if mesh is None:
         raise ValueError("mesh: the object's mesh is needed (gonio process --mesh FILE)")
-    info = store.session(session)
     rep = ProcessReport(session)
     clock = _Clock(rep, progress)
     with clock.stage("calibration"):
@@ -227,6 +243,16 @@ def _jsonable(obj: Any) -> Any:
     if hasattr(obj, "tolist"):
         return obj.tolist()
     return str(obj)
+
+
+def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
+    """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
+    (at its frames' resolution), None for any other rig."""
+    from ..rigs import recorded_in_built_in_lab
+    if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
+        return None
+    from .demo_lab import demo_lab_for
+    return demo_lab_for(store, session).process_options()
 
 
 def _calibration(store: Store, session: str, targets, force: bool, progress) -> list[dict[str, Any]]:

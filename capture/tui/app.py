@@ -190,7 +190,8 @@ class GonioApp(App[None]):
                  prompt_targets: bool | None = None, process_options: dict[str, Any] | None = None,
                  **runner_options: Any) -> None:
         super().__init__()
-        #: what ``process`` needs besides the session: ``mesh`` (trimesh) or ``demo_lab`` True
+        #: what ``process`` takes besides the session: ``mesh`` (trimesh; not for sessions of
+        #: the built-in simulated lab), ``methods`` ...
         self.process_options = dict(process_options or {})
         self.processing: str | None = None   # the session being processed
         self.rig_spec = rig

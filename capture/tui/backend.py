@@ -120,21 +120,16 @@ def make_runner(rig: Rig, store: Store, *, plan: Plan | None = None, plan_path: 
 
 
 def process(store: Store, session: str, *, progress: Callable[[str, int, int], None] | None = None,
-            mesh: Any = None, demo_lab: bool = False, **options: Any) -> Any:
-    """``gonio process`` on ``session``: ``mesh`` (the object's, trimesh) or ``demo_lab`` (a
-    session of the simulated demo lab: mesh, targets and truth from it); ``options`` go to
+            mesh: Any = None, **options: Any) -> Any:
+    """``gonio process`` on ``session``: ``mesh`` the object's (trimesh; a session recorded in the
+    built-in simulated lab brings its own, with targets and truth); ``options`` go to
     :func:`capture.pipeline.run.process_session` (``methods`` ...). Returns its ``ProcessReport``."""
     from ..pipeline.run import process_session
-    kw: dict[str, Any] = {}
-    if demo_lab:
-        from ..pipeline.demo_lab import demo_lab_for
-        kw = demo_lab_for(store, session).process_options()
-    if mesh is not None:
-        kw["mesh"] = mesh
-    if "mesh" not in kw:
+    from ..rigs import recorded_in_built_in_lab
+    if mesh is None and not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
         raise ValueError("processing needs the object's mesh: start the console with --mesh FILE "
-                         "(or --demo-lab for sessions of the simulated demo lab)")
-    return process_session(store, session, progress=progress, **kw, **options)
+                         "(sessions recorded on --rig sim bring their own)")
+    return process_session(store, session, progress=progress, mesh=mesh, **options)
 
 
 def headline(report: Any) -> list[tuple[str, str, str]]:

@@ -23,7 +23,8 @@ from reconstruct.brdf import Lambertian
 from reconstruct.raycast import Plane
 from reconstruct.render import SceneObject
 from sims.targets import CHROME_REFLECTANCE, CharucoTarget
-from sims.world import SimWorld, Target, board_on_turntable, default_camera, light_position, spheres_target
+from sims.world import (SimWorld, Target, board_on_turntable, capture_targets, default_camera, light_position,
+                        spheres_target)
 
 W, H = 320, 240
 SPHERE_RADIUS_MM = 25.0
@@ -235,14 +236,19 @@ def test_lab_frame_matches_the_sim_world(session):
     assert _angle_deg(R[:, 2], camera.R[:, 2]) < 1.5
 
 
+def _scene_targets(**overrides) -> LabTargets:
+    """The targets of the sims' ``SimWorld.for_capture`` scenes (steel-ball row, ChArUco)."""
+    return LabTargets(**{**capture_targets(), **overrides})
+
+
 def test_lab_targets_validation():
-    t = LabTargets.simulated(sphere_centres_mm=[[0, 0, 100], [0, 60, 100]])  # TOML lists
+    t = _scene_targets(sphere_centres_mm=[[0, 0, 100], [0, 60, 100]])  # TOML lists
     assert t.sphere_centres_mm == ((0.0, 0.0, 100.0), (0.0, 60.0, 100.0))
-    assert LabTargets.simulated(sphere_centres_mm=[]).sphere_centres_mm is None  # silhouettes instead
+    assert _scene_targets(sphere_centres_mm=[]).sphere_centres_mm is None  # silhouettes instead
     with pytest.raises(ValueError, match="sphere_centres_mm must hold >= 2"):
-        LabTargets.simulated(sphere_centres_mm=[[0, 0, 100]])
+        _scene_targets(sphere_centres_mm=[[0, 0, 100]])
     with pytest.raises(ValueError, match="less than a sphere's diameter"):
-        LabTargets.simulated(sphere_centres_mm=[[0, 0, 100], [0, 10, 100]])
+        _scene_targets(sphere_centres_mm=[[0, 0, 100], [0, 10, 100]])
     # a real lab states its own: no board, or half a board, is an error naming the fields
     with pytest.raises(ValueError, match="at least one board"):
         LabTargets()
@@ -250,10 +256,10 @@ def test_lab_targets_validation():
         LabTargets(chessboard_inner=(9, 6), chessboard_square_mm=20.0)
 
 
-def test_simulated_targets_come_from_the_sim_scenes():
-    """LabTargets.simulated() reads the simulator's own targets: the boards and balls the sim
-    captures render (their corner grids' centres and ball centres from the scene objects)."""
-    t = LabTargets.simulated()
+def test_scene_targets_come_from_the_sim_scenes():
+    """sims.world.capture_targets() states the for_capture scenes' own targets: the boards and
+    balls they render (their corner grids' centres and ball centres from the scene objects)."""
+    t = _scene_targets()
     worlds = {k: SimWorld.for_capture(k) for k in ("checkerboard", "charuco", "spheres")}
     np.testing.assert_allclose(t.sphere_centres_mm, worlds["spheres"].targets[0].points_world(0.0))
     # both board captures show the lab's ChArUco; no scene shows a chessboard, so none is stated
@@ -426,7 +432,7 @@ def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
     the turntable skips for want of intrinsics; dark runs regardless."""
     store = _bad_session(tmp_path)
     sid = store.session("bad").id
-    report = calibrate_session(store, "bad", targets=LabTargets.simulated())
+    report = calibrate_session(store, "bad", targets=_scene_targets())
     bad_frame = store.frames(sid, step=3)[0].id
     assert report.stage("dark").status == "ok"
     assert report.stage("hdr").status == "failed"
@@ -450,7 +456,7 @@ def test_a_programming_error_in_a_stage_raises(tmp_path, monkeypatch):
     monkeypatch.setattr(cal, "master_frame", broken)
     store = _bad_session(tmp_path)
     with pytest.raises(ValueError, match="operands could not be broadcast"):
-        calibrate_session(store, "bad", targets=LabTargets.simulated())
+        calibrate_session(store, "bad", targets=_scene_targets())
     store.close()
 
 
@@ -468,7 +474,7 @@ def test_calibration_hdr_only_skips_measurement_steps(session):
     assert report.stage("intrinsics").reason == "not requested"
 
 
-# -- the simulated lab's own scenes (``gonio capture run --rig sim``) ------------------------------
+# -- the sims' SimWorld.for_capture scenes (steel-ball row, no backdrop) on the simulated rig ---------
 DEFAULT_PLAN = {
     "name": "default", "turntable": {"angles_deg": [0]},
     "light": {"azimuth_deg": [-40, 40], "elevation_deg": [20, 50]},
@@ -485,16 +491,16 @@ DEFAULT_PLAN = {
 }
 
 
-def _default_session(root, frame_source=None):
-    """Capture DEFAULT_PLAN on ``--rig sim`` with the lab's own frame source (or ``frame_source``,
-    a SimWorld's) and scene switching, then calibrate it with the default LabTargets."""
-    with open_rig("sim", fast=True, home=True, frame_source=frame_source) as opened:
-        world = opened.lab.frame_source.__self__
+def _default_session(root, world: SimWorld):
+    """Capture DEFAULT_PLAN on ``--rig sim`` with ``world`` (the sphere object and the
+    ``SimWorld.for_capture`` scenes) as the frame source and scene switcher, then calibrate it
+    with those scenes' targets."""
+    with open_rig("sim", fast=True, home=True, frame_source=world.frame_source) as opened:
         store = Store(root, durable=False)
         create_session(store, Plan.from_dict(DEFAULT_PLAN), opened.rig, name="default", reserve_bytes=0)
         runner = Runner(opened.rig, store, "default", reserve_bytes=0, prepare_target=world.prepare_target)
         assert runner.run() == "done"
-    return store, calibrate_session(store, "default", measurement_hdr=False), world.camera
+    return store, calibrate_session(store, "default", targets=_scene_targets(), measurement_hdr=False), world.camera
 
 
 def _located_lights(store, camera):
@@ -506,14 +512,14 @@ def _located_lights(store, camera):
 
 
 def test_default_sim_session_locates_lights_from_known_sphere_positions(tmp_path):
-    """The default lab at 320 x 240: its steel-ball row has no backdrop, so the sphere centres
+    """The for_capture scenes at 320 x 240: their steel-ball row has no backdrop, so the sphere centres
     come from LabTargets' known positions through the lab frame. Each 1-inch ball is ~20 px
     wide and the 50 mm lamp's highlight on it ~1 px: a 0.1 px highlight error moves a light
     ~5 % of its distance here, and the constrained intrinsics of a small board at this size
     scale the lab frame by ~3 % (seen: lights 12-22 % short, 1.6-4.8 deg). So this test holds
     the pipeline to honesty (each light within 3 sigma of its stated uncertainty, lights that
     fewer than 2 balls show reported unseen); the full-resolution test below holds accuracy."""
-    store, report, camera = _default_session(tmp_path / "store")
+    store, report, camera = _default_session(tmp_path / "store", SimWorld("sphere", camera=default_camera(W, H)))
     for stage in ("intrinsics", "turntable", "lights"):
         assert report.stage(stage).status == "ok", (stage, report.stage(stage).reason)
     lights, truths, truth_centres = _located_lights(store, camera)
@@ -536,7 +542,7 @@ def test_default_sim_session_locates_lights_from_known_sphere_positions(tmp_path
 
 
 def test_default_sim_session_full_resolution_lights_within_12_percent(tmp_path):
-    """The default lab at the sim camera's full 1200 x 800 (~65-90 s on two cores): every light
+    """The for_capture scenes at the sim camera's full 1200 x 800 (~65-90 s on two cores): every light
     is seen in the six balls, its direction from the ball row within 1.5 deg and its distance
     within 12 % (seen: +1.5 .. +7.7 %, direction 0.16-0.57 deg, centres 2.0 mm).
 
@@ -548,7 +554,7 @@ def test_default_sim_session_full_resolution_lights_within_12_percent(tmp_path):
     only, so focal length and board distance trade off (fx 0.34 % low, ~1 px at the balls'
     image positions); the lab frame absorbs that near the board but not at the ball row. Full
     instead of constrained lens model: the same (+7.6 % on the worst light)."""
-    store, report, camera = _default_session(tmp_path / "store", SimWorld("sphere", seed=1).frame_source)
+    store, report, camera = _default_session(tmp_path / "store", SimWorld("sphere", seed=1))
     assert all(report.stage(s).status == "ok" for s in ("intrinsics", "turntable", "lights", "positioner"))
     lights, truths, truth_centres = _located_lights(store, camera)
     assert not lights["unseen"] and len(lights["lights"]) == 4

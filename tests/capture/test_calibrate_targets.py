@@ -1,11 +1,12 @@
-"""Which targets ``gonio calibrate`` uses without --targets: the simulator's only for a session
-recorded on the simulated lab (its rig snapshot says so), else a refusal naming the fields."""
+"""Which targets ``gonio calibrate`` uses without --targets: the built-in simulated lab's only for a
+session recorded in it (its rig snapshots say so), else a refusal naming the fields."""
 from __future__ import annotations
 
 import pytest
 from typer.testing import CliRunner
 
 from capture.pipeline.calibrate import TargetsNeeded, calibrate_session
+from capture.rigs import BUILT_IN_SCENE
 from capture.cli import app
 from capture.plan import Plan
 from capture.runner import create_session
@@ -52,16 +53,20 @@ def test_a_real_rig_session_needs_targets(tmp_path):
     assert r.exit_code in (0, 1) and "dark" in r.output, r.output  # it calibrates
 
 
-@pytest.mark.parametrize("snapshots", [[{"rig": {"name": LAB_NAME, "fast": True}}],
-                                       [{"rig": {"name": LAB_NAME}}, REAL_RIG], []])
-def test_the_simulators_targets_only_for_the_simulated_lab(tmp_path, snapshots):
+BUILT_IN = {"rig": {"name": LAB_NAME, "fast": True, "camera_scene": BUILT_IN_SCENE, "camera_resolution": [64, 48]}}
+
+
+@pytest.mark.parametrize("snapshots", [[BUILT_IN],
+                                       [{"rig": {"name": LAB_NAME, "fast": True}}],  # a frame source of its own
+                                       [BUILT_IN, REAL_RIG], []])
+def test_the_built_in_labs_targets_only_for_sessions_recorded_in_it(tmp_path, snapshots):
     store = _dark_session(tmp_path / "st", snapshots[0] if snapshots else {})
     for extra in snapshots[1:]:  # resumed on another rig
         store.add_rig_snapshot(store.session("s").id, extra, {})
-    if snapshots == [{"rig": {"name": LAB_NAME, "fast": True}}]:
+    if snapshots == [BUILT_IN]:
         report = calibrate_session(store, "s", stages=("dark",))
         assert report.stage("dark").status == "ok"
     else:
-        with pytest.raises(TargetsNeeded, match="not on the simulated lab"):
+        with pytest.raises(TargetsNeeded, match="not in the built-in simulated lab"):
             calibrate_session(store, "s", stages=("dark",))
     store.close()

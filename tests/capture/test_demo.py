@@ -109,7 +109,7 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(tmp_
     # `gonio process` on the stored session recomputes the demo's figures (a fresh calibration
     # included: --force)
     again = subprocess.run([sys.executable, "-m", "capture.cli", "process", "demo-quick", "--store",
-                            str(out / "store"), "--demo-lab", "--methods", "lambertian", "--force", "-q",
+                            str(out / "store"), "--methods", "lambertian", "--force", "-q",
                             "--json", "--out", str(out / "again.html")],
                            cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stdout + again.stderr

@@ -1,4 +1,4 @@
-"""A session captured in the simulated demo lab -> reconstruction inputs -> stored results.
+"""A session captured in the simulated lab (``--rig sim``) -> reconstruction inputs -> stored results.
 
 One small session (320 x 240, two turntable angles, four lights and one held-out light, parallel
 and crossed analyser) is captured through the real drivers and DNG files, then calibrated. The
@@ -11,6 +11,7 @@ from __future__ import annotations
 import base64
 import json
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexe
 from capture.rigs import open_rig
 from capture.runner import Runner, create_session
 from capture.store import Store
+from sims.ptp_sim import placeholder_frame
 
 PLAN = {
     "name": "proc", "turntable": {"angles_deg": [0, 180]},
@@ -44,11 +46,11 @@ PLAN = {
 @pytest.fixture(scope="module")
 def captured(tmp_path_factory):
     root = tmp_path_factory.mktemp("proc")
-    lab = DemoLab()
     store = Store(root / "store", durable=False)
-    with open_rig("sim", fast=True, home=True, frame_source=lab) as opened:
+    with open_rig("sim", fast=True, home=True) as opened:   # the built-in lab: a DemoLab
+        lab = opened.lab.frame_source
         create_session(store, Plan.from_dict(PLAN), opened.rig, name="proc", reserve_bytes=0)
-        assert Runner(opened.rig, store, "proc", reserve_bytes=0, prepare_target=lab.prepare_target).run() == "done"
+        assert Runner(opened.rig, store, "proc", reserve_bytes=0, prepare_target=opened.prepare_target).run() == "done"
     from capture.pipeline.calibrate import calibrate_session
     calibrate_session(store, "proc", targets=lab.targets(), measurement_hdr=False)
     yield store, lab, root
@@ -147,10 +149,10 @@ def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
 @pytest.fixture(scope="module")
 def processed(captured, tmp_path_factory):
     store, lab, _ = captured
-    kw = dict(**lab.process_options(), report_path=tmp_path_factory.mktemp("report") / "r.html")
     # (Lensch runs in the demo test; here the reference and a small sharing fit keep it quick)
-    return process_session(store, "proc", methods=["lambertian", "sharing"],
-                           method_options={"sharing": {"max_centers": 200}}, **kw), kw
+    kw = {**lab.process_options(), "report_path": tmp_path_factory.mktemp("report") / "r.html",
+          "method_options": {"sharing": {"max_centers": 200}}}
+    return process_session(store, "proc", methods=["lambertian", "sharing"], **kw), kw
 
 
 def test_process_stores_scored_results_with_provenance(processed, captured, inputs):
@@ -231,8 +233,10 @@ def test_uncalibrated_session_says_which_stage_is_missing(tmp_path):
 
 
 def test_cli_process(captured, tmp_path):
+    """A session recorded on --rig sim needs no --mesh (the lab states its mesh, targets and
+    truth); one from another rig does."""
     store, _, root = captured
-    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--demo-lab", "-q",
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "-q",
                                  "--methods", "lambertian,passive", "--out", str(tmp_path / "p.html"), "--json"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.output)
@@ -240,12 +244,16 @@ def test_cli_process(captured, tmp_path):
     assert status["lambertian"]["status"] in ("ok", "done")
     assert status["passive"]["status"] == "skipped" and "no passive capture" in status["passive"]["reason"]
     assert (tmp_path / "p.html").is_file() and out["report"].endswith("p.html")
-    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--demo-lab", "-q",
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "-q",
                                  "--methods", "lambertian"])
     assert r.exit_code == 0 and "lambertian" in r.output and "proc-report.html" in r.output
     r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--methods", "phong"])
     assert r.exit_code == 2 and "unknown phong" in r.output
-    r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store")])
+    with Store(tmp_path / "other", durable=False) as other, \
+            open_rig("sim", fast=True, frame_source=placeholder_frame) as opened:  # not the built-in lab
+        create_session(other, Plan.from_dict(PLAN), opened.rig, name="bench", reserve_bytes=0)
+        other.add_rig_snapshot(other.session("bench").id, opened.rig.config, {})
+    r = CliRunner().invoke(app, ["process", "bench", "--store", str(tmp_path / "other")])
     assert r.exit_code == 2 and "--mesh FILE is needed" in r.output
     r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "--mesh",
                                  str(tmp_path / "none.ply")])
@@ -259,10 +267,9 @@ async def test_console_processes_the_selected_session(captured):
     import time
     from textual.widgets import DataTable
     from capture.tui import GonioApp
-    from sims.ptp_sim import placeholder_frame
     store, _, root = captured
     app = GonioApp("sim", root / "store", fast=True,
-                   process_options={"demo_lab": True, "methods": ["lambertian", "passive"]},
+                   process_options={"methods": ["lambertian", "passive"]},
                    sim_options={"camera": {"frame_source": placeholder_frame}})
     app.animation_level = "none"
     async with app.run_test(size=(80, 24)) as pilot:
@@ -286,8 +293,12 @@ async def test_console_processes_the_selected_session(captured):
 
 
 def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captured, tmp_path):
-    """A real session has no ground truth: nothing about it is shown, nothing faked."""
-    store, lab, _ = captured
+    """A real session has no ground truth: nothing about it is shown, nothing faked. (A copy of
+    the session resumed on a real rig: it no longer says it was all recorded in the built-in lab.)"""
+    _, lab, root = captured
+    shutil.copytree(root / "store", tmp_path / "store")
+    store = Store(tmp_path / "store", durable=False)
+    store.add_rig_snapshot(store.session("proc").id, {"rig": {"name": "bench"}}, {})
     opts = {k: v for k, v in lab.process_options().items() if k != "truth"}
     rep = process_session(store, "proc", methods=["lambertian"], force=True, report_path=tmp_path / "real.html",
                           **opts)
@@ -296,3 +307,4 @@ def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captur
     assert not rep.calibration_truth and "measured_vs_truth_rel_rms" not in rep.inputs
     assert "truth_rel_rms" not in rep.method("lambertian").figures
     assert "held-out rel. RMS" in text
+    store.close()

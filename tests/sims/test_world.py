@@ -11,7 +11,7 @@ from reconstruct.brdf import CookTorrance, Lambertian
 from reconstruct.raycast import reflect
 from sims.objects import make_sphere
 from sims.sensor import SensorModel
-from sims.world import (CAPTURE_KINDS, RigState, SimWorld, default_camera, lab_frame_source,
+from sims.world import (CAPTURE_KINDS, RigState, SimWorld, camera_clock, default_camera,
                         light_position, supersampled_camera)
 
 SMALL = dict(width=160, height=120)
@@ -177,10 +177,20 @@ def test_bad_world_arguments_are_named():
         light_position(0.0, 120.0)
 
 
-def test_lab_frame_source_is_a_small_rendered_frame():
-    with rawpy.imread(io.BytesIO(lab_frame_source(fast=True)({"exposure_s": 0.01, "iso": 100,
-                                                                "fnumber": 8.0}))) as r:
-        assert r.raw_image_visible.shape == (240, 320)
+def test_the_same_captures_give_the_same_bytes_stamped_by_the_camera_clock():
+    """Two worlds of one seed give byte-identical DNGs for the same captures in the same order (the
+    sensor noise is the seed's; the DateTime is the simulated camera's clock, not the wall clock)."""
+    import tifffile
+    state = {"exposure_s": 0.01, "iso": 100, "fnumber": 8.0, "turntable_angle_deg": 30.0}
+    first, second = (SimWorld("sphere", camera=_small_camera(), seed=3) for _ in range(2))
+    a = [first.frame_source({**state, "capture_number": n}) for n in (1, 2)]
+    b = [second.frame_source({**state, "capture_number": n}) for n in (1, 2)]
+    assert a == b and a[0] != a[1]   # the second draws fresh noise
+    with tifffile.TiffFile(io.BytesIO(a[1])) as tif:
+        assert tif.pages[0].tags["DateTime"].value == "2026:01:01 00:00:02"
+    assert camera_clock({"capture_number": 61}) == "2026:01:01 00:01:01"
+    with rawpy.imread(io.BytesIO(a[0])) as r:
+        assert r.raw_image_visible.shape == (_small_camera().height, _small_camera().width)
 
 
 def test_passive_capture_lights_the_object_by_the_environment_only():
