@@ -234,15 +234,22 @@ def board_on_turntable(board: PrintedBoard, *, tilt_deg: float = 25.0, height_mm
 
 def spheres_target(kind: str = "steel", *, count: int = 6, radius_mm: float = 12.7,
                    spacing_mm: float = 40.0, start_mm=(-80.0, -100.0, 120.0),
-                   direction=(0.0, 1.0, 0.0)) -> Target:
-    """A fixed (world) row of mirror spheres (Lensch et al. 2003 Sec. 4.1: 1-inch bearing balls
-    on a bar), behind and above the object so the default camera sees them above it; ``kind``
-    ``"steel"`` or ``"chrome"``. Capture once with the lamp and once with ``ring_flash`` in the
-    state (the flash's highlights mark the sphere centres' viewing rays, Eq. 1)."""
+                   direction=(0.0, 1.0, 0.0), on_turntable: bool = False) -> Target:
+    """A row of mirror spheres (Lensch et al. 2003 Sec. 4.1: 1-inch bearing balls on a bar),
+    behind and above the object so the default camera sees them above it; ``kind`` ``"steel"``
+    or ``"chrome"``. Capture once with the lamp and once with ``ring_flash`` in the state (the
+    flash's highlights mark the sphere centres' viewing rays, Eq. 1). ``start_mm`` and
+    ``direction`` are world coordinates at turntable angle 0; with ``on_turntable`` the fixture
+    stands on the platter and turns with it (captures at several angles spread the spheres around
+    the axis: a wider baseline for triangulating the lamp), else it is fixed in the world."""
     row = SphereRow(count=count, radius_mm=radius_mm, spacing_mm=spacing_mm, kind=kind)
-    centers = row.centers(start_mm, direction)
-    return Target(f"{kind}_spheres", lambda ang: row.scene_objects(start_mm, direction),
-                  lambda ang: centers, False, row)
+    start, d = np.asarray(start_mm, float), np.asarray(direction, float)
+
+    def turned(ang):
+        R = turntable_pose(ang)[:3, :3]
+        return R @ start, R @ d
+    return Target(f"{kind}_spheres", lambda ang: row.scene_objects(*turned(ang)),
+                  lambda ang: row.centers(*turned(ang)), on_turntable, row)
 
 
 def sphere_target(kind: str = "chrome", *, radius_mm: float = 25.4,

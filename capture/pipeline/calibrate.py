@@ -50,6 +50,7 @@ Expose the spheres short enough that the lamp's image does not clip.
 from __future__ import annotations
 
 import io
+import json
 import time
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Callable
@@ -73,6 +74,7 @@ from calibration.turntable import TurntableFit, consistent_corner_order, fit_tur
 
 from ..plan import CALIBRATION_KINDS
 from ..store import FrameRecord, SessionNotFound, Store, StoreError
+from .process import object_pose
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
            "NothingToCalibrate", "calibrate_session", "SessionNotFound"]
@@ -130,6 +132,10 @@ class LabTargets:
     #: centres of the light-calibration spheres in the lab frame (module docstring), mm; empty
     #: or None: find them from their silhouettes (needs a lit backdrop behind the spheres)
     sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = None
+    #: the sphere fixture stands on the platter: ``sphere_centres_mm`` are at turntable reading
+    #: 0 and turn with it (spheres captures at several angles spread the spheres around the
+    #: axis, a wider baseline for the lamp's depth); False: fixed in the lab
+    spheres_on_turntable: bool = False
     gray_card_albedo: float = 0.18
     #: cv2.CALIB_* flags for the intrinsics fit; with k3 free the fit fixes it at 0 when the
     #: views do not determine it (a turntable-only board sweep covers only the image centre)
@@ -239,24 +245,39 @@ class StageOutput:
 
 @dataclass(frozen=True)
 class LabFrame:
-    """Lab -> camera pose (module docstring): ``X_cam = R @ X_lab + t_mm``."""
+    """Lab -> camera pose (module docstring): ``X_cam = R @ X_lab + t_mm``; the turntable turns
+    by ``angle_scale * reading`` degrees about the lab's +z."""
 
     R: np.ndarray
     t_mm: np.ndarray
+    angle_scale: float = 1.0
 
     def to_lab(self, x_cam_mm: np.ndarray) -> np.ndarray:
         """Camera-frame points (..., 3) mm -> lab frame (..., 3) mm."""
         return (np.asarray(x_cam_mm) - self.t_mm) @ self.R
 
+    def to_camera(self, x_lab_mm: np.ndarray, reading_deg: float | None = None) -> np.ndarray:
+        """Lab-frame points (..., 3) mm -> camera frame; with ``reading_deg``, points of something
+        standing on the turntable, given at reading 0, turned to that reading first."""
+        x = np.asarray(x_lab_mm, float)
+        if reading_deg is not None:
+            x = x @ object_pose(self.angle_scale * reading_deg)[:3, :3].T
+        return x @ self.R.T + self.t_mm
+
 
 @dataclass(frozen=True)
 class MeasuredLight:
-    """One light located by the lights stage (camera frame and, with a lab frame, lab frame, mm)."""
+    """One light located by the lights stage (camera frame and, with a lab frame, lab frame, mm)
+    from the spheres steps ``steps`` (one per turntable angle the spheres were captured at);
+    ``rays`` the reflected rays it was triangulated from: points (M, 3) mm and unit directions
+    (M, 3), camera frame."""
 
     step: int
     position_camera_mm: np.ndarray
     position_lab_mm: np.ndarray | None
     commanded: dict[str, Any] | None
+    rays: tuple[np.ndarray, np.ndarray] | None = None
+    steps: tuple[int, ...] = ()
 
 
 class StageDataError(ValueError):
@@ -558,7 +579,7 @@ def _lab_frame(fit: TurntableFit, targets: LabTargets, detector: str) -> LabFram
     else:  # chessboard object points start at the first inner corner
         (cols, rows), sq = targets.chessboard_inner, targets.chessboard_square_mm
         grid_centre, height = [(cols - 1) * sq / 2, (rows - 1) * sq / 2, 0.0], targets.chessboard_centre_height_mm
-    return LabFrame(*lab_frame(fit, grid_centre, height))
+    return LabFrame(*lab_frame(fit, grid_centre, height), angle_scale=fit.angle_scale)
 
 
 def _stage_turntable(ctx: _Context, rep: CalibrationReport) -> StageOutput:
@@ -607,16 +628,60 @@ MIN_LAMP_CONTRAST = 2.0
 MIN_HIGHLIGHT_FRACTION = 0.25
 
 
-def _known_spheres(ctx: _Context, K, dist, radius: float, shape: tuple[int, int], frame: str):
+def _known_spheres(ctx: _Context, K, dist, radius: float, shape: tuple[int, int], frame: str,
+                   reading: float | None):
     """The spheres at their configured lab positions (``LabTargets.sphere_centres_mm`` through
-    the lab frame) that the image holds: camera-frame centres (M, 3) mm, their image discs
-    and their indices in the configured list."""
-    centres = np.asarray(ctx.targets.sphere_centres_mm, float) @ ctx.lab.R.T + ctx.lab.t_mm
+    the lab frame, turned to the turntable ``reading`` when they stand on it) that the image
+    holds whole and unoccluded: camera-frame centres (M, 3) mm, their image discs and their
+    indices in the configured list."""
+    centres = ctx.lab.to_camera(np.asarray(ctx.targets.sphere_centres_mm, float),
+                                reading if ctx.targets.spheres_on_turntable else None)
     spheres, inside = project_spheres(centres, radius, K, dist, (shape[1], shape[0]))
-    if len(inside) < 2:
-        raise TargetNotFound(f"{len(inside)} of the {len(centres)} configured spheres project inside "
-                             "the image (need 2); check LabTargets.sphere_centres_mm", frame=frame)
-    return centres[inside], spheres, inside
+    keep: list[int] = []  # a sphere partly behind a nearer one shows a clipped disc: left out
+    for k in np.argsort(np.linalg.norm(centres[inside], axis=1)):
+        if all(np.hypot(*(spheres[k].center_px - spheres[j].center_px)) >= spheres[k].radius_px + spheres[j].radius_px
+               for j in keep):
+            keep.append(int(k))
+    keep.sort()
+    if len(keep) < 2:
+        raise TargetNotFound(f"{len(keep)} of the {len(centres)} configured spheres project whole and unoccluded "
+                             "inside the image (need 2); check LabTargets.sphere_centres_mm", frame=frame)
+    return centres[inside[keep]], [spheres[k] for k in keep], inside[keep]
+
+
+def _sphere_views(ctx: _Context, steps: list[int], K, dist, radius: float) -> tuple[dict, str]:
+    """Each spheres step's spheres: ``{step: (camera centres (M, 3) mm, SphereImage list,
+    configured indices)}``, and where the centres came from."""
+    shape = ctx.hdr[steps[0]].shape[:2]
+    name = {s: f"frame {ctx.frames[s][0].id} (step {s})" for s in steps}
+    turning = ctx.targets.spheres_on_turntable
+    known = ctx.targets.sphere_centres_mm is not None
+    if known and ctx.lab is not None:
+        views = {s: _known_spheres(ctx, K, dist, radius, shape, name[s],
+                                   ctx.reading(s, "turntable_deg") if turning else None) for s in steps}
+        return views, "known positions (LabTargets.sphere_centres_mm, lab frame)"
+    # no positions, or no lab frame to place them: the silhouettes against a backdrop, found in
+    # the steps of one turntable angle together (the spheres stand still between them)
+    groups: dict[float, list[int]] = {}
+    for s in steps:
+        groups.setdefault(round(ctx.reading(s, "turntable_deg"), 3) if turning else 0.0, []).append(s)
+    views = {}
+    for group in groups.values():
+        blobs = sphere_silhouettes([ctx.hdr[s] for s in group], ctx.targets.sphere_reflectance)
+        if len(blobs) < 2:
+            why = ("the turntable stage gave no lab frame to place LabTargets.sphere_centres_mm, and "
+                   if known else "no LabTargets.sphere_centres_mm, and ")
+            raise TargetNotFound(f"{why}{len(blobs)} mirror sphere silhouette(s) were found in the spheres "
+                                 "steps (need 2 against a lit backdrop)", frame=name[group[0]])
+        spheres = [detect_sphere(b, frame=name[group[0]]) for b in blobs]
+        centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
+        views.update({s: (centres, spheres, np.arange(len(spheres))) for s in group})
+    return views, "silhouettes"
+
+
+def _light_key(light: dict[str, Any] | None, step: int) -> str:
+    """Steps that commanded the same light see the same lamp (a step without one: its own)."""
+    return json.dumps(light, sort_keys=True) if light else f"step {step}"
 
 
 def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
@@ -625,72 +690,77 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
     if radius is None:
         raise _Skip("LabTargets states no sphere_radius_mm (the light-calibration spheres)")
-    images = [ctx.hdr[s] for s in steps]
-    first = f"frame {ctx.frames[steps[0]][0].id} (step {steps[0]})"
-    known = ctx.targets.sphere_centres_mm is not None
-    if known and ctx.lab is not None:
-        centres, spheres, index = _known_spheres(ctx, K, dist, radius, images[0].shape[:2], first)
-        source = "known positions (LabTargets.sphere_centres_mm, lab frame)"
-    else:  # no positions, or no lab frame to place them: the silhouettes against a backdrop
-        blobs = sphere_silhouettes(images, ctx.targets.sphere_reflectance)
-        if len(blobs) < 2:
-            why = ("the turntable stage gave no lab frame to place LabTargets.sphere_centres_mm, and "
-                   if known else "no LabTargets.sphere_centres_mm, and ")
-            raise TargetNotFound(f"{why}{len(blobs)} mirror sphere silhouette(s) were found in the spheres "
-                                 "steps (need 2 against a lit backdrop)", frame=first)
-        spheres = [detect_sphere(b, frame=first) for b in blobs]
-        centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
-        index = np.arange(len(spheres))
-        source = "silhouettes"
-    h, w = images[0].shape[:2]
+    views, source = _sphere_views(ctx, steps, K, dist, radius)
+    h, w = ctx.hdr[steps[0]].shape[:2]
     yy, xx = np.indices((h, w))
-    discs = [(xx - sp.center_px[0]) ** 2 + (yy - sp.center_px[1]) ** 2 < sp.radius_px ** 2 for sp in spheres]
-    lights, rows, measured, errors, unseen = [], [], [], [], []
-    for s, img in zip(steps, images):
+    seen: dict[str, dict[str, list]] = {}   # light -> its steps' highlights, centres, sphere ids
+    errors, unseen = [], []
+    for s in steps:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
-        lum = img.mean(axis=2)
-        try:  # one bad light loses its step; the others still feed the positioner model
+        centres, spheres, index = views[s]
+        lum = ctx.hdr[s].mean(axis=2)
+        try:  # one bad view loses its step; the others still locate the lights
+            discs = [(xx - sp.center_px[0]) ** 2 + (yy - sp.center_px[1]) ** 2 < sp.radius_px ** 2 for sp in spheres]
             peak = max(float(lum[d].max()) for d in discs)
             level = max(MIN_HIGHLIGHT_FRACTION * peak, MIN_LAMP_CONTRAST * float(np.percentile(lum, 99)))
             spots = [lamp_spots(lum, sp, level, frame=name) for sp in spheres]
             use = np.array([i for i, ss in enumerate(spots) if ss], int)
-            if len(use) < 2:  # not a fault: from here the lamp cannot be seen in two spheres
-                unseen.append({"step": s, "frame": ctx.frames[s][0].id,
-                               "commanded": ctx.steps[s].get("light"), "spheres_showing_lamp": len(use)})
-                continue
-            hl, kept = pick_lamp_highlights([spots[i] for i in use], centres[use], radius, K, dist)
-            use = use[kept]
-            pl = triangulate_point_light(hl, centres[use], radius, K, dist)
+            if len(use) >= 2:
+                hl, kept = pick_lamp_highlights([spots[i] for i in use], centres[use], radius, K, dist)
+                use = use[kept]
         except CalibrationError as exc:
             errors.append(f"{name}: {exc}" if name not in str(exc) else str(exc))
             continue
+        if len(use) < 2:  # not a fault: from here the lamp cannot be seen in two spheres
+            unseen.append({"step": s, "frame": ctx.frames[s][0].id,
+                           "commanded": ctx.steps[s].get("light"), "spheres_showing_lamp": len(use)})
+            continue
+        got = seen.setdefault(_light_key(ctx.steps[s].get("light"), s),
+                              {"steps": [], "highlights": [], "centres": [], "spheres": []})
+        got["steps"].append(s)
+        got["highlights"].append(hl)
+        got["centres"].append(centres[use])
+        got["spheres"].append(index[use])
+    lights, rows, measured = [], [], []
+    for got in seen.values():
+        s = got["steps"][0]
+        hl, centres = np.concatenate(got["highlights"]), np.concatenate(got["centres"])
+        try:
+            pl = triangulate_point_light(hl, centres, radius, K, dist)
+        except CalibrationError as exc:
+            errors.append(f"frame {ctx.frames[s][0].id} (step {s}) and the other steps of its light: {exc}")
+            continue
         p_lab = None if ctx.lab is None else ctx.lab.to_lab(pl.position_mm)
-        row = {"step": s, "frame": ctx.frames[s][0].id, "position_camera_mm": pl.position_mm,
-               "std_mm": pl.std_mm, "residuals_mm": pl.residuals_mm, "highlights_px": hl,
-               "spheres_used": index[use].tolist(),
+        row = {"step": s, "steps": got["steps"], "frame": ctx.frames[s][0].id,
+               "position_camera_mm": pl.position_mm, "std_mm": pl.std_mm, "residuals_mm": pl.residuals_mm,
+               "highlights_px": hl, "spheres_used": np.concatenate(got["spheres"]).tolist(),
                "commanded": ctx.steps[s].get("light"), "readback_mm": _readback_light(ctx, s)}
         if p_lab is not None:
             row["position_lab_mm"] = p_lab
         rows.append(row)
         lights.append(pl)
-        measured.append(MeasuredLight(s, pl.position_mm, p_lab, ctx.steps[s].get("light")))
+        measured.append(MeasuredLight(s, pl.position_mm, p_lab, ctx.steps[s].get("light"),
+                                      (pl.surface_points_mm, pl.directions), tuple(got["steps"])))
     if not rows:
         raise CalibrationError(f"no light could be located: {len(unseen)} of {len(steps)} spheres steps show "
                                "the lamp in fewer than 2 spheres" + "".join(f"; {e}" for e in errors))
     ctx.lights = measured
     res = np.concatenate([pl.residuals_mm for pl in lights])
-    result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": centres, "sphere_centres_from": source,
-              "sphere_radii_px": [sp.radius_px for sp in spheres], "lights": rows, "errors": errors,
+    first = views[steps[0]]
+    result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": first[0], "sphere_centres_from": source,
+              "spheres_on_turntable": ctx.targets.spheres_on_turntable,
+              "sphere_radii_px": [sp.radius_px for sp in first[1]], "lights": rows, "errors": errors,
               "unseen": unseen,
               "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (axis at the platter, +x to the "
-                       "camera)"}
+                       "camera); sphere_centres_*: the first spheres step's"}
     if ctx.lab is not None:
-        result["sphere_centres_lab_mm"] = ctx.lab.to_lab(centres)
-    figures = {"lights": len(rows), "failed": len(errors), "unseen": len(unseen), "spheres": len(spheres),
+        result["sphere_centres_lab_mm"] = ctx.lab.to_lab(first[0])
+    figures = {"lights": len(rows), "steps": len(steps), "failed": len(errors), "unseen": len(unseen),
+               "spheres": len(first[1]), "rays": len(res),
                "centres": "known" if source.startswith("known") else "silhouettes",
                "ray_residual_rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 3),
                "max_std_mm": round(float(max(pl.std_mm.max() for pl in lights)), 2)}
-    return StageOutput(result, figures, ctx.frame_ids([r["step"] for r in rows]),
+    return StageOutput(result, figures, ctx.frame_ids([s for m in measured for s in m.steps]),
                        params={"sphere_radius_mm": radius, "sphere_centres_from": source}, errors=errors)
 
 
@@ -709,7 +779,11 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     az = np.array([m.commanded["azimuth_deg"] for m in use])
     el = np.array([m.commanded["elevation_deg"] for m in use])
     X = np.array([m.position_lab_mm for m in use])
-    model = fit_positioner_model(az, el, X)
+    # the rays in the lab frame, each tagged with its light's pose
+    P = np.concatenate([lab.to_lab(m.rays[0]) for m in use])
+    D = np.concatenate([m.rays[1] @ lab.R for m in use])
+    pose = np.concatenate([np.full(len(m.rays[0]), i) for i, m in enumerate(use)])
+    model = fit_positioner_model(az, el, X, rays=(P, D, pose))
     if model.radius_mm <= 0 or model.rms_mm > MAX_ARM_RMS_FRACTION * model.radius_mm:
         # LM can settle on a mirrored arm (negative radius) when the lights scatter in distance
         raise CalibrationError(
@@ -735,10 +809,12 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
               "azimuth_offset_deg": model.azimuth_offset_deg,
               "elevation_offset_deg": model.elevation_offset_deg, "param_std": model.param_std,
               "fit_status": model.fit_status, "fit_message": model.fit_message,
-              "residuals_mm": model.residuals_mm, "rms_mm": model.rms_mm, "step_lights": per_step}
-    figures = {"rms_mm": round(model.rms_mm, 2), "radius_mm": round(model.radius_mm, 1),
+              "residuals_mm": model.residuals_mm, "rms_mm": model.rms_mm, "ray_rms_deg": model.ray_rms_deg,
+              "step_lights": per_step}
+    figures = {"rms_mm": round(model.rms_mm, 2), "ray_rms_deg": round(model.ray_rms_deg, 3),
+               "radius_mm": round(model.radius_mm, 1),
                "el_offset_deg": round(model.elevation_offset_deg, 2), "steps_with_light": len(per_step)}
-    params = {"model": "arm (centre, radius, azimuth/elevation offsets)"}
+    params = {"model": "arm (centre, radius, azimuth/elevation offsets)", "fitted_to": "reflected rays"}
     return StageOutput(result, figures, ctx.frame_ids([m.step for m in use]), params=params)
 
 

@@ -10,8 +10,9 @@ runner asked the operator to set up (``prepare_target``), all through one camera
 ``dark``        dark frames (lens cap on)
 ``checkerboard``  a 10 x 7 ChArUco of 28 mm squares standing on the turntable (fills much of
                 the frame: a turntable sweep otherwise only sees the image centre)
-``spheres``     three 25 mm chrome balls on a bar before a lit white backdrop, lamp behind a
-                120 mm diffuser (Lensch et al. 2003 Sec. 4.1)
+``spheres``     three 25 mm chrome balls on a bar standing on the turntable (it turns them
+                around the axis) before a lit white backdrop, lamp behind a 120 mm diffuser
+                (Lensch et al. 2003 Sec. 4.1)
 ``gray_card``   the 18 % card standing on the turntable
 ``mirror_probe``  a chrome ball under the Grace Cathedral probe, lamp off
 ``passive``     the object under that probe, lamp off (passive reflectometry)
@@ -140,7 +141,7 @@ class DemoLab:
     @staticmethod
     def _spheres() -> Target:
         return spheres_target("chrome", count=3, radius_mm=SPHERE_RADIUS_MM, spacing_mm=90.0,
-                              start_mm=(-120.0, -90.0, 110.0))
+                              start_mm=(-120.0, -90.0, 110.0), on_turntable=True)
 
     def __call__(self, state) -> bytes:
         return self.current.frame_source(state)
@@ -158,7 +159,8 @@ class DemoLab:
         return LabTargets(charuco_squares=BOARD.squares, charuco_square_mm=BOARD.square_mm,
                           charuco_marker_mm=BOARD.marker_mm, sphere_radius_mm=SPHERE_RADIUS_MM,
                           sphere_reflectance=CHROME_REFLECTANCE, charuco_centre_height_mm=height,
-                          sphere_centres_mm=tuple(map(tuple, self._spheres().points_world(0.0))))
+                          sphere_centres_mm=tuple(map(tuple, self._spheres().points_world(0.0))),
+                          spheres_on_turntable=True)
 
     @staticmethod
     def gray_card_pose() -> GrayCardPose:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calibration.errors import DegenerateFit, NotConverged, TargetNotFound, TooFewViews
-from calibration.lights import (detect_sphere, find_highlight, fit_positioner_model,
+from calibration.lights import (closest_point_to_lines, detect_sphere, find_highlight, fit_positioner_model,
                                 light_direction_orthographic, locate_collinear_spheres,
                                 reflect_highlight, sphere_center_from_silhouette,
                                 triangulate_point_light)
@@ -175,6 +175,56 @@ def test_positioner_model_recovers_kinematics():
         fit_positioner_model(az[:2], el[:2], X[:2])
     with pytest.raises(ValueError, match="positions_mm"):
         fit_positioner_model(az, el, X[:5])
+
+
+def _arm_rays(seed: int, *, outlier: bool = False):
+    """Rays towards 8 lights of a known arm from a 3-ball row turned to 4 turntable angles
+    (0.5 deg of direction noise per axis), the lights' triangulated positions and the truth."""
+    rng = np.random.default_rng(seed)
+    c, r, ao, eo = np.array([4.0, -6.0, 12.0]), 480.0, 1.5, -0.8
+    az, el = np.repeat([-60.0, -20, 20, 60], 2), np.tile([25.0, 55.0], 4)
+    a, e = np.radians(az + ao), np.radians(el + eo)
+    L = c + r * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1)
+    row = np.array([[-120.0, y, 110.0] for y in (-90, 0, 90)])
+    P0 = np.concatenate([row @ np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]]).T
+                         for t in np.radians([0, 30, 150, 180])])
+    P = P0[None] + rng.normal(0, 5, (len(az), len(P0), 3))   # reflection points on the balls
+    D = (L[:, None] - P) / np.linalg.norm(L[:, None] - P, axis=2, keepdims=True)
+    D += rng.normal(0, np.radians(0.5), D.shape)
+    if outlier:  # a wrongly picked highlight: its ray 10 deg off
+        D[0, 0] += np.radians(10.0) * np.array([0.0, 0.0, 1.0])
+    D /= np.linalg.norm(D, axis=2, keepdims=True)
+    X = np.array([closest_point_to_lines(P[i], D[i])[0] for i in range(len(az))])
+    rays = (P.reshape(-1, 3), D.reshape(-1, 3), np.repeat(np.arange(len(az)), len(P0)))
+    return az, el, X, rays, L
+
+
+@pytest.mark.parametrize("outlier", [False, True])
+def test_positioner_fit_to_the_rays_beats_triangulated_points(outlier):
+    """Each light's depth is poorly determined along its rays; fitting the arm to the rays
+    themselves (robustly) weighs each by what it measures. Six noise draws: the ray fit's worst
+    light within 1 % of its distance in every draw (seen: 0.85 % worst of 20 draws, 2.3 % for the
+    point fit with an outlier), and better than the point fit's worst in the median draw."""
+    worst = []
+    for seed in range(6):
+        az, el, X, rays, L = _arm_rays(seed, outlier=outlier)
+        fits = [fit_positioner_model(az, el, X), fit_positioner_model(az, el, X, rays=rays)]
+        worst.append([np.max(np.linalg.norm(m.position(az, el) - L, axis=1) / np.linalg.norm(L, axis=1))
+                      for m in fits])
+        assert np.isnan(fits[0].ray_rms_deg) and 0.5 < fits[1].ray_rms_deg < (1.5 if outlier else 0.9)
+    worst = np.array(worst)
+    assert worst[:, 1].max() < 0.01
+    assert np.median(worst[:, 1]) < np.median(worst[:, 0])
+
+
+def test_positioner_rays_are_validated():
+    az, el, X, (P, D, pose), _ = _arm_rays(0)
+    with pytest.raises(ValueError, match="rays"):
+        fit_positioner_model(az, el, X, rays=(P, D[:-1], pose))
+    with pytest.raises(ValueError, match="pose index"):
+        fit_positioner_model(az, el, X, rays=(P, D, pose + 1))
+    with pytest.raises(ValueError, match="rays must be"):
+        fit_positioner_model(az, el, X, rays=(P, D))
 
 
 def test_no_sphere_no_highlight_errors_name_frame():
