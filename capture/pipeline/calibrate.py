@@ -1034,13 +1034,21 @@ def calibrate_session(store: Store, session_name: str, *,
         ctx.targets = _session_targets(store, ctx.info)
     rep = CalibrationReport(session=session_name)
     total = len(STAGES)
-    for i, name in enumerate(STAGES):
-        if progress is not None:
-            progress(name, i, total)
-            ctx.tick = lambda label, i=i: progress(label, i, total)
-        started = time.perf_counter()
-        rep.stages.append(_run_stage(ctx, rep, name, name in stages))
-        rep.stages[-1].seconds = round(time.perf_counter() - started, 3)
+    threads = cv2.getNumThreads()
+    # OpenCV's thread pool splits its solvers' sums in a varying order: re-calibrating one session
+    # moved the figures by up to 0.15 % (benchmarks/reproducibility.py); on one thread the same
+    # frames give the same bits, for ~1 s more on the quick demo (about 1 % of gonio process)
+    cv2.setNumThreads(1)
+    try:
+        for i, name in enumerate(STAGES):
+            if progress is not None:
+                progress(name, i, total)
+                ctx.tick = lambda label, i=i: progress(label, i, total)
+            started = time.perf_counter()
+            rep.stages.append(_run_stage(ctx, rep, name, name in stages))
+            rep.stages[-1].seconds = round(time.perf_counter() - started, 3)
+    finally:
+        cv2.setNumThreads(threads)
     if progress is not None:
         progress("done", total, total)
     return rep
