@@ -144,7 +144,8 @@ def _sim_scene(fast: bool, lab_options: dict[str, Any], prepare_target):
     given ``frame_source``, else a new :class:`DemoLab` (which goes into ``lab_options`` as the
     frame source) and its own."""
     resolution = lab_options.pop("resolution", None)
-    if lab_options.get("frame_source") is not None:
+    camera_options = (lab_options.get("options") or {}).get("camera", {})
+    if lab_options.get("frame_source") is not None or camera_options.get("frame_source") is not None:
         if resolution is not None:
             raise ValueError("resolution: sets the built-in lab's camera; a given frame_source renders "
                              "at its own")
