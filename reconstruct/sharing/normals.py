@@ -8,7 +8,10 @@ exponent 70: ~7 deg wide) is then predicted where it is not. A mesh that lacks t
 relief (bumps, engraving) gives such normals. The polarization-separated diffuse samples are
 Lambertian, ``d = rho / pi (n . wi)``, so per texel three or more lights give ``b = rho n / pi``
 by linear least squares; the lights the current normal puts in attached shadow (their diffuse is
-0, not a negative ``n . wi``) are dropped and the solve repeated.
+0, not a negative ``n . wi``) are dropped and the solve repeated. Where the mesh is right, the
+fitted normal only follows the noise (and the registration and interreflection errors) of a few
+samples: a texel keeps its given normal unless the tilt (two more parameters than an albedo
+alone) explains its diffuse samples significantly better, by an F-test.
 
 Directions are in whatever frame the samples are given (for lumitexels: each texel's local frame,
 mesh normal = +z); the normals come back in that frame.
@@ -18,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import f as f_distribution
 
 from ..frames import tangent_frames, to_local
 from .rbf import SharingError
@@ -38,7 +42,8 @@ class PhotometricNormals:
     normals : ndarray, (T, 3)
         Unit normals in the samples' frame; the given ``prior`` (default +z) where not fitted.
     fitted : ndarray of bool, (T,)
-        True where the diffuse samples determined the normal.
+        True where the diffuse samples determined the normal and it explains them significantly
+        better than the given one.
     tilt_deg : ndarray, (T,)
         Angle between the fitted normal and the prior (0 where not fitted), degrees.
     """
@@ -55,7 +60,8 @@ class PhotometricNormals:
 
 
 def photometric_normals(texel, wi, diffuse, n_texels: int, *, weight=None, valid=None,
-                        max_tilt_deg: float = 45.0, iterations: int = 3) -> PhotometricNormals:
+                        max_tilt_deg: float = 45.0, iterations: int = 3,
+                        significance: float | None = 0.01) -> PhotometricNormals:
     """Per-texel Lambertian photometric stereo on diffuse reflectance samples.
 
     Parameters
@@ -79,6 +85,10 @@ def photometric_normals(texel, wi, diffuse, n_texels: int, *, weight=None, valid
         whose lights barely determine it).
     iterations : int
         Re-solves after dropping the samples the current normal puts in attached shadow.
+    significance : float or None
+        Level of the per-texel F-test (tilted normal, 3 parameters, against an albedo about the
+        given normal, 1 parameter, on the same samples): a texel whose test is not significant at
+        this level keeps +z; it needs at least 4 samples. None accepts every solvable texel.
 
     Returns
     -------
@@ -114,6 +124,8 @@ def photometric_normals(texel, wi, diffuse, n_texels: int, *, weight=None, valid
         raise SharingError("wi or diffuse contains NaN or infinite values at samples marked valid")
     if not 0 < max_tilt_deg <= 90:
         raise SharingError(f"max_tilt_deg must be in (0, 90], got {max_tilt_deg!r}")
+    if significance is not None and not 0 < significance < 1:
+        raise SharingError(f"significance must be in (0, 1) or None, got {significance!r}")
     w = np.where(keep & (wi[:, 2] > 0), w, 0.0)   # only lit samples (as the mesh sees them)
     wi, d = np.where(keep[:, None], wi, 0.0), np.where(keep, d, 0.0)
     pairs = wi[:, :, None] * wi[:, None, :]      # (S, 3, 3)
@@ -137,8 +149,25 @@ def photometric_normals(texel, wi, diffuse, n_texels: int, *, weight=None, valid
         n = np.where(ok[:, None], g / np.maximum(norm, 1e-300)[:, None], prior)
         if it < iterations:
             use = w * (np.sum(n[texel] * wi, axis=1) > SHADOW_COS)
+    if significance is not None:
+        ok &= _tilt_significant(texel, wi, d, use, g, cnt, n_texels, significance)
+        n = np.where(ok[:, None], n, prior)
     tilt = np.degrees(np.arccos(np.clip(n[:, 2], -1.0, 1.0)))
     return PhotometricNormals(n, ok, np.where(ok, tilt, 0.0))
+
+
+def _tilt_significant(texel, wi, d, use, g, cnt, n_texels, level) -> np.ndarray:
+    """Per texel: does ``d = g . wi`` fit the samples weighted ``use`` significantly better than
+    ``d = a wi_z`` (albedo only, the given normal)? F-test with (2, cnt - 3) degrees of freedom."""
+    z = wi[:, 2]
+    a = np.bincount(texel, use * d * z, n_texels) / np.maximum(np.bincount(texel, use * z * z, n_texels), 1e-300)
+    rss0 = np.bincount(texel, use * (d - a[texel] * z) ** 2, n_texels)
+    rss1 = np.bincount(texel, use * (d - np.sum(g[texel] * wi, axis=1)) ** 2, n_texels)
+    dof = cnt - 3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stat = (rss0 - rss1) / 2.0 / (rss1 / np.maximum(dof, 1))
+        p = f_distribution.sf(stat, 2, np.maximum(dof, 1))
+    return (dof >= 1) & ((rss1 == 0) & (rss0 > 0) | (p < level))
 
 
 def reframe(texel, normals, *directions):

@@ -86,29 +86,35 @@ def test_normals_from_the_diffuse_samples_restore_the_held_out_prediction(case):
 
 
 def test_photometric_normals_closed_form_with_shadows_and_unfit_texels():
-    """Exact Lambertian samples of three texels: one lit from five lights (two of them in its
-    attached shadow, diffuse 0), one whose three lights lie in a plane (undetermined), one with
-    two lights (too few)."""
+    """Exact Lambertian samples of four texels: one tilted, lit from six lights (two of them in
+    its attached shadow, diffuse 0); one whose three lights lie in a plane (undetermined); one
+    with two lights (too few); one whose normal is the given one, with noise (the tilt is not
+    significant, it keeps +z)."""
     rng = np.random.default_rng(4)
     n0 = np.array([0.6, -0.3, 1.0]) / np.linalg.norm([0.6, -0.3, 1.0])
-    l0 = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -0.6, 0.8], [-0.95, 0.0, 0.31],
-                   [0.0, 0.97, 0.24]])
+    l0 = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -0.6, 0.8], [0.5, 0.5, 0.71],
+                   [-0.95, 0.0, 0.31], [0.0, 0.97, 0.24]])
     l0 /= np.linalg.norm(l0, axis=1, keepdims=True)
     assert np.sum(l0 @ n0 < 0) == 2   # two lights behind the tilted normal, in front of +z
     coplanar = np.array([[0.6, 0.0, 0.8], [-0.6, 0.0, 0.8], [0.0, 0.0, 1.0]])
     two = np.array([[0.6, 0.0, 0.8], [0.0, 0.6, 0.8]])
-    wi = np.vstack([l0, coplanar, two])
-    texel = np.repeat([0, 1, 2], [5, 3, 2])
+    flat = hemisphere_lights(12, max_angle_deg=60) * [1, 1, -1]   # towards +z
+    wi = np.vstack([l0, coplanar, two, flat])
+    texel = np.repeat([0, 1, 2, 3], [6, 3, 2, 12])
     albedo = np.array([0.7, 0.5, 0.3])
     d = albedo / np.pi * np.maximum(wi @ n0, 0.0)[:, None]
-    d[5:] = rng.random((5, 3))
-    got = photometric_normals(texel, wi, d, 3)
-    np.testing.assert_array_equal(got.fitted, [True, False, False])
+    d[6:11] = rng.random((5, 3))
+    d[11:] = albedo / np.pi * flat[:, 2:3] * (1 + 0.01 * rng.standard_normal((12, 1)))
+    got = photometric_normals(texel, wi, d, 4)
+    np.testing.assert_array_equal(got.fitted, [True, False, False, False])
     np.testing.assert_allclose(got.normals[0], n0, atol=1e-12)
-    np.testing.assert_allclose(got.normals[1:], [[0, 0, 1.0]] * 2)
-    np.testing.assert_allclose(got.tilt_deg, [np.degrees(np.arccos(n0[2])), 0, 0], atol=1e-9)
+    np.testing.assert_allclose(got.normals[1:], [[0, 0, 1.0]] * 3)
+    np.testing.assert_allclose(got.tilt_deg, [np.degrees(np.arccos(n0[2])), 0, 0, 0], atol=1e-9)
+    # without the test the noise tilts texel 3 (1 % noise: a fraction of a degree)
+    free = photometric_normals(texel, wi, d, 4, significance=None)
+    assert free.fitted[3] and 0 < free.tilt_deg[3] < 2.0
     # without dropping the shadowed lights the least squares is biased
-    once = photometric_normals(texel, wi, d, 3, iterations=0)
+    once = photometric_normals(texel, wi, d, 4, iterations=0, significance=None)
     assert _angle_deg(once.normals[:1], n0[None])[0] > 1.0
 
 
@@ -120,6 +126,8 @@ def test_bad_input_is_named():
         photometric_normals(np.zeros(4, int), wi, np.ones(3), 1)
     with pytest.raises(SharingError, match="max_tilt_deg"):
         photometric_normals(np.zeros(4, int), wi, np.ones(4), 1, max_tilt_deg=0)
+    with pytest.raises(SharingError, match="significance"):
+        photometric_normals(np.zeros(4, int), wi, np.ones(4), 1, significance=1.5)
     smooth, xy, _ = visible_points(8)
     s = samples_from_images(smooth, np.ones((3, len(smooth))), hemisphere_lights(3))
     with pytest.raises(SharingError, match="fit_normals needs diffuse and specular"):
