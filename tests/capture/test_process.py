@@ -303,4 +303,3 @@ def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captur
     assert not rep.calibration_truth and "measured_vs_truth_rel_rms" not in rep.inputs
     assert "truth_rel_rms" not in rep.method("lambertian").figures
     assert "held-out rel. RMS" in text
-
