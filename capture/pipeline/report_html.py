@@ -31,7 +31,10 @@ METHOD_NOTES = {
               "point's surface normal is refined so that bumps the mesh lacks reappear.",
     "sharing": "Zickler et al. 2005 (reflectance sharing): neighbouring points lend each other their "
                "measurements, so a smooth interpolation over position and angle predicts each point's "
-               "reflectance from very few images; diffuse and specular parts come apart by polarization.",
+               "reflectance from very few images; diffuse and specular parts come apart by polarization. "
+               "The method needs exact surface normals: where the matte (diffuse) part shows that a "
+               "point's normal differs from the mesh's, the normal is first refitted from it (photometric "
+               "stereo), so bumps the mesh lacks do not move the predicted highlights.",
     "passive": "Romeiro et al. 2008 (passive reflectometry): one image of the object lit only by the room, "
                "whose light is known from a mirror-ball photograph, gives one reflectance function for the "
                "whole object (it assumes a single material).",

@@ -112,9 +112,12 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
         assert f["held_out_rel_rms"] < 1.5 * lam["held_out_rel_rms"], f
         assert f["truth_rel_rms"] < 1.5 * lam["truth_rel_rms"], f
     if methods["sharing"]["status"] == "ok":
-        # with 300 centres on the bumpy sphere it is no better than matte under new lights
-        # (seen: 0.81 vs 0.80): the bumps move the highlights the smooth mesh's normals predict
-        assert methods["sharing"]["figures"]["held_out_rel_rms"] < 1.1 * lam["held_out_rel_rms"]
+        # about normals fitted to the diffuse samples it beats matte under new lights (seen: 0.37
+        # vs 0.80, trimmed 0.27 vs 0.70; about the smooth mesh's normals it was 0.72-0.81: the
+        # bumps move the highlights)
+        f = methods["sharing"]["figures"]
+        assert f["held_out_rel_rms"] < 0.75 * lam["held_out_rel_rms"], f
+        assert f["held_out_rel_rms_trimmed"] < 0.75 * lam["held_out_rel_rms_trimmed"], f
     if methods["passive"]["status"] == "ok":
         # the 320 x 240 probe (a 19 px ball) cannot explain the image: the method must say so
         # rather than return a confident answer (seen: relative residual 83 %)
