@@ -601,10 +601,12 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm, *, rays=None,
     positions_mm : array_like of shape (N, 3)
         Light positions measured for those poses (e.g. :func:`triangulate_point_light`,
         mapped to the world frame), mm.
-    rays : tuple (points_mm, directions, pose), optional
+    rays : tuple (points_mm, directions, pose[, weight]), optional
         Reflection points (R, 3) mm and unit directions (R, 3) of the rays towards the lamp
-        (:func:`reflect_highlight`, same frame as ``positions_mm``) and the index (R,) into the
-        poses of the light each ray saw.
+        (:func:`reflect_highlight`, same frame as ``positions_mm``), the index (R,) into the
+        poses of the light each ray saw, and optionally each ray's weight (R,), inversely
+        proportional to its angular uncertainty (a highlight towards a ball's limb, where the
+        normal turns faster per pixel, gives a less certain ray: :func:`ray_weights`).
     max_evaluations : int, optional
         Residual evaluations the fit may use (scipy's default when None).
 
@@ -646,11 +648,11 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm, *, rays=None,
                      what="positioner arm fit", max_evaluations=max_evaluations, method="lm")
     ray_rms = float("nan")
     if rays is not None:
-        P, D, pose = _rays_of_poses(rays, len(az))
+        P, D, pose, weight = _rays_of_poses(rays, len(az))
 
         def misfit(p):  # sine of the angle between each ray and the direction to its model light
             w = _arm(p, az, el)[pose] - P
-            return np.cross(w / np.linalg.norm(w, axis=1, keepdims=True), D).ravel()
+            return (weight[:, None] * np.cross(w / np.linalg.norm(w, axis=1, keepdims=True), D)).ravel()
         # robust: a highlight the lamp's spot picker got wrong turns its ray by degrees
         sol = _fit.solve(misfit, sol.x, what="positioner arm fit to the rays", max_evaluations=max_evaluations,
                          loss="soft_l1", f_scale=RAY_MISFIT_SCALE)
@@ -667,10 +669,33 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm, *, rays=None,
                            np.sqrt(np.diag(cov)), res, int(sol.status), str(sol.message), ray_rms)
 
 
-def _rays_of_poses(rays, poses: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Validated ``rays`` of :func:`fit_positioner_model`: points, unit directions, pose index."""
-    if len(rays) != 3:
-        raise InvalidInput("rays must be (points_mm, directions, pose)", argument="rays")
+def ray_weights(points_mm, directions, camera_mm) -> np.ndarray:
+    """Weights (R,) of reflected rays for :func:`fit_positioner_model`: ``n . v``, the cosine
+    between the ball's normal at the reflection point and the direction to the camera. A
+    highlight's pixel error turns the normal by ``delta / (r_px cos)`` across the limb (the
+    sphere's foreshortening), so its ray's angular error grows as ``1 / (n . v)``.
+
+    Parameters
+    ----------
+    points_mm, directions : ndarray of shape (R, 3)
+        Reflection points and unit reflected directions (:func:`reflect_highlight`).
+    camera_mm : array_like of shape (3,)
+        The camera centre in the same frame (the origin in the camera frame).
+    """
+    P = _validate.array(points_mm, "points_mm", shape=(-1, 3))
+    D = _validate.array(directions, "directions", shape=P.shape)
+    v = np.asarray(camera_mm, float) - P
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    n = v + D / np.linalg.norm(D, axis=1, keepdims=True)   # the mirror normal bisects the two
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return np.sum(n * v, axis=1)
+
+
+def _rays_of_poses(rays, poses: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Validated ``rays`` of :func:`fit_positioner_model`: points, unit directions, pose index,
+    weight."""
+    if len(rays) not in (3, 4):
+        raise InvalidInput("rays must be (points_mm, directions, pose[, weight])", argument="rays")
     P = _validate.array(rays[0], "rays points_mm", shape=(-1, 3))
     D = _validate.array(rays[1], "rays directions", shape=(-1, 3))
     pose = np.asarray(rays[2])
@@ -679,4 +704,7 @@ def _rays_of_poses(rays, poses: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
                            "(R, 3), (R, 3) and (R,) integers", argument="rays")
     if len(pose) and (pose.min() < 0 or pose.max() >= poses):
         raise InvalidInput(f"rays pose index must lie in 0..{poses - 1}", argument="rays")
-    return P, D / np.linalg.norm(D, axis=1, keepdims=True), pose
+    weight = np.ones(len(P)) if len(rays) == 3 else _validate.array(rays[3], "rays weight", shape=(len(P),))
+    if np.any(weight <= 0):
+        raise InvalidInput("rays weight must be > 0", argument="rays")
+    return P, D / np.linalg.norm(D, axis=1, keepdims=True), pose, weight

@@ -61,7 +61,7 @@ import numpy as np
 from calibration.errors import CalibrationError, TargetNotFound
 from calibration.hdr import master_frame, merge_raw_brackets
 from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
-from calibration.lights import (PositionerModel, detect_sphere, fit_positioner_model, sphere_center_from_silhouette,
+from calibration.lights import (PositionerModel, detect_sphere, fit_positioner_model, ray_weights, sphere_center_from_silhouette,
                                 triangulate_point_light)
 from calibration.polarization import fit_polarization, separate_parallel_crossed
 from calibration.probe import merge_probes, mirror_sphere_to_latlong
@@ -783,7 +783,8 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     P = np.concatenate([lab.to_lab(m.rays[0]) for m in use])
     D = np.concatenate([m.rays[1] @ lab.R for m in use])
     pose = np.concatenate([np.full(len(m.rays[0]), i) for i, m in enumerate(use)])
-    model = fit_positioner_model(az, el, X, rays=(P, D, pose))
+    weight = np.concatenate([ray_weights(*m.rays, np.zeros(3)) for m in use])
+    model = fit_positioner_model(az, el, X, rays=(P, D, pose, weight))
     if model.radius_mm <= 0 or model.rms_mm > MAX_ARM_RMS_FRACTION * model.radius_mm:
         # LM can settle on a mirrored arm (negative radius) when the lights scatter in distance
         raise CalibrationError(

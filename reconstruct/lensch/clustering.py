@@ -20,6 +20,12 @@ import numpy as np
 
 from .lafortune_fit import N_MAX, N_MIN, LafortuneFit, fit_geometry, model_and_jacobian
 
+#: Albedo bound of the clustering's lobes (1/sr units): only a guard against runaway fits. They
+#: only group texels; the materials are refitted under MAX_LOBE_ALBEDO before predicting
+#: anything; with the physical bound here the split decisions changed and one bumpy-object
+#: material ended split across two clusters (47 % of its texels in the main one).
+CLUSTERING_ALBEDO = 1e3
+
 
 def sample_errors(params: np.ndarray, t, z, cos_i, reflectance, *, intensity_weight: float = 1.0):
     """Per-sample error of Eq. 6 for one model (3, P): s * I + D, (S,).
@@ -121,7 +127,8 @@ class _Clusterer:
         keep = np.isin(self.smp.texel, members) if len(members) < self.smp.n_texels else \
             np.ones(len(self.smp.texel), bool)
         t, z, c, r, w = self.smp.take(keep)
-        return fit_geometry(t, z, c, r, w, n_lobes=self.n_lobes, init=init, noise=self.noise)
+        return fit_geometry(t, z, c, r, w, n_lobes=self.n_lobes, init=init, noise=self.noise,
+                            max_albedo=CLUSTERING_ALBEDO)
 
     def _clip(self, params):
         return np.clip(params, self.lo, self.hi)

@@ -28,11 +28,17 @@ N_MIN, N_MAX = 0.5, 5000.0
 _START_EXPONENTS = np.array([1.0, 3.0, 8.0, 20.0, 50.0, 120.0, 300.0, 800.0])
 #: b^n is evaluated as exp(min(n ln b, _LOG_CAP)) so that wild trial steps stay finite.
 _LOG_CAP = 60.0
-#: A lobe's peak max(|C_x|, |C_z|)^N may exceed the energy-normalised Phong peak (N + 2) / 2 pi
-#: by at most this factor. Samples that never reach the peak (b < 1 everywhere) otherwise let a
-#: fit trade a large C against a large N, and the model explodes (1e49 seen) at untried angles.
-#: 1e3 leaves every physical lobe free (an off-specular -C_x = 1.12 C_z at N = 30: 30x).
-PEAK_FACTOR = 1e3
+#: Largest directional albedo a fitted lobe may have, in units of :func:`albedo_unit` (1 for
+#: reflectance in 1/sr): energy conservation allows 1; the factor 2 is slack for the calibration's
+#: scale and :func:`lobe_albedo`'s approximation. Samples that never reach a lobe's peak (an
+#: unseen grazing or mirror angle) otherwise let a fit trade a large C against a large N: a lobe
+#: with -C_x = 2.5 C_z, harmless at every training light, predicted f_r cos = 10^3 near grazing.
+MAX_LOBE_ALBEDO = 2.0
+#: Cosines of incidence at which :func:`lobe_albedo` looks for the largest albedo.
+_COS_GRID = np.linspace(1.0 / 64, 1.0, 64)
+#: A lobe whose axis lies on the horizon keeps about sqrt(pi/2) / (2 pi sqrt(N)) of its
+#: 2 pi / (N + 2) cap integral above it (large N); the approximation's floor on the axis cosine.
+_GRAZING = float(np.sqrt(np.pi / 2) / (2 * np.pi))
 
 
 def lobe_geometry(wi: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -227,32 +233,81 @@ def initial_params(t, z, cos_i, reflectance, weight, n_lobes: int) -> np.ndarray
     return out
 
 
-def peak_penalty(params: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Hinge residual per lobe on ``N ln max(|C_x|, |C_z|) - ln(PEAK_FACTOR (N + 2) / 2 pi)``
-    (zero for any physical lobe), times ``scale`` (B,); returns (B, L) and its Jacobian (B, L, P)."""
+def albedo_unit(reflectance, weight=None) -> float:
+    """The data's reflectance unit for :data:`MAX_LOBE_ALBEDO`: 1 (1/sr) or, for data in larger
+    relative units (no absolute calibration), pi x the median sample (a diffuse albedo scale)."""
+    r = np.asarray(reflectance, float).mean(axis=-1)
+    if weight is not None:
+        r = r[np.asarray(weight) > 0]
+    return max(1.0, np.pi * float(np.median(r))) if r.size else 1.0
+
+
+def lobe_albedo(cx, cz, n, *, grad: bool = False):
+    """Largest directional albedo over incidence of Lafortune lobes max(0, C.(u, v))^N.
+
+    For incidence u the lobe is |w|^N cos^N of the angle to w = (C_x u_x, C_x u_y, C_z u_z), and
+    its albedo int f cos(theta_o) dv is |w|^N 2 pi / (N + 2) w_z / |w| when the lobe lies above
+    the horizon (exact then; near the horizon the axis cosine is floored at
+    ``_GRAZING / sqrt(N + 2)``). The maximum is taken over a grid of cos(theta_i); a physical
+    lobe has albedo <= 1 (the paper's normalised Phong lobe: its rho_s).
+
+    Parameters
+    ----------
+    cx, cz, n : array_like, same shape (...)
+        Lobe parameters.
+    grad : bool
+        Also return d ln(albedo) / d (cx, cz, n) at the maximising incidence, each (...).
+
+    Returns
+    -------
+    albedo : ndarray (...)
+        Dimensionless, in the units of the parameters' reflectance (1/sr x sr).
+    """
+    cx, cz, n = (np.asarray(a, float)[..., None] for a in (cx, cz, n))
+    c2 = _COS_GRID ** 2
+    Q = np.maximum(cx ** 2 * (1 - c2) + cz ** 2 * c2, 1e-300)
+    axis_z = cz * _COS_GRID / np.sqrt(Q)
+    floor = _GRAZING / np.sqrt(n + 2)
+    on_axis = axis_z > floor
+    log_a = 0.5 * n * np.log(Q) + np.log(2 * np.pi / (n + 2)) + np.log(np.where(on_axis, axis_z, floor))
+    k = np.argmax(log_a, axis=-1)[..., None]
+    albedo = np.exp(np.take_along_axis(log_a, k, -1)[..., 0])
+    if not grad:
+        return albedo
+    Q, ax, cg = np.take_along_axis(Q, k, -1), np.take_along_axis(on_axis, k, -1), _COS_GRID[k]
+    cx, cz, n = (np.broadcast_to(a, Q.shape) for a in (cx, cz, n))
+    m = np.where(ax, n - 1, n)  # ln(axis_z) = ln(cz c) - ln(Q) / 2 on the axis branch
+    d_cx = m * cx * (1 - cg ** 2) / Q
+    d_cz = m * cz * cg ** 2 / Q + np.where(ax, 1 / np.where(ax, cz, 1.0), 0.0)
+    d_n = 0.5 * np.log(Q) - 1 / (n + 2) - np.where(ax, 0.0, 0.5 / (n + 2))
+    return albedo, (d_cx[..., 0], d_cz[..., 0], d_n[..., 0])
+
+
+def albedo_penalty(params: np.ndarray, scale: np.ndarray, limit: float = MAX_LOBE_ALBEDO):
+    """Hinge residual per lobe on ``ln lobe_albedo - ln limit`` (zero for any physical lobe when
+    ``limit`` >= 1 in the data's units), times ``scale`` (B,); returns (B, L) and its Jacobian
+    (B, L, P)."""
     B, P = params.shape
     L = (P - 1) // 3
-    pen = np.zeros((B, L))
+    cx, cz, n = params[:, 1::3], params[:, 2::3], params[:, 3::3]  # (B, L)
+    albedo, (d_cx, d_cz, d_n) = lobe_albedo(cx, cz, n, grad=True)
+    on = albedo > limit
+    s = np.where(on, scale[:, None], 0.0)
+    pen = s * (np.log(np.maximum(albedo, 1e-300)) - np.log(limit))
     dpen = np.zeros((B, L, P))
-    for l in range(L):
-        c = params[:, 1 + 3 * l:3 + 3 * l]
-        n = params[:, 3 + 3 * l]
-        k = np.argmax(np.abs(c), axis=1)
-        cm = np.maximum(np.abs(c[np.arange(B), k]), 1e-300)
-        excess = n * np.log(cm) - np.log(PEAK_FACTOR * (n + 2) / (2 * np.pi))
-        on = excess > 0
-        pen[:, l] = np.where(on, scale * excess, 0.0)
-        dpen[:, l, 3 + 3 * l] = np.where(on, scale * (np.log(cm) - 1 / (n + 2)), 0.0)
-        sign = np.sign(c[np.arange(B), k])
-        dpen[np.arange(B), l, 1 + 3 * l + k] = np.where(on, scale * n / cm * sign, 0.0)
+    lobes = np.arange(L)
+    dpen[:, lobes, 1 + 3 * lobes] = s * d_cx
+    dpen[:, lobes, 2 + 3 * lobes] = s * d_cz
+    dpen[:, lobes, 3 + 3 * lobes] = s * d_n
     return pen, dpen
 
 
-def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_iter: int = 200):
+def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_iter: int = 200,
+                 max_albedo: float = MAX_LOBE_ALBEDO):
     """Levenberg-Marquardt of the per-channel parameters (3, P) on given samples.
 
     Returns the :class:`~reconstruct.lensch.lm.LMResult` (items = channels). Bounds keep
-    rho_d >= 0 and N in [N_MIN, N_MAX].
+    rho_d >= 0 and N in [N_MIN, N_MAX]; a penalty keeps each lobe's albedo <= ``max_albedo``.
     """
     P = params0.shape[1]
     sw = np.sqrt(weight)
@@ -262,7 +317,7 @@ def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_i
 
     def fun(x, items):
         f, J = model_and_jacobian(x, t, z, cos_i)
-        pen, dpen = peak_penalty(x, scale[items])
+        pen, dpen = albedo_penalty(x, scale[items], max_albedo)
         return (np.concatenate([f * sw - target[items], pen], axis=1),
                 np.concatenate([J * sw[:, None], dpen], axis=1))
 
@@ -277,7 +332,7 @@ def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_i
 
 def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
                   init: Lafortune | LafortuneFit | None = None, noise: str = "absolute",
-                  max_iter: int = 200) -> LafortuneFit:
+                  max_iter: int = 200, max_albedo: float | None = None) -> LafortuneFit:
     """Fit an isotropic Lafortune BRDF to reflectance samples by Levenberg-Marquardt (Sec. 6).
 
     Parameters
@@ -300,6 +355,11 @@ def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
         by 1 / model^2, iteratively reweighted from the previous round's model.
     max_iter : int
         Cap on LM iterations per channel.
+    max_albedo : float, optional
+        Largest directional albedo of a lobe (:func:`lobe_albedo`, per channel); default
+        :data:`MAX_LOBE_ALBEDO` x :func:`albedo_unit` of the samples. Lobes beyond it are
+        penalised: samples that miss a lobe's peak cannot pin it, and it would predict absurd
+        values at untried angles.
 
     Returns
     -------
@@ -324,17 +384,21 @@ def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
     t, z = lobe_geometry(wi, wo)
     p0 = None if init is None else params_of(init.model if isinstance(init, LafortuneFit) else init,
                                               n_lobes)
-    return fit_geometry(t, z, wi[:, 2], r, w, n_lobes=n_lobes, init=p0, noise=noise, max_iter=max_iter)
+    return fit_geometry(t, z, wi[:, 2], r, w, n_lobes=n_lobes, init=p0, noise=noise, max_iter=max_iter,
+                        max_albedo=max_albedo)
 
 
 def fit_geometry(t, z, cos_i, reflectance, weight, *, n_lobes: int = 1, init: np.ndarray | None = None,
-                 noise: str = "absolute", max_iter: int = 200) -> LafortuneFit:
+                 noise: str = "absolute", max_iter: int = 200,
+                 max_albedo: float | None = None) -> LafortuneFit:
     """:func:`fit_lafortune` on validated samples given by their :func:`lobe_geometry` (t, z),
     cos(theta_i) (S,), ``reflectance`` (S, 3) and ``weight`` (S,); ``init`` (3, 1 + 3L) or None."""
     P = 1 + 3 * n_lobes
+    if max_albedo is None:
+        max_albedo = MAX_LOBE_ALBEDO * albedo_unit(reflectance, weight)
     n_used = int(np.count_nonzero(weight))
     p0 = initial_params(t, z, cos_i, reflectance, weight, n_lobes) if init is None else init
-    res = lafortune_lm(p0, t, z, cos_i, reflectance, weight, max_iter=max_iter)
+    res = lafortune_lm(p0, t, z, cos_i, reflectance, weight, max_iter=max_iter, max_albedo=max_albedo)
     if noise == "relative":
         # multiplicative noise: weight by 1 / model^2 of the previous round (iteratively
         # reweighted; the model, not the noisy sample, sets the weight, so no bias toward low values)
@@ -342,7 +406,8 @@ def fit_geometry(t, z, cos_i, reflectance, weight, *, n_lobes: int = 1, init: np
             f = model_and_jacobian(res.x, t, z, cos_i, want_jac=False)[0].mean(axis=0)
             floor = 0.01 * max(float(np.median(f)), 1e-12)
             weight_rel = weight / np.maximum(f, floor) ** 2
-            res = lafortune_lm(res.x, t, z, cos_i, reflectance, weight_rel, max_iter=max_iter)
+            res = lafortune_lm(res.x, t, z, cos_i, reflectance, weight_rel, max_iter=max_iter,
+                               max_albedo=max_albedo)
         weight = weight_rel
     elif noise != "absolute":
         raise LafortuneFitError(f"noise must be 'absolute' or 'relative', got {noise!r}")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from .clustering import sample_errors, texel_mean
-from .lafortune_fit import N_MAX, N_MIN, model_and_jacobian
+from .lafortune_fit import N_MAX, N_MIN, lobe_albedo, model_and_jacobian
 from .lm import levenberg_marquardt, nnls_batched
 
 #: Relative change of rho_d and N in the two variants of a cluster's BRDF (Sec. 8.1).
@@ -70,7 +70,7 @@ def basis_values(t, z, cos_i, texel, labels, basis, basis_size) -> np.ndarray:
 
 
 def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_size, *,
-                  prior: float = 0.0, select: bool = False):
+                  prior: float = 0.0, select: bool = False, max_albedo: float | None = None):
     """Non-negative projection of a chunk of texels into their clusters' bases (Eqs. 11-12).
 
     Parameters
@@ -98,6 +98,12 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         least squares on their support, see :func:`loo_sse`); elsewhere the weights become
         (1, 0, ..., 0). A texel whose highlight only one sample shows can otherwise fit it exactly
         with a sharper or brighter basis BRDF, and predicts other light positions badly.
+    max_albedo : float, optional
+        Where the texel's weighted lobes may reflect more than this (sum over basis BRDFs and
+        lobes of weight x :func:`~reconstruct.lensch.lafortune_fit.lobe_albedo`, any channel; an
+        upper bound of the mixture's albedo) and more than its cluster's BRDF alone, the weights
+        become (1, 0, ..., 0): a large weight on a basis BRDF that is ~0 at the texel's samples
+        (21.8 seen) fits them and predicts absurd values at other lights.
 
     Returns
     -------
@@ -129,12 +135,23 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         sse = np.maximum(sse, 0.0)
     else:
         t_, sse = nnls_batched(G, h, rr)
-    if select:
+    if select or max_albedo is not None:
         own = np.bincount(texel, np.sum((A[:, 0] - r) ** 2, axis=1), minlength=n)
-        worse = loo_sse(A, r, texel, G, t_) > own
+        worse = loo_sse(A, r, texel, G, t_) > own if select else np.zeros(n, bool)
+        if max_albedo is not None:
+            alone = texel_albedo(np.broadcast_to(np.eye(B)[0], (n, B)), labels, basis)
+            worse |= texel_albedo(t_, labels, basis) > np.maximum(max_albedo, alone) * (1 + 1e-9)
         t_[worse] = np.eye(B)[0]
         sse[worse] = own[worse]
     return t_, sse
+
+
+def texel_albedo(weights, labels, basis) -> np.ndarray:
+    """Upper bound of each texel's lobe albedo, largest over channels, (n,): the sum over its
+    basis BRDFs and lobes of weight x :func:`~reconstruct.lensch.lafortune_fit.lobe_albedo`.
+    ``weights`` (n, B), ``labels`` (n,), ``basis`` (K, B, 3, P)."""
+    alb = lobe_albedo(basis[..., 1::3], basis[..., 2::3], basis[..., 3::3]).sum(axis=-1)  # (K, B, 3)
+    return np.einsum("nb,nbc->nc", weights, alb[labels]).max(axis=1)
 
 
 def loo_sse(A, r, texel, G, weights) -> np.ndarray:

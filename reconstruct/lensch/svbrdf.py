@@ -16,8 +16,8 @@ import numpy as np
 from ..brdf import Lafortune
 from ..frames import normalize, tangent_frames, to_local, to_world
 from .clustering import _Samples, deal_halves, split_recluster_fit
-from .lafortune_fit import (LafortuneFitError, check_samples, fit_geometry, lobe_geometry, model_of,
-                            params_of)
+from .lafortune_fit import (MAX_LOBE_ALBEDO, LafortuneFitError, albedo_unit, check_samples,
+                            fit_geometry, lobe_geometry, model_of, params_of)
 from .normals import fit_normals_chunk
 from .projection import (cluster_errors, cluster_residuals, make_bases, pfa_refine, project_chunk)
 
@@ -273,6 +273,9 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     offsets = np.concatenate([[0], np.cumsum(counts)])
     t, z = lobe_geometry(wi, wo)
     cos_i = wi[:, 2]
+    # energy conservation, in the data's units: no lobe, and no texel's weighted mix of lobes,
+    # may reflect more (a lobe unpinned by its samples otherwise explodes at held-out lights)
+    max_albedo = MAX_LOBE_ALBEDO * albedo_unit(r, w)
     stages = 3 + int(pfa) + 2 * normal_rounds * int(fit_normals)
     stage = 0
 
@@ -300,7 +303,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     # Eq. 10 for every texel, then each cluster's BRDF refit on (up to fit_texels of) its texels
     mats = np.stack([f.channel_params for f in clus.fits])
     labels, errors = _label(t, z, cos_i, r, w, tx, T, mats, offsets, chunk_texels)
-    fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels, rng,
+    fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels, rng, max_albedo,
                   texels=_confident(errors))
     mats = np.stack([f.channel_params for f in fits])
     labels, errors = _label(t, z, cos_i, r, w, tx, T, mats, offsets, chunk_texels)
@@ -320,13 +323,13 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     similar = _most_similar(errors, labels, len(mats))
     basis, size = make_bases(mats, similar)
     weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
-                                 weight_prior, select_projection)
+                                 weight_prior, select_projection, max_albedo)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
     if pfa:  # Eq. 13 lowers the plain projection's error; kept if the selected one drops too
         trial = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
         w_pfa, sse_pfa = _project(trial, size, labels, offsets, tx, t, z, cos_i, r, w, T,
-                                  chunk_texels, weight_prior, select_projection)
+                                  chunk_texels, weight_prior, select_projection, max_albedo)
         if sse_pfa.sum() < sse.sum():
             basis, weights, sse = trial, w_pfa, sse_pfa
         rms["pfa"] = _rms(sse.sum(), n_res)
@@ -355,13 +358,13 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
             visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
             cos_i = np.where(visible, wi[:, 2], 0.0)
             fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels, rng,
-                          keep=visible, texels=_confident(errors))
+                          max_albedo, keep=visible, texels=_confident(errors))
             mats = np.stack([f.channel_params for f in fits])
             basis, size = make_bases(mats, similar)
             if pfa:
                 basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
             weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
-                                 weight_prior, select_projection)
+                                 weight_prior, select_projection, max_albedo)
             tick()
             if sse.sum() > 1.05 * before[6].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
@@ -451,7 +454,8 @@ def _confident(errors, ratio: float = 1.5, outlier: float = 3.0):
     return ok
 
 
-def _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, limit, rng, keep=None, texels=None):
+def _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, limit, rng, max_albedo, keep=None,
+           texels=None):
     """Each cluster's BRDF refit on (up to ``limit`` of) its texels (those in the ``texels`` mask
     when it leaves enough), samples in ``keep``; starts from ``mats`` (K, 3, P)."""
     fits = []
@@ -465,7 +469,7 @@ def _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, limit, rng, keep
         if np.count_nonzero(w[idx]) < 1 + 3 * n_lobes:
             idx = np.flatnonzero(w > 0) if keep is None else np.flatnonzero((w > 0) & keep)
         fits.append(fit_geometry(t[idx], z[idx], cos_i[idx], r[idx], w[idx], n_lobes=n_lobes,
-                                 init=m, noise=noise))
+                                 init=m, noise=noise, max_albedo=max_albedo))
     return fits
 
 
@@ -481,13 +485,13 @@ def _most_similar(errors, labels, K):
     return similar
 
 
-def _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk, prior, select):
+def _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk, prior, select, max_albedo):
     weights = np.zeros((T, basis.shape[1]))
     sse = np.zeros(T)
     for c in _chunks(T, chunk):
         ct, ctt, cz, cc, cr, cw = _chunk(c, offsets, tx, t, z, cos_i, r, w)
         weights[c], sse[c] = project_chunk(ct, ctt, cz, cc, cr, cw, labels[c], basis, size,
-                                           prior=prior, select=select)
+                                           prior=prior, select=select, max_albedo=max_albedo)
     return weights, sse
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calibration.errors import DegenerateFit, NotConverged, TargetNotFound, TooFewViews
-from calibration.lights import (closest_point_to_lines, detect_sphere, find_highlight, fit_positioner_model,
+from calibration.lights import (closest_point_to_lines, detect_sphere, ray_weights, find_highlight, fit_positioner_model,
                                 light_direction_orthographic, locate_collinear_spheres,
                                 reflect_highlight, sphere_center_from_silhouette,
                                 triangulate_point_light)
@@ -217,6 +217,18 @@ def test_positioner_fit_to_the_rays_beats_triangulated_points(outlier):
     assert np.median(worst[:, 1]) < np.median(worst[:, 0])
 
 
+def test_ray_weights_are_the_cosine_between_normal_and_camera():
+    """A mirror ball at the origin, the camera 1 m up +z: a reflection point at polar angle t
+    has normal n = its position / r, so the weight is cos of n's angle to the camera ray."""
+    t = np.radians([0.0, 30.0, 60.0, 80.0])
+    n = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], 1)
+    P, C = 25.0 * n, np.array([0.0, 0.0, 1000.0])
+    v = (C - P) / np.linalg.norm(C - P, axis=1, keepdims=True)
+    D = 2 * np.sum(n * v, axis=1, keepdims=True) * n - v
+    np.testing.assert_allclose(ray_weights(P, D, C), np.sum(n * v, axis=1), atol=1e-12)
+    assert np.all(np.diff(ray_weights(P, D, C)) < 0)   # towards the limb: less certain rays
+
+
 def test_positioner_rays_are_validated():
     az, el, X, (P, D, pose), _ = _arm_rays(0)
     with pytest.raises(ValueError, match="rays"):
@@ -225,6 +237,8 @@ def test_positioner_rays_are_validated():
         fit_positioner_model(az, el, X, rays=(P, D, pose + 1))
     with pytest.raises(ValueError, match="rays must be"):
         fit_positioner_model(az, el, X, rays=(P, D))
+    with pytest.raises(ValueError, match="weight must be > 0"):
+        fit_positioner_model(az, el, X, rays=(P, D, pose, np.zeros(len(P))))
 
 
 def test_no_sphere_no_highlight_errors_name_frame():

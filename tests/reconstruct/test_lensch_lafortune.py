@@ -127,10 +127,76 @@ def test_bad_input_names_the_argument():
         fit_lafortune(wi, wo, r, n_lobes=2, init=Lafortune.phong())
 
 
-def test_fitted_lobe_peak_stays_physical_when_samples_miss_the_highlight():
+def _cone(rng, n, max_deg):
+    cz = rng.uniform(np.cos(np.radians(max_deg)), 1, n)
+    ph = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - cz ** 2)
+    return np.c_[s * np.cos(ph), s * np.sin(ph), cz]
+
+
+def _largest_reflectance(model):
+    """max f_r cos(theta_i) over a grid of all light / view directions (plane of incidence and
+    out of it), by brute force."""
+    th = np.radians(np.linspace(0, 89, 90))
+    ph = np.radians(np.linspace(0, 180, 37))
+    T, P = np.meshgrid(th, ph)
+    wo = np.c_[(np.sin(T) * np.cos(P)).ravel(), (np.sin(T) * np.sin(P)).ravel(), np.cos(T).ravel()]
+    best = 0.0
+    for ci in np.linspace(0.02, 1, 50):
+        wi = np.broadcast_to([np.sqrt(1 - ci * ci), 0, ci], wo.shape)
+        best = max(best, float(np.max(model.evaluate(wi, wo)) * ci))
+    return best
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_lobe_fitted_with_the_camera_near_the_normal_stays_credible_at_held_out_lights(seed):
+    # the demo's blow-up (held-out relative RMS 12.2): a texel seen from near its normal has
+    # t = u_x v_x + u_y v_y ~ 0 at every training sample, so C_x is not pinned; a fit drifted to
+    # -C_x = 1.5 C_z at N = 20 (same training RMS) and predicted 610 1/sr near grazing (seed 3)
+    # where the true lobe never exceeds 9.3. Samples: a shiny Phong lobe averaged over a pixel
+    # footprint of slightly tilted normals, lights within 60 deg, camera within 5 deg, 3 % noise.
+    from reconstruct.frames import tangent_frames, to_local
+    true = Lafortune.phong(rho_d=(0.10, 0.20, 0.50), rho_s=0.8, exponent=70.0)
+    rng = np.random.default_rng(seed)
+    S = 600
+    wi, wo = _cone(rng, S, 60), _cone(rng, S, 5)
+    r = np.zeros((S, 3))
+    for _ in range(4):
+        n = np.c_[rng.normal(0, 0.05, (S, 2)), np.ones(S)]
+        frames = tangent_frames(n / np.linalg.norm(n, axis=1)[:, None])
+        a, b = to_local(wi, frames), to_local(wo, frames)
+        lit = (a[:, 2:3] > 0) & (b[:, 2:3] > 0)
+        r += np.where(lit, true.evaluate(a, b) * np.maximum(a[:, 2:3], 0), 0) / 4
+    r *= 1 + 0.03 * rng.standard_normal((S, 3))
+    far = np.einsum("ij,ij->i", wi * [-1, -1, 1], wo) < 0.9  # the training lights miss the peak
+    fit = fit_lafortune(wi[far], wo[far], r[far])
+    assert _largest_reflectance(fit.model) <= 1.5 * _largest_reflectance(true)
+
+
+@pytest.mark.parametrize("cx, cz, n", [(-1.0, 1.0, 10.0), (-1.02, 0.95, 12.0), (-0.9, 1.1, 3.0),
+                                       (-1.3, 0.9, 40.0)])
+def test_lobe_albedo_matches_quadrature(cx, cz, n):
+    # largest directional albedo over incidence, against Monte Carlo quadrature of
+    # int max(0, C.(u, v))^N cos(theta_o) dv (4e5 directions: ~1 % noise); the closed form is
+    # exact for lobes above the horizon and within a factor 2 for strongly off-specular ones
+    from reconstruct.lensch.lafortune_fit import lobe_albedo
+    rng = np.random.default_rng(1)
+    v = rng.standard_normal((400_000, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    v[:, 2] = np.abs(v[:, 2])
+    quad = max(2 * np.pi * np.mean(np.maximum(cx * np.sqrt(1 - c * c) * v[:, 0] + cz * c * v[:, 2], 0) ** n
+                                   * v[:, 2]) for c in np.linspace(0.02, 1, 40))
+    tol = 0.03 if cx * cx <= 1.1 * cz * cz else 0.5
+    assert lobe_albedo(cx, cz, n) == pytest.approx(quad, rel=tol)
+    # the paper's normalised Phong lobe: C^N = rho_s (N + 2) / 2 pi has albedo rho_s
+    C = (0.4 * (n + 2) / (2 * np.pi)) ** (1 / n)
+    assert lobe_albedo(-C, C, n) == pytest.approx(0.4, rel=1e-9)
+
+
+def test_fitted_lobe_albedo_stays_physical_when_samples_miss_the_highlight():
     # samples only far from the mirror direction cannot pin C against N: the fit must not trade a
     # large C for a large N (such a lobe explodes at the untried mirror angle)
-    from reconstruct.lensch.lafortune_fit import PEAK_FACTOR, peak_penalty
+    from reconstruct.lensch.lafortune_fit import MAX_LOBE_ALBEDO, albedo_penalty, lobe_albedo
     rng = np.random.default_rng(5)
     wi = _directions(rng, 4000)
     wo = _directions(rng, 4000)
@@ -141,9 +207,9 @@ def test_fitted_lobe_peak_stays_physical_when_samples_miss_the_highlight():
     r = true.evaluate(wi, wo) * wi[:, 2:3] * (1 + 0.05 * rng.standard_normal((len(wi), 1)))
     fit = fit_lafortune(wi, wo, r)
     cx, cz, n = (np.asarray(getattr(fit.model, k), float).reshape(-1) for k in ("cx", "cz", "n"))
-    peak = np.maximum(np.abs(cx), np.abs(cz)) ** n
-    assert np.all(peak <= 1.01 * PEAK_FACTOR * (n + 2) / (2 * np.pi))
-    # physical lobes (the paper's normalised Phong, an off-specular lobe) are never penalised
-    lobes = np.array([[0.1, -1.07, 1.07, 10.0], [0.1, -1.12, 1.0, 30.0], [0.1, -1.0, 1.0, 5000.0]])
-    assert np.all(peak_penalty(lobes, np.ones(3))[0] == 0)
-    assert np.all(peak_penalty(np.array([[0.1, -5.0, 5.0, 70.0]]), np.ones(1))[0] > 0)
+    assert np.all(lobe_albedo(cx, cz, n) <= 1.01 * MAX_LOBE_ALBEDO)
+    # physical lobes (the paper's normalised Phong, the demo's off-specular gold) are never
+    # penalised; the demo's exploded lobe (-C_x = 2.5 C_z, albedo ~ 66-109) is
+    lobes = np.array([[0.1, -1.07, 1.07, 10.0], [0.1, -1.02, 0.95, 12.0], [0.1, -1.0, 1.0, 5000.0]])
+    assert np.all(albedo_penalty(lobes, np.ones(3))[0] == 0)
+    assert np.all(albedo_penalty(np.array([[0.1, -1.621, 0.653, 16.5]]), np.ones(1))[0] > 0)
