@@ -265,6 +265,9 @@ def detect_charuco(image, board, *, frame: str | None = None, min_corners: int =
         raise TargetNotFound(f"ChArUco board: {n} corners found, need {min_corners}", frame=frame)
     ids = np.asarray(ids).ravel().astype(np.int64)
     obj = np.asarray(board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)[ids]
+    if min(len(np.unique(obj[:, 0])), len(np.unique(obj[:, 1]))) < 2:
+        # corners along one row or column fix no homography (calibrateCamera's start fails on them)
+        raise TargetNotFound(f"ChArUco board: the {n} corners found lie in one row or column", frame=frame)
     # The detector's own interpolation leaves ~0.25 px errors; a saddle-point refinement on the
     # image itself brings them to the chessboard detector's level, with a window that stays off
     # the markers (a window reaching their edges biases the saddle: 0.30 -> 0.21 px rms on a

@@ -36,8 +36,9 @@ _LEAN_WORDS = ("bottom edge", "bottom-left corner", "left edge", "top-left corne
 class HandheldView:
     """Hand-held board view ``view`` (0-based) of ``views``: the board tilted by ``tilt_deg``
     about the image-plane axis at ``tilt_axis_deg`` from the image x axis (the axis turns by
-    360°/``views`` from view to view, so the tilts are about both image axes, each sign), pushed
-    towards ``anchor`` (ax, ay) in [-1, 1]^2 of the frame (``place`` in words), all of it in view."""
+    360°/``views`` from view to view, so the tilts are about both image axes, each sign; turned
+    round by 180° where the side leaning away would face the frame's edge), pushed towards
+    ``anchor`` (ax, ay) in [-1, 1]^2 of the frame (``place`` in words), all of it in view."""
 
     view: int
     views: int
@@ -69,7 +70,13 @@ def handheld_view(view: int, views: int) -> HandheldView:
     if not (isinstance(view, (int, np.integer)) and not isinstance(view, bool) and 0 <= view < views):
         raise ValueError(f"view must be a whole number in 0..{views - 1}, got {view!r}")
     place, anchor = HANDHELD_PLACES[view % len(HANDHELD_PLACES)]
-    return HandheldView(int(view), int(views), anchor, place, 360.0 * view / views, HANDHELD_TILT_DEG)
+    phi = 360.0 * view / views
+    away = np.array([-np.sin(np.radians(phi)), np.cos(np.radians(phi))])  # the edge that leans away
+    if away @ np.asarray(anchor, float) > 1e-9:
+        # near the frame's edge the board's far side would be small and squeezed by the lens: turn
+        # the tilt round so the near side is there (the tilt axes still turn through 180°)
+        phi = (phi + 180.0) % 360.0
+    return HandheldView(int(view), int(views), anchor, place, phi, HANDHELD_TILT_DEG)
 
 
 def handheld_board_pose(board, camera, *, anchor=(0.0, 0.0), tilt_axis_deg: float = 0.0,
