@@ -86,9 +86,9 @@ def test_demo_lab_renders_a_detectable_board_at_every_view():
     lab = DemoLab(320, 240, seed=3)
     cam = lab.camera
     board = make_charuco_board(BOARD.squares, BOARD.square_mm, BOARD.marker_mm, BOARD.dictionary)
-    plan = Plan.from_dict({"calibration": [{"kind": "handheld_board", "views": VIEWS, "exposure_s": 0.15}]})
+    plan = Plan.from_dict({"calibration": [{"kind": "handheld_board", "views": 24, "exposure_s": 0.15}]})
     counts = []
-    for step in plan.steps():
+    for step in plan.steps()[:len(HANDHELD_PLACES)]:  # every place in the frame (all 24 in the e2e test)
         lab.prepare_target(step.target, step)
         raw = read_raw(lab({"exposure_s": 0.15}))
         img = demosaic_bilinear(raw.data - raw.black_level, raw.channels)
