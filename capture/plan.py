@@ -194,7 +194,8 @@ class Calibration:
     Attributes
     ----------
     kind : str
-        One of ``dark``, ``checkerboard``, ``spheres``, ``gray_card``, ``mirror_probe``.
+        One of ``dark``, ``checkerboard``, ``handheld_board``, ``spheres``, ``gray_card``,
+        ``mirror_probe``, ``passive``.
     frames : int or None
         Captures per pose (None: the kind's default; dark frames default to 5).
     exposure_s : float or None
