@@ -28,8 +28,12 @@ A plan is a TOML file (or :class:`Plan` built in Python)::
     # highlight = 0.8               # where the 99.5th percentile of the raw values should land
 
     [[calibration]]                 # named calibration captures
-    kind = "dark"                   # dark | checkerboard | spheres | gray_card | mirror_probe
-    frames = 5
+    kind = "dark"                   # dark | checkerboard | handheld_board | spheres | gray_card
+    frames = 5                      # | mirror_probe | passive
+
+    [[calibration]]
+    kind = "handheld_board"         # the board held in front of the camera, a new pose per view
+    views = 12                      # (intrinsics: tilted about both axes, covering the frame)
 
 Any list of numbers may be written as ``{ start, stop, step }`` (``stop`` included when the grid
 lands on it). With ``exposure.auto = true`` the runner meters the scene first and the bracket
@@ -53,6 +57,7 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 from rig.motion import move_time_s
+from sims.handheld import handheld_view
 from rig.tomlfile import read_toml
 
 #: The scene targets: what stands in front of the camera for a step, and what the operator does
@@ -62,6 +67,7 @@ SCENE_TARGETS = {
     "object": "put the object on the turntable",
     "dark": "put the lens cap on",
     "checkerboard": "put the checkerboard target on the turntable",
+    "handheld_board": "hold the calibration board in front of the camera",
     "spheres": "put the calibration spheres on the turntable",
     "gray_card": "put the gray card on the turntable",
     "mirror_probe": "put the mirror sphere on the turntable",
@@ -72,6 +78,9 @@ CALIBRATION_KINDS = {
     # kind (= its scene target): (default frames, default light use)
     "dark": (5, "none"),
     "checkerboard": (1, "first"),
+    # the board held (or on a tripod) in free poses for the intrinsics; lit by the room or a
+    # light on the camera, so the positioner stays where it is
+    "handheld_board": (1, "none"),
     "spheres": (1, "grid"),
     "gray_card": (1, "grid"),
     "mirror_probe": (1, "none"),
@@ -79,6 +88,9 @@ CALIBRATION_KINDS = {
     "passive": (1, "none"),
 }
 
+#: hand-held board views a plan takes when it names no count, and the fewest it accepts
+HANDHELD_VIEWS_DEFAULT = 12
+HANDHELD_VIEWS_MIN = 3
 #: motion model defaults where a device's describe() gives none (speed unit/s, accel unit/s^2)
 DEFAULT_SPEEDS = {
     "turntable": (20.0, 40.0),     # deg/s, deg/s^2 (Zaber rotary stage, conservative)
@@ -182,7 +194,8 @@ class Calibration:
     Attributes
     ----------
     kind : str
-        One of ``dark``, ``checkerboard``, ``spheres``, ``gray_card``, ``mirror_probe``.
+        One of ``dark``, ``checkerboard``, ``handheld_board``, ``spheres``, ``gray_card``,
+        ``mirror_probe``, ``passive``.
     frames : int or None
         Captures per pose (None: the kind's default; dark frames default to 5).
     exposure_s : float or None
@@ -195,6 +208,8 @@ class Calibration:
         ``grid`` (every light position), ``first`` or ``none`` (None: the kind's default).
     when : str
         ``before`` or ``after`` the measurement.
+    views : int or None
+        ``handheld_board`` only: board poses (one step each; None: :data:`HANDHELD_VIEWS_DEFAULT`).
     """
 
     kind: str
@@ -203,6 +218,7 @@ class Calibration:
     turntable_angles_deg: tuple[float, ...] | None = None
     lights: str | None = None
     when: str = "before"
+    views: int | None = None
 
 
 @dataclass(frozen=True)
@@ -268,7 +284,7 @@ class Plan:
         d["calibration"] = [
             {"kind": c.kind, "frames": c.frames, "exposure_s": c.exposure_s,
              "turntable_angles_deg": None if c.turntable_angles_deg is None else list(c.turntable_angles_deg),
-             "lights": c.lights, "when": c.when} for c in self.calibration]
+             "lights": c.lights, "when": c.when, "views": c.views} for c in self.calibration]
         return _drop_none(d)
 
     @property
@@ -373,6 +389,13 @@ class Plan:
             exposures = (c.exposure_s,)
         else:
             exposures = tuple(sorted(set(self.exposure.exposures_s)))
+        pol = None if c.kind == "dark" or not self.polarizer_deg else self.polarizer_deg[0]
+        if c.kind == "handheld_board":  # one step per pose; the turntable and the light stay put
+            views = c.views or HANDHELD_VIEWS_DEFAULT
+            return [Step(index=0, kind=c.kind, target=c.kind, turntable_deg=None, light=None,
+                         polarizer_deg=pol, exposures_s=exposures, repeats=frames, iso=self.exposure.iso,
+                         auto_exposure=self.exposure.auto and c.exposure_s is None, view=k, views=views)
+                    for k in range(views)]
         if c.turntable_angles_deg is not None:
             angles: list[float | None] = list(c.turntable_angles_deg)
         elif c.kind == "checkerboard" and self.turntable_deg:
@@ -384,7 +407,6 @@ class Plan:
         light_list: list[dict | None] = {"grid": all_lights, "first": all_lights[:1]}.get(lights, [])
         light_list = light_list or [None]
         # dark frames: lens cap on, nothing needs to move
-        pol = None if c.kind == "dark" or not self.polarizer_deg else self.polarizer_deg[0]
         out = []
         for a, lt in _serpentine([angles, light_list]):
             out.append(Step(index=0, kind=c.kind, target=c.kind,
@@ -428,6 +450,9 @@ class Step:
         The bracket follows the session's metered exposure.
     held_out : bool
         A measurement at a held-out light (:attr:`LightGrid.held_out_deg`): scores, never fits.
+    view, views : int or None
+        ``handheld_board`` steps: which board pose (0-based) of how many (see
+        :func:`sims.handheld.handheld_view`); None for other steps.
     """
 
     index: int
@@ -441,6 +466,8 @@ class Step:
     iso: float | None = None
     auto_exposure: bool = False
     held_out: bool = False
+    view: int | None = None
+    views: int | None = None
 
     @property
     def frames(self) -> int:
@@ -451,7 +478,8 @@ class Step:
                 "turntable_deg": self.turntable_deg, "light": self.light,
                 "polarizer_deg": self.polarizer_deg, "exposures_s": list(self.exposures_s),
                 "repeats": self.repeats, "iso": self.iso, "frames": self.frames,
-                "auto_exposure": self.auto_exposure, **({"held_out": True} if self.held_out else {})}
+                "auto_exposure": self.auto_exposure, **({"held_out": True} if self.held_out else {}),
+                **({"view": self.view, "views": self.views} if self.view is not None else {})}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Step":
@@ -459,7 +487,16 @@ class Step:
                    turntable_deg=d["turntable_deg"], light=d["light"],
                    polarizer_deg=d["polarizer_deg"], exposures_s=tuple(d["exposures_s"]),
                    repeats=d["repeats"], iso=d.get("iso"), auto_exposure=d.get("auto_exposure", False),
-                   held_out=d.get("held_out", False))
+                   held_out=d.get("held_out", False), view=d.get("view"), views=d.get("views"))
+
+
+def step_prompt(step: Step) -> str:
+    """What the operator must set up for ``step``: its scene target's instruction, and for a
+    hand-held board view which view it is and how to hold the board."""
+    text = SCENE_TARGETS.get(step.target, f"set up {step.target}")
+    if step.view is not None and step.views is not None:
+        text = f"{text}: {handheld_view(step.view, step.views).prompt}"
+    return text
 
 
 @dataclass(frozen=True)
@@ -737,7 +774,7 @@ def _parse_calibration(c: Any, i: int) -> Calibration:
     where = f"calibration[{i}]"
     if not isinstance(c, dict):
         raise PlanError(f"{where} must be a table, got {_tname(c)}")
-    _no_unknown(c, {"kind", "frames", "exposure_s", "turntable_angles_deg", "lights", "when"}, where)
+    _no_unknown(c, {"kind", "frames", "exposure_s", "turntable_angles_deg", "lights", "when", "views"}, where)
     if "kind" not in c:
         raise PlanError(f"{where}.kind is missing; one of {', '.join(CALIBRATION_KINDS)}")
     frames = c.get("frames")
@@ -746,11 +783,14 @@ def _parse_calibration(c: Any, i: int) -> Calibration:
     exp = c.get("exposure_s")
     if exp is not None and not _is_num(exp):
         raise PlanError(f"{where}.exposure_s must be a number (seconds), got {_tname(exp)}")
+    views = c.get("views")
+    if views is not None and not _is_int(views):
+        raise PlanError(f"{where}.views must be a whole number of board poses, got {_tname(views)}")
     angles = c.get("turntable_angles_deg")
     return Calibration(kind=c["kind"], frames=frames, exposure_s=None if exp is None else float(exp),
                        turntable_angles_deg=(None if angles is None else
                                              _numbers(angles, f"{where}.turntable_angles_deg")),
-                       lights=c.get("lights"), when=c.get("when", "before"))
+                       lights=c.get("lights"), when=c.get("when", "before"), views=views)
 
 
 def _validate(p: Plan) -> None:
@@ -826,6 +866,18 @@ def _validate(p: Plan) -> None:
             raise PlanError(f"{where}.when = {c.when!r} must be 'before' or 'after'")
         if c.turntable_angles_deg is not None:
             _finite(c.turntable_angles_deg, f"{where}.turntable_angles_deg")
+        if c.kind == "handheld_board":
+            if c.views is not None and not (_is_int(c.views) and HANDHELD_VIEWS_MIN <= c.views <= MAX_REPEATS):
+                raise PlanError(f"{where}.views = {c.views!r} must be a whole number in "
+                                f"{HANDHELD_VIEWS_MIN}..{MAX_REPEATS} (board poses; the intrinsics need "
+                                f"at least {HANDHELD_VIEWS_MIN})")
+            for key in ("turntable_angles_deg", "lights"):
+                if getattr(c, key) is not None:
+                    raise PlanError(f"{where}.{key} does not apply to kind = 'handheld_board' (the board "
+                                    "is held in front of the camera; the turntable and the light stay put)")
+        elif c.views is not None:
+            raise PlanError(f"{where}.views is only for kind = 'handheld_board' (board poses); "
+                            f"kind = {c.kind!r} takes turntable_angles_deg / lights")
     measuring = p.turntable_deg or p.polarizer_deg or p.light is not None
     if not measuring and not p.calibration:
         raise PlanError("the plan captures nothing: give turntable, light or polarizer values, "
@@ -845,7 +897,8 @@ def _count(p: Plan) -> tuple[int, int]:
     frames = steps * len(p.exposure.stops) * p.repeats
     for c in p.calibration:
         default_frames, default_lights = CALIBRATION_KINDS.get(c.kind, (1, "none"))
-        angles = (len(c.turntable_angles_deg) if c.turntable_angles_deg is not None else
+        angles = ((c.views or HANDHELD_VIEWS_DEFAULT) if c.kind == "handheld_board" else
+                  len(c.turntable_angles_deg) if c.turntable_angles_deg is not None else
                   8 if c.kind == "checkerboard" and p.turntable_deg else 1)
         lights = (c.lights or default_lights) == "grid" and p.light is not None and p.light.count or 1
         steps += angles * lights

@@ -30,7 +30,7 @@ from rig.errors import Disconnected
 
 from .events import Event, EventBus, EventKind
 from .metering import MeteringError, meter
-from .plan import SCENE_TARGETS, Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff
+from .plan import Estimate, MotionModel, Plan, Step, limit_from_describe, plan_diff, step_prompt
 from .store import SessionInfo, Store, StoreFull, check_session_name, safe_name_from
 
 #: free space kept in reserve on the store's disk, bytes
@@ -318,7 +318,7 @@ class Runner:
                 self._check_space(sum(s.frames for s in pending[n:]) * self._model.frame_bytes,
                                   "to finish the session (re-estimated from the first frame)")
             self._check_space(step.frames * self._model.frame_bytes, f"for step {step.index}")
-            if step.target != target:
+            if step.target != target or step.view is not None:  # each hand-held view is a new pose
                 self._change_target(step)
                 target = step.target
                 self._check_requests()  # a pause asked for while the operator set the scene up
@@ -378,8 +378,9 @@ class Runner:
             raise _Stop("paused", msg)
 
     def _change_target(self, step: Step) -> None:
-        msg = SCENE_TARGETS.get(step.target, f"set up {step.target}")
-        self._emit(EventKind.TARGET, msg, step=step.index, target=step.target, kind=step.kind)
+        msg = step_prompt(step)
+        self._emit(EventKind.TARGET, msg, step=step.index, target=step.target, kind=step.kind,
+                   **({"view": step.view, "views": step.views} if step.view is not None else {}))
         if self.prepare_target is not None:
             self.prepare_target(step.target, step)
 

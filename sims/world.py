@@ -29,6 +29,7 @@ from reconstruct.render import PointLight, RenderResult, Scene, SceneObject, ren
 from reconstruct.raycast import Plane
 from reconstruct.brdf import Lambertian
 
+from .handheld import handheld_board_pose, handheld_view
 from .objects import GroundTruthObject, make_object, turntable_pose
 from .sensor import ExpectedRaw, SensorModel
 from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, PrintedBoard,
@@ -47,7 +48,7 @@ ARM_CENTER_MM = (0.0, 0.0, 0.0)
 #: Scene kinds :meth:`SimWorld.for_capture` knows.
 #: the scenes the simulated camera can show; the plan's scene targets (capture.plan.SCENE_TARGETS)
 #: under the same names, and simulator-only ones (charuco, chrome, passive, flat)
-CAPTURE_KINDS = ("object", "checkerboard", "charuco", "chrome", "spheres", "gray_card",
+CAPTURE_KINDS = ("object", "checkerboard", "handheld_board", "charuco", "chrome", "spheres", "gray_card",
                  "mirror_probe", "passive", "dark", "flat")
 
 
@@ -232,6 +233,14 @@ def board_on_turntable(board: PrintedBoard, *, tilt_deg: float = 25.0, height_mm
                   lambda ang: board.corners_world(turntable_pose(ang) @ pose0), True, board)
 
 
+def handheld_board(board: PrintedBoard, camera: CameraModel, name: str | None = None, **pose) -> Target:
+    """The board held in front of ``camera``, fixed in the world at
+    :func:`sims.handheld.handheld_board_pose` (``pose``: its keyword arguments)."""
+    T = handheld_board_pose(board, camera, **pose)
+    name = name or type(board).__name__.lower()
+    return Target(name, lambda ang: [board.scene_object(T, name)], lambda ang: board.corners_world(T), False, board)
+
+
 def spheres_target(kind: str = "steel", *, count: int = 6, radius_mm: float = 12.7,
                    spacing_mm: float = 40.0, start_mm=(-80.0, -100.0, 120.0),
                    direction=(0.0, 1.0, 0.0), on_turntable: bool = False) -> Target:
@@ -304,6 +313,9 @@ class SimWorld:
         Rays per pixel side (1: one ray through each pixel centre; 2: 2 x 2 box-filtered).
     env_samples : int
         Monte-Carlo environment samples per pixel (with ``environment``).
+    flash_lit : bool
+        The ring flash on the lens fires for every frame instead of the lamp (a board held in
+        front of the camera: the lamp, wherever the positioner left it, may be behind it).
     seed : int or numpy.random.Generator
         Source of the sensor noise; each frame draws fresh noise from it.
     """
@@ -313,7 +325,7 @@ class SimWorld:
                  environment: EnvironmentMap | None = None, light_intensity=LIGHT_INTENSITY,
                  light_radius_mm: float = 25.0, light_polarizer_deg: float | None = 0.0,
                  platter: bool = True, supersample: int = 1, env_samples: int = 32,
-                 seed: int | np.random.Generator = 0) -> None:
+                 flash_lit: bool = False, seed: int | np.random.Generator = 0) -> None:
         self.object = make_object(object) if isinstance(object, str) else object
         if self.object is not None and not isinstance(self.object, GroundTruthObject):
             raise TypeError(f"object must be a GroundTruthObject, a name or None, got {type(object).__name__}")
@@ -332,6 +344,7 @@ class SimWorld:
         self.light_radius_mm = float(light_radius_mm)
         self.light_polarizer_deg = light_polarizer_deg
         self.platter = bool(platter)
+        self.flash_lit = bool(flash_lit)
         if int(supersample) < 1:
             raise ValueError(f"supersample must be >= 1, got {supersample!r}")
         self.supersample = int(supersample)
@@ -343,14 +356,17 @@ class SimWorld:
         # what set_scene("object") puts back
         self._home = dict(object=self.object, environment=environment, light_intensity=light_intensity,
                           supersample=self.supersample,
-                          platter=self.platter)
+                          platter=self.platter, flash_lit=self.flash_lit)
 
     _SCENE_FIELDS = ("object", "targets", "environment", "light_intensity", "platter", "dark", "flat_radiance",
-                     "supersample")
+                     "supersample", "flash_lit")
     #: pixel-area integration per capture kind: one ray per pixel aliases sharp print edges by
     #: ~0.25 px and the ~1 px lamp highlight on a small steel ball enough to move a triangulated
     #: light by ~2 % (3 x 3 brings it under 0.4 %, tests/calibration)
     KIND_SUPERSAMPLE = {"checkerboard": 2, "charuco": 2, "spheres": 3, "chrome": 2}
+    #: 4 x 4 brings the hand-held views' ChArUco corners from 0.21 to 0.14 px rms (320 x 240),
+    #: which the principal point needs
+    KIND_SUPERSAMPLE["handheld_board"] = 4
 
     def set_scene(self, kind: str) -> None:
         """Change what stands in front of the camera to the scene of capture ``kind`` (see
@@ -364,6 +380,8 @@ class SimWorld:
         home.pop("supersample")
         if kind in ("mirror_probe", "passive"):  # they bring their own lighting and no cloth
             home = {"environment": home["environment"]} if home["environment"] is not None else {}
+        if kind == "handheld_board":  # so does the held board (the ring flash, the air behind it)
+            home = {k: v for k, v in home.items() if k not in ("platter", "flash_lit")}
         other = SimWorld.for_capture(kind, obj, **keep, **home)
         with self._lock:
             for name in self._SCENE_FIELDS:
@@ -371,8 +389,21 @@ class SimWorld:
 
     def prepare_target(self, target: str, step=None) -> None:
         """``capture.runner.Runner(prepare_target=world.prepare_target)``: the simulated operator
-        sets up ``target`` before the steps that need it (see :meth:`set_scene`)."""
+        sets up ``target`` before the steps that need it (see :meth:`set_scene`); for
+        ``handheld_board`` it holds the board at the step's ``view`` of ``views``."""
         self.set_scene(target)
+        if target == "handheld_board":
+            self.hold_board(CAPTURE_CHARUCO, step)
+
+    def hold_board(self, board: PrintedBoard, step) -> None:
+        """Put ``board`` in front of the camera at hand-held view ``step.view`` of ``step.views``
+        (:func:`sims.handheld.handheld_view`) as this world's only target."""
+        view, views = getattr(step, "view", None), getattr(step, "views", None)
+        if view is None or views is None:
+            raise ValueError("a handheld_board step must say which view it is (step.view of step.views)")
+        target = handheld_board(board, self.camera, **handheld_view(view, views).pose_options())
+        with self._lock:
+            self.targets = [target]
 
     # -- preset scenes ------------------------------------------------------------------------
     @classmethod
@@ -391,6 +422,12 @@ class SimWorld:
         kwargs.setdefault("supersample", cls.KIND_SUPERSAMPLE.get(kind, 1))
         if kind in ("checkerboard", "charuco"):
             return cls(None, targets=[board_on_turntable(CAPTURE_CHARUCO)], **kwargs)
+        if kind == "handheld_board":  # held in the air: no cloth; the ring flash lights it
+            kwargs.setdefault("platter", False)
+            kwargs.setdefault("flash_lit", True)
+            world = cls(None, **kwargs)
+            world.targets = [handheld_board(CAPTURE_CHARUCO, world.camera)]
+            return world
         if kind == "chrome":
             return cls(None, targets=[sphere_target("chrome")], **kwargs)
         if kind == "spheres":
@@ -424,7 +461,7 @@ class SimWorld:
             sc.objects.extend(t.scene_objects(st.turntable_deg))
         if self.platter:
             sc.add(Plane((800.0, 800.0)), Lambertian(0.03), "platter")
-        if st.ring_flash:  # around the lens: at the camera centre, unpolarised
+        if st.ring_flash or self.flash_lit:  # around the lens: at the camera centre, unpolarised
             sc.add_light(PointLight(self.camera.center, RING_FLASH_INTENSITY, radius=RING_FLASH_RADIUS_MM))
         elif np.any(np.asarray(self.light_intensity, float) > 0):
             sc.add_light(PointLight(st.light_position_mm, self.light_intensity,

@@ -32,7 +32,7 @@ from rig import RigError
 from .session import (STORE_OPTION, display_state, fail, human_bytes, human_time, open_store,
                           unwrap)
 from ..events import Event, EventKind
-from ..plan import Estimate, MotionModel, Plan, PlanError, Step
+from ..plan import Estimate, MotionModel, Plan, PlanError, Step, step_prompt
 from ..rigs import OpenedRig, open_rig
 from ..runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
 from ..store import StoreError, check_session_name
@@ -208,8 +208,8 @@ def _target_handler(opened: OpenedRig, yes: bool):
         return None
 
     def ask(target: str, step: Step) -> None:
-        typer.prompt(f"step {step.index} needs '{target}' in front of the camera; set it up and "
-                     "press Enter", default="", show_default=False)
+        typer.prompt(f"step {step.index} needs '{target}' in front of the camera ({step_prompt(step)}); "
+                     "set it up and press Enter", default="", show_default=False)
     return ask
 
 

@@ -19,8 +19,8 @@ app = typer.Typer(name="sim", help="Render the simulated lab: scenes, targets an
                   no_args_is_help=True)
 
 #: sims.world.CAPTURE_KINDS, restated so that --help does not import the renderer (tests/sims/test_world.py)
-SCENES = ("object", "checkerboard", "charuco", "chrome", "spheres", "gray_card", "mirror_probe", "passive", "dark",
-          "flat")
+SCENES = ("object", "checkerboard", "handheld_board", "charuco", "chrome", "spheres", "gray_card", "mirror_probe",
+          "passive", "dark", "flat")
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:

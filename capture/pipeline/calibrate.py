@@ -6,7 +6,8 @@ code version)::
 
     dark        mean dark frame per exposure time (lens-cap steps)
     hdr         raw brackets of every step -> linear radiance (dark-subtracted, exposure-normalised)
-    intrinsics  K and distortion from the checkerboard / ChArUco steps
+    intrinsics  K and distortion from the checkerboard / ChArUco steps: the turntable sweep's
+                and the hand-held views' (``handheld_board``) together
     turntable   axis, angle model and world frame from the same target at several turntable
                 readings (the frames' read-backs)
     lights      one point light per spheres step (mirror spheres of known radius)
@@ -509,8 +510,26 @@ def _detector(ctx: _Context):
     return detect
 
 
+#: the step kinds whose board views the intrinsics use: the turntable sweep (also the axis's
+#: views) and the free, hand-held views that tilt about both axes and reach the frame's corners
+INTRINSICS_KINDS = ("checkerboard", "handheld_board")
+
+
+def _board_steps(ctx: _Context) -> list[int]:
+    """The merged steps of :data:`INTRINSICS_KINDS`; skips the stage when there are none."""
+    steps, reasons = [], []
+    for kind in INTRINSICS_KINDS:
+        try:
+            steps += ctx.merged_steps(kind)
+        except _Skip as exc:
+            reasons.append(str(exc))
+    if not steps:
+        raise _Skip("; ".join(reasons))
+    return sorted(steps)
+
+
 def _stage_intrinsics(ctx: _Context, rep: CalibrationReport) -> StageOutput:
-    steps = ctx.merged_steps("checkerboard")
+    steps = _board_steps(ctx)
     detect = _detector(ctx)
     dets, kinds, det_steps, missing = [], [], [], []
     for s in steps:
@@ -529,7 +548,7 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         dets, det_steps = [dets[i] for i in keep], [det_steps[i] for i in keep]
         kinds = [major] * len(keep)
     if len(dets) < 3:
-        raise CalibrationError(f"a board was found in {len(dets)} of {len(steps)} checkerboard steps "
+        raise CalibrationError(f"a board was found in {len(dets)} of {len(steps)} board steps "
                                f"(need 3): {'; '.join(missing) or 'no views'}")
     flags = ctx.targets.intrinsics_flags
     res = calibrate_intrinsics(dets, flags=flags)
@@ -543,21 +562,25 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                  "add board views across the whole frame for the full model")
         res = calibrate_intrinsics(dets, flags=flags)
     ctx.intrinsics = res
-    ctx.detections = dict(zip(det_steps, dets))
-    ctx.detector = kinds[0]
+    # the turntable stage reads the sweep's views alone: the hand-held ones did not turn with it
+    ctx.detections = {s: d for s, d in zip(det_steps, dets) if ctx.steps[s]["kind"] == "checkerboard"}
     kept = {d.frame for d in dets} - {r.frame for r in res.rejected}
+    views = {kind: sum(ctx.steps[s]["kind"] == kind and d.frame in kept for s, d in zip(det_steps, dets))
+             for kind in INTRINSICS_KINDS}
+    ctx.detector = kinds[0]
     rep.plots["intrinsics"] = {"frames": res.frames, "per_view_rms_px": res.per_view_rms_px,
                                "coverage": res.coverage, "image_size": res.image_size,
                                "points": [d.image_points for d in dets if d.frame in kept]}
     result = {"K": res.K, "dist": res.dist, "image_size": res.image_size, "rms_px": res.rms_px,
               "K_std": res.K_std, "dist_std": res.dist_std, "per_view_rms_px": res.per_view_rms_px,
-              "views": res.frames, "rejected": [asdict(r) for r in res.rejected],
+              "views": res.frames, "views_by_kind": views, "rejected": [asdict(r) for r in res.rejected],
               "not_found": missing, "target": kinds[0], "coverage": res.coverage,
               "coverage_fraction": res.coverage_fraction, "model": model, "flags": flags,
               "distortion_note": res.model_note}
     figures = {"rms_px": round(res.rms_px, 3), "fx_px": round(float(res.K[0, 0]), 2),
                "fy_px": round(float(res.K[1, 1]), 2), "cx_px": round(float(res.K[0, 2]), 2),
                "cy_px": round(float(res.K[1, 2]), 2), "views": len(res.frames),
+               **{f"views_{kind}": n for kind, n in views.items()},
                "coverage_pct": round(100 * res.coverage_fraction),
                "model": "full" if model == "full" else "constrained"}
     params = {"targets": asdict(ctx.targets), "detector": kinds[0], "flags": flags}

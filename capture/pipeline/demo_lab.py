@@ -10,6 +10,9 @@ runner asked the operator to set up (``prepare_target``), all through one camera
 ``dark``        dark frames (lens cap on)
 ``checkerboard``  a 10 x 7 ChArUco of 28 mm squares standing on the turntable (fills much of
                 the frame: a turntable sweep otherwise only sees the image centre)
+``handheld_board``  the same ChArUco held in front of the camera at the step's view
+                (:func:`sims.handheld.handheld_view`: tilted 45° about both image axes, pushed
+                into the corners and edges), lit by the ring flash on the lens
 ``spheres``     three 25 mm chrome balls on a bar standing on the turntable (it turns them
                 around the axis) before a lit white backdrop, lamp behind a 120 mm diffuser
                 (Lensch et al. 2003 Sec. 4.1)
@@ -130,6 +133,7 @@ class DemoLab:
             "dark": SimWorld.for_capture("dark", camera=cam, seed=seed + 2),
             "checkerboard": SimWorld(None, camera=cam, targets=[board_on_turntable(BOARD)], supersample=2,
                                      seed=seed + 3),
+            "handheld_board": SimWorld.for_capture("handheld_board", camera=cam, seed=seed + 8),
             "spheres": SimWorld(None, camera=cam, targets=[self._spheres(), _backdrop()],
                                 light_radius_mm=SPHERES_LAMP_RADIUS_MM, supersample=2, seed=seed + 4),
             "gray_card": SimWorld.for_capture("gray_card", camera=cam, seed=seed + 5),
@@ -147,9 +151,12 @@ class DemoLab:
         return self.current.frame_source(state)
 
     def prepare_target(self, target: str, step=None) -> None:
-        """``Runner(prepare_target=...)``: the simulated operator sets up ``target``."""
+        """``Runner(prepare_target=...)``: the simulated operator sets up ``target`` (for a
+        ``handheld_board`` step: holds the board at the step's ``view`` of ``views``)."""
         if target not in self.worlds:
             raise ValueError(f"the demo lab has no scene for target {target!r}; it has {', '.join(self.worlds)}")
+        if target == "handheld_board":
+            self.worlds[target].hold_board(BOARD, step)
         self.current = self.worlds[target]
 
     # -- what the lab states about itself ---------------------------------------------------------

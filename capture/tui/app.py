@@ -28,7 +28,7 @@ from rig.errors import Disconnected, RigError
 from rig.rig import Rig
 
 from ..events import Event, EventKind
-from ..plan import Step
+from ..plan import Step, step_prompt
 from ..preview import PreviewError, make_preview
 from ..runner import RunnerError
 from ..store import StoreError
@@ -580,7 +580,7 @@ class GonioApp(App[None]):
         def answered(ready: bool | None) -> None:
             self._target_ready = bool(ready)
             self._target_reply.set()
-        self.call_from_thread(lambda: self.push_screen(TargetScreen(target, step.index), answered))
+        self.call_from_thread(lambda: self.push_screen(TargetScreen(target, step.index, step_prompt(step)), answered))
         self._target_reply.wait()
         if not self._target_ready:
             raise TargetCancelled(f"the operator did not set up '{target}' for step {step.index}")

@@ -350,15 +350,16 @@ class TargetScreen(ModalScreen[bool]):
     BINDINGS = [Binding("enter", "dismiss(True)", "Ready"),
                 Binding("escape", "dismiss(False)", "Cancel (pause)")]
 
-    def __init__(self, target: str, step: int) -> None:
+    def __init__(self, target: str, step: int, prompt: str | None = None) -> None:
         super().__init__()
         self.target, self.step = target, step
+        self.prompt = prompt or SCENE_TARGETS.get(target, "set up " + target)
 
     def compose(self) -> ComposeResult:
         with Vertical(id="target-box"):
             yield Label(Text(f"Step {self.step} needs: {self.target.replace('_', ' ')}",
                              style="bold"))
-            yield Label(f"{SCENE_TARGETS.get(self.target, 'set up ' + self.target)}, then press "
+            yield Label(f"{self.prompt}, then press "
                         "enter. Escape pauses the session instead.")
 
 

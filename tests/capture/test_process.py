@@ -35,6 +35,7 @@ PLAN = {
     "exposure": {"base_s": 0.005, "stops": [0]},
     "calibration": [
         {"kind": "dark", "frames": 2},
+        {"kind": "handheld_board", "views": 24, "exposure_s": 0.15},   # the intrinsics' strong views
         {"kind": "checkerboard", "exposure_s": 0.02,
          "turntable_angles_deg": [300, 310, 320, 330, 340, 350, 0, 10, 20, 30, 40, 50, 60]},
         {"kind": "spheres", "lights": "grid"},
