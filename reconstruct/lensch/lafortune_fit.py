@@ -271,7 +271,8 @@ def lobe_albedo(cx, cz, n, *, grad: bool = False):
     on_axis = axis_z > floor
     log_a = 0.5 * n * np.log(Q) + np.log(2 * np.pi / (n + 2)) + np.log(np.where(on_axis, axis_z, floor))
     k = np.argmax(log_a, axis=-1)[..., None]
-    albedo = np.exp(np.take_along_axis(log_a, k, -1)[..., 0])
+    with np.errstate(over="ignore"):  # inf for a runaway lobe: beyond any bound, as it should be
+        albedo = np.exp(np.take_along_axis(log_a, k, -1)[..., 0])
     if not grad:
         return albedo
     Q, ax, cg = np.take_along_axis(Q, k, -1), np.take_along_axis(on_axis, k, -1), _COS_GRID[k]

@@ -63,13 +63,17 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     stages = {c["stage"]: c["status"] for c in summary["calibration"]}
     assert all(stages[s] == "ok" for s in ("intrinsics", "turntable", "lights", "positioner", "gray_card",
                                            "mirror_probe")), stages
-    # the calibration tests' bounds at 320 x 240 (tests/capture/test_calibrate.py): focal length
-    # 1.5 %, light direction 4 deg; the demo's arm model over nine lights does better than their
-    # 25 % distance (seen: focal 0.9 %, lights <= 2.3 % of their distance, 1.1 deg)
-    assert max(abs(v) for v in cal["focal_error_pct"]) < 1.5
-    assert cal["max_light_direction_error_deg"] < 4.0
-    assert cal["max_light_error_pct_of_distance"] < 6.0
-    assert max(abs(v) for v in cal["intensity_error_pct"]) < 15.0       # seen: -3.5 %
+    # The calibration at 320 x 240, where its targets (focal 0.2 %, lights 0.5 % of their distance
+    # and 0.25 deg; met by the full demo at 640 x 480, docs/architecture.md) sit at the limit of
+    # what a 0.13 px corner and a 0.1 px highlight allow: focal within 0.4 % (seen: -0.13/-0.19 %;
+    # other noise seeds -0.14..-0.32 %, tests/capture/test_calibrate.py), principal point within
+    # 3 px (seen: 1.7), lights within 1.5 % of their distance and 0.75 deg (seen: 1.05 %, 0.50
+    # deg; 0.42 % and 0.23 deg with the true camera handed in), lamp intensity 3 % (seen: -0.8 %)
+    assert max(abs(v) for v in cal["focal_error_pct"]) < 0.4
+    assert max(abs(v) for v in cal["principal_point_error_px"]) < 3.0
+    assert cal["max_light_error_pct_of_distance"] < 1.5
+    assert cal["max_light_direction_error_deg"] < 0.75
+    assert max(abs(v) for v in cal["intensity_error_pct"]) < 3.0
     inputs = summary["inputs"]
     assert inputs["held_out_views"] == 4 and inputs["polarization_separated"] and inputs["passive_capture"]
     # the typical measured sample within 5 % of the true reflectance (seen: +1 %)

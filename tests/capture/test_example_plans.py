@@ -48,9 +48,9 @@ def test_example_plan_calibrates_fully_on_the_simulated_rig(name, tmp_path):
         lab = DemoLab()
         cal = read_calibration(store, session, gray_card=lab.gray_card_pose())
         truth = calibration_against_truth(store, session, cal, lab.truth())
-    # at 320 x 240 (the calibration tests' bounds there, tests/capture/test_calibrate.py: focal
-    # 1.5 %, light direction 4 deg; the arm model over the plan's lights does far better)
-    assert max(abs(v) for v in truth["focal_error_pct"]) < 1.5
-    assert truth["max_light_direction_error_deg"] < 1.0
-    assert truth["max_light_error_pct_of_distance"] < 2.0
-    assert max(abs(v) for v in truth["intensity_error_pct"]) < 5.0
+    # the quick demo's bounds at 320 x 240 (tests/capture/test_demo.py; seen: focal -0.14 / -0.10 %,
+    # lights 0.94 / 0.85 % of their distance and 0.42 / 0.39 deg, intensity -0.2 / -0.9 %)
+    assert max(abs(v) for v in truth["focal_error_pct"]) < 0.4
+    assert truth["max_light_error_pct_of_distance"] < 1.5
+    assert truth["max_light_direction_error_deg"] < 0.75
+    assert max(abs(v) for v in truth["intensity_error_pct"]) < 3.0
