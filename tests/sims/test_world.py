@@ -146,7 +146,7 @@ def test_probe_capture_reflects_the_environment_in_the_chrome_ball():
     from sims.targets import procedural_sky
     env = procedural_sky(height=64)
     cam = default_camera(120, 90, fov_deg=8.0, target_mm=(0.0, 0.0, 25.4))
-    world = SimWorld.for_capture("mirror_probe", camera=cam, environment=env)
+    world = SimWorld.for_capture("mirror_probe", camera=cam, environment=env, supersample=1)  # per ray
     gt = world.ground_truth({})
     m = gt.buffers.mask
     assert m.sum() > 2000 and np.all(gt.buffers.surface_index[m] == 0)
