@@ -198,8 +198,9 @@ class Calibration:
         ``mirror_probe``, ``passive``.
     frames : int or None
         Captures per pose (None: the kind's default; dark frames default to 5).
-    exposure_s : float or None
-        Single exposure, seconds (None: the measurement bracket; dark frames match every
+    exposure_s : float, tuple of float or None
+        Single exposure, or the calibration's own bracket (a mirror probe: the room's range
+        outruns one raw), seconds (None: the measurement bracket; dark frames match every
         exposure of the bracket).
     turntable_angles_deg : tuple of float or None
         Turntable angles (checkerboard: the target imaged at several angles, for the axis);
@@ -214,11 +215,18 @@ class Calibration:
 
     kind: str
     frames: int | None = None
-    exposure_s: float | None = None
+    exposure_s: float | tuple[float, ...] | None = None
     turntable_angles_deg: tuple[float, ...] | None = None
     lights: str | None = None
     when: str = "before"
     views: int | None = None
+
+    @property
+    def exposures_s(self) -> tuple[float, ...] | None:
+        """The calibration's own exposures, seconds (None: the measurement bracket)."""
+        if self.exposure_s is None:
+            return None
+        return tuple(self.exposure_s) if isinstance(self.exposure_s, tuple) else (self.exposure_s,)
 
 
 @dataclass(frozen=True)
@@ -282,7 +290,8 @@ class Plan:
                 if self.light.held_out_deg:
                     d["light"]["held_out_deg"] = [list(p) for p in self.light.held_out_deg]
         d["calibration"] = [
-            {"kind": c.kind, "frames": c.frames, "exposure_s": c.exposure_s,
+            {"kind": c.kind, "frames": c.frames,
+             "exposure_s": list(c.exposure_s) if isinstance(c.exposure_s, tuple) else c.exposure_s,
              "turntable_angles_deg": None if c.turntable_angles_deg is None else list(c.turntable_angles_deg),
              "lights": c.lights, "when": c.when, "views": c.views} for c in self.calibration]
         return _drop_none(d)
@@ -325,7 +334,7 @@ class Plan:
                                     f"camera's range {lim[0]:g}..{lim[1]:g} s")
             for i, c in enumerate(self.calibration):
                 if c.exposure_s is not None:
-                    _check_limits(f"calibration[{i}].exposure_s", [c.exposure_s], lim,
+                    _check_limits(f"calibration[{i}].exposure_s", list(c.exposures_s), lim,
                                   "the camera's range", " s", indexed=False)
         if self.exposure.iso is not None:
             _check_limits("exposure.iso", [self.exposure.iso], limit_from_describe(cd, "iso"),
@@ -386,7 +395,7 @@ class Plan:
         frames = c.frames or default_frames
         lights = c.lights or default_lights
         if c.exposure_s is not None:
-            exposures = (c.exposure_s,)
+            exposures = c.exposures_s
         else:
             exposures = tuple(sorted(set(self.exposure.exposures_s)))
         pol = None if c.kind == "dark" or not self.polarizer_deg else self.polarizer_deg[0]
@@ -781,13 +790,15 @@ def _parse_calibration(c: Any, i: int) -> Calibration:
     if frames is not None and not _is_int(frames):
         raise PlanError(f"{where}.frames must be a whole number, got {_tname(frames)}")
     exp = c.get("exposure_s")
-    if exp is not None and not _is_num(exp):
-        raise PlanError(f"{where}.exposure_s must be a number (seconds), got {_tname(exp)}")
+    if isinstance(exp, list) and exp and all(_is_num(e) for e in exp):
+        exp = tuple(float(e) for e in exp)
+    elif exp is not None and not _is_num(exp):
+        raise PlanError(f"{where}.exposure_s must be a number or a list of numbers (seconds), got {_tname(exp)}")
     views = c.get("views")
     if views is not None and not _is_int(views):
         raise PlanError(f"{where}.views must be a whole number of board poses, got {_tname(views)}")
     angles = c.get("turntable_angles_deg")
-    return Calibration(kind=c["kind"], frames=frames, exposure_s=None if exp is None else float(exp),
+    return Calibration(kind=c["kind"], frames=frames, exposure_s=exp if exp is None or isinstance(exp, tuple) else float(exp),
                        turntable_angles_deg=(None if angles is None else
                                              _numbers(angles, f"{where}.turntable_angles_deg")),
                        lights=c.get("lights"), when=c.get("when", "before"), views=views)
@@ -858,8 +869,8 @@ def _validate(p: Plan) -> None:
             raise PlanError(f"{where}.kind = {c.kind!r} is unknown; one of {', '.join(CALIBRATION_KINDS)}")
         if c.frames is not None and c.frames < 1:
             raise PlanError(f"{where}.frames = {c.frames} must be >= 1")
-        if c.exposure_s is not None and not c.exposure_s > 0:
-            raise PlanError(f"{where}.exposure_s = {_fmt(c.exposure_s)} must be positive (seconds)")
+        if c.exposure_s is not None and not min(c.exposures_s) > 0:
+            raise PlanError(f"{where}.exposure_s = {_fmt(min(c.exposures_s))} must be positive (seconds)")
         if c.lights is not None and c.lights not in ("grid", "first", "none"):
             raise PlanError(f"{where}.lights = {c.lights!r} must be 'grid', 'first' or 'none'")
         if c.when not in ("before", "after"):
@@ -902,7 +913,7 @@ def _count(p: Plan) -> tuple[int, int]:
                   8 if c.kind == "checkerboard" and p.turntable_deg else 1)
         lights = (c.lights or default_lights) == "grid" and p.light is not None and p.light.count or 1
         steps += angles * lights
-        frames += angles * lights * (1 if c.exposure_s is not None else len(p.exposure.stops)) \
+        frames += angles * lights * (len(c.exposures_s) if c.exposure_s is not None else len(p.exposure.stops)) \
             * (c.frames or default_frames)
     return steps, frames
 

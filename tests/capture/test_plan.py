@@ -250,3 +250,15 @@ def test_estimate_says_when_the_frame_size_is_assumed():
     measured = MotionModel.from_rig(rig).with_frame_bytes(48e6).estimate(plan.steps(rig))
     assert measured.frame_bytes_source == "measured" and measured.bytes == measured.frames * 48_000_000
     assert measured.overhead_s > est.overhead_s  # a bigger transfer per frame
+
+
+def test_a_calibration_capture_takes_its_own_bracket():
+    # a mirror probe's room outruns one raw: its own exposures, not the measurement's bracket
+    p = Plan.from_dict({"turntable": {"angles_deg": [0]}, "exposure": {"base_s": 0.01, "stops": [-2, 0]},
+                        "calibration": [{"kind": "mirror_probe", "exposure_s": [0.0005, 0.004, 0.032]},
+                                        {"kind": "gray_card", "exposure_s": 0.002}]})
+    probe, card = (s for s in p.steps() if s.kind in ("mirror_probe", "gray_card"))
+    assert probe.exposures_s == (0.0005, 0.004, 0.032) and card.exposures_s == (0.002,)
+    assert Plan.from_dict(p.to_dict()) == p
+    with pytest.raises(PlanError, match="exposure_s"):
+        Plan.from_dict({"calibration": [{"kind": "mirror_probe", "exposure_s": [0.001, -1]}]})
