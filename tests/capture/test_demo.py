@@ -124,7 +124,7 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
         assert f["held_out_rel_rms_trimmed"] < 0.75 * lam["held_out_rel_rms_trimmed"], f
     if methods["passive"]["status"] == "ok":
         # the 320 x 240 probe (a 19 px ball) cannot explain the image: the method must say so
-        # rather than return a confident answer (seen: relative residual 83 %)
+        # rather than return a confident answer (seen: relative residual 54-77 %)
         assert any("residual" in w for w in methods["passive"]["warnings"]), methods["passive"]["warnings"]
     # `gonio process` recomputing these figures: test_capture_run_then_process_gives_the_demos_...
     print(f"gonio demo --quick: {wall:.0f} s wall; stages {summary['timings']}")
