@@ -672,17 +672,25 @@ def _known_spheres(ctx: _Context, K, dist, radius: float, shape: tuple[int, int]
     return centres[inside[keep]], [spheres[k] for k in keep], inside[keep]
 
 
-def _sphere_views(ctx: _Context, steps: list[int], K, dist, radius: float) -> tuple[dict, str]:
+def _sphere_views(ctx: _Context, steps: list[int], K, dist, radius: float) -> tuple[dict, str, list[str]]:
     """Each spheres step's spheres: ``{step: (camera centres (M, 3) mm, SphereImage list,
-    configured indices)}``, and where the centres came from."""
+    configured indices)}``, where the centres came from, and why steps were left out (known
+    positions: a turntable angle at which fewer than two balls show whole loses only its step)."""
     shape = ctx.hdr[steps[0]].shape[:2]
     name = {s: f"frame {ctx.frames[s][0].id} (step {s})" for s in steps}
     turning = ctx.targets.spheres_on_turntable
     known = ctx.targets.sphere_centres_mm is not None
     if known and ctx.lab is not None:
-        views = {s: _known_spheres(ctx, K, dist, radius, shape, name[s],
-                                   ctx.reading(s, "turntable_deg") if turning else None) for s in steps}
-        return views, "known positions (LabTargets.sphere_centres_mm, lab frame)"
+        views, errors = {}, []
+        for s in steps:
+            try:
+                views[s] = _known_spheres(ctx, K, dist, radius, shape, name[s],
+                                          ctx.reading(s, "turntable_deg") if turning else None)
+            except TargetNotFound as exc:
+                errors.append(str(exc))
+        if not views:
+            raise TargetNotFound(f"no spheres step shows two configured spheres whole: {errors[0]}")
+        return views, "known positions (LabTargets.sphere_centres_mm, lab frame)", errors
     # no positions, or no lab frame to place them: the silhouettes against a backdrop, found in
     # the steps of one turntable angle together (the spheres stand still between them)
     groups: dict[float, list[int]] = {}
@@ -699,7 +707,7 @@ def _sphere_views(ctx: _Context, steps: list[int], K, dist, radius: float) -> tu
         spheres = [detect_sphere(b, frame=name[group[0]]) for b in blobs]
         centres = np.array([sphere_center_from_silhouette(sp, K, dist, radius) for sp in spheres])
         views.update({s: (centres, spheres, np.arange(len(spheres))) for s in group})
-    return views, "silhouettes"
+    return views, "silhouettes", []
 
 
 def _light_key(light: dict[str, Any] | None, step: int) -> str:
@@ -713,12 +721,12 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     K, dist, radius = intr.K, intr.dist, ctx.targets.sphere_radius_mm
     if radius is None:
         raise _Skip("LabTargets states no sphere_radius_mm (the light-calibration spheres)")
-    views, source = _sphere_views(ctx, steps, K, dist, radius)
+    views, source, errors = _sphere_views(ctx, steps, K, dist, radius)
     h, w = ctx.hdr[steps[0]].shape[:2]
     yy, xx = np.indices((h, w))
     seen: dict[str, dict[str, list]] = {}   # light -> its steps' highlights, centres, sphere ids
-    errors, unseen = [], []
-    for s in steps:
+    unseen = []
+    for s in views:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
         centres, spheres, index = views[s]
         lum = ctx.hdr[s].mean(axis=2)
@@ -769,7 +777,7 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                                "the lamp in fewer than 2 spheres" + "".join(f"; {e}" for e in errors))
     ctx.lights = measured
     res = np.concatenate([pl.residuals_mm for pl in lights])
-    first = views[steps[0]]
+    first = views[min(views)]
     result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": first[0], "sphere_centres_from": source,
               "spheres_on_turntable": ctx.targets.spheres_on_turntable,
               "sphere_radii_px": [sp.radius_px for sp in first[1]], "lights": rows, "errors": errors,

@@ -8,11 +8,14 @@ SimWorld's ground-truth camera, turntable axis and light positions.
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+import capture.pipeline.calibrate as calibrate_module
+from calibration.errors import TargetNotFound
 from capture.pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
 from capture.cli import app
 from capture.plan import Plan
@@ -429,6 +432,27 @@ def _bad_session(tmp_path) -> Store:
                             exposure_requested_s=0.01, exposure_s=0.01, positions={"turntable_deg": 0.0},
                             completes_step=rep == step["repeats"] - 1)
     return store
+
+
+def test_a_spheres_step_whose_balls_do_not_show_loses_only_its_step(session, tmp_path, monkeypatch):
+    """A turntable angle at which fewer than two configured balls show whole (one left the
+    frame, one behind another): that step is named and left out, the other lights are located."""
+    _, before, _, root = session
+    shutil.copytree(root / "store", tmp_path / "store")   # the module's store stays as it is
+    known, lost = calibrate_module._known_spheres, []
+
+    def first_step_hidden(ctx, K, dist, radius, shape, frame, reading):
+        if not lost:
+            lost.append(frame)
+            raise TargetNotFound("1 of the 3 configured spheres project whole and unoccluded", frame=frame)
+        return known(ctx, K, dist, radius, shape, frame, reading)
+    monkeypatch.setattr(calibrate_module, "_known_spheres", first_step_hidden)
+    with Store(tmp_path / "store") as copy:
+        report = calibrate_session(copy, "cal", targets=TARGETS, measurement_hdr=False,
+                                   stages=("dark", "hdr", "intrinsics", "turntable", "lights"))
+    lights = report.stage("lights")
+    assert lights.status == "failed" and lost[0] in lights.reason and lights.calibration_id
+    assert lights.figures["lights"] == before.stage("lights").figures["lights"] - 1
 
 
 def test_a_failing_stage_names_the_frame_and_the_rest_continue(tmp_path):
