@@ -434,8 +434,10 @@ class PtpCamera(Camera):
 
     def _download(self, handle: int, size: int) -> bytes:
         session = self._session()
+        resumable = self.info is not None and Op.GetPartialObject in self.info.operations
         for attempt in (1, 2):
-            data = session.get_object(handle)
+            # a download broken off part way resumes where it stopped when the camera allows
+            data = session.get_object(handle, size if resumable else None)
             if len(data) == size:
                 return data
             log.warning("%s: object %d arrived with %d bytes, ObjectInfo says %d (attempt %d)",
