@@ -37,6 +37,7 @@ from zaber_motion.exceptions import (BadCommandException, DeviceDbFailedExceptio
 from sims.zaber_sim import ZaberSim  # noqa: E402
 
 REQUEST_TIMEOUT_MS = 1000  # the library's per-request reply timeout
+DETECT_TIMEOUT_MS = 300  # the simulator answers within milliseconds
 
 
 @pytest.fixture(scope="module")
@@ -54,9 +55,11 @@ def chain(no_device_db):
     sim = ZaberSim(fast=False, speed_deg_s=360.0, accel_deg_s2=3600.0)
     port = sim.start()
     conn = Connection.open_serial_port(port)
-    conn.default_request_timeout = REQUEST_TIMEOUT_MS
     try:
+        # detection listens for answers to its broadcast for one request timeout: keep it short
+        conn.default_request_timeout = DETECT_TIMEOUT_MS
         devices = conn.detect_devices(identify_devices=False)
+        conn.default_request_timeout = REQUEST_TIMEOUT_MS
         assert len(devices) == 1
         yield sim, conn, devices[0]
     finally:

@@ -54,6 +54,9 @@ def ptpy():
 def camera(ptpy):
     sim = PtpCameraSim()
     dev = usb.core.find(idVendor=sim.vendor_id, idProduct=sim.product_id, backend=sim)
+    # ptpy's event thread reads the interrupt endpoint with pyusb's default timeout; a short one
+    # lets it stop soon at teardown (the simulator answers bulk transfers at once)
+    dev.default_timeout = 200
     cam = ptpy.PTPy(device=dev, raw=True)
     try:
         yield sim, cam
