@@ -19,9 +19,12 @@ where it disagrees with the simulator:
   ``get version.build``, ``get device.hw.modified``, ``get comm.command.packets.max``,
   ``get comm.word.size.max``, ``get get.settings.max``, ``get system.axiscount`` (device scope),
   then ``get resolution`` and ``get peripheralid`` on axis 1;
-- with ``get.settings.max`` answered (firmware 7.38 and later), ``settings.get_many`` sends one
-  multi-setting ``get 1 maxspeed pos``; the simulator models firmware 7.33, which rejects
-  ``get.settings.max``, and the library then falls back to one ``get`` per setting.
+- with ``get.settings.max`` answered (12 on firmware 7.38), ``settings.get_many`` and
+  ``get_synchronized`` send one ``/1 0 get 1 maxspeed pos`` (axis number, then the settings in
+  alphabetical order) and split the reply's data on ``;``: to ``629146 0`` (values separated by
+  spaces) zaber-motion 10.3's Go core answered ``panic: runtime error: index out of range [1]
+  with length 1`` in ``runSyncBatch`` and aborted the Python process; to ``629146 ; 0`` it
+  returns both values.
 """
 from __future__ import annotations
 
@@ -30,7 +33,7 @@ import pytest
 zaber_motion = pytest.importorskip("zaber_motion", reason="zaber-motion (test extra) not installed")
 
 from zaber_motion import DeviceDbSourceType, Library, Units  # noqa: E402
-from zaber_motion.ascii import Connection, GetAxisSetting  # noqa: E402
+from zaber_motion.ascii import Connection, GetAxisSetting, GetSetting  # noqa: E402
 from zaber_motion.exceptions import (BadCommandException, DeviceDbFailedException,  # noqa: E402
                                      MovementFailedException)
 
@@ -72,6 +75,12 @@ def _answers(sim, since: int) -> list[bytes]:
     return [r.rsplit(b":", 1)[0] if b":" in r else r for r in sim.requests[since:]]
 
 
+def _without_id(request: bytes) -> bytes:
+    """``/1 0 07 get pos`` -> ``/1 0 get pos`` (the message id counts up per request)."""
+    words = request.split(b" ")
+    return b" ".join(words[:2] + words[3:])
+
+
 def test_detection_finds_the_stage_at_its_address(chain):
     sim, _, device = chain
     assert device.device_address == 1
@@ -86,32 +95,40 @@ def test_identification_queries_are_answered_until_the_device_database(chain):
     start = len(sim.requests)
     with pytest.raises(DeviceDbFailedException, match="Device Database"):
         device.identify()
-    sent = [b" ".join(r.split(b" ")[3:]) for r in _answers(sim, start)]
+    sent = [_without_id(r)[5:] for r in _answers(sim, start)]  # without "/1 0 " / "/1 1 "
     assert sent == [b"get deviceid", b"get system.serial", b"get version", b"get version.build",
                     b"get device.hw.modified", b"get comm.command.packets.max",
                     b"get comm.word.size.max", b"get get.settings.max", b"get system.axiscount",
                     b"get resolution", b"get peripheralid"]
     # the same queries through the library's generic command path: the device answers each
-    # (the two a real firmware-7.33 integrated stage rejects are rejected the same way)
-    expected = {"deviceid": "50419", "version": "7.33", "version.build": "14091",
+    expected = {"deviceid": "50419", "version": "7.38", "version.build": "15708",
                 "device.hw.modified": "0", "comm.command.packets.max": "5",
-                "comm.word.size.max": "50", "system.axiscount": "1", "system.access": "1"}
+                "comm.word.size.max": "50", "get.settings.max": "12", "system.axiscount": "1",
+                "system.access": "1"}
     for setting, value in expected.items():
         reply = device.generic_command(f"get {setting}")
         assert (reply.reply_flag, reply.data) == ("OK", value), setting
-    for setting in ("get.settings.max", "peripheralid"):
-        reply = device.generic_command(f"get {setting}", axis=1 if setting == "peripheralid" else 0,
-                                       check_errors=False)
-        assert (reply.reply_flag, reply.data) == ("RJ", "BADCOMMAND"), setting
+    # an integrated stage has no peripheral: the axis rejects the query, as on the device
+    reply = device.generic_command("get peripheralid", axis=1, check_errors=False)
+    assert (reply.reply_flag, reply.data) == ("RJ", "BADCOMMAND")
 
 
 def test_generic_commands_echo_and_settings(chain):
-    _, _, device = chain
+    sim, _, device = chain
     assert device.generic_command("tools echo gonio 42").data == "gonio 42"
     axis = device.get_axis(1)
+    start = len(sim.requests)
     results = axis.settings.get_many(GetAxisSetting("maxspeed"), GetAxisSetting("resolution"))
     # maxspeed in Zaber data units: 360 deg/s x 1,536,000 microsteps/rev / 360 x 1.6384
-    assert [r.value for r in results] == [round(360 * 1_536_000 / 360 * 1.6384), 64.0]
+    maxspeed = round(360 * 1_536_000 / 360 * 1.6384)
+    assert [(r.setting, r.value) for r in results] == [("maxspeed", maxspeed), ("resolution", 64.0)]
+    synced = axis.settings.get_synchronized(GetAxisSetting("pos"), GetAxisSetting("accel"))
+    assert [r.value for r in synced] == [sim._counter(), sim.settings["accel"]]
+    # one multi-setting get each, not one get per setting
+    assert [_without_id(r) for r in _answers(sim, start)] == [b"/1 0 get 1 maxspeed resolution",
+                                                            b"/1 0 get 1 accel pos"]
+    device_values = device.settings.get_many(GetSetting("version.build"), GetSetting("system.axiscount"))
+    assert [r.values for r in device_values] == [[15708.0], [1.0]]
     assert axis.settings.get("limit.cycle.dist") == 1_536_000
 
 
