@@ -15,8 +15,9 @@ elements.
 
 :class:`PtpSession` runs transactions over a pyusb device: transaction ids, DeviceBusy (0x2019)
 retry with bounded exponential back-off, stall recovery (clear halt, retry idempotent operations),
-short data phases, stale replies after a timeout, and re-opening a session the device closed
-(SessionNotOpen 0x2003). pyusb exceptions never leave this module: timeouts become
+short data phases, stale replies after a timeout, re-opening a session the device closed
+(SessionNotOpen 0x2003), and resuming a download broken off part way with GetPartialObject
+(0x101B) from the first byte missing. pyusb exceptions never leave this module: timeouts become
 ``DeviceTimeout``, a vanished device ``Disconnected``, anything else ``ProtocolError``.
 """
 from __future__ import annotations
