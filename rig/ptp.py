@@ -800,7 +800,7 @@ class PtpSession:
             data = bytearray(self.interrupted)
             if not data:
                 log.warning("%s: GetObject %d failed (%s); repeating once", self.device, handle, exc)
-                return self.transaction(Op.GetObject, (handle,)).data or b""
+                return self.transaction(Op.GetObject, (handle,), repeat_io=False).data or b""
         for _ in range(_RESUMES):
             log.warning("%s: download of object %d broke off after %d of %d bytes; resuming with "
                         "GetPartialObject", self.device, handle, len(data), size)
