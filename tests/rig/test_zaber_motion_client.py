@@ -49,7 +49,7 @@ def no_device_db():
     identification fails at the look-up every time, not depending on what the machine can reach."""
     Library.set_device_db_source(DeviceDbSourceType.FILE, "/nonexistent/zaber-devices.sqlite")
     yield
-    Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE, "https://api.zaber.io/device-db/master")
+    Library.set_device_db_source(DeviceDbSourceType.WEB_SERVICE)  # the library's default again
 
 
 @pytest.fixture(scope="module")
