@@ -70,7 +70,7 @@ def chain(no_device_db):
         sim.stop()
 
 
-def _answers(sim, since: int) -> list[bytes]:
+def _requests(sim, since: int) -> list[bytes]:
     """Requests the library sent since index ``since``, checksum stripped."""
     return [r.rsplit(b":", 1)[0] if b":" in r else r for r in sim.requests[since:]]
 
@@ -85,7 +85,7 @@ def test_detection_finds_the_stage_at_its_address(chain):
     sim, _, device = chain
     assert device.device_address == 1
     # the broadcast probe and the packet-size query came first, as the library sends them
-    assert _answers(sim, 0)[:2] == [b"/0 0 00", b"/1 0 01 get comm.packet.size.max"]
+    assert _requests(sim, 0)[:2] == [b"/0 0 00", b"/1 0 01 get comm.packet.size.max"]
     reply = device.generic_command("get comm.packet.size.max")
     assert (reply.reply_flag, reply.data) == ("OK", "80")
 
@@ -95,7 +95,7 @@ def test_identification_queries_are_answered_until_the_device_database(chain):
     start = len(sim.requests)
     with pytest.raises(DeviceDbFailedException, match="Device Database"):
         device.identify()
-    sent = [_without_id(r)[5:] for r in _answers(sim, start)]  # without "/1 0 " / "/1 1 "
+    sent = [_without_id(r)[5:] for r in _requests(sim, start)]  # without "/1 0 " / "/1 1 "
     assert sent == [b"get deviceid", b"get system.serial", b"get version", b"get version.build",
                     b"get device.hw.modified", b"get comm.command.packets.max",
                     b"get comm.word.size.max", b"get get.settings.max", b"get system.axiscount",
@@ -125,7 +125,7 @@ def test_generic_commands_echo_and_settings(chain):
     synced = axis.settings.get_synchronized(GetAxisSetting("pos"), GetAxisSetting("accel"))
     assert [r.value for r in synced] == [sim._counter(), sim.settings["accel"]]
     # one multi-setting get each, not one get per setting
-    assert [_without_id(r) for r in _answers(sim, start)] == [b"/1 0 get 1 maxspeed resolution",
+    assert [_without_id(r) for r in _requests(sim, start)] == [b"/1 0 get 1 maxspeed resolution",
                                                             b"/1 0 get 1 accel pos"]
     device_values = device.settings.get_many(GetSetting("version.build"), GetSetting("system.axiscount"))
     assert [r.values for r in device_values] == [[15708.0], [1.0]]
