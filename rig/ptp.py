@@ -15,8 +15,9 @@ elements.
 
 :class:`PtpSession` runs transactions over a pyusb device: transaction ids, DeviceBusy (0x2019)
 retry with bounded exponential back-off, stall recovery (clear halt, retry idempotent operations),
-short data phases, stale replies after a timeout, and re-opening a session the device closed
-(SessionNotOpen 0x2003). pyusb exceptions never leave this module: timeouts become
+short data phases, stale replies after a timeout, re-opening a session the device closed
+(SessionNotOpen 0x2003), and resuming a download broken off part way with GetPartialObject
+(0x101B) from the first byte missing. pyusb exceptions never leave this module: timeouts become
 ``DeviceTimeout``, a vanished device ``Disconnected``, anything else ``ProtocolError``.
 """
 from __future__ import annotations
@@ -67,6 +68,7 @@ class Op(IntEnum):
     GetDevicePropDesc = 0x1014
     GetDevicePropValue = 0x1015
     SetDevicePropValue = 0x1016
+    GetPartialObject = 0x101B
 
 
 class Resp(IntEnum):
@@ -445,7 +447,10 @@ class Response:
 #: operations that may be repeated after a stall or short data phase without side effects
 _IDEMPOTENT = {Op.GetDeviceInfo, Op.GetStorageIDs, Op.GetStorageInfo, Op.GetNumObjects,
                Op.GetObjectHandles, Op.GetObjectInfo, Op.GetObject, Op.GetThumb,
-               Op.GetDevicePropDesc, Op.GetDevicePropValue, Op.SetDevicePropValue}
+               Op.GetDevicePropDesc, Op.GetDevicePropValue, Op.SetDevicePropValue,
+               Op.GetPartialObject}
+#: times a broken-off download is resumed with GetPartialObject before giving up
+_RESUMES = 3
 
 
 class PtpSession:
@@ -489,6 +494,9 @@ class PtpSession:
         self.session_id = 0
         self._tid = 0
         self.reopened = 0  # sessions re-opened after SessionNotOpen (for logs and tests)
+        self.resumed = 0  # downloads resumed with GetPartialObject (for logs and tests)
+        # payload bytes of the last data phase that broke off (stall, short packet), for resuming
+        self.interrupted = b""
 
     # -- low-level USB, exceptions mapped -----------------------------------------------------
     def _usb(self, fn, what: str, timeout_s: float):
@@ -557,13 +565,18 @@ class PtpSession:
         while got < size:
             if last % self.max_packet:  # a short packet ended the transfer early
                 break
-            last = self._read(buf, timeout)
+            try:
+                last = self._read(buf, timeout)
+            except _Stall:
+                self.interrupted = bytes(view[:got])  # what arrived stays usable for a resume
+                raise
             if last == 0:
                 break
             take = min(last, size - got)
             view[got:got + take] = memoryview(buf)[:take]
             got += take
         if got < size:
+            self.interrupted = bytes(view[:got])
             raise ShortRead(f"{what}: data phase ended after {got + HEADER_SIZE} of "
                             f"{length} bytes (short read)", device=self.device)
         if length % self.max_packet == 0:
@@ -575,14 +588,14 @@ class PtpSession:
 
     # -- transactions -------------------------------------------------------------------------
     def transaction(self, op: int, params: tuple[int, ...] = (), data_out: bytes | None = None,
-                    *, check: bool = True, retry_busy: bool = True,
-                    reopen: bool = True) -> Response:
+                    *, check: bool = True, retry_busy: bool = True, reopen: bool = True,
+                    repeat_io: bool = True) -> Response:
         """Run one operation and return its response.
 
         DeviceBusy is retried with exponential back-off (10 ms doubling to 0.5 s) for up to
         ``busy_timeout_s``; SessionNotOpen re-opens the session once and repeats the operation;
-        a stalled endpoint or a short data phase is cleared and, for idempotent operations,
-        repeated once.
+        a stalled endpoint or a short data phase is cleared and, for idempotent operations and
+        ``repeat_io``, repeated once.
 
         Raises
         ------
@@ -594,13 +607,13 @@ class PtpSession:
             Transfer-level failures.
         """
         with self.lock:
-            return self._transaction(op, params, data_out, check, retry_busy, reopen)
+            return self._transaction(op, params, data_out, check, retry_busy, reopen, repeat_io)
 
     def _transaction(self, op: int, params: tuple[int, ...], data_out: bytes | None, check: bool,
-                     retry_busy: bool, reopen: bool) -> Response:
+                     retry_busy: bool, reopen: bool, repeat_io: bool) -> Response:
         deadline = time.monotonic() + self.busy_timeout_s
         delay = 0.01
-        retried_io = False
+        retried_io = not repeat_io
         reopened = False
         while True:
             try:
@@ -764,9 +777,64 @@ class PtpSession:
         return parse_object_info(self.transaction(Op.GetObjectInfo, (handle,)).data or b"",
                                  device=self.device)
 
-    def get_object(self, handle: int) -> bytes:
-        """GetObject (0x1009): the object's bytes (a data phase of many transfers)."""
-        return self.transaction(Op.GetObject, (handle,)).data or b""
+    def get_object(self, handle: int, size: int | None = None) -> bytes:
+        """GetObject (0x1009): the object's bytes (a data phase of many transfers).
+
+        With ``size`` (its ObjectCompressedSize, bytes) a data phase that breaks off part way (an
+        endpoint stall, a short packet) is finished with GetPartialObject from the first byte
+        missing, up to ``_RESUMES`` times, instead of starting a large download over; the camera
+        must offer GetPartialObject (0x101B). Without ``size``, or when nothing had arrived, the
+        whole GetObject is repeated once.
+
+        Raises
+        ------
+        ProtocolError
+            The download still broke off after the resumes, or the camera sent more than ``size``.
+        """
+        if size is None:
+            return self.transaction(Op.GetObject, (handle,)).data or b""
+        self.interrupted = b""
+        try:
+            return self.transaction(Op.GetObject, (handle,), repeat_io=False).data or b""
+        except ProtocolError as exc:
+            data = bytearray(self.interrupted)
+            if not data:
+                log.warning("%s: GetObject %d failed (%s); repeating once", self.device, handle, exc)
+                return self.transaction(Op.GetObject, (handle,), repeat_io=False).data or b""
+        for _ in range(_RESUMES):
+            log.warning("%s: download of object %d broke off after %d of %d bytes; resuming with "
+                        "GetPartialObject", self.device, handle, len(data), size)
+            self.resumed += 1
+            self.interrupted = b""
+            try:
+                data += self.get_partial_object(handle, len(data), size - len(data))
+            except ProtocolError:
+                if not self.interrupted:
+                    raise
+                data += self.interrupted
+                continue
+            if len(data) > size:
+                raise ProtocolError(f"object {handle}: resumed download gave {len(data)} bytes, "
+                                    f"ObjectInfo says {size}", device=self.device)
+            return bytes(data)
+        raise ProtocolError(f"object {handle}: download broke off {_RESUMES + 1} times "
+                            f"({len(data)} of {size} bytes)", device=self.device)
+
+    def get_partial_object(self, handle: int, offset: int, max_bytes: int) -> bytes:
+        """GetPartialObject (0x101B): up to ``max_bytes`` bytes of ``handle`` from byte ``offset``
+        (no repeat on a broken data phase: :meth:`get_object` resumes from what arrived).
+
+        Raises
+        ------
+        ProtocolError
+            The response's byte count disagrees with the data phase.
+        """
+        resp = self.transaction(Op.GetPartialObject, (handle, offset, max_bytes), repeat_io=False)
+        data = resp.data or b""
+        if resp.params and resp.params[0] != len(data):
+            raise ProtocolError(f"GetPartialObject of {handle}: response says {resp.params[0]} "
+                                f"bytes, data phase had {len(data)}", device=self.device)
+        return data
 
     def delete_object(self, handle: int) -> None:
         """DeleteObject (0x100B) of ``handle``."""

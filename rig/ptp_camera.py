@@ -7,7 +7,8 @@ requested value snaps to the nearest value the camera enumerates in its DevicePr
 
 ``capture()`` runs the tethered sequence: InitiateCapture -> ObjectAdded (+ CaptureComplete) on
 the interrupt endpoint -> GetObjectInfo (file name, size) -> GetObject (checked against
-ObjectCompressedSize) -> DeleteObject, so the card never fills. If the card is full anyway
+ObjectCompressedSize; resumed with GetPartialObject if it breaks off part way and the camera
+offers that operation) -> DeleteObject, so the card never fills. If the card is full anyway
 (StoreFull), the objects already downloaded in this session are deleted and the capture repeated.
 
 Many DSLR bodies capture only through vendor operations (Canon EOS 0x9xxx, Nikon 0x90C0); those
@@ -434,8 +435,10 @@ class PtpCamera(Camera):
 
     def _download(self, handle: int, size: int) -> bytes:
         session = self._session()
+        resumable = self.info is not None and Op.GetPartialObject in self.info.operations
         for attempt in (1, 2):
-            data = session.get_object(handle)
+            # a download broken off part way resumes where it stopped when the camera allows
+            data = session.get_object(handle, size if resumable else None)
             if len(data) == size:
                 return data
             log.warning("%s: object %d arrived with %d bytes, ObjectInfo says %d (attempt %d)",

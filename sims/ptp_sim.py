@@ -14,7 +14,13 @@ Firmware model
   and queues ObjectAdded then CaptureComplete on the interrupt endpoint once the exposure (and
   readout) time has passed (at once with ``fast=True``).
 - GetObjectInfo / GetObject (a data phase split into ``max_packet`` packets, ending in a short or
-  zero-length packet) / DeleteObject.
+  zero-length packet) / GetPartialObject (bytes ``offset`` .. ``offset + max_bytes`` of an object,
+  response parameter: the bytes sent) / DeleteObject.
+- What generic clients (libgphoto2, ptpy) ask after OpenSession, all advertised in DeviceInfo:
+  GetStorageIDs (one removable card), GetStorageInfo (removable RAM, DCF file system, read-write,
+  ``card_bytes`` capacity and what is free of it), GetNumObjects / GetObjectHandles (all stores,
+  format filter, root association), GetThumb (a JPEG thumbnail of the raw mosaic, at most 160
+  pixels wide, also described in ObjectInfo; NoThumbnailPresent for bytes that are not a TIFF/DNG).
 
 Behaviours that break real tethered bracketing:
 
@@ -25,6 +31,8 @@ Behaviours that break real tethered bracketing:
 
 Faults (:meth:`PtpCameraSim.inject`): ``no_reply`` (the next command is swallowed; its bulk read
 times out), ``stall`` (the next bulk read stalls the IN endpoint, EPIPE until clear_halt),
+``stall_midway`` (the next data phase stalls the IN endpoint at the first bulk read after half of
+it was read; the transaction is lost, as on a cable glitch during a large download),
 ``short_read`` (the next data phase ends early), ``corrupt_object`` (the next GetObject returns
 damaged, shortened bytes), ``disconnect`` (ENODEV from then on, until :meth:`reconnect`).
 
@@ -40,6 +48,7 @@ from collections import deque
 from datetime import datetime, timezone
 from typing import Any, Callable
 
+import cv2
 import numpy as np
 import tifffile
 import usb.backend
@@ -52,15 +61,20 @@ _HDR = struct.Struct("<IHHI")
 CMD, DATA, RESP, EVENT = 1, 2, 3, 4
 EP_OUT, EP_IN, EP_EVENT = 0x01, 0x82, 0x83
 STORAGE_ID = 0x00010001
-FORMAT_DNG = 0x3811
+FORMAT_DNG, FORMAT_JPEG = 0x3811, 0x3801
+# StorageInfo codes (ISO 15740 5.5.4): removable RAM (a card), DCF file system, read-write
+STORAGE_REMOVABLE_RAM, FILESYSTEM_DCF, ACCESS_READ_WRITE = 0x0004, 0x0003, 0x0000
+THUMB_MAX_WIDTH = 160  # pixels
 
 # operation, response, event and property codes (ISO 15740)
 OP = dict(GetDeviceInfo=0x1001, OpenSession=0x1002, CloseSession=0x1003, GetStorageIDs=0x1004,
-          GetObjectHandles=0x1007, GetObjectInfo=0x1008, GetObject=0x1009, DeleteObject=0x100B,
+          GetStorageInfo=0x1005, GetNumObjects=0x1006, GetObjectHandles=0x1007,
+          GetObjectInfo=0x1008, GetObject=0x1009, GetThumb=0x100A, DeleteObject=0x100B,
           InitiateCapture=0x100E, GetDevicePropDesc=0x1014, GetDevicePropValue=0x1015,
-          SetDevicePropValue=0x1016)
+          SetDevicePropValue=0x1016, GetPartialObject=0x101B)
 OK, GENERAL_ERROR, SESSION_NOT_OPEN, INVALID_TID = 0x2001, 0x2002, 0x2003, 0x2004
-OP_NOT_SUPPORTED, INVALID_HANDLE, PROP_NOT_SUPPORTED = 0x2005, 0x2009, 0x200A
+OP_NOT_SUPPORTED, INVALID_STORAGE_ID, INVALID_HANDLE, PROP_NOT_SUPPORTED = 0x2005, 0x2008, 0x2009, 0x200A
+NO_THUMBNAIL, INVALID_PARENT = 0x2010, 0x201A
 STORE_FULL, DEVICE_BUSY, INVALID_PROP_VALUE = 0x200C, 0x2019, 0x201C
 INVALID_PARAMETER, SESSION_ALREADY_OPEN = 0x201D, 0x201E
 EV_OBJECT_ADDED, EV_PROP_CHANGED, EV_CAPTURE_COMPLETE = 0x4002, 0x4006, 0x400D
@@ -90,6 +104,32 @@ def _container(ctype: int, code: int, tid: int, params: tuple[int, ...] = ()) ->
 
 def _str(text: str) -> bytes:
     return b"\x00" if not text else bytes([len(text) + 1]) + (text + "\x00").encode("utf-16-le")
+
+
+def _thumbnail(data: bytes) -> tuple[bytes, int, int] | None:
+    """(JPEG bytes, width, height) of a thumbnail of a DNG's mosaic, None if it is not a TIFF.
+
+    The mosaic is subsampled by an even stride (one CFA site per 2x2 tile, so no colour mixing
+    artefacts) and scaled to 8 bits by its own maximum, as a preview is.
+    """
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            page = tif.pages[0]
+            if page.is_contiguous and len(page.shape) == 2:  # uncompressed: read in place
+                raw = np.frombuffer(data, page.dtype.newbyteorder(tif.byteorder),
+                                    count=int(np.prod(page.shape)), offset=page.dataoffsets[0])
+                raw = raw.reshape(page.shape)
+            else:
+                raw = page.asarray()
+    except Exception:  # noqa: BLE001 - any frame source's bytes are acceptable
+        return None
+    if raw.ndim != 2 or raw.size == 0:
+        return None
+    stride = 2 * max(1, -(-raw.shape[1] // (2 * THUMB_MAX_WIDTH)))
+    small = raw[::stride, ::stride].astype(np.float32)
+    small = np.clip(small * (255.0 / max(float(small.max()), 1.0)), 0, 255).astype(np.uint8)
+    ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return (jpeg.tobytes(), small.shape[1], small.shape[0]) if ok else None
 
 
 def _u16s(values) -> bytes:
@@ -148,6 +188,7 @@ class _Transfer:
         self.parts = [memoryview(p).cast("B") for p in parts if len(p)]
         self.size = sum(len(p) for p in self.parts)
         self.pos = 0
+        self.sent = 0  # bytes read out so far
 
     def read_into(self, out: memoryview) -> int:
         n = 0
@@ -160,6 +201,7 @@ class _Transfer:
             if self.pos == len(part):
                 self.parts.pop(0)
                 self.pos = 0
+        self.sent += n
         return n
 
     @property
@@ -191,11 +233,14 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
         Idle time after which the camera closes the session, seconds (None: never).
     store_capacity : int
         Objects the card holds before StoreFull.
+    card_bytes : int
+        Capacity of the card reported in StorageInfo, bytes.
     max_packet : int
         wMaxPacketSize of the bulk endpoints, bytes.
     """
 
-    FAULTS = frozenset({"no_reply", "stall", "short_read", "corrupt_object", "disconnect"})
+    FAULTS = frozenset({"no_reply", "stall", "stall_midway", "short_read", "corrupt_object",
+                        "disconnect"})
 
     def __init__(self, frame_source: FrameSource | None = None, *,
                  extra_state: Callable[[], dict[str, Any]] | None = None,
@@ -203,7 +248,7 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
                  readout_s: float = 0.05, busy_after_capture_s: float = 0.0,
                  busy_after_set_s: float = 0.0, session_timeout_s: float | None = None,
                  store_capacity: int = 500, max_packet: int = 512,
-                 serial_number: str = "SIM0001") -> None:
+                 serial_number: str = "SIM0001", card_bytes: int = 32 << 30) -> None:
         super().__init__()
         self.frame_source = frame_source or placeholder_frame
         self.extra_state = extra_state
@@ -214,6 +259,7 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
         self.busy_after_set_s = busy_after_set_s
         self.session_timeout_s = session_timeout_s
         self.store_capacity = store_capacity
+        self.card_bytes = card_bytes
         self.max_packet = max_packet
         self.serial_number = serial_number
         self._init_faults()
@@ -422,6 +468,11 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
                 raise usb.core.USBError("Pipe error", -9, errno.EPIPE)
             if self._in:
                 xfer = self._in[0]
+                if xfer.size > 2 * self.max_packet and xfer.sent >= xfer.size // 2 \
+                        and self.take_fault("stall_midway"):
+                    self._in.clear()  # the rest of the data phase and its response are lost
+                    self._halted.add(ep)
+                    raise usb.core.USBError("Pipe error", -9, errno.EPIPE)
                 n = xfer.read_into(memoryview(buff).cast("B"))
                 if xfer.done:
                     self._in.popleft()
@@ -489,8 +540,16 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
             return self._reply(op, tid, OK, data=self._device_info())
         if op == OP["GetStorageIDs"]:
             return self._reply(op, tid, OK, data=struct.pack("<II", 1, STORAGE_ID))
-        if op == OP["GetObjectHandles"]:
-            handles = sorted(self.objects)
+        if op == OP["GetStorageInfo"]:
+            if not params or params[0] != STORAGE_ID:
+                return self._reply(op, tid, INVALID_STORAGE_ID)
+            return self._reply(op, tid, OK, data=self._storage_info())
+        if op in (OP["GetNumObjects"], OP["GetObjectHandles"]):
+            handles = self._select(params)
+            if isinstance(handles, int):
+                return self._reply(op, tid, handles)
+            if op == OP["GetNumObjects"]:
+                return self._reply(op, tid, OK, (len(handles),))
             return self._reply(op, tid, OK, data=struct.pack(f"<I{len(handles)}I", len(handles), *handles))
         if op in (OP["GetDevicePropDesc"], OP["GetDevicePropValue"]):
             code = params[0] if params else 0
@@ -503,7 +562,8 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
             return None
         if op == OP["InitiateCapture"]:
             return self._reply(op, tid, *self._capture(tid))
-        if op in (OP["GetObjectInfo"], OP["GetObject"], OP["DeleteObject"]):
+        if op in (OP["GetObjectInfo"], OP["GetObject"], OP["DeleteObject"], OP["GetThumb"],
+                  OP["GetPartialObject"]):
             return self._object_op(op, tid, params)
         return self._reply(op, tid, OP_NOT_SUPPORTED)
 
@@ -567,10 +627,37 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
         self._busy_until = ready + self.busy_after_capture_s
         return (OK,)
 
+    def _storage_info(self) -> bytes:
+        """StorageInfo dataset (ISO 15740 5.5.4)."""
+        used = sum(len(o["data"]) for o in self.objects.values())
+        return (struct.pack("<HHHQQI", STORAGE_REMOVABLE_RAM, FILESYSTEM_DCF, ACCESS_READ_WRITE,
+                            self.card_bytes, max(0, self.card_bytes - used),
+                            max(0, self.store_capacity - len(self.objects)))
+                + _str("SD card") + _str("GONIO"))
+
+    def _select(self, params: tuple[int, ...]) -> list[int] | int:
+        """Handles for GetNumObjects / GetObjectHandles (StorageID, ObjectFormatCode,
+        association), or the response code refusing the parameters."""
+        storage, fmt, parent = (tuple(params) + (0, 0, 0))[:3]
+        if storage not in (0xFFFFFFFF, STORAGE_ID):
+            return INVALID_STORAGE_ID
+        if parent not in (0, 0xFFFFFFFF):  # objects sit in the root: no association holds any
+            return INVALID_PARENT
+        now = time.monotonic()
+        return sorted(h for h, o in self.objects.items()
+                      if o["ready"] <= now and fmt in (0, 0xFFFFFFFF, FORMAT_DNG))  # all / images / DNG
+
+    def _thumb(self, obj: dict[str, Any]) -> tuple[bytes, int, int] | None:
+        if "thumb" not in obj:
+            obj["thumb"] = _thumbnail(obj["data"])
+        return obj["thumb"]
+
     def _object_info(self, obj: dict[str, Any]) -> bytes:
         w, h = obj["size"]
-        return (struct.pack("<IHHIHIIIIIIIHII", STORAGE_ID, FORMAT_DNG, 0, len(obj["data"]), 0, 0,
-                            0, 0, w, h, 16, 0, 0, 0, 0)
+        thumb = self._thumb(obj)
+        thumb_fields = (FORMAT_JPEG, len(thumb[0]), thumb[1], thumb[2]) if thumb else (0, 0, 0, 0)
+        return (struct.pack("<IHHIHIIIIIIIHII", STORAGE_ID, FORMAT_DNG, 0, len(obj["data"]),
+                            *thumb_fields, w, h, 16, 0, 0, 0, 0)
                 + _str(obj["filename"]) + _str(obj["date"]) + _str(obj["date"]) + _str(""))
 
     def _object_op(self, op: int, tid: int, params: tuple[int, ...]) -> None:
@@ -586,6 +673,15 @@ class PtpCameraSim(FaultInjection, usb.backend.IBackend):
         if op == OP["DeleteObject"]:
             del self.objects[handle]
             return self._reply(op, tid, OK)
+        if op == OP["GetThumb"]:
+            thumb = self._thumb(obj)
+            return self._reply(op, tid, OK, data=thumb[0]) if thumb else self._reply(op, tid, NO_THUMBNAIL)
+        if op == OP["GetPartialObject"]:
+            offset, max_bytes = (tuple(params[1:]) + (0, 0))[:2]
+            if offset > len(obj["data"]):
+                return self._reply(op, tid, INVALID_PARAMETER)
+            part = memoryview(obj["data"])[offset:offset + max_bytes]
+            return self._reply(op, tid, OK, (len(part),), data=part)
         data = obj["data"]
         if self.take_fault("corrupt_object"):
             damaged = bytearray(data[: max(0, len(data) - 4096)])

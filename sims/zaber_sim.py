@@ -17,6 +17,20 @@ without a reply (the manual's exact answer to it was not verified).
 
 With ``set comm.alert 1`` the device pushes an alert ``!01 1 IDLE <flag>`` when a move ends.
 
+Identification: Zaber's own library (``zaber-motion``) asks every device, before it drives it,
+for ``deviceid``, ``system.serial``, ``version``, ``version.build``, ``device.hw.modified``,
+``comm.command.packets.max``, ``comm.word.size.max``, ``get.settings.max``,
+``system.axiscount`` and, per axis, ``resolution`` and ``peripheralid``. The simulator answers them
+as an integrated X-series stage on firmware 7.38 (build 15708): ``comm.packet.size.max`` 80,
+``comm.command.packets.max`` 5, ``comm.word.size.max`` 50, ``get.settings.max`` 12,
+``device.hw.modified`` 0, ``system.axiscount`` 1, ``system.access`` 1; ``peripheralid`` is
+rejected (an integrated stage has no peripheral). ``tools echo <words>`` answers the words (``0``
+when there are none).
+
+With ``get.settings.max`` above 1 a ``get`` may name several settings; zaber-motion sends them at
+device scope with the axis number first (``/1 0 get 1 maxspeed pos``) and splits the reply's data
+on ``;`` (it trims spaces around it), so the simulator answers ``629146 ; 0``.
+
 Device faults for :meth:`inject` (besides the base ``no_reply``, ``garble``, ``disconnect``):
 
 - ``busy``    the next motion or ``set`` command is rejected ``RJ BUSY -- STATUSBUSY``;
@@ -37,6 +51,14 @@ SPEED_UNITS = 1.6384            # data units per microstep/s (firmware 7)
 ACCEL_UNITS = 1.6384 / 10000.0  # data units per microstep/s^2
 
 _FLAG_ORDER = ("F", "W", "N")  # most urgent first
+
+# protocol limits an X-series device on firmware 7.38 reports (zaber-motion reads them to size
+# its commands): bytes in one packet, packets in one command (line continuation), characters in
+# one word, settings in one ``get``
+PACKET_SIZE_MAX = 80
+COMMAND_PACKETS_MAX = 5
+WORD_SIZE_MAX = 50
+GET_SETTINGS_MAX = 12
 
 
 def trapezoid_duration(distance: float, vmax: float, amax: float) -> float:
@@ -103,8 +125,9 @@ class ZaberSim(SerialSim):
         Moves complete at once.
     device : int
         Daisy-chain address.
-    device_id, firmware, serial : int, str, int
-        Identity reported by ``get deviceid`` / ``get version`` / ``get system.serial``.
+    device_id, firmware, firmware_build, serial : int, str, int, int
+        Identity reported by ``get deviceid`` / ``get version`` / ``get version.build`` /
+        ``get system.serial``.
     cycle_microsteps : int
         Microsteps per revolution (``limit.cycle.dist``); 1,536,000 is 0.000234375 deg/microstep.
     speed_deg_s, accel_deg_s2 : float
@@ -121,7 +144,8 @@ class ZaberSim(SerialSim):
     FAULTS = SerialSim.FAULTS | {"busy", "stall", "encoder", "limit"}
 
     def __init__(self, name: str = "turntable", *, fast: bool = False, device: int = 1,
-                 device_id: int = 50419, firmware: str = "7.38", serial: int = 123456,
+                 device_id: int = 50419, firmware: str = "7.38", firmware_build: int = 15708,
+                 serial: int = 123456,
                  cycle_microsteps: int = 1_536_000, resolution: int = 64,
                  speed_deg_s: float = 90.0, accel_deg_s2: float = 360.0, homed: bool = False,
                  power_up_angle_deg: float = 0.0, reply_checksums: bool = False) -> None:
@@ -131,6 +155,7 @@ class ZaberSim(SerialSim):
         self.device = device
         self.device_id = device_id
         self.firmware = firmware
+        self.firmware_build = firmware_build
         self.serial = serial
         self.cycle = cycle_microsteps
         self.resolution = resolution
@@ -284,6 +309,10 @@ class ZaberSim(SerialSim):
             return "RJ", "STATUSBUSY"
         if verb == "get" and len(words) == 2:
             return self._get(axis, words[1])
+        if verb == "get" and len(words) > 2:
+            return self._get_many(axis, words[1:])
+        if verb == "tools" and words[1:2] == ["echo"]:  # a link test: the words come back
+            return "OK", " ".join(words[2:]) or "0"
         if verb == "set" and len(words) == 3:
             return self._set(axis, words[1], words[2])
         if verb == "move" and len(words) == 3 and words[1] in ("abs", "rel"):
@@ -316,9 +345,36 @@ class ZaberSim(SerialSim):
             return "OK", "0"
         return "RJ", "BADCOMMAND"
 
+    def _get_many(self, axis: int, words: list[str]) -> tuple[str, str]:
+        """``get`` of several settings; at device scope an axis number scopes the settings after
+        it. Values are listed in the order asked, separated by `` ; ``."""
+        values: list[str] = []
+        scope = axis
+        for word in words:
+            if word.isdigit():
+                if axis != 0:
+                    return "RJ", "BADCOMMAND"
+                scope = int(word)
+                if scope not in (0, 1):
+                    return "RJ", "BADAXIS"
+                continue
+            flag, data = self._get(scope, word)
+            if flag == "RJ":
+                return flag, data
+            values.append(data)
+        if not values or len(values) > GET_SETTINGS_MAX:
+            return "RJ", "BADCOMMAND"
+        return "OK", " ; ".join(values)
+
     def _get(self, axis: int, setting: str) -> tuple[str, str]:
         device_settings = {"deviceid": self.device_id, "version": self.firmware,
-                           "system.serial": self.serial, "comm.checksum": int(self.reply_checksums)}
+                           "version.build": self.firmware_build, "system.serial": self.serial,
+                           "comm.checksum": int(self.reply_checksums), "system.axiscount": 1,
+                           "device.hw.modified": 0, "system.access": 1,
+                           "comm.packet.size.max": PACKET_SIZE_MAX,
+                           "comm.command.packets.max": COMMAND_PACKETS_MAX,
+                           "comm.word.size.max": WORD_SIZE_MAX,
+                           "get.settings.max": GET_SETTINGS_MAX}
         if setting in device_settings:
             if axis != 0:
                 return "RJ", "DEVICEONLY"

@@ -209,3 +209,46 @@ def test_cable_pulled_mid_move_fails_fast():
         r.close()
         r.connect()
         assert r.position == pytest.approx(stopped_at, abs=0.01)
+
+
+def test_cr_lf_ignored_and_unknown_data_command_does_not_swallow_the_next(sim):
+    """What vendor clients send: ``thorlabs-elliptec`` ends every request with CR LF; a command
+    the firmware does not know may carry data. Neither may shift the framing of what follows."""
+    import serial
+    with serial.Serial(sim.port, 9600, timeout=0.5) as port:
+        port.write(b"0gs\r\n0gp\r\n")
+        assert port.readline() == b"0GS00\r\n"
+        assert port.readline() == b"0PO0000398E\r\n"
+        port.write(b"0zz000020000gs\r\n0gj")  # unknown + 8 data characters, then two requests
+        assert [port.readline() for _ in range(3)] == [b"0GS03\r\n", b"0GS00\r\n",
+                                                        b"0GJ00002000\r\n"]
+        port.write(b"0zz00002000")  # unknown with data at the end of the input: framed on silence
+        assert port.readline() == b"0GS03\r\n"
+        port.write(b"0gs")
+        assert port.readline() == b"0GS00\r\n"
+    assert sim.requests[-6:] == [b"0gp", b"0zz00002000", b"0gs", b"0gj", b"0zz00002000", b"0gs"]
+
+
+def test_jog_home_offset_and_motor_info_as_an_ell14_answers(sim):
+    import serial
+    with serial.Serial(sim.port, 9600, timeout=0.5) as port:
+        port.write(b"0sj00001C00")  # jog step 7168 pulses = 18 deg
+        assert port.readline() == b"0GS00\r\n"
+        port.write(b"0gj")
+        assert port.readline() == b"0GJ00001C00\r\n"
+        port.write(b"0fw")  # one jog step forward from 37 deg: 14734 + 7168 = 21902 pulses
+        assert port.readline() == b"0PO0000558E\r\n"
+        port.write(b"0bw")
+        assert port.readline() == b"0PO0000398E\r\n"
+        port.write(b"0so00000E00")  # home offset 3584 pulses = 9 deg
+        assert port.readline() == b"0GS00\r\n"
+        port.write(b"0go")
+        assert port.readline() == b"0HO00000E00\r\n"
+        port.write(b"0ho0")  # homing ends at the offset
+        assert port.readline() == b"0PO00000E00\r\n"
+        assert sim.angle_deg == pytest.approx(9.0)
+        port.write(b"0i1")
+        reply = port.readline()
+        # I1 + loop, motor, current, ramp up, ramp down, forward and backward period (4 hex each)
+        assert reply[:3] == b"0I1" and len(reply) == 3 + 22 + 2
+        assert 60_000 < 14_740_000 / int(reply[17:21], 16) < 150_000  # a resonance in kHz range

@@ -278,3 +278,19 @@ def test_alerts_are_pushed_and_skipped_by_the_driver(stage, sim):
     time.sleep(0.05)
     assert stage.position == pytest.approx(30.0, abs=1e-3)
     assert any(a.kind == "!" and a.status == "IDLE" for a in stage.alerts)
+
+
+def test_multi_setting_get_and_identification_answers():
+    """Firmware 7.38's ``get`` of several settings (as zaber-motion sends it: axis number first,
+    values back separated by ``;``) and the identification queries, straight on the simulator."""
+    sim = ZaberSim(fast=True)
+    ask = lambda line: sim.handle(line.encode()).decode().rstrip()  # noqa: E731
+    assert ask("/1 0 get 1 maxspeed pos") == f"@01 0 OK IDLE WR {sim.settings['maxspeed']} ; 0"
+    assert ask("/1 0 get version.build system.axiscount") == "@01 0 OK IDLE WR 15708 ; 1"
+    assert ask("/1 0 get 1 pos nosuch") == "@01 0 RJ IDLE WR BADCOMMAND"
+    assert ask("/1 1 get 1 pos accel") == "@01 1 RJ IDLE WR BADCOMMAND"  # axis token at axis scope
+    assert ask("/1 0 get 2 pos accel") == "@01 0 RJ IDLE WR BADAXIS"
+    assert ask("/1 0 get 1 " + " ".join(["pos"] * 13)) == "@01 0 RJ IDLE WR BADCOMMAND"  # > 12
+    assert ask("/1 0 get comm.packet.size.max") == "@01 0 OK IDLE WR 80"
+    assert ask("/1 0 tools echo") == "@01 0 OK IDLE WR 0"
+    assert ask("/1 1 get peripheralid") == "@01 1 RJ IDLE WR BADCOMMAND"

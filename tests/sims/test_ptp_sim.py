@@ -182,3 +182,26 @@ def test_placeholder_frame_scales_with_exposure():
                                                        size=(64, 48)))) as raw:
             means.append(raw.raw_image.astype(float).mean() - 512)
     assert means[1] / means[0] == pytest.approx(2.0, rel=0.05)
+
+
+def test_storage_object_enumeration_thumb_and_partial_refusals():
+    """What generic clients ask after OpenSession, and the ISO 15740 refusals of bad parameters."""
+    blob = b"not a TIFF, so no thumbnail" * 40
+    sim = PtpCameraSim(frame_source=lambda state: blob)
+    r = Raw(sim)
+    assert r.run(0x1002, 0, 1)[0] == 0x2001
+    assert r.run(0x100E, 1)[0] == 0x2001
+    code, _, info = r.run(0x1005, 2, 0x00010001)                      # GetStorageInfo
+    assert code == 0x2001
+    assert struct.unpack_from("<HHHQQI", info) == (4, 3, 0, sim.card_bytes,
+                                                   sim.card_bytes - len(blob), sim.store_capacity - 1)
+    assert r.run(0x1005, 3, 0x00020001)[0] == 0x2008                  # InvalidStorageID
+    assert r.run(0x1006, 4, 0xFFFFFFFF, 0, 0) == (0x2001, (1,), None)  # GetNumObjects
+    assert r.run(0x1006, 5, 0xFFFFFFFF, 0x3801, 0)[1] == (0,)         # no JPEG on the card
+    assert r.run(0x1007, 6, 0xFFFFFFFF, 0, 7)[0] == 0x201A            # not an association
+    assert r.run(0x100A, 7, 1)[0] == 0x2010                           # NoThumbnailPresent
+    code, _, objinfo = r.run(0x1008, 8, 1)
+    assert struct.unpack_from("<HIII", objinfo, 12) == (0, 0, 0, 0)   # ObjectInfo: no thumb either
+    assert r.run(0x101B, 9, 1, len(blob) + 1, 10)[0] == 0x201D        # offset past the end
+    assert r.run(0x101B, 10, 1, len(blob) - 10, 100) == (0x2001, (10,), blob[-10:])
+    assert r.run(0x101B, 11, 2, 0, 10)[0] == 0x2009                   # InvalidObjectHandle
