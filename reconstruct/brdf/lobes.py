@@ -3,7 +3,8 @@ expresses: test materials for the methods, not models to fit.
 
 - :class:`AshikhminShirley`: anisotropic-Phong specular with Schlick Fresnel over the coupled,
   Fresnel-weighted diffuse of Ashikhmin & Shirley 2000 (isotropic exponent here);
-- :class:`RetroReflective`: a Lambertian base plus a lobe about the retro direction (wo = wi);
+- :class:`RetroReflective`: Lambertian with Hapke's opposition surge about the retro
+  direction (wo = wi), a cusp no Lafortune retro lobe has;
 - :class:`Sheen`: the "Charlie" inverted-Gaussian-like sheen of cloth (Estevez & Kulla 2017)
   over a Lambertian base.
 
@@ -65,32 +66,40 @@ class AshikhminShirley(BRDF):
 
 @dataclass(frozen=True)
 class RetroReflective(BRDF):
-    """Lambertian plus a retro-reflective lobe: f_r = kd / pi + kr (n + 1) / (2 pi) (wi . wo)^n
-    for wi . wo > 0 (peaks where the viewer looks along the light, e.g. road signs, moon dust).
+    """Lambertian with Hapke's shadow-hiding opposition surge (a retro-reflective cusp):
+    f_r = kd / pi (1 + b0 / (1 + tan(g / 2) / h)), g = 2 theta_d the phase angle between the
+    light and the viewer (moon dust, regolith, rough matte powders). The peak at g = 0 is a
+    cusp with a heavy tail, not the Gaussian-like cos^n(g) of a Lafortune retro lobe.
 
     Parameters
     ----------
     kd : float or (3,)
         Diffuse albedo, >= 0.
-    kr : float or (3,)
-        Retro lobe weight, >= 0.
-    exponent : float
-        Lobe sharpness n, > 0.
+    b0 : float
+        Surge amplitude (f at g = 0 is (1 + b0) x the Lambertian level), >= 0.
+    h : float
+        Angular width parameter, > 0 (0.05: half the surge within ~6 deg of phase).
+
+    References
+    ----------
+    B. Hapke, "Bidirectional reflectance spectroscopy 4: the extinction coefficient and the
+    opposition effect", Icarus 67, 1986, Eq. 16.
     """
 
     kd: object = (0.35, 0.3, 0.25)
-    kr: object = 0.3
-    exponent: float = 20.0
+    b0: float = 1.5
+    h: float = 0.05
 
     def __post_init__(self):
         check_param("RetroReflective", "kd", self.kd)
-        check_param("RetroReflective", "kr", self.kr)
-        check_param("RetroReflective", "exponent", self.exponent, low_open=True)
+        check_param("RetroReflective", "b0", self.b0)
+        check_param("RetroReflective", "h", self.h, low_open=True)
 
     def _evaluate(self, wi, wo):
-        c = np.maximum(np.sum(wi * wo, axis=1, keepdims=True), 0.0)
-        return (rgb(self.kd) / np.pi
-                + rgb(self.kr) * (self.exponent + 1.0) / (2.0 * np.pi) * c ** self.exponent)
+        # tan(g / 2) = tan(theta_d) = |wi - wo| / |wi + wo| for unit vectors
+        t = np.linalg.norm(wi - wo, axis=1, keepdims=True) / np.linalg.norm(wi + wo, axis=1,
+                                                                               keepdims=True)
+        return rgb(self.kd) / np.pi * (1.0 + self.b0 / (1.0 + t / self.h))
 
     def diffuse_part(self) -> BRDF:
         return Lambertian(self.kd)

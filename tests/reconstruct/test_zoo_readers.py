@@ -114,6 +114,8 @@ def test_zoo_lobes_are_reciprocal_and_conserve_energy():
                                 [np.sin(np.radians(60)), 0.0, np.cos(np.radians(60))], 40_000,
                                 guide_alpha=0.03)
     assert np.all(a60 < 1.0)
-    retro = RetroReflective(kd=0.0, kr=1.0, exponent=20.0)
-    w = _dir(40, 30)
-    assert retro.evaluate(w, w)[0, 0] == pytest.approx(21 / (2 * np.pi))
+    retro = RetroReflective(kd=0.5, b0=1.5, h=0.05)
+    w = _dir(40, 30)  # the surge's peak at g = 0 and its value at g = 2 theta_d = 2 atan(h)
+    assert retro.evaluate(w, w)[0, 0] == pytest.approx(0.5 / np.pi * 2.5)
+    wo = _dir(40 - 2 * np.degrees(np.arctan(0.05)), 30)
+    assert retro.evaluate(w, wo)[0, 0] == pytest.approx(0.5 / np.pi * 1.75)
