@@ -54,14 +54,17 @@ def test_nbrdf_reciprocal_by_default_and_bad_files_named(brdfs, tmp_path):
         load_nbrdf(tmp_path / "bad.npz")
 
 
-def test_rgl_matte_paint_albedo_matches_the_independent_evaluator(brdfs):
-    """README: directional albedo at normal view of colodur_napoli_4f, RGB 0.241 0.057 0.061,
-    from an independent evaluator. (The glossy vch_golden_yellow comes out 0.41 0.25 0.022
-    against 0.523 0.311 0.032: not understood, so not asserted; see docs/zoo.md.)"""
-    model = read_rgl(brdfs / "rgl" / "colodur_napoli_4f_rgb.bsdf")
-    albedo, err = directional_albedo(model, [0.0, 0.0, 1.0], 40_000)
-    assert np.all(err < 0.005)
-    np.testing.assert_allclose(albedo[0], [0.241, 0.057, 0.061], rtol=0.04)
+@pytest.mark.parametrize("name, expected", [
+    ("colodur_napoli_4f_rgb", (0.241, 0.057, 0.061)),   # matte wall paint
+    ("vch_golden_yellow_rgb", (0.523, 0.311, 0.032)),   # glossy vinyl film
+])
+def test_rgl_albedo_matches_the_independent_evaluator(brdfs, name, expected):
+    """README: directional albedo at normal view of the two files, from an independent
+    evaluator (we get 0.240 0.057 0.061 and 0.518 0.308 0.032 with 100,000 samples)."""
+    model = read_rgl(brdfs / "rgl" / f"{name}.bsdf")
+    albedo, err = directional_albedo(model, [0.0, 0.0, 1.0], 40_000, guide_alpha=0.05)
+    assert np.all(err < 0.01 * np.asarray(expected) + 1e-3)
+    np.testing.assert_allclose(albedo[0], expected, rtol=0.04)
 
 
 def test_tensor_file_errors_name_the_file_and_field(brdfs, tmp_path):
