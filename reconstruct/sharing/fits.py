@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 
 from ..brdf import BRDF, Dichromatic, Lambertian
 from ..coords import uvw_from_directions
-from .models import RbfBRDF, SpatialRbfBRDF
+from .models import SpatialRbfBRDF
 from .normals import PhotometricNormals, photometric_normals, reframe
-from .rbf import RbfFit, SharingError, fit_rbf
+from .rbf import SharingError, fit_rbf
 
 #: Default cos(theta_i) below which samples are dropped (theta_i > 87 deg).
 MIN_COS = 0.05
