@@ -1,5 +1,6 @@
-"""Reflectance sharing fits: homogeneous (Sect. 5), spatially varying (Sect. 6), dichromatic
-with albedo (Sect. 7, Eq. 7) and single image (Sect. 7.4, Eq. 8), after Zickler et al. 2005.
+"""Reflectance sharing fits: spatially varying (Sect. 6), dichromatic with albedo (Sect. 7,
+Eq. 7) and single image (Sect. 7.4, Eq. 8), after Zickler et al. 2005 (the homogeneous fit of
+Sect. 5 is ``isotropic.py``); the sample checks all fits share.
 
 Inputs are reflectance samples: local unit directions ``wi`` (to the light) and ``wo`` (to the
 camera), normal = +z, and ``brdf`` = f_r in 1/sr (radiance / (irradiance cos theta_i)).
@@ -18,9 +19,9 @@ from scipy.spatial import cKDTree
 
 from ..brdf import BRDF, Dichromatic, Lambertian
 from ..coords import uvw_from_directions
-from .models import RbfBRDF, SpatialRbfBRDF
+from .models import SpatialRbfBRDF
 from .normals import PhotometricNormals, photometric_normals, reframe
-from .rbf import RbfFit, SharingError, fit_rbf
+from .rbf import SharingError, fit_rbf
 
 #: Default cos(theta_i) below which samples are dropped (theta_i > 87 deg).
 MIN_COS = 0.05
@@ -90,89 +91,6 @@ def _weight(s: _Samples, weight) -> np.ndarray:
             raise SharingError(f"weight must be finite, >= 0, of shape {w.shape}")
         w = w * user
     return w
-
-
-# ----------------------------------------------------------------------------------------------
-# homogeneous
-# ----------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class IsotropicFit:
-    """Result of :func:`fit_isotropic`.
-
-    Attributes
-    ----------
-    brdf : RbfBRDF
-        The recovered BRDF (f_r, 1/sr).
-    fit : RbfFit
-        The RBF fit over (u, v, w): centres, history (centre count vs residual).
-    n_used, n_dropped : int
-        Samples used / dropped (terminator, invalid, below the horizon).
-    """
-
-    brdf: RbfBRDF
-    fit: RbfFit
-    n_used: int
-    n_dropped: int
-
-    def brdf_with(self, n_centers: int) -> RbfBRDF:
-        """The BRDF refitted on the first ``n_centers`` greedy centres (error vs centre count)."""
-        return RbfBRDF(self.fit.refit(n_centers))
-
-    def report(self) -> str:
-        return (f"isotropic RBF BRDF from {self.n_used} samples ({self.n_dropped} dropped): "
-                + self.fit.report())
-
-
-def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w: float = 0.5, weight=None,
-                  valid=None, min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
-                  progress: Callable[[int, int], None] | None = None) -> IsotropicFit:
-    """Homogeneous isotropic BRDF f(u, v, w) by greedy linear-RBF interpolation (Sect. 5, Eq. 5).
-
-    Parameters
-    ----------
-    wi, wo : array_like, (S, 3)
-        Local unit directions to the light / camera (normal = +z).
-    brdf : array_like, (S, 3) or (S,)
-        f_r samples, 1/sr.
-    max_centers : int
-        Centre budget (the paper: < 1000 suffice for 10 sphere images).
-    m_w : float
-        Scale of the sparsely sampled w = 2 theta_d / pi axis, M = diag(1, 1, m_w) (Eq. 4; the
-        paper's typical values 0.1-0.5; 0.5 measured best of 0.3, 0.5, 1 on 10 sphere images).
-    weight : array_like, (S,), optional
-        Extra non-negative weight per sample (multiplies cos theta_i).
-    valid : array_like of bool, (S,), optional
-        False drops a sample (it may hold NaN).
-    min_cos : float
-        Samples with cos theta_i below this are dropped (module docstring).
-    tol, smoothing, rng, progress
-        As :func:`reconstruct.sharing.fit_rbf`.
-
-    Returns
-    -------
-    IsotropicFit
-
-    Raises
-    ------
-    SharingError
-        Mis-shaped or non-finite input; all samples at one theta_d (one light/view pair: w is
-        not sampled, the fit would be undetermined along it); too few samples.
-    """
-    s = _samples(wi, wo, valid, min_cos)
-    values = _values("brdf", brdf, len(s.wi), s.keep)
-    w = _weight(s, weight)
-    uvw = uvw_from_directions(s.wi[s.keep], s.wo[s.keep])
-    if not _w_varies(uvw):
-        raise SharingError("wi, wo: every sample has the same theta_d (one light/view pair), so "
-                           "the w axis of (u, v, w) is not sampled; a homogeneous BRDF needs at "
-                           "least two theta_d (use fit_spatial for the single-image case)")
-    if not m_w > 0:
-        raise SharingError(f"m_w must be > 0, got {m_w!r}")
-    fit = fit_rbf(uvw, values[s.keep], scale=(1.0, 1.0, m_w), weight=w[s.keep],
-                  max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
-                  progress=progress)
-    n_used = int(s.keep.sum())
-    return IsotropicFit(RbfBRDF(fit.model), fit, n_used, len(s.wi) - n_used)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -4,7 +4,9 @@
 Both are ``reconstruct.brdf.BRDF`` models, so the renderer, ``reconstruct.distant`` and the
 report use them unchanged. Directions are local unit vectors (normal = +z); the angular
 coordinates are Zickler et al.'s (u, v, w) of Eq. 1 (``reconstruct.coords.uvw_from_directions``).
-A linear RBF can undershoot below zero between samples; the models clamp f_r at 0.
+A linear RBF can undershoot below zero between samples; the models clamp f_r at 0. A homogeneous
+model may interpolate log(f_r + offset) instead of f_r (``RbfBRDF.log_offset``, see
+``fits.fit_isotropic``).
 """
 from __future__ import annotations
 
@@ -25,16 +27,25 @@ class RbfBRDF(BRDF):
     ----------
     model : RbfModel
         Interpolant over (u, v, w), D = 3, with 1 (grey) or 3 (RGB) channels.
+    log_offset : float, optional
+        When set, the interpolant is of g = log(f_r + log_offset) (1/sr inside the log), and
+        f_r = exp(g) - log_offset; None: of f_r itself.
     """
 
     model: RbfModel
+    log_offset: float | None = None
 
     def __post_init__(self):
         if self.model.dim != 3:
             raise SharingError(f"model must be 3-D (u, v, w), got {self.model.dim}-D")
+        if self.log_offset is not None and not self.log_offset > 0:
+            raise SharingError(f"log_offset must be > 0 or None, got {self.log_offset!r}")
 
     def _evaluate(self, wi, wo):
-        return np.maximum(self.model(uvw_from_directions(wi, wo)), 0.0)
+        g = self.model(uvw_from_directions(wi, wo))
+        if self.log_offset is not None:
+            g = np.exp(np.minimum(g, 700.0)) - self.log_offset
+        return np.maximum(g, 0.0)
 
     def take(self, index) -> "RbfBRDF":
         return self
