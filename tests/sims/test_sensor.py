@@ -18,12 +18,6 @@ def _ramp(h: int, w: int, top: float) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def _zscores(sensor, raw, radiance, exposure_s, iso, **kw):
-    exp = sensor.expected_raw(radiance, exposure_s, iso, **kw)
-    ok = ~exp.saturated
-    return ((raw.astype(float) - exp.mean_dn) / exp.sigma_dn)[ok], exp
-
-
 def test_photon_transfer_gives_the_stated_gain_and_read_noise():
     """EMVA 1288's photon-transfer method, which needs nothing of the model but two frames: on
     flat patches the temporal variance var(A - B) / 2 grows with the mean signal above black as
