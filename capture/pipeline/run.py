@@ -173,14 +173,14 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
     if truth is not None:
         rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
-    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+    stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
     todo = [m for m in methods if force or m not in stored]
     outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
-                                 figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
-                                 warnings=stored[m]["result"].get("warnings", []))
+                                 figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
+                                 warnings=stored[m].result.get("warnings", []))
                 for m in methods if m not in todo}
     if outcomes:
-        rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
+        rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
     if todo:
         with clock.stage("inputs"):
             inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
@@ -232,7 +232,7 @@ def _calibration(store: Store, session: str, targets, force: bool,
     info = store.session(session)
     stored = [r for r in store.results(info.id, "calibration")]
     if stored and not force:
-        return [{"stage": r["kind"], "status": "stored", "reason": f"result {r['id']}", "figures": {}}
+        return [{"stage": r.kind, "status": "stored", "reason": f"result {r.id}", "figures": {}}
                 for r in stored]
     try:
         report = calibrate_session(store, session, targets=targets, measurement_hdr=False, progress=progress)
