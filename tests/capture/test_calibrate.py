@@ -205,12 +205,13 @@ def test_light_positions_match_the_sim(session):
     for row in r["lights"]:
         t = _light_truth(camera, row["commanded"])
         p = np.array(row["position_camera_mm"])
-        # direction from the spheres within 4 deg (seen: 0.6-2.6); distance within 25 % (seen:
-        # 7-21 % long): at 320 x 240 a 25 mm ball is ~21 px wide, and three balls 180 mm apart
-        # triangulate a light 500 mm away with ~25 mm depth error per 0.1 px of highlight or
-        # sphere-centre error, plus the lab frame's 14 mm shift
-        assert _angle_deg(p - mid, t - mid) < 4.0, (p, t)
-        assert abs(np.linalg.norm(p - mid) - np.linalg.norm(t - mid)) < 0.25 * np.linalg.norm(t - mid)
+        # This fixture is far from the lights' 0.5 % / 0.25 deg target, which the full demo meets
+        # at 640 x 480 (docs/measurements.md): at 320 x 240 a 25 mm ball is ~21 px wide, and three
+        # balls 180 mm apart triangulate a light 500 mm away with ~25 mm depth error per 0.1 px of
+        # highlight or sphere-centre error, plus the lab frame's 14 mm shift. Bounds: the measured
+        # worst plus ~25 % (seen: direction 0.5-2.4 deg; distance 3-16 % long, never short)
+        assert _angle_deg(p - mid, t - mid) < 3.0, (p, t)
+        assert -0.02 < np.linalg.norm(p - mid) / np.linalg.norm(t - mid) - 1 < 0.20, (p, t)
 
 
 def test_lights_fall_back_to_silhouettes_without_a_lab_frame(session):
@@ -290,8 +291,10 @@ def test_positioner_model_gives_every_measurement_step_a_light(session):
     for i in measure_steps:
         t = _light_truth(camera, steps[i]["light"])
         p = np.array(measured[i]["position_camera_mm"])
-        assert _angle_deg(p - mid, t - mid) < 6.0
-        assert abs(np.linalg.norm(p - mid) - np.linalg.norm(t - mid)) < 0.2 * np.linalg.norm(t - mid)
+        # the arm model through the six lights above (seen: direction <= 1.5 deg, distance 7.6-11.8 %
+        # long; the 0.5 % target holds at 640 x 480 only): the measured worst plus ~25 %
+        assert _angle_deg(p - mid, t - mid) < 2.0, (p, t)
+        assert -0.02 < np.linalg.norm(p - mid) / np.linalg.norm(t - mid) - 1 < 0.15, (p, t)
 
 
 def _truth_dn_per_s(world, frame, polarizer_deg: float) -> tuple[np.ndarray, np.ndarray]:
