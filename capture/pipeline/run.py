@@ -38,7 +38,9 @@ from .progress import Progress, ProgressSink, counter
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, session_inputs)
 from .report_html import write_html_report
+from ..rigs import recorded_in_built_in_lab
 from ..store import Store
+from .demo_lab import demo_lab_for
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session"]
 
@@ -220,10 +222,8 @@ def _jsonable(obj: Any) -> Any:
 def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
     """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
     (at its frames' resolution), None for any other rig."""
-    from ..rigs import recorded_in_built_in_lab
     if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
         return None
-    from .demo_lab import demo_lab_for
     return demo_lab_for(store, session).process_options()
 
 
