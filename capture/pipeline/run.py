@@ -29,6 +29,7 @@ import trimesh
 from reconstruct.frames import tangent_frames, to_local, to_world
 from reconstruct.lumitexels import Lumitexels, View
 
+from ..export.appearance import EXPORTED_METHODS, appearance_npz
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .methods import DEFAULT_METHODS, METHODS, Fitted, MethodSkipped, fit_method
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
@@ -301,9 +302,12 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
                          "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
                          "training_samples": train.n_samples, "held_out_samples": held.n_samples},
               "inputs_summary": summary}
+    artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
+    if name in EXPORTED_METHODS:   # what `gonio export` writes files from
+        artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views,
+                                                      inputs.held_out)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
-                                   input_frames=inputs.view_frames,
-                                   artifacts={"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)})
+                                   input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings)
 
 

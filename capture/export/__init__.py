@@ -1,0 +1,1 @@
+"""gonio export: recovered appearance -> files other software reads."""
