@@ -133,7 +133,11 @@ def view_xml(view: MitsubaView, object_file: str, *, spp: int = 16) -> str:
     lx, ly, lz = (f"{v:.9g}" for v in view.light_mm)
     r, g, b = (f"{v:.9g}" for v in view.intensity)
     return f"""<scene version="3.0.0">
-    <!-- gonio export, {"held-out" if view.held_out else "training"} capture {view.name}: object frame, mm -->
+    <!-- gonio export, {"held-out" if view.held_out else "training"} capture {view.name}: object frame, mm.
+         A larger film (-D width=... -D height=..., same aspect) is the same camera supersampled -->
+    <default name="width" value="{W}"/>
+    <default name="height" value="{H}"/>
+    <default name="spp" value="{spp}"/>
     <integrator type="direct"><integer name="emitter_samples" value="1"/><integer name="bsdf_samples" value="0"/></integrator>
     <sensor type="perspective">
         <string name="fov_axis" value="x"/>
@@ -143,9 +147,9 @@ def view_xml(view: MitsubaView, object_file: str, *, spp: int = 16) -> str:
         <float name="near_clip" value="1"/>
         <float name="far_clip" value="100000"/>
         <transform name="to_world"><matrix value="{matrix}"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="{spp}"/></sampler>
+        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
         <film type="hdrfilm">
-            <integer name="width" value="{W}"/><integer name="height" value="{H}"/>
+            <integer name="width" value="$width"/><integer name="height" value="$height"/>
             <string name="pixel_format" value="rgb"/><rfilter type="box"/>
         </film>
     </sensor>
@@ -158,11 +162,19 @@ def view_xml(view: MitsubaView, object_file: str, *, spp: int = 16) -> str:
 """
 
 
-def render(xml: str | Path, *, spp: int | None = None, variant: str = "scalar_rgb") -> np.ndarray:
-    """Render a scene file with Mitsuba 3 (``variant``, CPU) -> linear RGB (H, W, 3) float32."""
+def render(xml: str | Path, *, spp: int | None = None, supersample: int = 1,
+           variant: str = "scalar_rgb") -> np.ndarray:
+    """Render a :func:`view_xml` scene file with Mitsuba 3 (``variant``, CPU) -> linear RGB
+    (H s, W s, 3) float32, ``s = supersample`` (the same camera on an s times finer film)."""
     import mitsuba as mi
     if mi.variant() != variant:
         mi.set_variant(variant)
-    scene = mi.load_file(str(xml))
-    image = mi.render(scene, spp=spp) if spp else mi.render(scene)
-    return np.asarray(image, np.float32)[..., :3]
+    params = {}
+    if supersample != 1:
+        scene = mi.load_file(str(xml))
+        W, H = scene.sensors()[0].film().size()
+        params = {"width": str(W * supersample), "height": str(H * supersample)}
+    if spp:
+        params["spp"] = str(spp)
+    scene = mi.load_file(str(xml), **params)
+    return np.asarray(mi.render(scene), np.float32)[..., :3]

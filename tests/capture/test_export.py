@@ -216,37 +216,15 @@ def test_normal_map_reads_back_a_baked_tilt_in_gltf_and_mitsuba(synthetic):
     assert np.median(np.degrees(np.arccos(np.clip(np.sum(n_flip * app.normal[pick], 1), -1, 1)))) > 2 * np.median(ang)
 
 
-def _mitsuba_samples(xml: Path, app: Appearance, view: int, spp: int = 32):
-    """Mitsuba's render of ``xml`` at the held-out samples of capture ``view`` -> (rendered
-    radiance, the same as ``f_r cos`` x I / d^2 of the method's prediction, of the capture), for
-    samples whose pixel lies inside the silhouette with a one-pixel margin."""
-    import cv2
-    from capture.export.mitsuba import MitsubaView, pinhole_project, render
-    img = render(xml, spp=spp)
-    M, light = app.view_camera_to_object[view], app.view_light_mm[view]
-    W, H = (int(v) for v in app.image_size)
-    mv = MitsubaView("v", M, app.K, (W, H), light, app.light_intensity)
-    s = app.held_view == view
-    p = app.position[app.held_texel[s]]
-    px = pinhole_project(mv, p) - 0.5
-    mask = cv2.erode((img.sum(axis=2) > 0).astype(np.uint8), np.ones((3, 3), np.uint8))
-    xi, yi = np.rint(px[:, 0]).astype(int), np.rint(px[:, 1]).astype(int)
-    ok = (xi >= 0) & (yi >= 0) & (xi < W) & (yi < H)
-    ok[ok] &= mask[yi[ok], xi[ok]] > 0
-    got = np.stack([cv2.remap(img[..., c], px[ok, 0].astype(np.float32)[None], px[ok, 1].astype(np.float32)[None],
-                              cv2.INTER_LINEAR)[0] for c in range(3)], axis=1)
-    d2 = np.sum((light - p[ok]) ** 2, axis=1)[:, None]
-    scale = app.light_intensity / d2
-    return got, app.held_predicted[s][ok] * scale, app.held_captured[s][ok] * scale
-
-
 def test_mitsuba_renders_the_synthetic_export_as_the_formula(synthetic):
     """Mitsuba 3 (scalar_rgb) renders the held-out scene; at the held-out samples its radiance
     is the exported formula's (the 'method's' prediction here) up to Monte Carlo pixel-footprint
     noise and texture/normal sampling at texel boundaries (seen 0.02)."""
     pytest.importorskip("mitsuba")
     root, mesh, app, rep = synthetic
-    got, predicted, captured = _mitsuba_samples(rep.out / "mitsuba" / "heldout-000.xml", app, 1)
+    from capture.export.check import render_held_out
+    r = render_held_out(rep.out / "mitsuba" / "heldout-000.xml", app, 1, spp=16, supersample=1)
+    got, predicted, captured = r.rendered, r.predicted, r.captured
     assert len(got) > 300
     assert relative_rms(got, predicted) < 0.05
     # against the noisy 'captures' Mitsuba does as well as the model itself (5 % noise)
