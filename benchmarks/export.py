@@ -12,7 +12,6 @@ renders. The test suite checks the quick demo's Lensch export (tests/capture/tes
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import sys
 import tempfile
@@ -25,7 +24,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the package, not benchmarks/capture.py
 
 from capture.export.appearance import EXPORTED_METHODS, Appearance  # noqa: E402
-from capture.export.session import export_session, relative_rms  # noqa: E402
+from capture.export.session import export_session  # noqa: E402
+from reconstruct.metrics import relative_rms  # noqa: E402
 from capture.store import Store  # noqa: E402
 from capture.export.check import render_held_out  # noqa: E402
 

@@ -16,6 +16,7 @@ approximation error against the method's model and the captures.
 """
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -26,6 +27,8 @@ from typing import Any, Sequence
 import numpy as np
 import trimesh
 
+from reconstruct.metrics import relative_rms
+
 from ..store import SessionNotFound, Store
 from .formats import FORMATS
 from .appearance import EXPORTED_METHODS, HOMOGENEOUS_METHODS, Appearance
@@ -35,7 +38,7 @@ from .gltf import gltf_material, gltf_reflectance, write_glb
 from .images import write_exr, write_png16
 from .mitsuba import MitsubaView, object_xml, view_xml, write_ply
 
-__all__ = ["FORMATS", "ExportError", "ExportReport", "export_session", "relative_rms"]
+__all__ = ["FORMATS", "ExportError", "ExportReport", "export_session"]
 
 class ExportError(ValueError):
     """A request ``gonio export`` cannot carry out (the message says what and how to fix it)."""
@@ -49,14 +52,6 @@ class ExportReport:
     out: Path
     files: dict[str, list[str]] = field(default_factory=dict)
     model: dict[str, Any] = field(default_factory=dict)
-
-
-def relative_rms(predicted: np.ndarray, reference: np.ndarray) -> float:
-    """``sqrt(sum (p - r)^2 / sum r^2)`` (NaN when empty)."""
-    r = np.asarray(reference, float)
-    if r.size == 0:
-        return float("nan")
-    return float(np.sqrt(np.sum((np.asarray(predicted, float) - r) ** 2) / max(np.sum(r ** 2), 1e-300)))
 
 
 def _stored(store: Store, session: str, method: str) -> tuple[dict, Appearance]:
@@ -114,7 +109,7 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
                           "gonio process was given)")
     bivariate = None
     if "merl" in formats:
-        model = np.load(__import__("io").BytesIO(store.read_object(run["artifacts"]["model.npz"])))
+        model = np.load(io.BytesIO(store.read_object(run["artifacts"]["model.npz"])))
         bivariate = np.asarray(model["bivariate"], float)
 
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"

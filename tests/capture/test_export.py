@@ -17,7 +17,8 @@ import trimesh
 from capture.export.appearance import Appearance
 from capture.export.ggx import ALPHA_GRID, GgxMaps, fit_ggx, ggx_reflectance
 from capture.export.images import read_exr
-from capture.export.session import ExportError, export_session, relative_rms
+from capture.export.session import export_session
+from reconstruct.metrics import relative_rms
 from capture.store import Store
 from reconstruct.frames import tangent_frames, to_local
 
