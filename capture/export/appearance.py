@@ -94,18 +94,6 @@ class Appearance:
     def maps(self) -> GgxMaps:
         return GgxMaps(self.rho_d, self.ks, self.alpha)
 
-    def normal_local(self) -> np.ndarray:
-        """The model's normals in each texel's mesh-normal local frame (T, 3)."""
-        return to_local(self.normal, tangent_frames(self.mesh_normal))
-
-    def held_out_reflectance(self, maps: GgxMaps | None = None) -> np.ndarray:
-        """``f_r cos`` of the exported BRDF (``maps``, default the fitted per-texel one) at the
-        held-out samples (H, 3)."""
-        maps = self.maps if maps is None else maps
-        n = self.normal_local()[self.held_texel]
-        return ggx_reflectance(maps.take(self.held_texel) if len(maps.alpha) == self.n_texels else maps,
-                               n, self.held_wi, self.held_wo)
-
     def to_npz(self) -> bytes:
         buf = io.BytesIO()
         np.savez_compressed(buf, **{f.name: np.asarray(getattr(self, f.name)) for f in fields(self)})
@@ -123,10 +111,12 @@ class Appearance:
 
 
 def appearance_npz(method: str, fit, train: Lumitexels, held: Lumitexels, views: Sequence[View],
-                   held_views: Sequence[View]) -> bytes:
+                   held_views: Sequence[View], predicted_train: np.ndarray, predicted_held: np.ndarray) -> bytes:
     """:class:`Appearance` of a fitted method (``capture.pipeline.methods.Fitted``) as npz bytes.
 
-    The exported BRDF is fitted to the method's predictions at the training samples: roughness
+    ``predicted_train`` / ``predicted_held`` are ``fit.predict`` of ``train`` / ``held`` (the
+    pipeline computes them for its figures). The exported BRDF is fitted to the method's
+    predictions at the training samples: roughness
     per material, albedo and lobe scale per texel (:func:`capture.export.ggx.fit_ggx`); one fit
     for a method of one BRDF (:data:`HOMOGENEOUS_METHODS`).
     """
@@ -141,7 +131,7 @@ def appearance_npz(method: str, fit, train: Lumitexels, held: Lumitexels, views:
     # f_r = 65 / sr at normal incidence on the quick demo, where no sample was)
     homogeneous = method in HOMOGENEOUS_METHODS
     texel = np.zeros(train.n_samples, np.int64) if homogeneous else train.texel
-    n, wi, wo, y = n_local[train.texel], train.wi, train.wo, fit.predict(train)
+    n, wi, wo, y = n_local[train.texel], train.wi, train.wo, np.asarray(predicted_train, float)
     maps = fit_ggx(texel, n, wi, wo, y, 1 if homogeneous else T, group=None if homogeneous else label)
     if homogeneous:
         maps, texel = maps.take(np.zeros(T, np.int64)), train.texel
@@ -162,7 +152,7 @@ def appearance_npz(method: str, fit, train: Lumitexels, held: Lumitexels, views:
         held_texel=held.texel.astype(np.int64), held_view=held.view.astype(np.int64),
         held_wi=held.wi.astype(np.float64), held_wo=held.wo.astype(np.float64),
         held_captured=held.reflectance.astype(np.float64),
-        held_predicted=np.asarray(fit.predict(held), np.float64) if held.n_samples else np.zeros((0, 3)),
+        held_predicted=np.asarray(predicted_held, np.float64).reshape(-1, 3),
         **_view_geometry([*views, *held_views], len(views)),
     ).to_npz()
 

@@ -41,6 +41,10 @@ class GltfMaterial:
     roughness: np.ndarray
     f0: np.ndarray
 
+    def take(self, index: np.ndarray) -> "GltfMaterial":
+        """The parameters at ``index`` (rows)."""
+        return GltfMaterial(self.base_color[index], self.roughness[index], self.f0[index])
+
 
 def gltf_material(maps: GgxMaps) -> GltfMaterial:
     """The glTF parameters standing for the exported BRDF (see the module docstring)."""

@@ -27,6 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 import trimesh
 
+from reconstruct.frames import tangent_frames, to_local
 from reconstruct.metrics import relative_rms
 
 from ..store import SessionNotFound, Store
@@ -199,11 +200,10 @@ def _approximation(app: Appearance, b: _Baked, run: dict) -> dict[str, Any]:
         return {"held_out_samples": 0}
     uniq, inv = np.unique(app.held_texel, return_inverse=True)
     maps_u, n_u = _through_textures(app, b, uniq)
-    from reconstruct.frames import tangent_frames, to_local
     frames = tangent_frames(app.mesh_normal[app.held_texel])
     n_local = to_local(n_u[inv], frames)
     ggx = ggx_reflectance(maps_u.take(inv), n_local, app.held_wi, app.held_wo)
-    gl = gltf_reflectance(_take_gltf(gltf_material(maps_u), inv), n_local, app.held_wi, app.held_wo)
+    gl = gltf_reflectance(gltf_material(maps_u).take(inv), n_local, app.held_wi, app.held_wo)
     figures = run["result"].get("figures", {})
     return {
         "held_out_samples": int(len(app.held_texel)),
@@ -215,11 +215,6 @@ def _approximation(app: Appearance, b: _Baked, run: dict) -> dict[str, Any]:
         "export_held_out_rel_rms": relative_rms(ggx, app.held_captured),
         "gltf_held_out_rel_rms": relative_rms(gl, app.held_captured),
     }
-
-
-def _take_gltf(m, idx):
-    from .gltf import GltfMaterial
-    return GltfMaterial(m.base_color[idx], m.roughness[idx], m.f0[idx])
 
 
 def _png_scale(a: np.ndarray) -> float:

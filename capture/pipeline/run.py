@@ -254,9 +254,10 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
     except (ValueError, np.linalg.LinAlgError) as exc:
         return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}")
     figures = dict(fit.figures)
-    figures["training_rel_rms"] = relative_rms(fit.predict(train), train.reflectance)
+    predicted_train = fit.predict(train)
+    figures["training_rel_rms"] = relative_rms(predicted_train, train.reflectance)
+    predicted = fit.predict(held) if held.n_samples else np.zeros((0, 3))
     if held.n_samples:
-        predicted = fit.predict(held)
         figures["held_out_rel_rms"] = relative_rms(predicted, held.reflectance)
         figures["held_out_rel_rms_trimmed"] = trimmed_relative_rms(predicted, held.reflectance)
     if truth_r is not None:
@@ -276,8 +277,8 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
               "inputs_summary": summary}
     artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
     if name in EXPORTED_METHODS:   # what `gonio export` writes files from
-        artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views,
-                                                      inputs.held_out)
+        artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
+                                                      predicted_train, predicted)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings)
