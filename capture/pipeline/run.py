@@ -39,7 +39,9 @@ from .progress import Progress, ProgressSink, counter
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, session_inputs)
 from .report_html import write_html_report
+from ..rigs import recorded_in_built_in_lab
 from ..store import Store
+from .demo_lab import demo_lab_for
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session"]
 
@@ -174,14 +176,14 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
     if truth is not None:
         rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
-    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+    stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
     todo = [m for m in methods if force or m not in stored]
     outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
-                                 figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
-                                 warnings=stored[m]["result"].get("warnings", []))
+                                 figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
+                                 warnings=stored[m].result.get("warnings", []))
                 for m in methods if m not in todo}
     if outcomes:
-        rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
+        rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
     if todo:
         with clock.stage("inputs"):
             inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
@@ -221,10 +223,8 @@ def _jsonable(obj: Any) -> Any:
 def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
     """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
     (at its frames' resolution), None for any other rig."""
-    from ..rigs import recorded_in_built_in_lab
     if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
         return None
-    from .demo_lab import demo_lab_for
     return demo_lab_for(store, session).process_options()
 
 
@@ -233,7 +233,7 @@ def _calibration(store: Store, session: str, targets, force: bool,
     info = store.session(session)
     stored = [r for r in store.results(info.id, "calibration")]
     if stored and not force:
-        return [{"stage": r["kind"], "status": "stored", "reason": f"result {r['id']}", "figures": {}}
+        return [{"stage": r.kind, "status": "stored", "reason": f"result {r.id}", "figures": {}}
                 for r in stored]
     try:
         report = calibrate_session(store, session, targets=targets, measurement_hdr=False, progress=progress)
