@@ -50,12 +50,12 @@ def main() -> None:
           f"{'method/capt':>11} {'samples':>8} {'export s':>8} {'render s':>8}")
     with Store.open(store_dir, readonly=True) as st:
         sid = st.session(session).id
-        runs = {r["kind"]: r for r in st.results(sid, "reconstruction")}
+        runs = {r.kind: r for r in st.results(sid, "reconstruction")}
         for method in EXPORTED_METHODS:
-            if method not in runs or "appearance.npz" not in runs[method]["artifacts"]:
+            if method not in runs or "appearance.npz" not in runs[method].artifacts:
                 print(f"{method:<8} not stored with export data")
                 continue
-            app = Appearance.from_npz(st.read_object(runs[method]["artifacts"]["appearance.npz"]))
+            app = Appearance.from_npz(st.read_object(runs[method].artifacts["appearance.npz"]))
             started = time.perf_counter()
             rep = export_session(st, session, method=method, formats=["maps", "gltf", "mitsuba"], out=work / method)
             t_export = time.perf_counter() - started

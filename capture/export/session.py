@@ -30,7 +30,7 @@ import trimesh
 from reconstruct.frames import tangent_frames, to_local
 from reconstruct.metrics import relative_rms
 
-from ..store import SessionNotFound, Store
+from ..store import ResultRecord, SessionNotFound, Store
 from .formats import FORMATS
 from .appearance import EXPORTED_METHODS, HOMOGENEOUS_METHODS, Appearance
 from .atlas import Atlas, BakedTexels, bake, make_atlas
@@ -55,22 +55,22 @@ class ExportReport:
     model: dict[str, Any] = field(default_factory=dict)
 
 
-def _stored(store: Store, session: str, method: str) -> tuple[dict, Appearance]:
+def _stored(store: Store, session: str, method: str) -> tuple[ResultRecord, Appearance]:
     try:
         info = store.session(session)
     except SessionNotFound:
         raise ExportError(f"no session {session!r} in {store.root} (see gonio session list)") from None
-    runs = [r for r in store.results(info.id, "reconstruction") if r["kind"] == method]
+    runs = [r for r in store.results(info.id, "reconstruction") if r.kind == method]
     if not runs:
-        done = sorted({r["kind"] for r in store.results(info.id, "reconstruction")})
+        done = sorted({r.kind for r in store.results(info.id, "reconstruction")})
         raise ExportError(f"method {method!r} was not run on session {session!r} (stored: "
                           f"{', '.join(done) or 'none'}); run: gonio process {session} --methods {method}")
     run = runs[-1]
-    if "appearance.npz" not in run["artifacts"]:
+    if "appearance.npz" not in run.artifacts:
         raise ExportError(f"{method} result {run['id']} of session {session!r} was stored without the export "
                           f"data (before gonio export existed); re-run: gonio process {session} --methods "
                           f"{method} --force")
-    return run, Appearance.from_npz(store.read_object(run["artifacts"]["appearance.npz"]))
+    return run, Appearance.from_npz(store.read_object(run.artifacts["appearance.npz"]))
 
 
 def export_session(store: Store, session: str, *, method: str, formats: Sequence[str], out: str | Path,
@@ -110,7 +110,7 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
                           "gonio process was given)")
     bivariate = None
     if "merl" in formats:
-        model = np.load(io.BytesIO(store.read_object(run["artifacts"]["model.npz"])))
+        model = np.load(io.BytesIO(store.read_object(run.artifacts["model.npz"])))
         bivariate = np.asarray(model["bivariate"], float)
 
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
@@ -193,7 +193,7 @@ def _through_textures(app: Appearance, b: _Baked, texels: np.ndarray):
     return maps, n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def _approximation(app: Appearance, b: _Baked, run: dict) -> dict[str, Any]:
+def _approximation(app: Appearance, b: _Baked, run: ResultRecord) -> dict[str, Any]:
     """The export's error at the held-out samples, through the textures as a renderer reads
     them: against the method's own predictions and against the captures."""
     if not len(app.held_texel):
@@ -204,7 +204,7 @@ def _approximation(app: Appearance, b: _Baked, run: dict) -> dict[str, Any]:
     n_local = to_local(n_u[inv], frames)
     ggx = ggx_reflectance(maps_u.take(inv), n_local, app.held_wi, app.held_wo)
     gl = gltf_reflectance(gltf_material(maps_u).take(inv), n_local, app.held_wi, app.held_wo)
-    figures = run["result"].get("figures", {})
+    figures = run.result.get("figures", {})
     return {
         "held_out_samples": int(len(app.held_texel)),
         "brdf_fit_rel_rms_per_material": [round(float(v), 5) for v in app.fit_rel_rms],
@@ -223,13 +223,13 @@ def _png_scale(a: np.ndarray) -> float:
     return 1.0 if top <= 1.0 else float(2.0 ** np.ceil(np.log2(top)))
 
 
-def _write(out: Path, session: str, method: str, formats: list[str], run: dict, app: Appearance,
+def _write(out: Path, session: str, method: str, formats: list[str], run: ResultRecord, app: Appearance,
            mesh: trimesh.Trimesh, bivariate: np.ndarray | None) -> ExportReport:
     rep = ExportReport(out)
     spatial = any(f in formats for f in ("maps", "gltf", "mitsuba"))
     b = _bake(app, mesh) if spatial else None
     model: dict[str, Any] = {
-        "session": session, "method": method, "result_id": run["id"], "code_version": run["code_version"],
+        "session": session, "method": method, "result_id": run.id, "code_version": run.code_version,
         "frame": "object frame (the lab frame at turntable reading 0), millimetres; glTF in metres",
         "brdf": {"name": "Lambertian + GGX lobe (gonio export)", "formula": FORMULA,
                  "rho_d_convention": "rho_d is the diffuse albedo: the Lambertian term is rho_d / pi",

@@ -204,9 +204,9 @@ def test_export_of_the_quick_demo_renders_in_mitsuba_as_gonio_predicts(demo, tmp
     store = demo_cwd / "demo" / "store"
     with Store.open(store, readonly=True) as st:
         sid = st.session("demo-quick").id
-        runs = {r["kind"]: r for r in st.results(sid, "reconstruction")}
-        app = Appearance.from_npz(st.read_object(runs["lensch"]["artifacts"]["appearance.npz"]))
-        bivariate = np.load(io.BytesIO(st.read_object(runs["passive"]["artifacts"]["model.npz"])))["bivariate"]
+        runs = {r.kind: r for r in st.results(sid, "reconstruction")}
+        app = Appearance.from_npz(st.read_object(runs["lensch"].artifacts["appearance.npz"]))
+        bivariate = np.load(io.BytesIO(st.read_object(runs["passive"].artifacts["model.npz"])))["bivariate"]
     res = CliRunner().invoke(cli, ["export", "demo-quick", "--store", str(store), "--method", "lensch",
                                    "--format", "mitsuba", "--out", str(tmp_path / "lensch")])
     assert res.exit_code == 0, res.output
