@@ -32,6 +32,7 @@ def _register() -> None:
     from .calibrate import calibrate; app.command("calibrate")(calibrate)  # noqa: E702
     from .process import process; app.command("process")(process)  # noqa: E702
     from .demo import demo; app.command("demo")(demo)  # noqa: E702
+    from .export import export; app.command("export")(export)  # noqa: E702
     pass
 
 

@@ -31,6 +31,7 @@ from reconstruct.frames import tangent_frames, to_local, to_world
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.metrics import relative_rms, trimmed_relative_rms
 
+from ..export.appearance import EXPORTED_METHODS, appearance_npz
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
@@ -253,9 +254,10 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
     except (ValueError, np.linalg.LinAlgError) as exc:
         return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}")
     figures = dict(fit.figures)
-    figures["training_rel_rms"] = relative_rms(fit.predict(train), train.reflectance)
+    predicted_train = fit.predict(train)
+    figures["training_rel_rms"] = relative_rms(predicted_train, train.reflectance)
+    predicted = fit.predict(held) if held.n_samples else np.zeros((0, 3))
     if held.n_samples:
-        predicted = fit.predict(held)
         figures["held_out_rel_rms"] = relative_rms(predicted, held.reflectance)
         figures["held_out_rel_rms_trimmed"] = trimmed_relative_rms(predicted, held.reflectance)
     if truth_r is not None:
@@ -273,9 +275,12 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
                          "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
                          "training_samples": train.n_samples, "held_out_samples": held.n_samples},
               "inputs_summary": summary}
+    artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
+    if name in EXPORTED_METHODS:   # what `gonio export` writes files from
+        artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
+                                                      predicted_train, predicted)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
-                                   input_frames=inputs.view_frames,
-                                   artifacts={"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)})
+                                   input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings)
 
 
