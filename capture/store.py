@@ -82,6 +82,11 @@ class StoreDamaged(StoreError):
     """The database file is damaged, truncated or empty while frame files exist."""
 
 
+class ObjectDamaged(StoreDamaged):
+    """A stored file (a frame or a result's artifact) is missing or its bytes no longer hash to
+    its name; the message names where the session uses it (step, bracket, repeat, file name)."""
+
+
 class ForeignDatabase(StoreError):
     """``gonio.sqlite`` is some other program's SQLite database."""
 
@@ -874,7 +879,31 @@ class Store:
         return self.objects / sha256[:2] / sha256[2:]
 
     def read_object(self, sha256: str) -> bytes:
-        return self.object_path(sha256).read_bytes()
+        """The bytes of a stored object, checked against their SHA-256 (what ``gonio session
+        verify`` checks, so both name the same damage); :class:`ObjectDamaged` naming every use
+        of a missing, truncated or altered file."""
+        path = self.object_path(sha256)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise ObjectDamaged(self._damage_text(sha256, "is missing")) from None
+        if hashlib.sha256(data).hexdigest() != sha256:
+            with self._read() as db:
+                row = db.execute("SELECT size FROM frames WHERE sha256 = ? LIMIT 1", (sha256,)).fetchone()
+            what = (f"is truncated ({len(data)} of {row[0]} bytes)" if row is not None and len(data) < row[0]
+                    else "is corrupt (its bytes no longer match their SHA-256)")
+            raise ObjectDamaged(self._damage_text(sha256, what))
+        return data
+
+    def _damage_text(self, sha256: str, what: str) -> str:
+        with self._read() as db:
+            ids = [r[0] for r in db.execute(
+                "SELECT session_id FROM frames WHERE sha256 = ? UNION SELECT r.session_id FROM "
+                "result_objects o JOIN results r ON r.id = o.result_id WHERE o.sha256 = ?", (sha256, sha256))]
+            names = dict(db.execute("SELECT id, name FROM sessions").fetchall())
+        uses = [f"session {names.get(i, i)!r} {u}" for i in ids for u in self._uses(i, [sha256]).get(sha256, [])]
+        return (f"stored file {self.object_path(sha256).relative_to(self.root)} {what}; used by "
+                f"{'; '.join(uses) or 'no row'} (gonio session verify lists every damaged file)")
 
     def _write_object(self, data: bytes | memoryview, sha: str) -> None:
         path = self.object_path(sha)

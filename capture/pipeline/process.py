@@ -124,19 +124,29 @@ def object_pose(angle_deg: float) -> np.ndarray:
     return T
 
 
-def _latest(store: Store, session_id: int) -> dict[str, dict[str, Any]]:
-    """The newest stored calibration result of each kind."""
+def _latest(store: Store, session_id: int) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
+    """The stored calibration results by kind, and why each stage without one has none: those a
+    complete calibration lists (:mod:`capture.pipeline.calibration_record`), else the newest of
+    each kind (a session calibrated stage by stage)."""
+    from .calibration_record import stored_calibration
+    state = stored_calibration(store, session_id)
+    if state.complete:
+        return state.results, {s["stage"]: f"{s['status']}: {s['reason']}" for s in state.stages
+                               if not s.get("calibration_id")}
     out: dict[str, dict[str, Any]] = {}
     for r in store.results(session_id, "calibration"):
         out[r["kind"]] = r
-    return out
+    return out, {}
 
 
-def _need(results: dict, kind: str, stage: str, why: str) -> dict[str, Any]:
-    if kind not in results:
+def _need(stored: dict, reasons: dict[str, str], kind: str, stage: str, why: str) -> dict[str, Any]:
+    if kind not in stored:
+        if stage in reasons:   # the calibration ran whole: say why that stage stored nothing
+            raise MissingCalibration(f"no {stage} calibration ({why}): the session's calibration "
+                                     f"{reasons[stage]}")
         raise MissingCalibration(f"no stored {stage} calibration ({why}); run `gonio calibrate` on the "
                                  "session and check that stage")
-    return results[kind]
+    return stored[kind]
 
 
 def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | None = None,
@@ -153,9 +163,9 @@ def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | No
         The intrinsics, turntable or light calibration is not stored (names the stage).
     """
     info = store.session(session)
-    res = _latest(store, info.id)
-    intr = _need(res, "intrinsics", "intrinsics", "the camera matrix")["result"]
-    tt = _need(res, "turntable", "turntable", "the lab frame and the object's pose per turntable angle")["result"]
+    res, reasons = _latest(store, info.id)
+    intr = _need(res, reasons, "intrinsics", "intrinsics", "the camera matrix")["result"]
+    tt = _need(res, reasons, "turntable", "turntable", "the lab frame and the object's pose per turntable angle")["result"]
     w, h = intr["image_size"]
     lab = tt["lab_to_camera"]
     camera = CameraModel(K=np.array(intr["K"]), width=int(w), height=int(h), dist=np.array(intr["dist"]),
@@ -191,7 +201,7 @@ def _step_lights(res: dict, steps: dict[int, dict]) -> tuple[dict[int, np.ndarra
     if "positioner_model" in res:
         rows = res["positioner_model"]["result"]["step_lights"]
         return {int(r["step"]): np.asarray(r["position_lab_mm"], float) for r in rows}, "positioner"
-    rows = _need(res, "light_positions", "lights", "where the lamp was for each capture")["result"]["lights"]
+    rows = _need(res, reasons, "light_positions", "lights", "where the lamp was for each capture")["result"]["lights"]
     by_key = {}
     for r in rows:
         if "position_lab_mm" in r and _light_key(r.get("commanded")) is not None:
@@ -256,7 +266,7 @@ class _Frames:
         self.by_step: dict[int, list[FrameRecord]] = {}
         for f in store.frames(self.info.id):
             self.by_step.setdefault(f.step, []).append(f)
-        res = _latest(store, self.info.id)
+        res, _ = _latest(store, self.info.id)
         self.darks: dict[float, np.ndarray] = {}
         self.read_noise = 1.0
         if "dark" in res:

@@ -29,10 +29,12 @@ import trimesh
 from reconstruct.frames import tangent_frames, to_local, to_world
 from reconstruct.lumitexels import Lumitexels, View
 
+from .calibration_record import stored_calibration
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .methods import DEFAULT_METHODS, METHODS, Fitted, MethodSkipped, fit_method
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, select_samples, session_inputs)
+from ..outputs import session_file, write_atomically
 from ..store import Store
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session", "relative_rms", "SLICE_THETA_I_DEG"]
@@ -177,6 +179,12 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         An unknown method name, or no mesh.
     capture.process.ProcessError
         The session cannot give inputs (no measurement steps, lights not calibrated ...).
+    capture.store.SessionBusy
+        Another process is writing (capturing or processing) the session.
+    capture.store.ObjectDamaged
+        A frame or stored artifact is missing or altered (the message names its step).
+    capture.store.StoreFull, OSError (ENOSPC)
+        The disk filled up; what was stored so far is kept and a re-run resumes.
     """
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -193,50 +201,53 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     probe_reflectance = 1.0 if given["probe_reflectance"] is None else given["probe_reflectance"]
     if mesh is None:
         raise ValueError("mesh: the object's mesh is needed (gonio process --mesh FILE)")
-    rep = ProcessReport(session)
-    clock = _Clock(rep, progress)
-    with clock.stage("calibration"):
-        rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
-    cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
-    if truth is not None:
-        rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
-    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
-    todo = [m for m in methods if force or m not in stored]
-    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
-                                 figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
-                                 warnings=stored[m]["result"].get("warnings", []))
-                for m in methods if m not in todo}
-    if outcomes:
-        rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
-    if todo:
-        with clock.stage("inputs"):
-            inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=clock.sub("inputs"))
-        with clock.stage("lumitexels"):
-            train, held = lumitexels_with_held_out(mesh, inputs, progress=clock.sub("lumitexels"))
-        truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
-        rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
-                      "polarization_separated": inputs.separated, "texels": train.n_texels,
-                      "training_samples": train.n_samples, "held_out_samples": held.n_samples,
-                      "light_source": cal.light_source, "absolute_units": cal.absolute,
-                      "passive_capture": inputs.passive is not None, "notes": inputs.notes}
-        if truth_r is not None:
-            scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
-            rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
-            rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
-                scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
-        for name in todo:
-            started = time.perf_counter()
-            with clock.stage(name):
-                outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                             rep.inputs, clock.sub(name), (method_options or {}).get(name, {}))
-            outcomes[name].seconds = round(time.perf_counter() - started, 3)
-    rep.methods = [outcomes[m] for m in methods]
-    from .report_html import write_html_report
-    with clock.stage("report"):
-        rep.report_path = write_html_report(store, session, rep, truth=truth,
-                                            path=report_path or Path(store.root).resolve().parent / f"{session}-report.html")
-    rep.report_path.with_suffix(".json").write_text(json.dumps(rep.summary(), indent=1, default=_jsonable))
-    return rep
+    # one process per session: a second `gonio process` (or a capture) gets SessionBusy instead
+    # of failing mid-way or storing every method twice
+    with store.writer(session):
+        rep = ProcessReport(session)
+        clock = _Clock(rep, progress)
+        with clock.stage("calibration"):
+            rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
+        cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
+        if truth is not None:
+            rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
+        stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+        todo = [m for m in methods if force or m not in stored]
+        outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
+                                     figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
+                                     warnings=stored[m]["result"].get("warnings", []))
+                    for m in methods if m not in todo}
+        if outcomes:
+            rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
+        if todo:
+            with clock.stage("inputs"):
+                inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=clock.sub("inputs"))
+            with clock.stage("lumitexels"):
+                train, held = lumitexels_with_held_out(mesh, inputs, progress=clock.sub("lumitexels"))
+            truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
+            rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
+                          "polarization_separated": inputs.separated, "texels": train.n_texels,
+                          "training_samples": train.n_samples, "held_out_samples": held.n_samples,
+                          "light_source": cal.light_source, "absolute_units": cal.absolute,
+                          "passive_capture": inputs.passive is not None, "notes": inputs.notes}
+            if truth_r is not None:
+                scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
+                rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
+                rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
+                    scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
+            for name in todo:
+                started = time.perf_counter()
+                with clock.stage(name):
+                    outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
+                                                 rep.inputs, clock.sub(name), (method_options or {}).get(name, {}))
+                outcomes[name].seconds = round(time.perf_counter() - started, 3)
+        rep.methods = [outcomes[m] for m in methods]
+        from .report_html import write_html_report
+        with clock.stage("report"):
+            rep.report_path = write_html_report(store, session, rep, truth=truth, path=report_path or session_file(
+                Path(store.root).resolve().parent, session, info.id, "-report.html"))
+        write_atomically(rep.report_path.with_suffix(".json"), json.dumps(rep.summary(), indent=1, default=_jsonable))
+        return rep
 
 
 def _jsonable(obj: Any) -> Any:
@@ -256,18 +267,23 @@ def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
 
 
 def _calibration(store: Store, session: str, targets, force: bool, progress) -> list[dict[str, Any]]:
+    """Reuse the stored calibration when it is complete and matches the session's frames
+    (:mod:`capture.pipeline.calibration_record`), else run it again (saying why)."""
     info = store.session(session)
-    stored = [r for r in store.results(info.id, "calibration")]
-    if stored and not force:
-        return [{"stage": r["kind"], "status": "stored", "reason": f"result {r['id']}", "figures": {}}
-                for r in stored]
+    state = stored_calibration(store, info.id)
+    if state.complete and not force:
+        return [{"stage": s["stage"], "status": "stored" if s.get("calibration_id") else s["status"],
+                 "reason": f"result {s['calibration_id']}" if s.get("calibration_id") else s.get("reason", ""),
+                 "figures": {}} for s in state.stages]
+    redone = [] if force or state.why == "no calibration is stored" else [
+        {"stage": "calibration", "status": "redone", "reason": state.why, "figures": {}}]
     try:
         report = calibrate_session(store, session, targets=targets, measurement_hdr=False,
                                    progress=None if progress is None else (lambda label, i, n: progress(i, n)))
     except NothingToCalibrate as exc:
         return [{"stage": "calibration", "status": "skipped", "reason": str(exc), "figures": {}}]
-    return [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
-             "seconds": s.seconds} for s in report.stages]
+    return redone + [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
+                      "seconds": s.seconds} for s in report.stages]
 
 
 # -- one method ---------------------------------------------------------------------------------
