@@ -51,7 +51,7 @@ from ..store import FrameRecord, Store
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
            "PassiveInput", "ProcessInputs", "read_calibration", "merge_step", "session_inputs",
-           "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose", "load_mesh"]
+           "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose"]
 
 class ProcessError(ValueError):
     """The session cannot give reconstruction inputs; the message says what is missing."""
@@ -360,23 +360,6 @@ class ProcessInputs:
     passive: PassiveInput | None = None
     separated: bool = False
     notes: list[str] = field(default_factory=list)
-
-
-def load_mesh(path) -> trimesh.Trimesh:
-    """The object's mesh from any file trimesh reads, in the object frame (mm).
-
-    Raises
-    ------
-    ProcessError
-        The file is missing or holds no triangles (names the path).
-    """
-    try:
-        mesh = trimesh.load(str(path), force="mesh")
-    except (OSError, ValueError) as exc:
-        raise ProcessError(f"--mesh {path}: cannot read a mesh ({exc})") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ProcessError(f"--mesh {path}: holds no triangle mesh")
-    return mesh
 
 
 def _analyser(angle: float | None) -> str | None:
