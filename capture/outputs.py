@@ -46,8 +46,6 @@ def check_out_file(path: str | Path, option: str = "--out") -> Path:
     """An ``--out FILE`` gonio may write: not a folder, a device or a link to one, in a folder
     that exists and is writable (a temporary file and a rename need both). Returns the path."""
     path = Path(path)
-    if str(path) == "":
-        raise OutputError(f"{option}: an empty path; give a file name")
     try:
         st = path.stat()
     except FileNotFoundError:
@@ -70,8 +68,6 @@ def check_out_file(path: str | Path, option: str = "--out") -> Path:
 def check_out_folder(path: str | Path, option: str = "--out") -> Path:
     """An ``--out FOLDER``: a folder or nothing yet (it is created), never a file or a device."""
     path = Path(path)
-    if str(path) == "":
-        raise OutputError(f"{option}: an empty path; give a folder")
     if path.exists() and not path.is_dir():
         raise OutputError(f"{option} {path} is a file, not a folder")
     return path

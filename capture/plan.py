@@ -568,6 +568,10 @@ class MotionModel:
             speeds[role] = (v or speeds[role][0], a or speeds[role][1])
         model = cls(speeds=speeds)
         fb = frame_bytes_from_describe(desc.get("camera", {}))
+        if fb is None:   # the simulated lab's camera states its resolution in the rig's [rig] table
+            table = (getattr(rig, "config", None) or {}).get("rig", {})
+            fb = frame_bytes_from_describe({"image_size": table.get("camera_resolution")}) \
+                if isinstance(table, dict) else None
         return model if fb is None else model.with_frame_bytes(fb, "camera")
 
     def with_frame_bytes(self, frame_bytes: float, source: str = "measured") -> "MotionModel":

@@ -75,7 +75,8 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
     """Reconstruct a captured session with every method its captures allow and write the report."""
     from ..pipeline.methods import DEFAULT_METHODS, METHODS
     from ..pipeline.run import process_session
-    from ..pipeline.process import ProcessError, load_mesh
+    from ..pipeline.mesh_checks import MeshError, load_mesh
+    from ..pipeline.process import ProcessError
     names = DEFAULT_METHODS if methods is None else tuple(m.strip() for m in methods.split(",") if m.strip())
     if not names:
         raise fail(f"--methods {methods!r} names no method; known: {', '.join(METHODS)}")
@@ -92,7 +93,7 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
     if mesh is not None:
         try:
             kw["mesh"] = load_mesh(mesh)
-        except ProcessError as exc:
+        except MeshError as exc:
             raise fail(str(exc)) from None
     if targets is not None:
         kw["targets"] = _targets(targets)
@@ -113,6 +114,9 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             try:
                 rep = process_session(st, session, methods=names, force=force, progress=update,
                                       report_path=report_path, **kw)
+            except MeshError as exc:   # the mesh against the calibration: the user's input
+                bar.stop()
+                raise fail(str(exc)) from None
             except ProcessError as exc:
                 bar.stop()
                 typer.secho(f"cannot process: {exc}", err=True, fg=typer.colors.YELLOW)

@@ -65,6 +65,8 @@ def fail(message: str, code: int = 2) -> typer.Exit:
 def open_store(path: str, *, create: bool = False, readonly: bool = False) -> Store:
     """Open ``--store`` or exit with a clear message (``readonly``: commands that only read
     never write the database, so they work on a full disk and leave a foreign file alone)."""
+    if not str(path).strip():   # "" would be the current folder
+        raise fail("--store is empty; give the store's folder (or set GONIO_STORE)")
     try:
         return Store.open(path, create=create, readonly=readonly)
     except StoreError as exc:

@@ -75,7 +75,7 @@ from calibration.turntable import TurntableFit, consistent_corner_order, fit_tur
 
 from ..plan import CALIBRATION_KINDS
 from .calibration_record import frames_digest, record_run
-from ..store import FrameRecord, SessionNotFound, Store, StoreError
+from ..store import FrameRecord, SessionNotFound, Store, StoreError, _crash_point
 from .process import object_pose
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
@@ -1076,6 +1076,7 @@ def calibrate_session(store: Store, session_name: str, *,
     cv2.setNumThreads(1)
     try:
         for i, name in enumerate(STAGES):
+            _crash_point(f"calibration {name}")   # stage boundaries of the crash test
             if progress is not None:
                 progress(name, i, total)
                 ctx.tick = lambda label, i=i: progress(label, i, total)

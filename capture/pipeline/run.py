@@ -31,11 +31,12 @@ from reconstruct.lumitexels import Lumitexels, View
 
 from .calibration_record import stored_calibration
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
+from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, Fitted, MethodSkipped, fit_method
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, select_samples, session_inputs)
 from ..outputs import session_file, write_atomically
-from ..store import Store
+from ..store import Store, _crash_point as crash_point
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session", "relative_rms", "SLICE_THETA_I_DEG"]
 
@@ -115,6 +116,7 @@ class _Clock:
 
         class _Timer:
             def __enter__(self):
+                crash_point(f"stage {name}")   # the crash test kills here (GONIO_CRASH_AFTER)
                 if clock.progress is not None:
                     clock.progress(name, 0, 1)
                 self.t = time.perf_counter()
@@ -209,9 +211,12 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         with clock.stage("calibration"):
             rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
         cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
+        check_mesh_placement(mesh, cal.camera, "the mesh" if lab is None else "the simulated lab's mesh")
         if truth is not None:
             rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
-        stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+        # a method stored from another calibration (one since redone) is stale: fitted again
+        stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")
+                  if r["result"].get("inputs", {}).get("calibration_ids") == cal.ids}
         todo = [m for m in methods if force or m not in stored]
         outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
                                      figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
