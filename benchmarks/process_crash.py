@@ -27,8 +27,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO), str(REPO / "tests" / "capture")]
 
-from capture import store as store_mod  # noqa: E402
-from capture.pipeline import calibrate as calibrate_mod, run as run_mod  # noqa: E402
+from capture.store import crash  # noqa: E402
 from capture.pipeline.calibration_record import stored_calibration  # noqa: E402
 from capture.pipeline.run import process_session  # noqa: E402
 from capture.store import Store  # noqa: E402
@@ -50,27 +49,27 @@ def make_store(root: Path) -> None:
 
 
 def hook_names(store_dir: Path, tmp: Path) -> list[str]:
-    """Every hook a forced run passes, in order (the three modules' hook functions recorded)."""
+    """Every hook a forced run passes, in order (:func:`capture.store.crash.point` recorded)."""
     names: list[str] = []
-    real = store_mod._crash_point
+    real = crash.point
 
     def record(name: str) -> None:
         names.append(name)
         real(name)
     copy = tmp / "count"
     shutil.copytree(store_dir, copy)
-    store_mod._crash_point = run_mod.crash_point = calibrate_mod._crash_point = record
+    crash.point = record
     try:
         with Store(copy, durable=False) as st:
             process_session(st, "proc", methods=METHODS, force=True, report_path=tmp / "count.html")
     finally:
-        store_mod._crash_point = run_mod.crash_point = calibrate_mod._crash_point = real
+        crash.point = real
     return names
 
 
 def _killed_child(store_dir: Path, after: int, report: Path) -> None:
     os.environ["GONIO_CRASH_AFTER"] = str(after)
-    store_mod._crash_count = 0
+    crash.count = 0
     os.dup2(os.open(os.devnull, os.O_WRONLY), 2)
     with Store(store_dir, durable=False) as st:
         process_session(st, "proc", methods=METHODS, force=True, report_path=report)
