@@ -133,6 +133,10 @@ class Store:
         self._readonly_why = f"{self.root} was opened read-only; this needs a writable store"
         self.db_path = self.root / DB_NAME
         if not self.db_path.is_file():
+            if (self.root / "objects").is_dir() and not rebuilding:   # captured data, index lost
+                raise StoreDamaged(f"{self.root} holds frame files (objects/) but no {DB_NAME}: the "
+                                   "database was lost. Nothing was changed; rebuild it from the frame "
+                                   f"files: gonio session rebuild-index --store {self.root}")
             if not create or readonly:
                 raise StoreError(f"{self.root} is not a gonio store (no {DB_NAME}); "
                                  "give --store the folder a session was recorded in")
