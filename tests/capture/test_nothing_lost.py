@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from capture.cli import app
 from capture.plan import Plan
 from capture.runner import Runner, create_session
-from capture.store import ForeignDatabase, Store, StoreError
+from capture.store import ForeignDatabase, ObjectDamaged, Store, StoreError
 from capture.store import archive
 from capture.store.archive import MAX_EXPANSION
 from capture_fakes import SMALL_PLAN, make_rig
@@ -94,6 +94,18 @@ def test_remove_orphans_quarantines_and_purge_keeps_young_files(tmp_path):
         assert [p.name for p in st.quarantined()] == [stray]
         assert st.purge_quarantine() == [] and st.quarantined()          # a week's grace
         assert st.purge_quarantine(min_age_s=0) == [f"quarantine/{stray}"]
+
+
+def test_a_truncated_frame_is_named_by_its_step_when_read(tmp_path):
+    _capture(tmp_path, "s1")
+    with Store(tmp_path, durable=False) as st:
+        f = st.frames(st.session("s1").id)[3]
+        path = st.object_path(f.sha256)
+        path.chmod(0o644)
+        path.write_bytes(path.read_bytes()[:100])
+        with pytest.raises(ObjectDamaged, match=rf"is truncated \(100 of {f.size} bytes\); used by session "
+                                                rf"'s1' step {f.step} frame {f.bracket_index} of the bracket"):
+            st.read_object(f.sha256)
 
 
 # -- #1: archives are read-only ------------------------------------------------------------------
