@@ -149,6 +149,7 @@ def list_(store: str = STORE_OPTION,
     """One line per session of the store."""
     with open_store(store, readonly=True) as st, store_errors():
         unknown = st.orphans(min_age_s=60.0 if st.writer_active() else 0.0)
+        held = st.quarantined()
         rows = []
         for s in st.sessions():
             p = st.progress(s.id)
@@ -160,6 +161,10 @@ def list_(store: str = STORE_OPTION,
         typer.secho(f"warning: {len(unknown)} file(s) in {Path(store) / 'objects'} belong to no "
                     "session (e.g. objects/" + "/".join(Path(unknown[0]).parts[-2:]) + "); "
                     "'gonio session verify NAME' lists them", err=True, fg=typer.colors.YELLOW)
+    if held:   # frame files no row listed when a writer started: maybe a restored backup's newer frames
+        typer.secho(f"warning: {len(held)} frame file(s) in {Path(store) / 'quarantine'} belong to no "
+                    f"session; 'gonio session rebuild-index --store {store}' restores the sessions they "
+                    "came from", err=True, fg=typer.colors.YELLOW)
     if as_json:
         typer.echo(json.dumps(rows, indent=2))
         return

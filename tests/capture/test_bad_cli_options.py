@@ -99,3 +99,22 @@ def test_the_space_estimate_uses_the_simulated_cameras_resolution():
     model = MotionModel.from_rig(SimRig())
     assert model.frame_bytes_source == "camera"
     assert 320 * 240 * 2 <= model.frame_bytes < 320 * 240 * 2 + 100_000   # a 16-bit mosaic + header
+
+
+def test_a_full_disk_during_process_exits_4_keeping_what_was_stored(tmp_path, monkeypatch):
+    import trimesh
+    from capture.pipeline import run
+    from capture.store import Store, StoreFull
+    with Store(tmp_path / "store", durable=False) as st:
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"frames": 0}]).id
+        st.add_calibration(sid, "dark", result={"kept": True})
+    trimesh.creation.box((50.0, 50.0, 50.0)).export(tmp_path / "box.ply")
+
+    def full(*args, **kw):
+        raise StoreFull("no space left on the disk holding the store while writing a 0.2 MB frame")
+    monkeypatch.setattr(run, "process_session", full)
+    r = cli.invoke(app, ["process", "s1", "--store", str(tmp_path / "store"), "--mesh", str(tmp_path / "box.ply"), "-q"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 4 and "the disk is full" in said and "run the same command again to resume" in said
+    with Store(tmp_path / "store", readonly=True) as st:
+        assert st.results(st.session("s1").id)[0]["result"] == {"kept": True}

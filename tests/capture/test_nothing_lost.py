@@ -64,6 +64,8 @@ def test_a_restored_backup_loses_no_frames_and_rebuild_index_reproduces_the_lost
     _capture(root, "third")        # its writer's garbage collection meets second's unlisted frames
     kept = {p.name for p in (root / "quarantine").iterdir()}
     assert frames_of_second <= kept                       # quarantined, not deleted
+    r = cli.invoke(app, ["session", "list", "--store", str(root)])
+    assert f"{len(kept)} frame file(s) in" in " ".join(r.output.split()) and "rebuild-index" in r.output
     r = cli.invoke(app, ["session", "rebuild-index", "--store", str(root)])
     assert r.exit_code == 0 and "sessions restored: second" in r.output, r.output
     after = _sessions(root)
