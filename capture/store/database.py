@@ -1024,6 +1024,10 @@ class Store:
                     raise StoreError(f"cannot export {session!r}: object {sha} is corrupt; "
                                      f"run 'gonio session verify {session}'")
                 os.chmod(dst, 0o444)
+            journal = self._journal_of(info.id)
+            if journal is not None and journal.is_file():   # the export can rebuild its own index
+                (folder / journal.parent.name).mkdir(exist_ok=True)
+                shutil.copyfile(journal, folder / journal.parent.name / journal.name)
             if archive is None:
                 return dest
             pack(folder, dest, archive)

@@ -81,6 +81,11 @@ def test_a_lost_database_is_rebuilt_from_the_journals_and_frame_files(tmp_path):
     root = tmp_path / "store"
     _capture(root, "only")
     before = _sessions(root)
+    with Store(root, readonly=True) as st:   # an export carries the session's journal with it
+        st.export("only", tmp_path / "export")
+    (tmp_path / "export" / "gonio.sqlite").unlink()
+    assert cli.invoke(app, ["session", "rebuild-index", "--store", str(tmp_path / "export")]).exit_code == 0
+    assert _sessions(tmp_path / "export") == before
     (root / "gonio.sqlite").unlink()
     r = cli.invoke(app, ["session", "list", "--store", str(root)])
     assert r.exit_code == 2 and "gonio session rebuild-index" in " ".join(r.output.split())
