@@ -35,7 +35,7 @@ from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
-from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
+from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, session_inputs)
 from .report_html import write_html_report
 from ..outputs import session_file, write_atomically
@@ -187,6 +187,9 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         clock = _Clock(rep, progress)
         with clock.stage("calibration"):
             rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
+        if rep.calibration and rep.calibration[-1]["status"] == "skipped" and rep.calibration[-1]["stage"] == "calibration":
+            # nothing to calibrate: say what the session lacks, not "run gonio calibrate"
+            raise MissingCalibration(f"the session cannot be calibrated: {rep.calibration[-1]['reason']}")
         cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
         check_mesh_placement(mesh, cal.camera, "the mesh" if lab is None else "the simulated lab's mesh")
         if truth is not None:

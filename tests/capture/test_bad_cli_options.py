@@ -118,3 +118,22 @@ def test_a_full_disk_during_process_exits_4_keeping_what_was_stored(tmp_path, mo
     assert r.exit_code == 4 and "the disk is full" in said and "run the same command again to resume" in said
     with Store(tmp_path / "store", readonly=True) as st:
         assert st.results(st.session("s1").id)[0]["result"] == {"kept": True}
+
+
+def test_process_without_calibration_captures_says_what_the_session_lacks(tmp_path):
+    import trimesh
+    from capture.store import Store
+    with Store(tmp_path / "store", durable=False) as st:
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"kind": "measure", "frames": 1}]).id
+        st.add_frame(sid, 0, 0, 0, data=b"raw" * 50, filename="a.dng", format="dng",
+                     exposure_requested_s=0.01, exposure_s=0.01, completes_step=True)
+        before = st.results(sid)
+    trimesh.creation.box((50.0, 50.0, 50.0)).export(tmp_path / "box.ply")
+    r = cli.invoke(app, ["process", "s1", "--store", str(tmp_path / "store"), "--mesh", str(tmp_path / "box.ply"),
+                         "--targets", str(tmp_path / "none.toml"), "-q"])
+    assert r.exit_code == 2 and "none.toml" in r.output       # --targets checked first
+    r = cli.invoke(app, ["process", "s1", "--store", str(tmp_path / "store"), "--mesh", str(tmp_path / "box.ply"), "-q"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 3 and "has no calibration captures" in said and "gonio calibrate" not in said, said
+    with Store(tmp_path / "store", readonly=True) as st:
+        assert st.results(st.session("s1").id) == before
