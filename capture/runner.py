@@ -239,6 +239,13 @@ class Runner:
             with contextlib.suppress(StoreFull):
                 self._set_state(state)
 
+    def on_frame_stored(self, callback: Callable[[int, int], None] | None) -> None:
+        """Call ``callback(frames_done, frames_total)`` of the whole session after every stored
+        frame (the counts the ``frame_stored`` events carry); None: nothing to call."""
+        if callback is not None:
+            self.bus.subscribe(lambda e: callback(e.data["frames_done"], e.data["frames_total"])
+                               if e.kind == EventKind.FRAME_STORED else None)
+
     # -- the run ------------------------------------------------------------------------------
     def run(self) -> str:
         """Run (or resume) the session until done, paused or aborted; return that state.

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import errno
 from pathlib import Path
+from typing import Callable
 
 import typer
 from rich.console import Console
@@ -22,6 +23,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from ..outputs import OutputError, check_out_file, session_file
+from ..pipeline.progress import Progress as PipelineProgress
 from ..store import ObjectDamaged, SessionBusy, SessionNotFound, StoreFull
 from .calibrate import _targets
 from .session import STORE_OPTION, fail, open_store
@@ -29,14 +31,16 @@ from .session import STORE_OPTION, fail, open_store
 EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS, EXIT_DISK_FULL = 0, 1, 3, 4
 
 
-def progress_bar(quiet: bool) -> tuple[Progress, callable]:
-    """A rich progress bar on stderr and the ``progress(stage, done, total)`` callable feeding it."""
+def progress_bar(quiet: bool) -> tuple[Progress, Callable[[PipelineProgress], None]]:
+    """A rich progress bar on stderr and the progress sink (:mod:`capture.pipeline.progress`)
+    feeding it."""
     bar = Progress(TextColumn("{task.fields[stage]:<12}"), BarColumn(), MofNCompleteColumn(),
                    console=Console(stderr=True), transient=True, disable=quiet)
     task = bar.add_task("process", total=1, stage="")
 
-    def update(stage: str, done: int, total: int) -> None:
-        bar.update(task, completed=done, total=max(total, 1), stage=stage)
+    def update(p: PipelineProgress) -> None:
+        label = f"{p.stage} {p.part}" if p.part else p.stage
+        bar.update(task, completed=p.done, total=max(p.total, 1), stage=label)
     return bar, update
 
 

@@ -76,6 +76,7 @@ from ..store import FrameRecord, SessionNotFound, Store, StoreError, crash
 from .calibration_record import frames_digest, record_run
 from .images import FrameDataError, SessionImages, dark_artifact_name, exposure_s
 from .process import object_pose
+from .progress import Progress, ProgressSink
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
            "NothingToCalibrate", "calibrate_session", "SessionNotFound"]
@@ -347,7 +348,7 @@ class _Context:
         self.frames: dict[int, list[FrameRecord]] = self.images.by_step
         self.hdr: dict[int, np.ndarray] = {}           # calibration step -> (H, W, 3) radiance
         self.bad_steps: set[int] = set()               # steps whose frames could not be merged
-        self.tick: Callable[[str], None] = lambda label: None  # progress inside a stage
+        self.tick: Callable[[int, int], None] = lambda done, total: None  # progress inside a stage
         # what the stages made for the later ones (None: that stage did not succeed)
         self.intrinsics: IntrinsicsResult | None = None
         self.detections: dict[int, TargetDetection] = {}    # checkerboard step -> corners
@@ -423,7 +424,7 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         raise _Skip("no frames besides dark frames in this session")
     per_step, example, errors = [], None, []
     for k, s in enumerate(steps):
-        ctx.tick(f"hdr {k + 1}/{len(steps)} steps")
+        ctx.tick(k + 1, len(steps))
         try:
             im = ctx.images.merge(s)
         except (CalibrationError, FrameDataError) as exc:  # an unreadable frame loses its step only
@@ -967,7 +968,7 @@ def _session_targets(store: Store, info) -> LabTargets:
 
 
 def calibrate_session(store: Store, session_name: str, *,
-                      progress: Callable[[str, int, int], None] | None = None,
+                      progress: ProgressSink | None = None,
                       targets: LabTargets | None = None, stages: tuple[str, ...] = STAGES,
                       measurement_hdr: bool = True) -> CalibrationReport:
     """Run every calibration the session's captures allow and store the results.
@@ -977,9 +978,10 @@ def calibrate_session(store: Store, session_name: str, *,
     store : Store
         The session store (results are added with :meth:`Store.add_calibration`).
     session_name : str
-    progress : callable(label, index, total), optional
-        Called before each stage with its name (``index`` 0-based of ``total`` stages), during
-        the long hdr stage with ``'hdr k/n steps'``, and once with ``('done', total, total)``.
+    progress : callable(Progress), optional
+        Receives ``Progress("calibration", i, total, part=stage)`` before each stage (``i``
+        0-based of ``total`` stages), with ``part_done`` / ``part_total`` steps merged during the
+        long hdr stage, and ``Progress("calibration", total, total)`` at the end.
     targets : LabTargets, optional
         Physical targets (board geometry, sphere radius, card albedo); default: the built-in
         simulated lab's (:meth:`capture.pipeline.demo_lab.DemoLab.targets`) when every rig
@@ -1037,8 +1039,9 @@ def calibrate_session(store: Store, session_name: str, *,
         for i, name in enumerate(STAGES):
             crash.point(f"calibration {name}")   # stage boundaries of the crash test
             if progress is not None:
-                progress(name, i, total)
-                ctx.tick = lambda label, i=i: progress(label, i, total)
+                progress(Progress("calibration", i, total, part=name))
+                ctx.tick = lambda done, n, i=i, name=name: progress(
+                    Progress("calibration", i, total, part=name, part_done=done, part_total=n))
             started = time.perf_counter()
             rep.stages.append(_run_stage(ctx, rep, name, name in stages))
             rep.stages[-1].seconds = round(time.perf_counter() - started, 3)
@@ -1048,5 +1051,5 @@ def calibrate_session(store: Store, session_name: str, *,
         record_run(store, ctx.info.id, [{"stage": st.stage, "status": st.status, "reason": st.reason,
                                          "calibration_id": st.calibration_id} for st in rep.stages], digest)
     if progress is not None:
-        progress("done", total, total)
+        progress(Progress("calibration", total, total))
     return rep

@@ -16,12 +16,13 @@ model's error against the truth on the held-out samples.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import trimesh
@@ -35,6 +36,7 @@ from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
+from .progress import Progress, ProgressSink, counter
 from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, session_inputs)
 from .report_html import write_html_report
@@ -85,28 +87,22 @@ class ProcessReport:
 
 
 class _Clock:
-    def __init__(self, report: ProcessReport, progress) -> None:
+    """Times each stage into the report and announces it to the progress sink."""
+
+    def __init__(self, report: ProcessReport, progress: ProgressSink | None) -> None:
         self.report, self.progress = report, progress
 
-    def stage(self, name: str):
-        clock = self
-
-        class _Timer:
-            def __enter__(self):
-                crash.point(f"stage {name}")   # the crash test kills here (GONIO_CRASH_AFTER)
-                if clock.progress is not None:
-                    clock.progress(name, 0, 1)
-                self.t = time.perf_counter()
-
-            def __exit__(self, *exc):
-                clock.report.timings[name] = round(clock.report.timings.get(name, 0.0)
-                                                   + time.perf_counter() - self.t, 3)
-        return _Timer()
-
-    def sub(self, name: str) -> Callable[[int, int], None] | None:
-        if self.progress is None:
-            return None
-        return lambda done, total: self.progress(name, done, total)
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        crash.point(f"stage {name}")   # the crash test kills here (GONIO_CRASH_AFTER)
+        if self.progress is not None:
+            self.progress(Progress(name, 0, 1))
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.report.timings[name] = round(self.report.timings.get(name, 0.0)
+                                              + time.perf_counter() - started, 3)
 
 
 def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFAULT_METHODS,
@@ -114,7 +110,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                     gray_card: GrayCardPose | None = None, probe_reflectance: float | None = None, truth=None,
                     force: bool = False, rng: int = 0,
                     method_options: dict[str, dict[str, Any]] | None = None,
-                    progress: Callable[[str, int, int], None] | None = None,
+                    progress: ProgressSink | None = None,
                     report_path: str | Path | None = None) -> ProcessReport:
     """Calibrate (if needed), build the inputs, run and store each method, write the report.
 
@@ -147,8 +143,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     method_options : dict of str -> dict, optional
         Per method, its own options (:func:`capture.methods.fit_method`; they replace the built-in
         lab's for that method).
-    progress : callable(stage, done, total), optional
-        Stage name and progress within it.
+    progress : callable(Progress), optional
+        Each stage as it starts and its progress (:mod:`capture.pipeline.progress`).
     report_path : path, optional
         Where to write the HTML report (default: ``<session>-report.html`` beside the store).
 
@@ -186,7 +182,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         rep = ProcessReport(session)
         clock = _Clock(rep, progress)
         with clock.stage("calibration"):
-            rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
+            rep.calibration = _calibration(store, session, targets, force, progress)
         if rep.calibration and rep.calibration[-1]["status"] == "skipped" and rep.calibration[-1]["stage"] == "calibration":
             # nothing to calibrate: say what the session lacks, not "run gonio calibrate"
             raise MissingCalibration(f"the session cannot be calibrated: {rep.calibration[-1]['reason']}")
@@ -206,9 +202,9 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
         if todo:
             with clock.stage("inputs"):
-                inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=clock.sub("inputs"))
+                inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
             with clock.stage("lumitexels"):
-                train, held = lumitexels_with_held_out(mesh, inputs, progress=clock.sub("lumitexels"))
+                train, held = lumitexels_with_held_out(mesh, inputs, progress=counter(progress, "lumitexels"))
             truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
             rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
                           "polarization_separated": inputs.separated, "texels": train.n_texels,
@@ -224,7 +220,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                 started = time.perf_counter()
                 with clock.stage(name):
                     outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                                 rep.inputs, clock.sub(name), (method_options or {}).get(name, {}))
+                                                 rep.inputs, counter(progress, name), (method_options or {}).get(name, {}))
                 outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
         with clock.stage("report"):
@@ -250,7 +246,8 @@ def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
     return demo_lab_for(store, session).process_options()
 
 
-def _calibration(store: Store, session: str, targets, force: bool, progress) -> list[dict[str, Any]]:
+def _calibration(store: Store, session: str, targets, force: bool,
+                 progress: ProgressSink | None) -> list[dict[str, Any]]:
     """Reuse the stored calibration when it is complete and matches the session's frames
     (:mod:`capture.pipeline.calibration_record`), else run it again (saying why)."""
     info = store.session(session)
@@ -262,8 +259,7 @@ def _calibration(store: Store, session: str, targets, force: bool, progress) -> 
     redone = [] if force or state.why == "no calibration is stored" else [
         {"stage": "calibration", "status": "redone", "reason": state.why, "figures": {}}]
     try:
-        report = calibrate_session(store, session, targets=targets, measurement_hdr=False,
-                                   progress=None if progress is None else (lambda label, i, n: progress(i, n)))
+        report = calibrate_session(store, session, targets=targets, measurement_hdr=False, progress=progress)
     except NothingToCalibrate as exc:
         return [{"stage": "calibration", "status": "skipped", "reason": str(exc), "figures": {}}]
     return redone + [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,

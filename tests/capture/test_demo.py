@@ -66,7 +66,7 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     assert all(stages[s] == "ok" for s in ("intrinsics", "turntable", "lights", "positioner", "gray_card",
                                            "mirror_probe")), stages
     # The calibration at 320 x 240, where its targets (focal 0.2 %, lights 0.5 % of their distance
-    # and 0.25 deg; met by the full demo at 640 x 480, docs/architecture.md) sit at the limit of
+    # and 0.25 deg; met by the full demo at 640 x 480, docs/measurements.md) sit at the limit of
     # what a 0.13 px corner and a 0.1 px highlight allow: focal within 0.4 % (seen: -0.13/-0.19 %;
     # other noise seeds -0.14..-0.32 %, tests/capture/test_calibrate.py), principal point within
     # 3 px (seen: 1.7), lights within 1.5 % of their distance and 0.75 deg (seen: 1.05 %, 0.50
@@ -93,14 +93,14 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     t2 = f["table_ii_rms"]
     # the paper's Table II: clustering and projection lower the fitting error (seen: 0.091,
     # 0.039, 0.032, 0.022). Normal fitting lowers it too on most noise draws but raised it
-    # above the projection's on one in five (0.054 vs 0.035; see docs/architecture.md), so
+    # above the projection's on one in five (0.054 vs 0.035; see docs/measurements.md), so
     # here it must only stay below the single average BRDF; the strict order is tested on
     # fixed draws in tests/reconstruct/test_lensch_object.py
     assert t2["single"] > t2["cluster"] > t2["projection"], t2
     assert t2["normal_fit"] < t2["single"], t2
     # normal fitting recovers relief the smooth mesh lacks (seen: 1.41 -> 0.82 deg median),
     # or, on the clusterings where its first round raised the error (about one run in
-    # four; docs/architecture.md), the method says it undid it and keeps the mesh normals
+    # four; docs/measurements.md), the method says it undid it and keeps the mesh normals
     undone = [w for w in methods["lensch"]["warnings"] if "normal-fitting round 1" in w]
     if undone:
         assert abs(f["normal_error_fitted_deg"] - f["normal_error_mesh_deg"]) < 1e-6, f

@@ -204,7 +204,7 @@ def test_process_skips_what_is_stored_unless_forced(processed, captured):
     assert {c["stage"] for c in forced.calibration} >= {"intrinsics", "lights", "gray_card"}   # re-calibrated
     # the same figure from a fresh calibration: calibrate_session runs OpenCV on one thread, so
     # the same frames give the same bits (with its thread pool they were 0.04 % and 1.3 % apart;
-    # docs/architecture.md)
+    # docs/measurements.md)
     assert forced.method("lambertian").figures["held_out_rel_rms"] == pytest.approx(
         lam.figures["held_out_rel_rms"], rel=1e-9)
 
