@@ -396,9 +396,9 @@ class Runner:
         at the first measurement pose (the metering shots are kept as a calibration result)."""
         sid, plan_exposure = self._session.id, self._session.plan["exposure"]
         base = plan_exposure["base_s"]
-        stored = [r for r in self.store.results(sid, "calibration") if r["kind"] == "metering"]
+        stored = [r for r in self.store.results(sid, "calibration") if r.kind == "metering"]
         if stored:
-            metered = stored[-1]["result"]["exposure_s"]
+            metered = stored[-1].result["exposure_s"]
         else:
             step = next((s for s in steps if s.kind == "measure"),
                         next(s for s in steps if s.auto_exposure))

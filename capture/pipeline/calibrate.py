@@ -72,6 +72,7 @@ from calibration.targets import TargetDetection, detect_charuco, detect_chessboa
 from calibration.turntable import TurntableFit, consistent_corner_order, fit_turntable, lab_frame
 
 from ..plan import CALIBRATION_KINDS
+from ..rigs import recorded_in_built_in_lab
 from ..store import FrameRecord, SessionNotFound, Store, StoreError, crash
 from .calibration_record import frames_digest, record_run
 from .images import FrameDataError, SessionImages, dark_artifact_name, exposure_s
@@ -952,10 +953,9 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
 
 def _session_targets(store: Store, info) -> LabTargets:
     """The built-in simulated lab's targets for a session recorded in it; else TargetsNeeded."""
-    from ..rigs import recorded_in_built_in_lab
     snapshots = store.rig_snapshots(info.id)
     if recorded_in_built_in_lab(snapshots):
-        from .demo_lab import DemoLab
+        from .demo_lab import DemoLab  # demo_lab imports LabTargets from here: a circle until it moves out
         return DemoLab().targets()
     rigs = {str(t.get("name", "a rig file")) if isinstance(t := s["config"].get("rig", {}), dict) else repr(t)
             for s in snapshots}

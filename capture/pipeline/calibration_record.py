@@ -15,7 +15,7 @@ import hashlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..store import Store
+from ..store import ResultRecord, Store
 
 __all__ = ["RUN_KIND", "StoredCalibration", "frames_digest", "record_run", "stored_calibration"]
 
@@ -32,7 +32,7 @@ class StoredCalibration:
     complete: bool
     why: str = ""
     stages: tuple[dict[str, Any], ...] = ()
-    results: dict[str, dict[str, Any]] = field(default_factory=dict)
+    results: dict[str, ResultRecord] = field(default_factory=dict)
 
 
 def frames_digest(store: Store, session_id: int) -> str:
@@ -55,19 +55,19 @@ def stored_calibration(store: Store, session_id: int) -> StoredCalibration:
     captured or replaced since)."""
     from .calibrate import RESULT_KIND   # (calibrate imports this module)
     ours = {RUN_KIND, *RESULT_KIND.values()}   # not the runner's metering, stored with the capture
-    results = [r for r in store.results(session_id, "calibration") if r["kind"] in ours]
+    results = [r for r in store.results(session_id, "calibration") if r.kind in ours]
     if not results:
         return StoredCalibration(False, "no calibration is stored")
     last = results[-1]
-    if last["kind"] != RUN_KIND:
-        stages = sorted({r["kind"] for r in results if r["kind"] != RUN_KIND})
+    if last.kind != RUN_KIND:
+        stages = sorted({r.kind for r in results if r.kind != RUN_KIND})
         return StoredCalibration(False, f"the stored calibration is incomplete (a run stopped after storing "
                                         f"{', '.join(stages)}): it is run again")
-    if last["result"].get("frames_digest") != frames_digest(store, session_id):
+    if last.result.get("frames_digest") != frames_digest(store, session_id):
         return StoredCalibration(False, "frames were captured or replaced since the session was calibrated: "
                                         "the calibration is run again")
-    by_id = {r["id"]: r for r in results}
-    stages = tuple(last["result"].get("stages", ()))
-    listed = {by_id[s["calibration_id"]]["kind"]: by_id[s["calibration_id"]] for s in stages
+    by_id = {r.id: r for r in results}
+    stages = tuple(last.result.get("stages", ()))
+    listed = {by_id[s["calibration_id"]].kind: by_id[s["calibration_id"]] for s in stages
               if s.get("calibration_id") in by_id}
     return StoredCalibration(True, "", stages, listed)

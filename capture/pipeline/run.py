@@ -41,7 +41,9 @@ from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCa
                       read_calibration, session_inputs)
 from .report_html import write_html_report
 from ..outputs import session_file, write_atomically
+from ..rigs import recorded_in_built_in_lab
 from ..store import Store, crash
+from .demo_lab import demo_lab_for
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session"]
 
@@ -191,15 +193,15 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         if truth is not None:
             rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
         # a method stored from another calibration (one since redone) is stale: fitted again
-        stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")
-                  if r["result"].get("inputs", {}).get("calibration_ids") == cal.ids}
+        stored = {r.kind: r for r in store.results(info.id, "reconstruction")
+                  if r.result.get("inputs", {}).get("calibration_ids") == cal.ids}
         todo = [m for m in methods if force or m not in stored]
-        outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
-                                     figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
-                                     warnings=stored[m]["result"].get("warnings", []))
+        outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m].id}); --force re-runs it",
+                                     figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
+                                     warnings=stored[m].result.get("warnings", []))
                     for m in methods if m not in todo}
         if outcomes:
-            rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
+            rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
         if todo:
             with clock.stage("inputs"):
                 inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
@@ -239,10 +241,8 @@ def _jsonable(obj: Any) -> Any:
 def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
     """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
     (at its frames' resolution), None for any other rig."""
-    from ..rigs import recorded_in_built_in_lab
     if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
         return None
-    from .demo_lab import demo_lab_for
     return demo_lab_for(store, session).process_options()
 
 

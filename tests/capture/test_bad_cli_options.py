@@ -117,7 +117,7 @@ def test_a_full_disk_during_process_exits_4_keeping_what_was_stored(tmp_path, mo
     said = " ".join(r.output.split())
     assert r.exit_code == 4 and "the disk is full" in said and "run the same command again to resume" in said
     with Store(tmp_path / "store", readonly=True) as st:
-        assert st.results(st.session("s1").id)[0]["result"] == {"kept": True}
+        assert st.results(st.session("s1").id)[0].result == {"kept": True}
 
 
 def test_process_without_calibration_captures_says_what_the_session_lacks(tmp_path):
