@@ -110,6 +110,8 @@ MAX_STEPS = 200_000         # steps of a whole plan
 MAX_FRAMES = 1_000_000      # frames of a whole plan
 MAX_REPEATS = 1_000         # repeats, and frames of one calibration step
 MAX_STOPS = 64              # exposures in a bracket
+MAX_EXPOSURE_S = 3600.0     # one exposure (base_s x 2^stop, or a calibration's own), seconds
+MIN_EXPOSURE_S = 1e-6       # below any shutter's shortest time
 
 
 class PlanError(ValueError):
@@ -566,6 +568,10 @@ class MotionModel:
             speeds[role] = (v or speeds[role][0], a or speeds[role][1])
         model = cls(speeds=speeds)
         fb = frame_bytes_from_describe(desc.get("camera", {}))
+        if fb is None:   # the simulated lab's camera states its resolution in the rig's [rig] table
+            table = (getattr(rig, "config", None) or {}).get("rig", {})
+            fb = frame_bytes_from_describe({"image_size": table.get("camera_resolution")}) \
+                if isinstance(table, dict) else None
         return model if fb is None else model.with_frame_bytes(fb, "camera")
 
     def with_frame_bytes(self, frame_bytes: float, source: str = "measured") -> "MotionModel":
@@ -722,6 +728,9 @@ def _parse(data: Any) -> Plan:
             if not isinstance(held, list):
                 raise PlanError(f"light.held_out_deg must be a list of [azimuth, elevation] pairs (degrees), "
                                 f"got {_tname(held)}")
+            if len(held) > MAX_VALUES:  # before converting them all
+                raise PlanError(f"light.held_out_deg has {len(held)} lights; more than {MAX_VALUES} is "
+                                "surely a mistake")
             for i, p in enumerate(held):
                 if not (isinstance(p, list) and len(p) == 2 and all(_is_num(x) for x in p)):
                     raise PlanError(f"light.held_out_deg[{i}] must be [azimuth, elevation] (degrees), got {p!r}")
@@ -786,10 +795,16 @@ def _parse_calibration(c: Any, i: int) -> Calibration:
     _no_unknown(c, {"kind", "frames", "exposure_s", "turntable_angles_deg", "lights", "when", "views"}, where)
     if "kind" not in c:
         raise PlanError(f"{where}.kind is missing; one of {', '.join(CALIBRATION_KINDS)}")
+    for key in ("kind", "lights", "when"):
+        if key in c and not isinstance(c[key], str):
+            raise PlanError(f"{where}.{key} must be a string, got {_tname(c[key])}")
     frames = c.get("frames")
     if frames is not None and not _is_int(frames):
         raise PlanError(f"{where}.frames must be a whole number, got {_tname(frames)}")
     exp = c.get("exposure_s")
+    if isinstance(exp, list) and len(exp) > MAX_STOPS:
+        raise PlanError(f"{where}.exposure_s has {len(exp)} exposures; more than {MAX_STOPS} is "
+                        "surely a mistake")
     if isinstance(exp, list) and exp and all(_is_num(e) for e in exp):
         exp = tuple(float(e) for e in exp)
     elif exp is not None and not _is_num(exp):
@@ -821,14 +836,19 @@ def _validate(p: Plan) -> None:
         if c.frames is not None and c.frames > MAX_REPEATS:
             raise PlanError(f"calibration[{i}].frames = {c.frames} is more than {MAX_REPEATS}: "
                             "surely a mistake")
-    if not (_is_num(e.base_s) and e.base_s > 0 and math.isfinite(e.base_s)):
-        raise PlanError(f"exposure.base_s = {_fmt(e.base_s)} must be a positive number of seconds")
+    if not (_is_num(e.base_s) and MIN_EXPOSURE_S <= e.base_s <= MAX_EXPOSURE_S):
+        raise PlanError(f"exposure.base_s = {_fmt(e.base_s)} must be a positive number of seconds "
+                        f"in {MIN_EXPOSURE_S:g}..{MAX_EXPOSURE_S:g}")
     if not e.stops:
         raise PlanError("exposure.stops is empty; give at least one stop (0 = base exposure)")
     _finite(e.stops, "exposure.stops")
+    for i, stop in enumerate(e.stops):  # in log2, so a stop of 2000 cannot overflow
+        if not math.log2(MIN_EXPOSURE_S) <= math.log2(e.base_s) + stop <= math.log2(MAX_EXPOSURE_S):
+            raise PlanError(f"exposure.stops[{i}] = {_fmt(stop)} gives base_s x 2^stop outside "
+                            f"{MIN_EXPOSURE_S:g}..{MAX_EXPOSURE_S:g} s")
     if len(set(e.stops)) != len(e.stops):
         raise PlanError(f"exposure.stops {list(e.stops)} has duplicates")
-    if e.iso is not None and not e.iso > 0:
+    if e.iso is not None and not (e.iso > 0 and math.isfinite(e.iso)):
         raise PlanError(f"exposure.iso = {_fmt(e.iso)} must be positive")
     if not 0.05 <= e.highlight <= 0.9:
         raise PlanError(f"exposure.highlight = {_fmt(e.highlight)} must lie in 0.05..0.9 "
@@ -861,16 +881,20 @@ def _validate(p: Plan) -> None:
                 if any(az == a and el == e for e in lt.elevation_deg for a in lt.azimuth_deg):
                     raise PlanError(f"light.held_out_deg[{i}] = [{az:g}, {el:g}] is also on the light grid; "
                                     "a held-out light must be one the fit never sees")
-            if lt.distance_mm is not None and not lt.distance_mm > 0:
-                raise PlanError(f"light.distance_mm = {_fmt(lt.distance_mm)} must be positive (mm)")
+            if lt.distance_mm is not None and not (lt.distance_mm > 0 and math.isfinite(lt.distance_mm)):
+                raise PlanError(f"light.distance_mm = {_fmt(lt.distance_mm)} must be a positive finite "
+                                "number (mm)")
     for i, c in enumerate(p.calibration):
         where = f"calibration[{i}]"
         if c.kind not in CALIBRATION_KINDS:
             raise PlanError(f"{where}.kind = {c.kind!r} is unknown; one of {', '.join(CALIBRATION_KINDS)}")
         if c.frames is not None and c.frames < 1:
             raise PlanError(f"{where}.frames = {c.frames} must be >= 1")
-        if c.exposure_s is not None and not min(c.exposures_s) > 0:
-            raise PlanError(f"{where}.exposure_s = {_fmt(min(c.exposures_s))} must be positive (seconds)")
+        for k, t in enumerate(c.exposures_s or ()):
+            if not MIN_EXPOSURE_S <= t <= MAX_EXPOSURE_S:  # also false for NaN
+                at = f"{where}.exposure_s" + (f"[{k}]" if isinstance(c.exposure_s, tuple) else "")
+                raise PlanError(f"{at} = {_fmt(t)} must be a number of seconds in "
+                                f"{MIN_EXPOSURE_S:g}..{MAX_EXPOSURE_S:g}")
         if c.lights is not None and c.lights not in ("grid", "first", "none"):
             raise PlanError(f"{where}.lights = {c.lights!r} must be 'grid', 'first' or 'none'")
         if c.when not in ("before", "after"):
@@ -905,13 +929,15 @@ def _count(p: Plan) -> tuple[int, int]:
     far too big is refused before anything is expanded."""
     measure = [len(p.turntable_deg), len(p.polarizer_deg), p.light.count if p.light else 0]
     steps = math.prod(n for n in measure if n) if any(measure) else 0
+    held = len(p.light.held_out_deg) if p.light is not None else 0
+    steps += max(len(p.turntable_deg), 1) * held * max(len(p.polarizer_deg), 1)
     frames = steps * len(p.exposure.stops) * p.repeats
     for c in p.calibration:
         default_frames, default_lights = CALIBRATION_KINDS.get(c.kind, (1, "none"))
         angles = ((c.views or HANDHELD_VIEWS_DEFAULT) if c.kind == "handheld_board" else
                   len(c.turntable_angles_deg) if c.turntable_angles_deg is not None else
                   8 if c.kind == "checkerboard" and p.turntable_deg else 1)
-        lights = (c.lights or default_lights) == "grid" and p.light is not None and p.light.count or 1
+        lights = (c.lights or default_lights) == "grid" and p.light is not None and p.light.count + held or 1
         steps += angles * lights
         frames += angles * lights * (len(c.exposures_s) if c.exposure_s is not None else len(p.exposure.stops)) \
             * (c.frames or default_frames)
@@ -973,6 +999,9 @@ def _numbers(v: Any, where: str) -> tuple[float, ...]:
             if not _is_num(v[k]):
                 raise PlanError(f"{where}.{k} must be a number, got {_tname(v[k])}")
         start, stop, step = (float(v[k]) for k in ("start", "stop", "step"))
+        for k, x in (("start", start), ("stop", stop), ("step", step)):
+            if not math.isfinite(x):
+                raise PlanError(f"{where}.{k} = {x} is not a finite number")
         if step == 0 or (stop - start) * step < 0:
             raise PlanError(f"{where}: step {step:g} never goes from {start:g} to {stop:g}")
         n = math.floor((stop - start) / step + 1e-9) + 1

@@ -168,8 +168,8 @@ def recorded_in_built_in_lab(snapshots: list[dict[str, Any]]) -> bool:
     it was recorded on ``--rig sim`` with the camera rendering the built-in lab (see
     :func:`open_rig`), whose targets, mesh and ground truth are then known."""
     tables = [s["config"].get("rig", {}) for s in snapshots]
-    return bool(tables) and all(t.get("name") == LAB_NAME and t.get("camera_scene") == BUILT_IN_SCENE
-                                for t in tables)
+    return bool(tables) and all(isinstance(t, dict) and t.get("name") == LAB_NAME   # [rig] of an old store
+                                and t.get("camera_scene") == BUILT_IN_SCENE for t in tables)
 
 
 def _kinematics_table(value: Any) -> Any:

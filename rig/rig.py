@@ -63,6 +63,9 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
         cfg = read_toml(source, error=ConfigError, what="rig file")
     for role, section in cfg.items():
         if role == "rig":  # free metadata: name, notes
+            if not isinstance(section, dict):
+                raise ConfigError(f"{where}: rig = {section!r} must be a table ([rig] with name = ..., "
+                                  "notes = ...)")
             continue
         if role not in ROLES:
             raise ConfigError(f"{where}: unknown section [{role}]; expected one of "
@@ -91,7 +94,26 @@ def load_config(source: str | Path | dict[str, Any]) -> dict[str, Any]:
                                   f"as the [{other}] port = {cfg[other]['port']!r}; each device "
                                   "needs its own")
             ports[device] = role
+    if "kinematics" in cfg.get("positioner", {}):
+        _check_kinematics(cfg["positioner"]["kinematics"], where)
     return cfg
+
+
+def _check_kinematics(value: Any, where: str) -> None:
+    """``[positioner] kinematics``: a known name or a table the kinematics classes accept, checked
+    here so that neither a simulator nor a later command meets it first."""
+    from .kinematics import kinematics_from_config
+    if not isinstance(value, (str, dict)):
+        raise ConfigError(f"{where}: [positioner] kinematics = {value!r} must be \"arm\", \"gantry\" "
+                          "or a table ([positioner.kinematics] type = ...)")
+    numbers = [v for v in (value.values() if isinstance(value, dict) else ())
+               for v in (v if isinstance(v, list) else [v])]
+    if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
+        raise ConfigError(f"{where}: [positioner] kinematics: every number must be finite")
+    try:
+        kinematics_from_config(value)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: [positioner] {exc}") from None
 
 
 def driver_options(name: str, section: dict[str, Any], driver: str,
@@ -114,10 +136,16 @@ def driver_options(name: str, section: dict[str, Any], driver: str,
                 raise ConfigError(f"[{name}] {key} = {value!r} must be a finite number")
             if key.endswith(_POSITIVE) and not value > 0:
                 raise ConfigError(f"[{name}] {key} = {value!r} must be greater than 0")
+            if key.endswith("_s") and value > MAX_DURATION_S:
+                raise ConfigError(f"[{name}] {key} = {value!r} s is more than {MAX_DURATION_S:g} s "
+                                  "(a day): surely a mistake")
             if key.endswith("_retries") and value < 0:
                 raise ConfigError(f"[{name}] {key} = {value!r} must be 0 or more")
     return options
 
+
+#: longest duration option (timeouts, poll intervals), s: past it a deadline overflows the clock
+MAX_DURATION_S = 86_400.0
 
 #: option names (by ending) whose value must be > 0: rates, durations, steps, sizes
 _POSITIVE = ("baudrate", "_s", "_s2", "_deg", "_bytes", "_tolerance")

@@ -23,9 +23,12 @@ def read_toml(path: str | Path, *, error: type[Exception] = ValueError,
     if not path.is_file():
         raise error(f"{what} {path} does not exist")
     try:
-        return tomllib.loads(path.read_text())
+        # utf-8-sig: editors on Windows save a byte-order mark, which TOML itself does not allow
+        return tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and inline tables recursively
+        raise error(f"{path}: arrays or tables nested too deep to be a {what}") from None
     except UnicodeDecodeError:
         raise error(f"{path}: not a text file") from None
     except OSError as exc:

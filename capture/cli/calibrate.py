@@ -26,7 +26,8 @@ from rig.tomlfile import read_toml
 from ..pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
 from ..pipeline.progress import Progress as PipelineProgress
 from .session import STORE_OPTION, fail, open_store
-from ..store import SessionNotFound, StoreError, check_session_name, inside
+from ..outputs import OutputError, check_out_folder, session_file
+from ..store import ObjectDamaged, SessionBusy, SessionNotFound
 
 EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
 
@@ -67,6 +68,11 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
               quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Calibrate a session from its own captures and write the PNG report."""
     lab_targets = _targets(targets)
+    if out is not None:
+        try:   # before the work: a file given as the folder would fail at the end
+            check_out_folder(out)
+        except OutputError as exc:
+            raise fail(str(exc)) from None
     console = Console()
     with open_store(store) as st:
         try:
@@ -82,9 +88,10 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 progress.update(task, completed=p.done, stage=part)
 
             try:
-                report = calibrate_session(st, session, progress=advance, targets=lab_targets,
-                                           measurement_hdr=measurement_hdr)
-            except TargetsNeeded as exc:
+                with st.writer(session):   # one calibration or process per session at a time
+                    report = calibrate_session(st, session, progress=advance, targets=lab_targets,
+                                               measurement_hdr=measurement_hdr)
+            except (TargetsNeeded, SessionBusy, ObjectDamaged) as exc:
                 progress.stop()
                 raise fail(str(exc)) from None
             except NothingToCalibrate as exc:
@@ -93,11 +100,10 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                 raise typer.Exit(EXIT_NOTHING) from None
         from ..pipeline.calibration_report import write_report  # here, not at the top: matplotlib would slow every gonio start
         folder = out if out is not None else Path(st.root).resolve().parent
-        try:  # a name from before names were checked may not be a safe file name
-            png_path = inside(folder, f"{check_session_name(session)}-calibration.png")
-        except StoreError:
-            png_path = folder / f"session-{st.session(session).id}-calibration.png"
-        png = write_report(report, png_path)
+        try:  # a name from before names were checked: capture.outputs.session_file
+            png = write_report(report, session_file(folder, session, st.session(session).id, "-calibration.png"))
+        except OutputError as exc:
+            raise fail(str(exc)) from None
         if as_json:
             stages = [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
                        "calibration_id": s.calibration_id, "seconds": s.seconds} for s in report.stages]

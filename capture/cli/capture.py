@@ -29,7 +29,7 @@ from rich.table import Table
 
 from rig import RigError
 
-from .session import (STORE_OPTION, display_state, fail, human_bytes, human_time, open_store,
+from .session import (STORE_OPTION, check_store_option, display_state, fail, human_bytes, human_time, open_store,
                           unwrap)
 from ..events import Event, EventKind
 from ..plan import Estimate, MotionModel, Plan, PlanError, Step, step_prompt
@@ -323,6 +323,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
         except StoreError as exc:
             raise fail(str(exc)) from None
     p = _load_plan(plan_file)
+    check_store_option(store, readonly=False)   # an archive or "": refused before the rig opens
     opened = _open_rig(rig, fast, sim_camera)
     with _ctrl_c_counted() as interrupts, opened:
         try:  # before the store is created: a plan the rig cannot run leaves no empty store

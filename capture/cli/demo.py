@@ -1,7 +1,8 @@
 """``gonio demo``: the whole job on the simulated lab in one command (see :mod:`capture.pipeline.demo`).
 
 Prints the folder it works in, a progress bar per stage, the methods table and the path of
-``report.html``. Exit status: 0 done; 1 a method failed.
+``report.html``. Exit status: 0 done; 1 a method failed; 2 a bad --out (a file, or a folder that
+already holds a demo).
 """
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from ..outputs import OutputError, check_out_folder
 from .process import EXIT_FAILED, EXIT_OK, print_outcome, progress_bar
+from .session import fail
 
 
 def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 x 240 (under 3 minutes "
@@ -21,6 +24,15 @@ def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 
          quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Capture, calibrate and reconstruct on the simulated lab, then write report.html."""
     from ..pipeline.demo import run_demo
+    if out is not None:
+        try:
+            check_out_folder(out)
+        except OutputError as exc:
+            raise fail(str(exc)) from None
+        if (out / "store").exists():   # the demo's session name is fixed: a second run cannot add it
+            raise fail(f"--out {out} already holds a demo (its store {out / 'store'}); give a new folder, "
+                       f"or process that one again: gonio process NAME --store {out / 'store'} (NAME from "
+                       f"gonio session list --store {out / 'store'})")
     console = Console()
     bar, update = progress_bar(quiet)
     with bar:

@@ -5,11 +5,14 @@ Runs :func:`capture.pipeline.run.process_session` with a progress bar, prints on
 the HTML report (``<session>-report.html`` beside the store, or ``--out``).
 
 Exit status: 0 every method that ran succeeded; 1 a method failed; 2 usage or store errors
-(unknown session, unreadable mesh or targets file); 3 the session cannot give reconstruction
-inputs (no measurement steps, a stage of the calibration missing: the message says which).
+(unknown session, unreadable mesh or targets file, a bad --out, the session being written by
+another process, a damaged frame: the message names its step); 3 the session cannot give
+reconstruction inputs (no measurement steps, a stage of the calibration missing: the message says
+which); 4 the disk filled up: what was stored is kept, and the same command resumes.
 """
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 from typing import Callable
 
@@ -19,12 +22,13 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
+from ..outputs import OutputError, check_out_file, session_file
 from ..pipeline.progress import Progress as PipelineProgress
-from ..store import SessionNotFound
+from ..store import ObjectDamaged, SessionBusy, SessionNotFound, StoreFull
 from .calibrate import _targets
 from .session import STORE_OPTION, fail, open_store
 
-EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS = 0, 1, 3
+EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS, EXIT_DISK_FULL = 0, 1, 3, 4
 
 
 def progress_bar(quiet: bool) -> tuple[Progress, Callable[[PipelineProgress], None]]:
@@ -75,17 +79,25 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
     """Reconstruct a captured session with every method its captures allow and write the report."""
     from ..pipeline.methods import DEFAULT_METHODS, METHODS
     from ..pipeline.run import process_session
-    from ..pipeline.process import ProcessError, load_mesh
-    names = DEFAULT_METHODS if not methods else tuple(m.strip() for m in methods.split(",") if m.strip())
+    from ..pipeline.mesh_checks import MeshError, load_mesh
+    from ..pipeline.process import ProcessError
+    names = DEFAULT_METHODS if methods is None else tuple(m.strip() for m in methods.split(",") if m.strip())
+    if not names:
+        raise fail(f"--methods {methods!r} names no method; known: {', '.join(METHODS)}")
     unknown = [m for m in names if m not in METHODS]
     if unknown:
         raise fail(f"--methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
     from ..rigs import recorded_in_built_in_lab
+    if out is not None:
+        try:   # before any work: a folder, /dev/full or a missing folder would fail at the end
+            check_out_file(out)
+        except OutputError as exc:
+            raise fail(str(exc)) from None
     kw = {}
     if mesh is not None:
         try:
             kw["mesh"] = load_mesh(mesh)
-        except ProcessError as exc:
+        except MeshError as exc:
             raise fail(str(exc)) from None
     if targets is not None:
         kw["targets"] = _targets(targets)
@@ -98,16 +110,31 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         if mesh is None and not recorded_in_built_in_lab(st.rig_snapshots(info.id)):
             raise fail("--mesh FILE is needed: the object's mesh (sessions recorded on --rig sim bring "
                        "their own)")
-        report_path = out if out is not None else Path(st.root).resolve().parent / f"{session}-report.html"
+        # a stored name is not trusted as a file name (``../../x``): see capture.outputs
+        report_path = out if out is not None else session_file(Path(st.root).resolve().parent, session,
+                                                               info.id, "-report.html")
         bar, update = progress_bar(quiet)
         with bar:
             try:
                 rep = process_session(st, session, methods=names, force=force, progress=update,
                                       report_path=report_path, **kw)
+            except MeshError as exc:   # the mesh against the calibration: the user's input
+                bar.stop()
+                raise fail(str(exc)) from None
             except ProcessError as exc:
                 bar.stop()
                 typer.secho(f"cannot process: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NO_INPUTS) from None
+            except (SessionBusy, ObjectDamaged, OutputError) as exc:
+                bar.stop()
+                raise fail(str(exc)) from None
+            except (StoreFull, OSError) as exc:
+                if isinstance(exc, OSError) and exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                    raise
+                bar.stop()
+                raise fail(f"the disk is full ({exc}); every calibration stage and method stored so "
+                           f"far is kept: free space and run the same command again to resume",
+                           EXIT_DISK_FULL) from None
     failed = any(m.status == "failed" for m in rep.methods)
     if as_json:
         typer.echo(rep.report_path.with_suffix(".json").read_text())

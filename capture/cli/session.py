@@ -6,7 +6,10 @@
   results with provenance.
 - ``gonio session verify NAME [--remove-orphans]`` re-hashes every file; lists missing, corrupt
   and orphaned files and done steps with the wrong frame count; exit status 1 if anything is
-  wrong. ``--remove-orphans`` deletes what interrupted writes left (no session may be writing).
+  wrong. ``--remove-orphans`` takes what interrupted writes left out of ``objects/``: temporary
+  files deleted, frame files moved to ``quarantine/`` (no session may be writing).
+- ``gonio session rebuild-index`` puts back the sessions and frames the database lacks (restored
+  from an older backup, or lost) from the session journals and the frame files.
 - ``gonio session export NAME DEST`` writes a self-contained store (folder, ``.tar``, ``.tar.gz``
   or ``.zip``) holding only that session, which ``--store`` can open directly.
 
@@ -32,6 +35,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from ..store import Store, StoreError
+from ..store.archive import archive_read_only, is_archive
 
 HELP = """List, inspect, verify and export recorded sessions.
 
@@ -63,9 +67,19 @@ def fail(message: str, code: int = 2) -> typer.Exit:
     return typer.Exit(code)
 
 
+def check_store_option(path: str, *, readonly: bool) -> None:
+    """Refuse an empty ``--store`` ("" would be the current folder) and, for a command that
+    writes, an exported archive (its writes would vanish): call it before any work."""
+    if not str(path).strip():
+        raise fail("--store is empty; give the store's folder (or set GONIO_STORE)")
+    if not readonly and is_archive(Path(path)):
+        raise fail(archive_read_only(Path(path)))
+
+
 def open_store(path: str, *, create: bool = False, readonly: bool = False) -> Store:
     """Open ``--store`` or exit with a clear message (``readonly``: commands that only read
     never write the database, so they work on a full disk and leave a foreign file alone)."""
+    check_store_option(path, readonly=readonly)
     try:
         return Store.open(path, create=create, readonly=readonly)
     except StoreError as exc:
@@ -84,6 +98,19 @@ def store_errors() -> Iterator[None]:
         raise fail(str(exc)) from None
     except OSError as exc:
         raise fail(f"store: {exc}") from None
+
+
+def visible(text: object) -> str:
+    """``text`` with control characters (terminal escape sequences, bidirectional overrides)
+    written as ``\\x1b``-style escapes, so stored text can neither restyle nor rewrite the
+    terminal."""
+    return "".join(c if c.isprintable() or c == " " else c.encode("unicode_escape").decode("ascii")
+                   for c in str(text))
+
+
+def shown(text: object) -> str:
+    """Stored text as rich prints it literally: :func:`visible`, with markup escaped."""
+    return escape(visible(text))
 
 
 def human_bytes(n: float) -> str:
@@ -123,6 +150,7 @@ def list_(store: str = STORE_OPTION,
     """One line per session of the store."""
     with open_store(store, readonly=True) as st, store_errors():
         unknown = st.orphans(min_age_s=60.0 if st.writer_active() else 0.0)
+        held = st.quarantined()
         rows = []
         for s in st.sessions():
             p = st.progress(s.id)
@@ -134,21 +162,25 @@ def list_(store: str = STORE_OPTION,
         typer.secho(f"warning: {len(unknown)} file(s) in {Path(store) / 'objects'} belong to no "
                     "session (e.g. objects/" + "/".join(Path(unknown[0]).parts[-2:]) + "); "
                     "'gonio session verify NAME' lists them", err=True, fg=typer.colors.YELLOW)
+    if held:   # frame files no row listed when a writer started: maybe a restored backup's newer frames
+        typer.secho(f"warning: {len(held)} frame file(s) in {Path(store) / 'quarantine'} belong to no "
+                    f"session; 'gonio session rebuild-index --store {store}' restores the sessions they "
+                    "came from", err=True, fg=typer.colors.YELLOW)
     if as_json:
         typer.echo(json.dumps(rows, indent=2))
         return
     if not rows:
         typer.echo(f"no sessions in {store}")
         return
-    table = Table(title=f"sessions in {escape(store)}")
+    table = Table(title=f"sessions in {shown(store)}")
     for col in ("name", "state", "steps", "frames", "size", "object", "created"):
         table.add_column(col)
     colour = {"done": "green", "paused": "yellow", "running": "cyan", "aborted": "red",
               "planned": "white", "interrupted": "yellow"}
     for r in rows:
-        table.add_row(escape(r["name"]), f"[{colour[r['state']]}]{r['state']}[/]",
+        table.add_row(shown(r["name"]), f"[{colour[r['state']]}]{r['state']}[/]",
                       f"{r['steps_done']}/{r['steps_total']}", f"{r['frames_stored']}/{r['frames_total']}",
-                      human_bytes(r["bytes"]), escape(r["object"]), _when(r["created"]))
+                      human_bytes(r["bytes"]), shown(r["object"]), _when(r["created"]))
     Console(width=140).print(table)
 
 
@@ -180,7 +212,7 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
                                indent=2, default=str))
         return
     c = Console(width=140, highlight=False)
-    e = escape  # every stored text is the user's (names, plan, device messages): never markup
+    e = shown  # every stored text is the user's (names, plan, device messages): never markup
     c.print(f"[bold]{e(info.name)}[/]  state [bold]{state}[/]  object {e(info.object) or '-'}  "
             f"operator {e(info.operator) or '-'}")
     if state in ("paused", "interrupted", "planned"):
@@ -219,8 +251,9 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
 @app.command()
 def verify(name: str = typer.Argument(..., help="Session name."), store: str = STORE_OPTION,
            remove_orphans: bool = typer.Option(
-               False, "--remove-orphans", help="Delete the orphaned files found (left by an "
-               "interrupted write; refused while a session is being written).")) -> None:
+               False, "--remove-orphans", help="Take the orphaned files found out of objects/: "
+               "interrupted writes' temporary files are deleted, unreferenced frame files moved to "
+               "quarantine/ (rebuild-index takes them back); refused while a session is being written.")) -> None:
     """Re-hash every file of the session; exit 1 on missing, corrupt or orphaned files."""
     with open_store(store, readonly=True) as st, store_errors():
         try:
@@ -236,14 +269,15 @@ def verify(name: str = typer.Argument(..., help="Session name."), store: str = S
                 removed = st.remove_orphans()
             except StoreError as exc:
                 raise fail(str(exc)) from None
-            typer.echo(f"removed {len(removed)} orphaned file(s)")
+            typer.echo(f"took {len(removed)} orphaned file(s) out of objects/ (frame files kept in "
+                       f"{st.quarantine}; gonio session rebuild-index takes back the ones a journal lists)")
             report.orphans = [o for o in report.orphans if o not in removed]
     typer.echo(f"{report.checked} file(s) checked")
     for label, items in (("missing", report.missing), ("corrupt", report.corrupt),
                          ("orphaned", report.orphans)):
         for item in items:
             uses = "; ".join(report.where.get(item, []))
-            typer.secho(f"{label}: {item}" + (f" ({uses})" if uses else ""), fg=typer.colors.RED)
+            typer.secho(visible(f"{label}: {item}" + (f" ({uses})" if uses else "")), fg=typer.colors.RED)
     for step in report.incomplete_steps:
         typer.secho(f"incomplete: step {step} is marked done but has the wrong number of frames",
                     fg=typer.colors.RED)
@@ -266,3 +300,26 @@ def export(name: str = typer.Argument(..., help="Session name."),
             raise fail(str(exc)) from None
     size = out.stat().st_size if out.is_file() else sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     typer.echo(f"exported {name} to {out} ({human_bytes(size)}); open with --store {out}")
+
+
+@app.command("rebuild-index")
+def rebuild_index(store: str = STORE_OPTION) -> None:
+    """Put back the sessions and frames gonio.sqlite lacks (a database restored from an older
+    backup, or lost) from the session journals and the frame files themselves; frames moved to
+    quarantine/ come back. Results (calibration, reconstruction) are recomputed by gonio process."""
+    check_store_option(store, readonly=False)
+    try:
+        st = Store(store, create=False, rebuilding=True) if not Path(store, "objects").is_dir() else \
+            Store(store, create=True, rebuilding=True)
+    except StoreError as exc:
+        raise fail(str(exc)) from None
+    with st, store_errors():
+        try:
+            rep = st.rebuild_index()
+        except StoreError as exc:
+            raise fail(str(exc)) from None
+    for note in rep.notes:
+        typer.secho(visible(note), fg=typer.colors.YELLOW)
+    added = ", ".join(visible(n) for n in rep.sessions_added) or "none"
+    typer.echo(f"sessions restored: {added}; frame rows restored: {rep.frames_added}; files taken back "
+               f"from quarantine: {rep.unquarantined}")

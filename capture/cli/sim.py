@@ -9,11 +9,17 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import time
 from pathlib import Path
 from typing import Optional
 
 import typer
+
+from ..outputs import OutputError, check_out_folder, safe_stem
+
+#: largest rendered side, pixels (64 MP frames; beyond that a typo runs out of memory)
+MAX_SIDE_PX = 8192
 
 app = typer.Typer(name="sim", help="Render the simulated lab: scenes, targets and the camera's raw frames.",
                   no_args_is_help=True)
@@ -96,11 +102,23 @@ def render(
         raise _fail(f"--scene must be one of {', '.join(SCENES)}, got {scene!r}")
     if obj not in OBJECTS + ("none",):
         raise _fail(f"--object must be one of {', '.join(OBJECTS + ('none',))}, got {obj!r}")
-    if width < 16 or height < 16 or width % 2 or height % 2:
-        raise _fail(f"--width and --height must be even and >= 16 (a Bayer mosaic), got {width} x {height}")
+    if width < 16 or height < 16 or width % 2 or height % 2 or max(width, height) > MAX_SIDE_PX:
+        raise _fail(f"--width and --height must be even and in 16..{MAX_SIDE_PX} (a Bayer mosaic), "
+                    f"got {width} x {height}")
+    for option, value in (("--turntable", turntable), ("--light-az", light_az), ("--light-el", light_el),
+                          ("--polarizer", polarizer)):
+        if value is not None and not math.isfinite(value):
+            raise _fail(f"{option} must be a finite number of degrees, got {value!r}")
+    if name is not None and not safe_stem(name):   # a file stem, never a path: nothing outside --out
+        raise _fail(f"--name {name!r}: use 1-100 ASCII letters, digits, '_', '.' or '-', starting with a "
+                    "letter, digit or '_' (a file stem, not a path)")
+    try:
+        check_out_folder(out)
+    except OutputError as exc:
+        raise _fail(str(exc)) from None
     for option, value in (("--exposure", exposure), ("--iso", iso), ("--fnumber", fnumber),
                           ("--light-radius", light_radius)):
-        if not value > 0:  # also catches NaN
+        if not 0 < value < math.inf:  # also catches NaN
             raise _fail(f"{option} must be > 0, got {value!r}")
     if supersample is not None and supersample < 1:
         raise _fail(f"--supersample must be >= 1, got {supersample}")

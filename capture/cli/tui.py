@@ -29,10 +29,10 @@ def tui(rig: str = typer.Option("sim", "--rig",
         raise typer.BadParameter(f"plan file {plan} does not exist", param_hint="--plan")
     process_options: dict = {}
     if mesh is not None:
-        from ..pipeline.process import ProcessError, load_mesh
+        from ..pipeline.mesh_checks import MeshError, load_mesh
         try:
             process_options["mesh"] = load_mesh(mesh)
-        except ProcessError as exc:
+        except MeshError as exc:
             raise typer.BadParameter(str(exc), param_hint="--mesh") from None
     from ..tui import GonioApp  # Textual loads only for this command
     GonioApp(rig, store, fast=fast, poll_s=poll, plan=plan, process_options=process_options).run()

@@ -73,7 +73,8 @@ from calibration.turntable import TurntableFit, consistent_corner_order, fit_tur
 
 from ..plan import CALIBRATION_KINDS
 from ..rigs import recorded_in_built_in_lab
-from ..store import FrameRecord, SessionNotFound, Store, StoreError
+from ..store import FrameRecord, SessionNotFound, Store, StoreError, crash
+from .calibration_record import frames_digest, record_run
 from .images import FrameDataError, SessionImages, dark_artifact_name, exposure_s
 from .process import object_pose
 from .progress import Progress, ProgressSink
@@ -956,7 +957,8 @@ def _session_targets(store: Store, info) -> LabTargets:
     if recorded_in_built_in_lab(snapshots):
         from .demo_lab import DemoLab  # demo_lab imports LabTargets from here: a circle until it moves out
         return DemoLab().targets()
-    rigs = {str(s["config"].get("rig", {}).get("name", "a rig file")) for s in snapshots}
+    rigs = {str(t.get("name", "a rig file")) if isinstance(t := s["config"].get("rig", {}), dict) else repr(t)
+            for s in snapshots}
     fields_ = ", ".join(f.name for f in fields(LabTargets))
     raise TargetsNeeded(
         f"session {info.name!r} was recorded on {', '.join(sorted(rigs)) or 'an unrecorded rig'}, "
@@ -1025,6 +1027,7 @@ def calibrate_session(store: Store, session_name: str, *,
             f"{', '.join(CALIBRATION_STEP_KINDS)} to the plan")
     if ctx.targets is None:
         ctx.targets = _session_targets(store, ctx.info)
+    digest = frames_digest(store, ctx.info.id)   # of the frames this run reads
     rep = CalibrationReport(session=session_name)
     total = len(STAGES)
     threads = cv2.getNumThreads()
@@ -1034,6 +1037,7 @@ def calibrate_session(store: Store, session_name: str, *,
     cv2.setNumThreads(1)
     try:
         for i, name in enumerate(STAGES):
+            crash.point(f"calibration {name}")   # stage boundaries of the crash test
             if progress is not None:
                 progress(Progress("calibration", i, total, part=name))
                 ctx.tick = lambda done, n, i=i, name=name: progress(
@@ -1043,6 +1047,9 @@ def calibrate_session(store: Store, session_name: str, *,
             rep.stages[-1].seconds = round(time.perf_counter() - started, 3)
     finally:
         cv2.setNumThreads(threads)
+    if set(stages) == set(STAGES):   # a whole calibration: gonio process may reuse it as it is
+        record_run(store, ctx.info.id, [{"stage": st.stage, "status": st.status, "reason": st.reason,
+                                         "calibration_id": st.calibration_id} for st in rep.stages], digest)
     if progress is not None:
         progress(Progress("calibration", total, total))
     return rep

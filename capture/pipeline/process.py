@@ -49,7 +49,7 @@ from .images import FrameDataError, SessionImages, StepImage
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
            "PassiveInput", "ProcessInputs", "read_calibration", "session_images", "session_inputs",
-           "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose", "load_mesh"]
+           "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose"]
 
 class ProcessError(ValueError):
     """The session cannot give reconstruction inputs; the message says what is missing."""
@@ -122,16 +122,27 @@ def object_pose(angle_deg: float) -> np.ndarray:
     return T
 
 
-def _latest(store: Store, session_id: int) -> dict[str, ResultRecord]:
-    """The newest stored calibration result of each kind."""
-    return {r.kind: r for r in store.results(session_id, "calibration")}
+def _latest(store: Store, session_id: int) -> tuple[dict[str, ResultRecord], dict[str, str]]:
+    """The stored calibration results by kind, and why each stage without one has none: those a
+    complete calibration lists (:mod:`capture.pipeline.calibration_record`), else the newest of
+    each kind (a session calibrated stage by stage)."""
+    from .calibration_record import stored_calibration
+    state = stored_calibration(store, session_id)
+    if state.complete:
+        return state.results, {s["stage"]: f"{s['status']}: {s['reason']}" for s in state.stages
+                               if not s.get("calibration_id")}
+    return {r.kind: r for r in store.results(session_id, "calibration")}, {}
 
 
-def _need(results: dict[str, ResultRecord], kind: str, stage: str, why: str) -> ResultRecord:
-    if kind not in results:
+def _need(stored: dict[str, ResultRecord], reasons: dict[str, str], kind: str, stage: str,
+          why: str) -> ResultRecord:
+    if kind not in stored:
+        if stage in reasons:   # the calibration ran whole: say why that stage stored nothing
+            raise MissingCalibration(f"no {stage} calibration ({why}): the session's calibration "
+                                     f"{reasons[stage]}")
         raise MissingCalibration(f"no stored {stage} calibration ({why}); run `gonio calibrate` on the "
                                  "session and check that stage")
-    return results[kind]
+    return stored[kind]
 
 
 def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | None = None,
@@ -148,15 +159,15 @@ def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | No
         The intrinsics, turntable or light calibration is not stored (names the stage).
     """
     info = store.session(session)
-    res = _latest(store, info.id)
-    intr = _need(res, "intrinsics", "intrinsics", "the camera matrix").result
-    tt = _need(res, "turntable", "turntable", "the lab frame and the object's pose per turntable angle").result
+    res, reasons = _latest(store, info.id)
+    intr = _need(res, reasons, "intrinsics", "intrinsics", "the camera matrix").result
+    tt = _need(res, reasons, "turntable", "turntable", "the lab frame and the object's pose per turntable angle").result
     w, h = intr["image_size"]
     lab = tt["lab_to_camera"]
     camera = CameraModel(K=np.array(intr["K"]), width=int(w), height=int(h), dist=np.array(intr["dist"]),
                          R=np.array(lab["R"]), t=np.array(lab["t_mm"]))
     steps = {i: d for i, d, _ in store.steps(info.id)}
-    lights, source = _step_lights(res, steps)
+    lights, source = _step_lights(res, reasons, steps)
     ids = {k: r.id for k, r in res.items()}
     intensity, absolute = _light_intensity(res, steps, lights, tt, gray_card)
     env, weight = None, None
@@ -180,13 +191,13 @@ def _light_key(light: dict | None) -> tuple | None:
             light.get("distance_mm"))
 
 
-def _step_lights(res: dict, steps: dict[int, dict]) -> tuple[dict[int, np.ndarray], str]:
+def _step_lights(res: dict, reasons: dict[str, str], steps: dict[int, dict]) -> tuple[dict[int, np.ndarray], str]:
     """A light position (lab, mm) for every step with a light: from the positioner model when it
     was fitted, else from the lights stage's measurement at the same commanded light."""
     if "positioner_model" in res:
         rows = res["positioner_model"].result["step_lights"]
         return {int(r["step"]): np.asarray(r["position_lab_mm"], float) for r in rows}, "positioner"
-    rows = _need(res, "light_positions", "lights", "where the lamp was for each capture").result["lights"]
+    rows = _need(res, reasons, "light_positions", "lights", "where the lamp was for each capture").result["lights"]
     by_key = {}
     for r in rows:
         if "position_lab_mm" in r and _light_key(r.get("commanded")) is not None:
@@ -277,23 +288,6 @@ class ProcessInputs:
     passive: PassiveInput | None = None
     separated: bool = False
     notes: list[str] = field(default_factory=list)
-
-
-def load_mesh(path) -> trimesh.Trimesh:
-    """The object's mesh from any file trimesh reads, in the object frame (mm).
-
-    Raises
-    ------
-    ProcessError
-        The file is missing or holds no triangles (names the path).
-    """
-    try:
-        mesh = trimesh.load(str(path), force="mesh")
-    except (OSError, ValueError) as exc:
-        raise ProcessError(f"--mesh {path}: cannot read a mesh ({exc})") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ProcessError(f"--mesh {path}: holds no triangle mesh")
-    return mesh
 
 
 def _analyser(angle: float | None) -> str | None:
@@ -402,7 +396,7 @@ def session_images(store: Store, session: str) -> SessionImages:
     """The session's images with the master darks and read noise its dark calibration stored
     (none stored: black level only, 1 DN read noise)."""
     images = SessionImages(store, session)
-    dark = _latest(store, images.info.id).get("dark")
+    dark = _latest(store, images.info.id)[0].get("dark")
     if dark is not None:
         images.use_stored_darks([row["exposure_s"] for row in dark.result["darks"]],
                                 dark.artifacts, dark.result.get("read_noise_dn"))

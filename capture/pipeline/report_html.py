@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from ..outputs import write_atomically
 from ..store import ResultRecord, Store
 from .pictures import SLICE_THETA_I_DEG
 
@@ -329,5 +330,4 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
     parts.append("</body></html>")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(parts), encoding="utf-8")
-    return path
+    return write_atomically(path, "\n".join(parts))   # whole or not at all (a full disk)

@@ -32,15 +32,18 @@ from reconstruct.lumitexels import Lumitexels
 from reconstruct.metrics import relative_rms, trimmed_relative_rms
 
 from ..export.appearance import EXPORTED_METHODS, appearance_npz
+from .calibration_record import stored_calibration
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
+from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
 from .progress import Progress, ProgressSink, counter
-from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
+from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, session_inputs)
 from .report_html import write_html_report
+from ..outputs import session_file, write_atomically
 from ..rigs import recorded_in_built_in_lab
-from ..store import Store
+from ..store import Store, crash
 from .demo_lab import demo_lab_for
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session"]
@@ -94,6 +97,7 @@ class _Clock:
 
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
+        crash.point(f"stage {name}")   # the crash test kills here (GONIO_CRASH_AFTER)
         if self.progress is not None:
             self.progress(Progress(name, 0, 1))
         started = time.perf_counter()
@@ -153,6 +157,12 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         An unknown method name, or no mesh.
     capture.process.ProcessError
         The session cannot give inputs (no measurement steps, lights not calibrated ...).
+    capture.store.SessionBusy
+        Another process is writing (capturing or processing) the session.
+    capture.store.ObjectDamaged
+        A frame or stored artifact is missing or altered (the message names its step).
+    capture.store.StoreFull, OSError (ENOSPC)
+        The disk filled up; what was stored so far is kept and a re-run resumes.
     """
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -169,49 +179,58 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     probe_reflectance = 1.0 if given["probe_reflectance"] is None else given["probe_reflectance"]
     if mesh is None:
         raise ValueError("mesh: the object's mesh is needed (gonio process --mesh FILE)")
-    rep = ProcessReport(session)
-    clock = _Clock(rep, progress)
-    with clock.stage("calibration"):
-        rep.calibration = _calibration(store, session, targets, force, progress)
-    cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
-    if truth is not None:
-        rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
-    stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
-    todo = [m for m in methods if force or m not in stored]
-    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m].id}); --force re-runs it",
-                                 figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
-                                 warnings=stored[m].result.get("warnings", []))
-                for m in methods if m not in todo}
-    if outcomes:
-        rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
-    if todo:
-        with clock.stage("inputs"):
-            inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
-        with clock.stage("lumitexels"):
-            train, held = lumitexels_with_held_out(mesh, inputs, progress=counter(progress, "lumitexels"))
-        truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
-        rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
-                      "polarization_separated": inputs.separated, "texels": train.n_texels,
-                      "training_samples": train.n_samples, "held_out_samples": held.n_samples,
-                      "light_source": cal.light_source, "absolute_units": cal.absolute,
-                      "passive_capture": inputs.passive is not None, "notes": inputs.notes}
-        if truth_r is not None:
-            scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
-            rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
-            rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
-                scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
-        for name in todo:
-            started = time.perf_counter()
-            with clock.stage(name):
-                outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                             rep.inputs, counter(progress, name), (method_options or {}).get(name, {}))
-            outcomes[name].seconds = round(time.perf_counter() - started, 3)
-    rep.methods = [outcomes[m] for m in methods]
-    with clock.stage("report"):
-        rep.report_path = write_html_report(store, session, rep, truth=truth,
-                                            path=report_path or Path(store.root).resolve().parent / f"{session}-report.html")
-    rep.report_path.with_suffix(".json").write_text(json.dumps(rep.summary(), indent=1, default=_jsonable))
-    return rep
+    # one process per session: a second `gonio process` (or a capture) gets SessionBusy instead
+    # of failing mid-way or storing every method twice
+    with store.writer(session):
+        rep = ProcessReport(session)
+        clock = _Clock(rep, progress)
+        with clock.stage("calibration"):
+            rep.calibration = _calibration(store, session, targets, force, progress)
+        if rep.calibration and rep.calibration[-1]["status"] == "skipped" and rep.calibration[-1]["stage"] == "calibration":
+            # nothing to calibrate: say what the session lacks, not "run gonio calibrate"
+            raise MissingCalibration(f"the session cannot be calibrated: {rep.calibration[-1]['reason']}")
+        cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
+        check_mesh_placement(mesh, cal.camera, "the mesh" if lab is None else "the simulated lab's mesh")
+        if truth is not None:
+            rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
+        # a method stored from another calibration (one since redone) is stale: fitted again
+        stored = {r.kind: r for r in store.results(info.id, "reconstruction")
+                  if r.result.get("inputs", {}).get("calibration_ids") == cal.ids}
+        todo = [m for m in methods if force or m not in stored]
+        outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m].id}); --force re-runs it",
+                                     figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
+                                     warnings=stored[m].result.get("warnings", []))
+                    for m in methods if m not in todo}
+        if outcomes:
+            rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
+        if todo:
+            with clock.stage("inputs"):
+                inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
+            with clock.stage("lumitexels"):
+                train, held = lumitexels_with_held_out(mesh, inputs, progress=counter(progress, "lumitexels"))
+            truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
+            rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
+                          "polarization_separated": inputs.separated, "texels": train.n_texels,
+                          "training_samples": train.n_samples, "held_out_samples": held.n_samples,
+                          "light_source": cal.light_source, "absolute_units": cal.absolute,
+                          "passive_capture": inputs.passive is not None, "notes": inputs.notes}
+            if truth_r is not None:
+                scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
+                rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
+                rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
+                    scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
+            for name in todo:
+                started = time.perf_counter()
+                with clock.stage(name):
+                    outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
+                                                 rep.inputs, counter(progress, name), (method_options or {}).get(name, {}))
+                outcomes[name].seconds = round(time.perf_counter() - started, 3)
+        rep.methods = [outcomes[m] for m in methods]
+        with clock.stage("report"):
+            rep.report_path = write_html_report(store, session, rep, truth=truth, path=report_path or session_file(
+                Path(store.root).resolve().parent, session, info.id, "-report.html"))
+        write_atomically(rep.report_path.with_suffix(".json"), json.dumps(rep.summary(), indent=1, default=_jsonable))
+        return rep
 
 
 def _jsonable(obj: Any) -> Any:
@@ -230,17 +249,22 @@ def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
 
 def _calibration(store: Store, session: str, targets, force: bool,
                  progress: ProgressSink | None) -> list[dict[str, Any]]:
+    """Reuse the stored calibration when it is complete and matches the session's frames
+    (:mod:`capture.pipeline.calibration_record`), else run it again (saying why)."""
     info = store.session(session)
-    stored = [r for r in store.results(info.id, "calibration")]
-    if stored and not force:
-        return [{"stage": r.kind, "status": "stored", "reason": f"result {r.id}", "figures": {}}
-                for r in stored]
+    state = stored_calibration(store, info.id)
+    if state.complete and not force:
+        return [{"stage": s["stage"], "status": "stored" if s.get("calibration_id") else s["status"],
+                 "reason": f"result {s['calibration_id']}" if s.get("calibration_id") else s.get("reason", ""),
+                 "figures": {}} for s in state.stages]
+    redone = [] if force or state.why == "no calibration is stored" else [
+        {"stage": "calibration", "status": "redone", "reason": state.why, "figures": {}}]
     try:
         report = calibrate_session(store, session, targets=targets, measurement_hdr=False, progress=progress)
     except NothingToCalibrate as exc:
         return [{"stage": "calibration", "status": "skipped", "reason": str(exc), "figures": {}}]
-    return [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
-             "seconds": s.seconds} for s in report.stages]
+    return redone + [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
+                      "seconds": s.seconds} for s in report.stages]
 
 
 # -- one method ---------------------------------------------------------------------------------

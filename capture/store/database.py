@@ -35,10 +35,11 @@ from typing import Any, Callable, Iterable, Iterator
 
 from ..events import Event
 from . import crash, version
-from .archive import archive_suffix, extract_safely, is_archive, pack
-from .errors import (ForeignDatabase, SchemaError, SessionBusy, SessionExists, SessionNotFound,
-                     StoreDamaged, StoreError, StoreFull)
-from .migrations import MIGRATIONS, SCHEMA_VERSION
+from .archive import archive_read_only, archive_suffix, extract_safely, is_archive, pack
+from .errors import (ForeignDatabase, ObjectDamaged, SchemaError, SessionBusy, SessionExists,
+                     SessionNotFound, StoreDamaged, StoreError, StoreFull)
+from .migrations import MIGRATIONS, SCHEMA_VERSION, foreign_tables
+from .journal import Journals
 from .names import check_session_name, inside
 from .objects import TMP_PREFIX, ObjectFiles, copy_hashed, sha256_file
 from .records import FrameRecord, Progress, ResultRecord, SessionInfo, VerifyReport
@@ -50,6 +51,10 @@ FULL_BELOW_BYTES = 1 << 20
 #: disk space a writer holds back to record a pause when the disk fills, bytes
 RESERVE_BYTES = 1 << 20
 RESERVE_NAME = "space-reserve"
+#: where unreferenced object files go instead of being deleted (see Store.collect_garbage)
+QUARANTINE_DIR = "quarantine"
+#: quarantined files younger than this are never purged, s (a week: time to notice a restored backup)
+QUARANTINE_MIN_AGE_S = 7 * 24 * 3600.0
 
 #: SQL condition true for a ``sha256`` column value that is not an object name (see objects.py)
 _BAD_SHA_SQL = "(typeof({0}) != 'text' OR length({0}) != 64 OR {0} GLOB '*[^0-9a-f]*')"
@@ -100,6 +105,9 @@ class Store:
         Open the database without writing to it (``mode=ro``: no migration, no pragmas; write
         methods raise :class:`StoreError`), for commands that only read: they then work on a
         full disk and leave a foreign file alone.
+    rebuilding : bool, optional
+        Accept a missing or empty database beside frame files (it is created, for
+        :meth:`rebuild_index` to fill from the journals and frame files).
 
     Raises
     ------
@@ -117,17 +125,25 @@ class Store:
     """
 
     def __init__(self, root: str | os.PathLike, *, create: bool = True,
-                 durable: bool | None = None, readonly: bool = False) -> None:
+                 durable: bool | None = None, readonly: bool = False, rebuilding: bool = False) -> None:
         self.root = Path(root)
+        self._rebuilding = rebuilding
         self.durable = os.environ.get("GONIO_STORE_DURABLE", "1") != "0" if durable is None else durable
         self.readonly = readonly
+        self._readonly_why = f"{self.root} was opened read-only; this needs a writable store"
         self.db_path = self.root / DB_NAME
         if not self.db_path.is_file():
+            if (self.root / "objects").is_dir() and not rebuilding:   # captured data, index lost
+                raise StoreDamaged(f"{self.root} holds frame files (objects/) but no {DB_NAME}: the "
+                                   "database was lost. Nothing was changed; rebuild it from the frame "
+                                   f"files: gonio session rebuild-index --store {self.root}")
             if not create or readonly:
                 raise StoreError(f"{self.root} is not a gonio store (no {DB_NAME}); "
                                  "give --store the folder a session was recorded in")
             self.root.mkdir(parents=True, exist_ok=True)
         self._files = ObjectFiles(self.root, self.db_path, self.durable)
+        self._journals = Journals(self.root, self.durable)
+        self._journal_paths: dict[int, Path | None] = {}
         self.objects = self._files.root
         self._lock = threading.RLock()
         self._cleanup: Callable[[], None] | None = None
@@ -172,18 +188,20 @@ class Store:
                     "SELECT name FROM sqlite_master WHERE type = 'table'")}
             if not tables:
                 files = sum(1 for _ in self._files.files())
-                if files:
+                if files and not self._rebuilding:
                     raise StoreDamaged(
                         f"{self.db_path} is empty but {self.objects} holds {files} file(s) of "
                         "captured data: the database was lost or truncated. Nothing was changed; "
-                        "restore gonio.sqlite from a backup or an export, and keep objects/ as it is")
+                        "rebuild it from the frame files (gonio session rebuild-index --store "
+                        f"{self.root}), or restore gonio.sqlite from a backup or an export; keep "
+                        "objects/ as it is")
                 if self.readonly:
                     raise StoreError(f"{self.db_path} is empty: no session was ever recorded there")
-            elif not {"schema_version", "sessions"} <= tables:
+            elif missing := foreign_tables(self._db):
                 raise ForeignDatabase(
                     f"{self.db_path} is an SQLite database but not a gonio store (its tables: "
-                    f"{', '.join(sorted(tables)[:8])}); gonio leaves it untouched. Give --store "
-                    "a folder gonio recorded in, or a new folder")
+                    f"{', '.join(sorted(tables)[:8])}; it lacks {', '.join(missing[:5])}); gonio leaves "
+                    "it untouched. Give --store a folder gonio recorded in, or a new folder")
             self._db.execute("PRAGMA busy_timeout = 30000")
             if self.readonly:
                 self._check_version(self._db)
@@ -246,8 +264,9 @@ class Store:
     @classmethod
     def open(cls, path: str | os.PathLike, *, create: bool = False,
              readonly: bool = False) -> "Store":
-        """Open a store folder, or an exported ``.tar`` / ``.zip`` archive (extracted to a
-        temporary folder that is removed on :meth:`close`, and on every error).
+        """Open a store folder, or an exported ``.tar`` / ``.zip`` archive, always read-only
+        (extracted to a temporary folder that is removed on :meth:`close`, and on every error;
+        a write raises :class:`StoreError` saying how to get a writable store).
 
         An archive member that is absolute, climbs out with ``..``, or is a link or device
         (an export holds only folders and plain files) is refused by name before anything is
@@ -262,7 +281,10 @@ class Store:
             inner = [p.parent for p in tmp.rglob(DB_NAME)]
             if len(inner) != 1:
                 raise StoreError(f"{path}: archive holds {len(inner)} gonio stores, expected 1")
-            store = cls(inner[0], create=False, readonly=readonly)
+            # read-only whatever was asked: a write would land in the temporary extraction and
+            # vanish with it
+            store = cls(inner[0], create=False, readonly=True)
+            store._readonly_why = archive_read_only(path)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -312,7 +334,7 @@ class Store:
         """One short write transaction (``BEGIN IMMEDIATE``: takes the write lock up front so a
         concurrent writer waits in busy_timeout rather than failing on lock upgrade)."""
         if self.readonly:
-            raise StoreError(f"{self.root} was opened read-only; this needs a writable store")
+            raise StoreError(self._readonly_why)
         with self._lock:
             # BEGIN inside the try: a KeyboardInterrupt landing just after it must not leave the
             # shared connection inside a transaction (every later BEGIN would then fail)
@@ -430,6 +452,10 @@ class Store:
             if not isinstance(s.get("frames"), int) or s["frames"] < 0:
                 raise StoreError(f"steps[{i}] needs an integer 'frames' >= 0")
         now = time.time()
+        journal = self._journals.path(name, now)   # first: a session row never lacks its journal
+        self._journals.start(journal, {"name": name, "operator": operator, "object": object, "notes": notes,
+                                       "plan": plan, "plan_hash": plan_hash, "plan_path": plan_path,
+                                       "created": now, "steps": steps})
         try:
             with self._write() as db:
                 cur = db.execute(
@@ -441,7 +467,10 @@ class Store:
                 db.executemany("INSERT INTO steps (session_id, idx, step_json, frames) "
                                "VALUES (?,?,?,?)",
                                [(sid, i, _dumps(s), s["frames"]) for i, s in enumerate(steps)])
-        except sqlite3.IntegrityError:
+        except BaseException as exc:
+            journal.unlink(missing_ok=True)
+            if not isinstance(exc, sqlite3.IntegrityError):
+                raise
             raise SessionExists(f"a session named {name!r} already exists in {self.root}; "
                                 "choose another --session name or resume it") from None
         return self.session(name)
@@ -478,9 +507,19 @@ class Store:
     def add_rig_snapshot(self, session_id: int, config: dict[str, Any],
                          describe: dict[str, Any]) -> None:
         """Record the rig config and every device's ``describe()`` (one per run / resume)."""
+        taken = time.time()
+        self._journals.append(self._journal_of(session_id), "rig_snapshot",
+                              {"taken": taken, "config": config, "describe": describe})
         with self._write() as db:
             db.execute("INSERT INTO rig_snapshots (session_id, taken, config_json, describe_json) "
-                       "VALUES (?,?,?,?)", (session_id, time.time(), _dumps(config), _dumps(describe)))
+                       "VALUES (?,?,?,?)", (session_id, taken, _dumps(config), _dumps(describe)))
+
+    def _journal_of(self, session_id: int) -> Path | None:
+        """The session's journal file (see :mod:`.journal`), looked up once."""
+        if session_id not in self._journal_paths:
+            row = self._query("SELECT name, created FROM sessions WHERE id = ?", (session_id,))
+            self._journal_paths[session_id] = self._journals.path(*row[0]) if row else None
+        return self._journal_paths[session_id]
 
     def rig_snapshots(self, session_id: int) -> list[dict[str, Any]]:
         return [{"taken": r["taken"], "config": json.loads(r["config_json"]),
@@ -534,7 +573,31 @@ class Store:
         return self._files.path(sha256)
 
     def read_object(self, sha256: str) -> bytes:
-        return self.object_path(sha256).read_bytes()
+        """The bytes of a stored object, checked against their SHA-256 (what ``gonio session
+        verify`` checks, so both name the same damage); :class:`ObjectDamaged` naming every use
+        of a missing, truncated or altered file."""
+        path = self.object_path(sha256)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise ObjectDamaged(self._damage_text(sha256, "is missing")) from None
+        if hashlib.sha256(data).hexdigest() != sha256:
+            with self._read() as db:
+                row = db.execute("SELECT size FROM frames WHERE sha256 = ? LIMIT 1", (sha256,)).fetchone()
+            what = (f"is truncated ({len(data)} of {row[0]} bytes)" if row is not None and len(data) < row[0]
+                    else "is corrupt (its bytes no longer match their SHA-256)")
+            raise ObjectDamaged(self._damage_text(sha256, what))
+        return data
+
+    def _damage_text(self, sha256: str, what: str) -> str:
+        with self._read() as db:
+            ids = [r[0] for r in db.execute(
+                "SELECT session_id FROM frames WHERE sha256 = ? UNION SELECT r.session_id FROM "
+                "result_objects o JOIN results r ON r.id = o.result_id WHERE o.sha256 = ?", (sha256, sha256))]
+            names = dict(db.execute("SELECT id, name FROM sessions").fetchall())
+        uses = [f"session {names.get(i, i)!r} {u}" for i in ids for u in self._uses(i, [sha256]).get(sha256, [])]
+        return (f"stored file {self.object_path(sha256).relative_to(self.root)} {what}; used by "
+                f"{'; '.join(uses) or 'no row'} (gonio session verify lists every damaged file)")
 
     def put_object(self, data: bytes) -> str:
         """Store bytes durably (without a row referencing them); return their SHA-256 hex.
@@ -597,6 +660,13 @@ class Store:
         now = time.time()
         with self._writing():
             self._files.ensure(data, sha)
+            self._journals.append(self._journal_of(session_id), "frame", {
+                "step": step, "bracket_index": bracket_index, "repeat": repeat, "sha256": sha,
+                "size": len(data), "filename": filename, "format": format,
+                "exposure_requested_s": exposure_requested_s, "exposure_s": exposure_s, "iso": iso,
+                "fnumber": fnumber, "positions": positions or {},
+                "captured_at": now if captured_at is None else captured_at, "stored_at": now,
+                "metadata": metadata or {}})
             with self._write() as db:
                 # a concurrent writer may have dropped an identical, then-unreferenced file
                 # between our check and this transaction; writes are serialised, so re-check here
@@ -777,17 +847,59 @@ class Store:
         return self._lock_held("writers.lock")
 
     def collect_garbage(self) -> list[str]:
-        """Delete orphans (see :meth:`orphans`). Only safe with no writer running: use
-        :meth:`writer`, which calls this when it holds the store exclusively."""
+        """Take orphans out of ``objects/`` (see :meth:`orphans`): ``.tmp-`` files of interrupted
+        writes are deleted; unreferenced object files are *moved* to ``quarantine/``, never
+        deleted (a database restored from an older backup does not list newer frames: their
+        files may be the only copy; :meth:`rebuild_index` takes them back). Returns the paths
+        taken out, relative to the store. Only safe with no writer running: use :meth:`writer`,
+        which calls this when it holds the store exclusively."""
         removed = []
         for p in self.orphans():
             with contextlib.suppress(FileNotFoundError):
-                p.unlink()
+                if p.name.startswith(TMP_PREFIX):
+                    p.unlink()
+                else:
+                    self.quarantine.mkdir(exist_ok=True)
+                    os.replace(p, self.quarantine / (p.parent.name + p.name))
                 removed.append(str(p.relative_to(self.root)))
         return removed
 
+    @property
+    def quarantine(self) -> Path:
+        """``quarantine/``: object files no row referenced when a writer started, by SHA-256."""
+        return self.root / QUARANTINE_DIR
+
+    def quarantined(self) -> list[Path]:
+        """Files in :attr:`quarantine`, sorted."""
+        return sorted(self.quarantine.iterdir()) if self.quarantine.is_dir() else []
+
+    def purge_quarantine(self, min_age_s: float = QUARANTINE_MIN_AGE_S) -> list[str]:
+        """Delete quarantined files that have been there at least ``min_age_s`` seconds (their
+        inode change time is when they were moved in); returns their paths. Refused while a
+        session is written (:class:`SessionBusy`), like :meth:`remove_orphans`."""
+        fd = self._lock_file("writers.lock")
+        try:
+            if not _try_lock(fd):
+                raise SessionBusy(f"a session in {self.root} is being written; try again once it ends")
+            cutoff, removed = time.time() - min_age_s, []
+            for p in self.quarantined():
+                with contextlib.suppress(FileNotFoundError):
+                    if p.stat().st_ctime <= cutoff:
+                        p.unlink()
+                        removed.append(str(p.relative_to(self.root)))
+            return removed
+        finally:
+            os.close(fd)
+
+    def rebuild_index(self) -> "RebuildReport":
+        """Put back the sessions and frames the database lacks, from the session journals and
+        the frame files (:mod:`capture.store.rebuild`)."""
+        from .rebuild import rebuild_index
+        return rebuild_index(self)
+
     def remove_orphans(self) -> list[str]:
-        """Delete orphans and ``.tmp-`` files now (what :meth:`writer` does when a runner starts),
+        """Take orphans out now (what :meth:`writer` does when a runner starts: ``.tmp-`` files
+        deleted, object files moved to ``quarantine/``, see :meth:`collect_garbage`),
         returning their paths relative to the store.
 
         Raises
@@ -911,6 +1023,10 @@ class Store:
                     raise StoreError(f"cannot export {session!r}: object {sha} is corrupt; "
                                      f"run 'gonio session verify {session}'")
                 os.chmod(dst, 0o444)
+            journal = self._journal_of(info.id)
+            if journal is not None and journal.is_file():   # the export can rebuild its own index
+                (folder / journal.parent.name).mkdir(exist_ok=True)
+                shutil.copyfile(journal, folder / journal.parent.name / journal.name)
             if archive is None:
                 return dest
             pack(folder, dest, archive)

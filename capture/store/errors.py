@@ -30,6 +30,11 @@ class StoreDamaged(StoreError):
     """The database file is damaged, truncated or empty while frame files exist."""
 
 
+class ObjectDamaged(StoreDamaged):
+    """A stored file (a frame or a result's artifact) is missing or its bytes no longer hash to
+    its name; the message names where the session uses it (step, bracket, repeat, file name)."""
+
+
 class ForeignDatabase(StoreError):
     """``gonio.sqlite`` is some other program's SQLite database."""
 

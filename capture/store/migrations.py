@@ -103,6 +103,27 @@ def _m2_indexes(db: sqlite3.Connection) -> None:
     """)
 
 
+def foreign_tables(db: sqlite3.Connection) -> list[str]:
+    """What a non-empty database lacks of gonio's first schema (``table.column`` or ``table``,
+    empty for a gonio store): two tables named ``sessions`` and ``schema_version`` do not make
+    some other program's database gonio's to migrate and write."""
+    want = sqlite3.connect(":memory:")
+    _m1_initial(want)
+    missing = [] if _has_table(db, "schema_version") else ["schema_version"]
+    for (table,) in want.execute("SELECT name FROM sqlite_master WHERE type = 'table'"):
+        have = {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
+        if not have:
+            missing.append(table)
+        else:
+            missing += [f"{table}.{r[1]}" for r in want.execute(f"PRAGMA table_info({table})") if r[1] not in have]
+    want.close()
+    return missing
+
+
+def _has_table(db: sqlite3.Connection, name: str) -> bool:
+    return db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (name,)).fetchone() is not None
+
+
 #: ordered forward migrations; migration i brings the schema to version i + 1
 MIGRATIONS: list[Callable[[sqlite3.Connection], None]] = [_m1_initial, _m2_indexes]
 SCHEMA_VERSION = len(MIGRATIONS)

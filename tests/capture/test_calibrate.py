@@ -378,7 +378,8 @@ def test_cli_calibrate_table_report_and_exit_code(session, tmp_path):
         assert stage in r.output
     assert "rms_px" in r.output and "axis" in r.output
     assert (tmp_path / "out" / "cal-calibration.png").stat().st_size > 50_000
-    assert len(store.results(store.session("cal").id)) == before + len(STAGES)
+    # every stage, and the record that closes a whole run (capture.pipeline.calibration_record)
+    assert len(store.results(store.session("cal").id)) == before + len(STAGES) + 1
     r = CliRunner().invoke(app, ["calibrate", "cal", "--store", str(root / "store"),
                                  "--targets", str(targets), "--out", str(tmp_path / "out"), "-q", "--json"])
     assert r.exit_code == 0, r.output

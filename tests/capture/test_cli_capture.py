@@ -59,8 +59,9 @@ def test_plan_with_sim_rig_lists_steps(tmp_path):
     assert r.exit_code == 0, r.output
     assert "limits checked" in r.output and "steps 2, frames 2" in r.output
     assert "az 0° el 40°" in r.output
-    # the simulated PTP camera's describe() has no image size: the estimate says it guessed
-    assert "frame size 25.0 MB assumed (the camera does not report its image size)" in r.output
+    # the simulated PTP camera's describe() has no image size; the built-in lab's [rig] table
+    # states its resolution (320 x 240: a 16-bit mosaic and a header, not the 25 MB default)
+    assert "frame size 219.1 kB (from the camera)" in r.output
 
 
 def test_help_explains_plans_store_resume_and_exit_codes():
@@ -113,10 +114,11 @@ def test_run_then_list_show_verify_export(tmp_path):
     assert r.exit_code == 1
     assert f"corrupt: {f.sha256}" in r.output and f"orphaned: objects/{orphan[:2]}/{orphan[2:]}" in r.output
     r = cli.invoke(session_app, ["verify", "one", "--store", str(store), "--remove-orphans"])
-    assert r.exit_code == 1 and "removed 1 orphaned file(s)" in r.output  # still corrupt
+    assert r.exit_code == 1 and "took 1 orphaned file(s) out of objects/" in r.output  # still corrupt
     assert "0 missing, 1 corrupt, 0 orphaned" in r.output
     with Store(store) as st:
         assert not st.object_path(orphan).exists() and st.object_path(f.sha256).exists()
+        assert [p.name for p in st.quarantined()] == [orphan]   # moved aside, never deleted
     r = cli.invoke(session_app, ["show", "nope", "--store", str(store)])
     assert r.exit_code == 2 and "no session 'nope'" in r.output
 

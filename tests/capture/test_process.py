@@ -310,3 +310,119 @@ def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captur
     assert "truth_rel_rms" not in rep.method("lambertian").figures
     assert "held-out rel. RMS" in text
     store.close()
+
+
+# -- nothing lost (issue 19): a killed process, a second process, damaged frames, hostile names ----
+def _copy(root, tmp_path):
+    shutil.copytree(root / "store", tmp_path / "store")
+    return tmp_path / "store"
+
+
+def _killed_at(store_dir, hook: str, report) -> int:
+    """Run a forced ``process_session`` in a forked child that SIGKILLs itself at the calibration
+    stage boundary ``hook``; returns the child's exit code."""
+    import multiprocessing
+    import os
+    import signal
+    from capture.store import crash
+
+    def child():
+        crash.point = lambda name: os.kill(os.getpid(), signal.SIGKILL) if name == hook else None
+        with Store(store_dir, durable=False) as st:
+            process_session(st, "proc", methods=["lambertian"], force=True, report_path=report)
+        os._exit(0)
+    p = multiprocessing.get_context("fork").Process(target=child)
+    p.start()
+    p.join()
+    return p.exitcode
+
+
+def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_same_figures(
+        processed, captured, tmp_path):
+    """The crash run's core (benchmarks/process_crash.py kills at every stage boundary): a kill
+    after some calibration stages are stored leaves a calibration that is never reused as it is."""
+    from capture.pipeline.calibration_record import stored_calibration
+    rep, _ = processed
+    reference = rep.method("lambertian").figures["held_out_rel_rms"]
+    store_dir = _copy(captured[2], tmp_path)
+    assert _killed_at(store_dir, "calibration lights", tmp_path / "k.html") == -9
+    with Store(store_dir, durable=False) as st:
+        sid = st.session("proc").id
+        state = stored_calibration(st, sid)
+        assert not state.complete and "stopped after storing" in state.why and "intrinsics" in state.why
+        before = len(st.results(sid, "reconstruction"))
+        again = process_session(st, "proc", methods=["lambertian"], report_path=tmp_path / "r.html")
+        assert again.calibration[0]["status"] == "redone" and "incomplete" in again.calibration[0]["reason"]
+        lam = again.method("lambertian")   # its stored fit used the old calibration: fitted again
+        assert lam.status == "ok" and lam.figures["held_out_rel_rms"] == pytest.approx(reference, rel=1e-9)
+        assert stored_calibration(st, sid).complete
+        assert len(st.results(sid, "reconstruction")) == before + 1
+        assert st.verify("proc").ok
+
+
+def test_a_second_process_on_a_session_being_processed_is_refused(captured, tmp_path):
+    store_dir = _copy(captured[2], tmp_path)
+    with Store(store_dir, durable=False) as st, st.writer("proc"):
+        before = st.results(st.session("proc").id)
+        r = CliRunner().invoke(app, ["process", "proc", "--store", str(store_dir), "-q", "--methods", "lambertian"])
+        assert r.exit_code == 2 and "is being written by another process" in " ".join(r.output.split())
+        assert st.results(st.session("proc").id) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["store"]   # no report either
+
+
+@pytest.mark.parametrize("damage", ["flip", "delete"])   # truncated: test_nothing_lost (store level)
+def test_process_and_verify_name_the_same_damaged_frame(captured, tmp_path, damage):
+    store_dir = _copy(captured[2], tmp_path)
+    with Store(store_dir, durable=False) as st:
+        sid = st.session("proc").id
+        measure = [i for i, d, _ in st.steps(sid) if d["kind"] == "measure"]
+        f = st.frames(sid, step=measure[1])[0]
+        path = st.object_path(f.sha256)
+        before = len(st.results(sid))
+    path.chmod(0o644)
+    data = path.read_bytes()
+    if damage == "flip":
+        path.write_bytes(data[:5000] + bytes([data[5000] ^ 1]) + data[5001:])
+    else:
+        path.unlink()
+    where = f"step {f.step} frame {f.bracket_index} of the bracket, repeat {f.repeat}"
+    # passive is not stored (no passive capture): the inputs are read again
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(store_dir), "-q", "--methods", "passive"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and where in said and "Traceback" not in said, said
+    assert {"flip": "is corrupt", "delete": "is missing"}[damage] in said
+    from capture.cli.session import app as session_app
+    v = CliRunner().invoke(session_app, ["verify", "proc", "--store", str(store_dir)])
+    assert v.exit_code == 1 and where in " ".join(v.output.split())
+    with Store(store_dir, durable=False) as st:
+        assert len(st.results(st.session("proc").id)) == before
+
+
+def test_a_hostile_stored_name_writes_its_report_inside_the_folder(processed, captured, tmp_path):
+    import sqlite3
+    store_dir = _copy(captured[2], tmp_path / "lab")
+    db = sqlite3.connect(store_dir / "gonio.sqlite")
+    db.execute("UPDATE sessions SET name = '../../escape' WHERE name = 'proc'")
+    db.commit()
+    db.close()
+    r = CliRunner().invoke(app, ["process", "../../escape", "--store", str(store_dir), "-q",
+                                 "--methods", "lambertian"])
+    assert r.exit_code == 0, r.output
+    sid = Store(store_dir, readonly=True).session("../../escape").id
+    assert sorted(p.name for p in (tmp_path / "lab").iterdir()) == sorted(
+        ["store", f"session-{sid}-report.html", f"session-{sid}-report.json"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lab"]
+
+
+@pytest.mark.parametrize("out, words", [(".", "is a folder"), ("/dev/full", "not a regular file"),
+                                        ("nowhere/r.html", "does not exist")])
+def test_a_bad_out_is_refused_before_any_work(captured, tmp_path, out, words, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(captured[2] / "store"), "--out", out])
+    assert r.exit_code == 2 and words in " ".join(r.output.split())
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_methods_naming_nothing_is_refused(captured):
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(captured[2] / "store"), "--methods", ",,,"])
+    assert r.exit_code == 2 and "names no method" in r.output

@@ -1,0 +1,139 @@
+"""Options of every command that takes a path, a name or a number (issue 19 #9 #12): a message
+naming the option, exit status 2, nothing written anywhere."""
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from capture.cli import app
+from capture.outputs import OutputError, check_out_file, session_file, write_atomically
+from capture.plan import MotionModel
+
+cli = CliRunner()
+
+
+def _files(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def test_an_empty_store_option_is_refused_not_the_current_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for args in (["session", "list", "--store", ""], ["process", "x", "--store", " "],
+                 ["calibrate", "x", "--store", ""]):
+        r = cli.invoke(app, args)
+        assert r.exit_code == 2 and "--store is empty" in r.output, (args, r.output)
+    assert _files(tmp_path) == []
+
+
+def test_demo_refuses_an_out_that_already_holds_a_demo_or_is_a_file(tmp_path):
+    (tmp_path / "done" / "store").mkdir(parents=True)
+    (tmp_path / "done" / "report.html").write_text("kept")
+    r = cli.invoke(app, ["demo", "--quick", "--out", str(tmp_path / "done"), "-q"])
+    assert r.exit_code == 2 and "already holds a demo" in " ".join(r.output.split())
+    (tmp_path / "file").write_text("kept")
+    r = cli.invoke(app, ["demo", "--quick", "--out", str(tmp_path / "file"), "-q"])
+    assert r.exit_code == 2 and "is a file, not a folder" in r.output
+    assert _files(tmp_path) == ["done", "done/report.html", "done/store", "file"]
+    assert (tmp_path / "done" / "report.html").read_text() == "kept"
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--name", "../escape"], "--name '../escape'"),
+    (["--name", "/tmp/abs"], "--name '/tmp/abs'"),
+    (["--name", "-rf"], "--name '-rf'"),
+    (["--turntable", "nan"], "--turntable must be a finite number"),
+    (["--light-el", "inf"], "--light-el must be a finite number"),
+    (["--exposure", "inf"], "--exposure must be > 0"),
+    (["--width", "100000", "--height", "64"], "in 16..8192"),
+])
+def test_sim_render_refuses_hostile_names_and_numbers(tmp_path, args, words):
+    out = tmp_path / "out"
+    r = cli.invoke(app, ["sim", "render", "--out", str(out), "--width", "32", "--height", "32", *args])
+    assert r.exit_code == 2 and words in r.output, r.output
+    assert _files(tmp_path) == []
+
+
+def test_sim_render_refuses_an_out_that_is_a_file(tmp_path):
+    (tmp_path / "f").write_text("kept")
+    r = cli.invoke(app, ["sim", "render", "--out", str(tmp_path / "f"), "--width", "32", "--height", "32"])
+    assert r.exit_code == 2 and "is a file, not a folder" in r.output and (tmp_path / "f").read_text() == "kept"
+
+
+def test_report_names_from_stored_session_names_stay_in_their_folder(tmp_path):
+    assert session_file(tmp_path, "proc", 3, "-report.html") == tmp_path / "proc-report.html"
+    for hostile in ("../../escape", "/etc/x", "..", "a/b", "-rf", "\x1b[31mred", "", "a\nb"):
+        assert session_file(tmp_path, hostile, 7, "-report.html") == tmp_path / "session-7-report.html"
+    (tmp_path / "proc-report.html").symlink_to("/tmp/elsewhere.html")   # a link cannot lead it out
+    with pytest.raises(OutputError, match="leads outside"):
+        session_file(tmp_path, "proc", 3, "-report.html")
+
+
+def test_out_files_are_checked_and_written_whole(tmp_path):
+    for path, words in ((tmp_path, "is a folder"), ("/dev/full", "not a regular file"),
+                        (tmp_path / "no" / "r.html", "does not exist")):
+        with pytest.raises(OutputError, match=words):
+            check_out_file(path)
+    target = tmp_path / "r.html"
+    write_atomically(target, "old report")
+    # a full disk mid-write: the old report stays whole, no temporary file is left
+    import os
+    real = os.fsync
+
+    def full(fd):
+        raise OSError(28, "No space left on device")
+    os.fsync = full
+    try:
+        with pytest.raises(OSError, match="No space"):
+            write_atomically(target, "new report " * 1000)
+    finally:
+        os.fsync = real
+    assert target.read_text() == "old report" and _files(tmp_path) == ["r.html"]
+
+
+def test_the_space_estimate_uses_the_simulated_cameras_resolution():
+    class SimRig:   # the built-in lab's camera reports no image size; its [rig] table does
+        config = {"rig": {"camera_resolution": [320, 240]}}
+
+        def describe(self):
+            return {"camera": {"driver": "ptp"}}
+    model = MotionModel.from_rig(SimRig())
+    assert model.frame_bytes_source == "camera"
+    assert 320 * 240 * 2 <= model.frame_bytes < 320 * 240 * 2 + 100_000   # a 16-bit mosaic + header
+
+
+def test_a_full_disk_during_process_exits_4_keeping_what_was_stored(tmp_path, monkeypatch):
+    import trimesh
+    from capture.pipeline import run
+    from capture.store import Store, StoreFull
+    with Store(tmp_path / "store", durable=False) as st:
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"frames": 0}]).id
+        st.add_calibration(sid, "dark", result={"kept": True})
+    trimesh.creation.box((50.0, 50.0, 50.0)).export(tmp_path / "box.ply")
+
+    def full(*args, **kw):
+        raise StoreFull("no space left on the disk holding the store while writing a 0.2 MB frame")
+    monkeypatch.setattr(run, "process_session", full)
+    r = cli.invoke(app, ["process", "s1", "--store", str(tmp_path / "store"), "--mesh", str(tmp_path / "box.ply"), "-q"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 4 and "the disk is full" in said and "run the same command again to resume" in said
+    with Store(tmp_path / "store", readonly=True) as st:
+        assert st.results(st.session("s1").id)[0].result == {"kept": True}
+
+
+def test_process_without_calibration_captures_says_what_the_session_lacks(tmp_path):
+    import trimesh
+    from capture.store import Store
+    with Store(tmp_path / "store", durable=False) as st:
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"kind": "measure", "frames": 1}]).id
+        st.add_frame(sid, 0, 0, 0, data=b"raw" * 50, filename="a.dng", format="dng",
+                     exposure_requested_s=0.01, exposure_s=0.01, completes_step=True)
+        before = st.results(sid)
+    trimesh.creation.box((50.0, 50.0, 50.0)).export(tmp_path / "box.ply")
+    r = cli.invoke(app, ["process", "s1", "--store", str(tmp_path / "store"), "--mesh", str(tmp_path / "box.ply"),
+                         "--targets", str(tmp_path / "none.toml"), "-q"])
+    assert r.exit_code == 2 and "none.toml" in r.output       # --targets checked first
+    r = cli.invoke(app, ["process", "s1", "--store", str(tmp_path / "store"), "--mesh", str(tmp_path / "box.ply"), "-q"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 3 and "has no calibration captures" in said and "gonio calibrate" not in said, said
+    with Store(tmp_path / "store", readonly=True) as st:
+        assert st.results(st.session("s1").id) == before
