@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import cv2
@@ -50,7 +51,8 @@ from reconstruct.raycast import Mesh, Surface, first_hits
 from ..store import FrameRecord, Store
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
-           "PassiveInput", "ProcessInputs", "read_calibration", "merge_step", "session_inputs",
+           "StepBracket", "PoseSpec", "ViewPlan", "PassiveInput", "ProcessInputs", "read_calibration",
+           "merge_step", "merge_bracket", "view_plan", "pose_view", "passive_input", "session_inputs", "plan_inputs",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose", "load_mesh"]
 
 class ProcessError(ValueError):
@@ -246,6 +248,28 @@ class StepImage:
     frame_ids: list[int]
 
 
+@dataclass(frozen=True)
+class StepBracket:
+    """Where one step's raw bracket lies, for a merge that needs no store connection (a cluster
+    worker reads the files): the frame files ``paths`` and their exposure times ``exposures_s``,
+    the master darks ``darks`` (exposure s -> ``.npy`` object file), the read noise (DN)."""
+
+    step: int
+    spec: dict[str, Any]
+    paths: tuple[str, ...]
+    exposures_s: tuple[float, ...]
+    frame_ids: tuple[int, ...]
+    darks: tuple[tuple[float, str], ...]
+    read_noise_dn: float
+
+    def dark(self, t: float) -> np.ndarray | None:
+        """The master dark taken at ``t`` (within 1 %), or None."""
+        for te, path in self.darks:
+            if abs(te - t) <= 0.01 * t:
+                return np.load(path)
+        return None
+
+
 class _Frames:
     """The session's frames by step and its master darks (from the stored dark calibration)."""
 
@@ -257,48 +281,54 @@ class _Frames:
         for f in store.frames(self.info.id):
             self.by_step.setdefault(f.step, []).append(f)
         res = _latest(store, self.info.id)
-        self.darks: dict[float, np.ndarray] = {}
+        self.darks: list[tuple[float, str]] = []
         self.read_noise = 1.0
         if "dark" in res:
             d = res["dark"]
             self.read_noise = float(d["result"].get("read_noise_dn") or 1.0)
             for name, sha in d["artifacts"].items():
                 t = float(name.removeprefix("dark_").removesuffix("s.npy"))
-                self.darks[t] = np.load(io.BytesIO(store.read_object(sha)))
+                self.darks.append((t, str(store.object_path(sha))))
 
-    def dark(self, t: float) -> np.ndarray | None:
-        for te, dark in self.darks.items():
-            if abs(te - t) <= 0.01 * t:
-                return dark
-        return None
+    def bracket(self, step: int) -> StepBracket:
+        """Step ``step``'s frames as files.
+
+        Raises
+        ------
+        ProcessError
+            The step has no stored frames or a frame lacks its exposure time (names the frame).
+        """
+        recs = self.by_step.get(step)
+        if not recs:
+            raise ProcessError(f"step {step} has no stored frames")
+        ts = []
+        for f in recs:
+            t = f.exposure_s or f.exposure_requested_s
+            if not t or t <= 0:
+                raise ProcessError(f"frame {f.id} (step {step}) has no exposure time")
+            ts.append(float(t))
+        return StepBracket(step, self.steps[step], tuple(str(self.store.object_path(f.sha256)) for f in recs),
+                           tuple(ts), tuple(f.id for f in recs), tuple(self.darks), self.read_noise)
 
 
 def merge_step(frames: _Frames, step: int) -> StepImage:
-    """HDR radiance of one step's raw bracket (all exposures and repeats), dark-subtracted.
+    """HDR radiance of one step's raw bracket (all exposures and repeats), dark-subtracted
+    (:func:`merge_bracket` of the step's files)."""
+    return merge_bracket(frames.bracket(step))
 
-    Raises
-    ------
-    ProcessError
-        The step has no stored frames or a frame lacks its exposure time (names the frame).
-    """
-    recs = frames.by_step.get(step)
-    if not recs:
-        raise ProcessError(f"step {step} has no stored frames")
-    raws, ts = [], []
-    for f in recs:
-        t = f.exposure_s or f.exposure_requested_s
-        if not t or t <= 0:
-            raise ProcessError(f"frame {f.id} (step {step}) has no exposure time")
-        raws.append(read_raw(frames.store.read_object(f.sha256), name=f"frame {f.id} (step {step})"))
-        ts.append(float(t))
-    found = [frames.dark(t) for t in ts]
+
+def merge_bracket(b: StepBracket) -> StepImage:
+    """HDR radiance of a raw bracket read from its files, dark-subtracted."""
+    raws = [read_raw(Path(path).read_bytes(), name=f"frame {fid} (step {b.step})")
+            for path, fid in zip(b.paths, b.frame_ids)]
+    found = [b.dark(t) for t in b.exposures_s]
     darks = np.stack([raws[0].black_level if d is None else d for d in found])
-    hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
-                             white_level=raws[0].white_level, read_noise_dn=frames.read_noise, darks=darks)
+    hdr = merge_raw_brackets([r.data for r in raws], list(b.exposures_s), black_level=raws[0].black_level,
+                             white_level=raws[0].white_level, read_noise_dn=b.read_noise_dn, darks=darks)
     img = demosaic_bilinear(hdr.radiance, raws[0].channels)
     # a pixel is unusable where any photosite of its 3 x 3 demosaic neighbourhood clipped everywhere
     clipped = cv2.dilate(hdr.saturated.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    return StepImage(step, frames.steps[step], img, ~clipped, [f.id for f in recs])
+    return StepImage(b.step, b.spec, img, ~clipped, list(b.frame_ids))
 
 
 # -- the inputs of all methods -----------------------------------------------------------------
@@ -381,10 +411,117 @@ def _analyser(angle: float | None) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class PoseSpec:
+    """One measurement pose (turntable reading x light) before any image is read: its steps'
+    brackets (one per analyser state), which of them make the view (``used``: indices, parallel
+    then crossed when both were captured), its calibrated light (lab, mm) and object pose."""
+
+    reading: float
+    brackets: tuple[StepBracket, ...]
+    used: tuple[int, ...]
+    light_mm: np.ndarray
+    held_out: bool
+
+    @property
+    def separated(self) -> bool:
+        return len(self.used) == 2
+
+    @property
+    def steps(self) -> tuple[int, ...]:
+        return tuple(self.brackets[i].step for i in self.used)
+
+    @property
+    def frame_ids(self) -> list[int]:
+        return [f for i in self.used for f in self.brackets[i].frame_ids]
+
+
+@dataclass(frozen=True)
+class ViewPlan:
+    """What :func:`session_inputs` will read, as files: the measurement ``poses`` in capture
+    order and the ``passive`` step's bracket (None: none captured, or no mesh / probe map, with
+    the reason in ``notes``)."""
+
+    poses: tuple[PoseSpec, ...]
+    passive: StepBracket | None
+    notes: tuple[str, ...]
+
+    @property
+    def ordered(self) -> list[PoseSpec]:
+        """Training poses then held-out ones: the view order of the lumitexels."""
+        return [p for p in self.poses if not p.held_out] + [p for p in self.poses if p.held_out]
+
+
+def view_plan(store: Store, session: str, cal: SessionCalibration, *, mesh: trimesh.Trimesh | None = None) -> ViewPlan:
+    """The session's measurement poses and passive step as files (:func:`session_inputs`'s
+    first half: no image is read).
+
+    Raises
+    ------
+    ProcessError
+        No measurement steps, a measurement step without a calibrated light, or every light
+        held out.
+    """
+    frames = _Frames(store, session)
+    measure = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "measure" and frames.by_step.get(i)]
+    passive = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "passive" and frames.by_step.get(i)]
+    if not measure:
+        raise ProcessError(f"session {session!r} has no stored measurement steps")
+    missing = [i for i in measure if i not in cal.lights_mm]
+    if missing:
+        raise ProcessError(f"no calibrated light for measurement step(s) {missing[:5]} (commanded "
+                           f"{frames.steps[missing[0]].get('light')}): the {cal.light_source} calibration "
+                           "does not cover them; add spheres captures at those lights")
+    # poses: (turntable, light) -> the steps at each analyser angle
+    grouped: dict[tuple, list[int]] = {}
+    for i in measure:
+        d = frames.steps[i]
+        grouped.setdefault((d.get("turntable_deg"), repr(_light_key(d["light"]))), []).append(i)
+    poses = []
+    for (reading, _), steps in grouped.items():
+        brackets = tuple(frames.bracket(s) for s in steps)
+        by = {_analyser(b.spec.get("polarizer_deg")): k for k, b in enumerate(brackets)}
+        if "parallel" in by and "crossed" in by:
+            used = (by["parallel"], by["crossed"])
+        else:  # one analyser state (or none): a plain view
+            used = (next((by[a] for a in (None, "parallel") if a in by), 0),)
+        first = brackets[used[0]]
+        poses.append(PoseSpec(reading or 0.0, brackets, used, cal.lights_mm[first.step], bool(first.spec.get("held_out"))))
+    if all(p.held_out for p in poses):
+        raise ProcessError(f"session {session!r}: every measurement light is held out; nothing to fit")
+    notes, p_bracket = [], None
+    if passive:
+        if cal.environment is None:
+            notes.append("passive capture present but no mirror-probe environment map is stored: "
+                         "passive reflectometry skipped")
+        elif mesh is None:
+            notes.append("passive capture present but no mesh: passive reflectometry skipped")
+        else:
+            p_bracket = frames.bracket(passive[0])
+    return ViewPlan(tuple(poses), p_bracket, tuple(notes))
+
+
+def pose_view(pose: PoseSpec, images: Sequence[StepImage], cal: SessionCalibration) -> View:
+    """The view of one pose from its merged brackets (``images`` in ``pose.brackets``' order):
+    parallel + crossed summed, with the polarization split, or the one plain image."""
+    valid = np.logical_and.reduce([im.valid for im in images])
+    if pose.separated:
+        par, cro = (images[i] for i in pose.used)
+        sep = separate_parallel_crossed(par.radiance, cro.radiance)
+        radiance, diffuse, specular = par.radiance + cro.radiance, sep.diffuse, sep.specular
+    else:
+        radiance, diffuse, specular = images[pose.used[0]].radiance, None, None
+    return View(camera=cal.camera, radiance=radiance, light_position=pose.light_mm,
+                light_intensity=cal.light_intensity, object_to_world=cal.object_pose(pose.reading),
+                valid=valid, diffuse=diffuse, specular=specular)
+
+
 def session_inputs(store: Store, session: str, *, calibration: SessionCalibration | None = None,
                    mesh: trimesh.Trimesh | None = None,
                    progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
-    """Turn a calibrated session's measurement (and passive) steps into method inputs.
+    """Turn a calibrated session's measurement (and passive) steps into method inputs, every
+    view's images in memory (:func:`capture.pipeline.lumitexel_arrays.stream_lumitexels` is the
+    out-of-core route).
 
     Parameters
     ----------
@@ -403,75 +540,54 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
         No measurement steps, or a measurement step without a calibrated light.
     """
     cal = read_calibration(store, session) if calibration is None else calibration
-    frames = _Frames(store, session)
-    measure = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "measure" and frames.by_step.get(i)]
-    passive = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "passive" and frames.by_step.get(i)]
-    if not measure:
-        raise ProcessError(f"session {session!r} has no stored measurement steps")
-    missing = [i for i in measure if i not in cal.lights_mm]
-    if missing:
-        raise ProcessError(f"no calibrated light for measurement step(s) {missing[:5]} (commanded "
-                           f"{frames.steps[missing[0]].get('light')}): the {cal.light_source} calibration "
-                           "does not cover them; add spheres captures at those lights")
-    # poses: (turntable, light) -> the steps at each analyser angle
-    poses: dict[tuple, list[int]] = {}
-    for i in measure:
-        d = frames.steps[i]
-        poses.setdefault((d.get("turntable_deg"), repr(_light_key(d["light"]))), []).append(i)
-    total = len(measure) + len(passive)
+    plan = view_plan(store, session, cal, mesh=mesh)
+    total = sum(len(p.brackets) for p in plan.poses) + (plan.passive is not None)
     done = 0
-    views, held, vsteps, hsteps, frame_ids, notes = [], [], [], [], [], []
-    separated_all = True
-    for (reading, _), steps in poses.items():
+    views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
+    for pose in plan.poses:
         imgs = []
-        for s in steps:
-            imgs.append(merge_step(frames, s))
+        for b in pose.brackets:
+            imgs.append(merge_bracket(b))
             done += 1
             if progress is not None:
                 progress(done, total)
-        by = {_analyser(im.spec.get("polarizer_deg")): im for im in imgs}
-        valid = np.logical_and.reduce([im.valid for im in imgs])
-        if "parallel" in by and "crossed" in by:
-            par, cro = by["parallel"], by["crossed"]
-            sep = separate_parallel_crossed(par.radiance, cro.radiance)
-            radiance, diffuse, specular = par.radiance + cro.radiance, sep.diffuse, sep.specular
-            used = [par, cro]
-        else:  # one analyser state (or none): a plain view
-            im = by.get(None) or by.get("parallel") or imgs[0]
-            radiance, diffuse, specular, used = im.radiance, None, None, [im]
-            separated_all = False
-        spec = used[0].spec
-        view = View(camera=cal.camera, radiance=radiance, light_position=cal.lights_mm[used[0].step],
-                    light_intensity=cal.light_intensity, object_to_world=cal.object_pose(reading or 0.0),
-                    valid=valid, diffuse=diffuse, specular=specular)
-        ids = tuple(im.step for im in used)
-        if spec.get("held_out"):
-            held.append(view)
-            hsteps.append(ids)
-        else:
-            views.append(view)
-            vsteps.append(ids)
-        frame_ids += [f for im in used for f in im.frame_ids]
-    if not views:
-        raise ProcessError(f"session {session!r}: every measurement light is held out; nothing to fit")
+        (held if pose.held_out else views).append(pose_view(pose, imgs, cal))
+        (hsteps if pose.held_out else vsteps).append(pose.steps)
+        frame_ids += pose.frame_ids
     p_input = None
-    if passive:
-        if cal.environment is None:
-            notes.append("passive capture present but no mirror-probe environment map is stored: "
-                         "passive reflectometry skipped")
-        elif mesh is None:
-            notes.append("passive capture present but no mesh: passive reflectometry skipped")
-        else:
-            im = merge_step(frames, passive[0])
-            done += 1
-            if progress is not None:
-                progress(done, total)
-            p_input = _passive_input(im, cal, mesh)
+    if plan.passive is not None:
+        p_input = passive_input(merge_bracket(plan.passive), cal, mesh)
+        if progress is not None:
+            progress(total, total)
     return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
-                         view_frames=frame_ids, passive=p_input, separated=separated_all, notes=notes)
+                         view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
+                         notes=list(plan.notes))
 
 
-def _passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh) -> PassiveInput:
+def plan_inputs(plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh | None, *,
+                images_of: int | None = None) -> ProcessInputs:
+    """The method inputs of a streamed run (:mod:`capture.pipeline.lumitexel_arrays` holds the
+    samples): every view's geometry (camera, light, pose) with ``radiance`` None, except the view
+    ``images_of`` (index in :attr:`ViewPlan.ordered`), merged again for the report's pictures;
+    the passive input merged from its one image."""
+    views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
+    for k, pose in enumerate(plan.ordered):
+        if k == images_of:
+            view = pose_view(pose, [merge_bracket(b) for b in pose.brackets], cal)
+        else:
+            view = View(camera=cal.camera, radiance=None, light_position=pose.light_mm,
+                        light_intensity=cal.light_intensity, object_to_world=cal.object_pose(pose.reading))
+        (held if pose.held_out else views).append(view)
+        (hsteps if pose.held_out else vsteps).append(pose.steps)
+    for pose in plan.poses:
+        frame_ids += pose.frame_ids
+    p_input = None if plan.passive is None else passive_input(merge_bracket(plan.passive), cal, mesh)
+    return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
+                         view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
+                         notes=list(plan.notes))
+
+
+def passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh) -> PassiveInput:
     """Per-pixel lab-frame normals and view directions of the object in the passive image."""
     cam = cal.camera
     pose = cal.object_pose(im.spec.get("turntable_deg") or 0.0)
