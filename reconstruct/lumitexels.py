@@ -398,6 +398,9 @@ def view_samples(geom: AssemblyGeometry, view: View, cam: CameraModel, light: np
     cos_o = np.einsum("ij,ij->i", normal, to_c)
     cos_i = np.einsum("ij,ij->i", normal, to_l)
     cand = np.flatnonzero((cos_o > geom.min_cos) & (cos_i > geom.min_cos))
+    if len(cand) == 0:   # a block facing away (the projection takes no empty input)
+        empty = np.zeros((0, 3), np.float32)
+        return ViewSamples(cand, empty, empty, empty, empty if separated else None, empty if separated else None)
     px = cam.project(position[cand])
     inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= cam.width - 1) & \
              (px[:, 1] <= cam.height - 1)

@@ -1,0 +1,227 @@
+"""Streaming and Dask: the same lumitexels from every executor, resumed runs and killed workers;
+time and peak memory against today's in-memory inputs.
+
+    python benchmarks/scale.py --store /tmp/demo/store        # a `gonio demo --quick --out /tmp/demo` store
+    python benchmarks/scale.py --store ... --only scheduler    # one part
+
+Parts (each prints its figures):
+
+- ``memory``: peak RSS (a fresh process each) of today's in-memory route (every view merged,
+  then :func:`reconstruct.lumitexels.assemble_lumitexels`) against the streamed one, with time;
+- ``executors``: the streamed lumitexels in-process, on 1 and on 2 local workers: stored
+  ``samples`` array and gathered lumitexels compared bit for bit with the in-memory route's;
+  time with 1 and 2 workers (ratio);
+- ``resume``: a streamed run SIGKILLed after a third of its views, then run again: the views
+  reused and the result compared;
+- ``kill_worker``: a 2-worker run in which one worker process is SIGKILLed mid-run;
+- ``scheduler``: ``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1 over TCP,
+  ``gonio process --scheduler`` on the session (lambertian), figures compared with in-process.
+
+Timings are wall-clock on whatever machine runs it; on a shared, loaded machine they swing.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
+from capture.pipeline.lumitexel_arrays import stream_lumitexels  # noqa: E402
+from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_inputs,  # noqa: E402
+                                      view_plan)
+from capture.pipeline.run import _built_in_lab_options  # noqa: E402
+from capture.store import Store  # noqa: E402
+
+SESSION = "demo-quick"
+BLOCK = 4096
+
+
+def _setup(store_path: str):
+    store = Store(store_path, durable=False)
+    opts = _built_in_lab_options(store, SESSION)
+    cal = read_calibration(store, SESSION, gray_card=opts["gray_card"], probe_reflectance=opts["probe_reflectance"])
+    return store, opts["mesh"], cal
+
+
+def _same(a, b) -> bool:
+    for x, y in zip(a, b):
+        for f in fields(x):
+            u, v = getattr(x, f.name), getattr(y, f.name)
+            if not ((u is None and v is None) or (u.dtype == v.dtype and np.array_equal(u, v))):
+                return False
+    return True
+
+
+def _stream(store, mesh, cal, workers: int, *, fresh: bool = True, on_start=None):
+    if fresh:
+        shutil.rmtree(Path(store.root) / "arrays", ignore_errors=True)
+    plan = view_plan(store, SESSION, cal, mesh=mesh)
+    with Executor(ClusterOptions(workers=workers), store_root=store.root) as ex:
+        if on_start is not None:
+            on_start(ex)
+        t = time.perf_counter()
+        arrays = stream_lumitexels(store.root, SESSION, cal, plan, mesh, ex, block_texels=BLOCK)
+        lt = arrays.gather()
+        return lt, arrays, time.perf_counter() - t
+
+
+def one(route: str, store_path: str) -> None:
+    """Run one route in this (fresh) process and print its time and peak RSS as JSON."""
+    store, mesh, cal = _setup(store_path)
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t = time.perf_counter()
+    if route == "in_memory":
+        lt = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
+    else:
+        lt, _, _ = _stream(store, mesh, cal, 0)
+    dt = time.perf_counter() - t
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"route": route, "seconds": dt, "peak_rss_mib": peak / 1024,
+                      "peak_above_setup_mib": (peak - base) / 1024, "texels": lt[0].n_texels,
+                      "samples": lt[0].n_samples + lt[1].n_samples}))
+
+
+def memory(store_path: str) -> None:
+    for route in ("in_memory", "streamed"):
+        out = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", route],
+                             capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
+        r = json.loads(out)
+        print(f"memory  {route:10s} {r['seconds']:6.1f} s  peak RSS {r['peak_rss_mib']:7.0f} MiB "
+              f"({r['peak_above_setup_mib']:6.0f} MiB above the set-up)  {r['texels']} texels {r['samples']} samples")
+
+
+def executors(store_path: str) -> None:
+    store, mesh, cal = _setup(store_path)
+    t = time.perf_counter()
+    ref = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
+    print(f"executors in-memory route {time.perf_counter() - t:6.1f} s")
+    samples = None
+    for w in (0, 1, 2):
+        lt, arrays, dt = _stream(store, mesh, cal, w)
+        s = zarr.open_array(str(arrays.path / "samples"), mode="r")[...]
+        same_store = samples is None or np.array_equal(s, samples)
+        samples = s if samples is None else samples
+        print(f"executors {'in-process' if w == 0 else f'{w} worker(s)':11s} {dt:6.1f} s  lumitexels identical to "
+              f"the in-memory route: {_same(lt, ref)}  stored samples identical to in-process: {same_store}")
+
+
+def resume(store_path: str) -> None:
+    store, mesh, cal = _setup(store_path)
+    ref, arrays, _ = _stream(store, mesh, cal, 0)
+    shutil.rmtree(Path(store.root) / "arrays")
+    proc = subprocess.Popen([sys.executable, __file__, "--store", store_path, "--one", "streamed_keep"])
+    done = arrays.path / "done"
+    target = arrays.n_views + arrays.n_views // 3
+    while proc.poll() is None and (not done.is_dir() or len(list(done.glob("*-*"))) < target):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    marks = len(list(done.glob("samples-*")))
+    lt, arrays2, dt = _stream(store, mesh, cal, 0, fresh=False)
+    print(f"resume  killed with {marks}/{arrays.n_views} views sampled; the re-run reused {arrays2.reused_views} "
+          f"and took {dt:.1f} s; identical to an uninterrupted run: {_same(lt, ref)}")
+
+
+def kill_worker(store_path: str) -> None:
+    store, mesh, cal = _setup(store_path)
+    ref, _, _ = _stream(store, mesh, cal, 0)
+    killed = {}
+
+    def arm(ex: Executor) -> None:
+        pids = ex.client.run(os.getpid)
+        victim = sorted(pids.values())[0]
+
+        def later():
+            time.sleep(4.0)
+            os.kill(victim, signal.SIGKILL)
+            killed["pid"] = victim
+        threading.Thread(target=later, daemon=True).start()
+
+    lt, _, dt = _stream(store, mesh, cal, 2, on_start=arm)
+    print(f"kill_worker  worker pid {killed.get('pid')} SIGKILLed 4 s into a 2-worker run ({dt:.1f} s): "
+          f"run completed, identical: {_same(lt, ref)}")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _without_reconstructions(store_path: str) -> str:
+    """A scratch copy of the store without its reconstruction results (so ``gonio process``
+    runs the methods again but keeps the stored calibration)."""
+    dest = Path(store_path).resolve().parent / "scale-scratch"
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(store_path, dest, ignore=shutil.ignore_patterns("arrays"))
+    with sqlite3.connect(dest / "gonio.sqlite") as db:
+        db.execute("DELETE FROM result_objects WHERE result_id IN (SELECT id FROM results WHERE category = 'reconstruction')")
+        db.execute("DELETE FROM results WHERE category = 'reconstruction'")
+    return str(dest)
+
+
+def scheduler(store_path: str) -> None:
+    port = _free_port()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    procs = [subprocess.Popen(["dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", "127.0.0.1:0"], env=env, stderr=subprocess.DEVNULL)]
+    addr = f"tcp://127.0.0.1:{port}"
+    try:
+        time.sleep(3)
+        procs += [subprocess.Popen(["dask", "worker", addr, "--nthreads", "1", "--host", "127.0.0.1",
+                                    "--dashboard-address", "127.0.0.1:0"], env=env, stderr=subprocess.DEVNULL)
+                  for _ in range(2)]
+        time.sleep(5)
+        figures = {}
+        for how in ("in-process", "scheduler"):
+            scratch = _without_reconstructions(store_path)
+            cmd = ["gonio", "process", SESSION, "--store", scratch, "--methods", "lambertian",
+                   "--json", "-q"] + (["--scheduler", addr] if how == "scheduler" else [])
+            t = time.perf_counter()
+            r = subprocess.run(cmd, env=env, capture_output=True, text=True)
+            dt = time.perf_counter() - t
+            summary = json.loads(r.stdout[r.stdout.index("{"):])
+            figures[how] = summary["methods"][0]["figures"]
+            print(f"scheduler  {how:10s} exit {r.returncode}  {dt:6.1f} s  lambertian held-out rel. RMS "
+                  f"{figures[how].get('held_out_rel_rms')}")
+        print(f"scheduler  figures identical: {figures['in-process'] == figures['scheduler']}")
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait()
+
+
+PARTS = {"memory": memory, "executors": executors, "resume": resume, "kill_worker": kill_worker,
+         "scheduler": scheduler}
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--store", required=True, help="a store holding the quick demo's session")
+    ap.add_argument("--only", choices=sorted(PARTS), action="append")
+    ap.add_argument("--one", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.one == "streamed_keep":   # the resume part's victim: a streamed run left to be killed
+        s, m, c = _setup(a.store)
+        _stream(s, m, c, 0, fresh=False)
+    elif a.one:
+        one(a.one, a.store)
+    else:
+        for name in a.only or PARTS:
+            PARTS[name](a.store)
