@@ -44,8 +44,8 @@ sys.path.insert(0, str(ROOT))
 
 from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
 from capture.pipeline.lumitexel_arrays import stream_lumitexels  # noqa: E402
-from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_inputs,  # noqa: E402
-                                      view_plan)
+from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
+                                      session_inputs, view_plan)
 from capture.pipeline.run import _built_in_lab_options  # noqa: E402
 from capture.store import Store  # noqa: E402
 
@@ -72,12 +72,13 @@ def _same(a, b) -> bool:
 def _stream(store, mesh, cal, workers: int, *, fresh: bool = True, on_start=None):
     if fresh:
         shutil.rmtree(Path(store.root) / "arrays", ignore_errors=True)
-    plan = view_plan(store, SESSION, cal, mesh=mesh)
+    images = session_images(store, SESSION)
+    plan = view_plan(images, SESSION, cal, mesh=mesh)
     with Executor(ClusterOptions(workers=workers), store_root=store.root) as ex:
         if on_start is not None:
             on_start(ex)
         t = time.perf_counter()
-        arrays = stream_lumitexels(store.root, SESSION, cal, plan, mesh, ex, block_texels=BLOCK)
+        arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=BLOCK)
         lt = arrays.gather()
         return lt, arrays, time.perf_counter() - t
 

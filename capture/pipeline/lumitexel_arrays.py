@@ -45,7 +45,9 @@ from reconstruct.lumitexels import (AssemblyGeometry, LumitexelError, Lumitexels
 
 from .chunks import ChunkGroup, arrays_folder, mark_done
 from .cluster import Executor
-from .process import PoseSpec, SessionCalibration, ViewPlan, merge_bracket, pose_view
+from ..store import Store
+from .images import SessionImages
+from .process import PoseSpec, SessionCalibration, ViewPlan, merge_pose, session_images
 
 __all__ = ["LumitexelArrays", "stream_lumitexels", "block_texels_for", "default_memory_limit", "reject_filter_for"]
 
@@ -96,6 +98,8 @@ class _Job:
 
     path: str
     digest: str
+    store_root: str
+    session: str
     mesh: trimesh.Trimesh
     reject_filter_px: int
     block_texels: int
@@ -105,6 +109,18 @@ class _Job:
 #: per worker process: the assembly geometry (its ray-casting scene) of the job being run,
 #: built once instead of once per task
 _GEOMETRY: dict[str, AssemblyGeometry] = {}
+
+
+#: per worker process: the session's images (a read-only store connection and its master darks)
+_IMAGES: dict[tuple[str, str], SessionImages] = {}
+
+
+def _images(job: _Job) -> SessionImages:
+    key = (job.store_root, job.session)
+    if key not in _IMAGES:
+        _IMAGES.clear()
+        _IMAGES[key] = session_images(Store(job.store_root, readonly=True), job.session)
+    return _IMAGES[key]
 
 
 def _geometry(job: _Job) -> AssemblyGeometry:
@@ -136,7 +152,7 @@ def _samples_task(job: _Job, k: int, pose: PoseSpec, cal: SessionCalibration, ca
                   light: np.ndarray, n_texels: int) -> None:
     """Pass 2 of view ``k``: merge its brackets, sample it block by block, write its column."""
     geom = _geometry(job)
-    view = pose_view(pose, [merge_bracket(b) for b in pose.brackets], cal)
+    view = merge_pose(_images(job), pose, cal)
     reject = _read_hits(job.path, k).reject
     root = Path(job.path)
     position = zarr.open_array(str(root / "texels" / "position"), mode="r")
@@ -166,7 +182,7 @@ def _provenance(session: str, cal: SessionCalibration, plan: ViewPlan, mesh: tri
             "camera": {"K": cam.K.tolist(), "dist": np.asarray(cam.dist).tolist(), "R": cam.R.tolist(),
                        "t": np.asarray(cam.t).tolist(), "size": [cam.width, cam.height]},
             "light_intensity": np.asarray(cal.light_intensity, float).tolist(), "angle_scale": cal.angle_scale,
-            "views": [{"frames": p.frame_ids, "steps": [b.step for b in p.brackets], "reading": p.reading,
+            "views": [{"frames": list(p.frame_ids), "steps": list(p.steps_all), "reading": p.reading,
                        "light_mm": np.asarray(p.light_mm).tolist()} for p in plan.ordered],
             "reject_filter_px": reject_px, "block_texels": block}
 
@@ -232,7 +248,7 @@ class LumitexelArrays:
         return join(False), join(True)
 
 
-def stream_lumitexels(store_root: str | os.PathLike, session: str, cal: SessionCalibration, plan: ViewPlan,
+def stream_lumitexels(images: SessionImages, session: str, cal: SessionCalibration, plan: ViewPlan,
                       mesh: trimesh.Trimesh, executor: Executor, *, block_texels: int,
                       progress: Callable[[int, int], None] | None = None) -> LumitexelArrays:
     """Assemble the session's lumitexels into ``<store>/arrays/<session>/lumitexels.zarr``
@@ -240,8 +256,9 @@ def stream_lumitexels(store_root: str | os.PathLike, session: str, cal: SessionC
 
     Parameters
     ----------
-    store_root, session
-        The store folder and the session.
+    images, session
+        The session's images (:func:`capture.pipeline.process.session_images`: its store, whose
+        folder holds the arrays, and master darks) and its name.
     cal, plan
         The session's calibration and its views as files
         (:func:`capture.pipeline.process.view_plan`).
@@ -259,13 +276,16 @@ def stream_lumitexels(store_root: str | os.PathLike, session: str, cal: SessionC
     reconstruct.lumitexels.LumitexelError
         The object is not visible in any view, or no point is both seen and lit.
     """
+    store_root = str(Path(images.store.root).resolve())
+    _IMAGES.clear()
+    _IMAGES[(store_root, session)] = images   # an in-process run merges through the caller's store
     poses = plan.ordered
     V = len(poses)
     reject_px = reject_filter_for(cal.camera.width)
     group = ChunkGroup(arrays_folder(store_root, session) / "lumitexels.zarr",
                        _provenance(session, cal, plan, mesh, reject_px, block_texels))
     separated = all(p.separated for p in poses)
-    job = _Job(str(group.path), group.digest, mesh, reject_px, block_texels, separated)
+    job = _Job(str(group.path), group.digest, store_root, session, mesh, reject_px, block_texels, separated)
     cams = [object_frame_camera(cal.camera, cal.object_pose(p.reading)) for p in poses]
     lights = [object_frame_point(cal.object_pose(p.reading), p.light_mm) for p in poses]
     F = len(mesh.faces)

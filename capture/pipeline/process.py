@@ -7,8 +7,8 @@ position for every step, the lamp's radiant intensity in HDR units (from the gra
 mirror-probe environment map. :func:`session_inputs` then turns every measurement pose into a
 :class:`reconstruct.lumitexels.View`:
 
-- HDR radiance per step from the raw bracket (:func:`merge_step`: the master darks the dark
-  stage stored, a noise-weighted raw merge, bilinear demosaic), in DN/s of camera RGB;
+- HDR radiance per step from the raw bracket (:mod:`capture.pipeline.images` with the master
+  darks the dark stage stored), in DN/s of camera RGB;
 - the object pose ``Rz(angle_scale * reading)`` about the lab's +z (the object frame is the lab
   frame at turntable reading 0, which is also the frame of the simulated lab's meshes);
 - the light position from the positioner model (or the lights stage for the same commanded
@@ -33,26 +33,23 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import cv2
 import numpy as np
 import trimesh
 
-from calibration.hdr import merge_raw_brackets
-from calibration.raw import demosaic_bilinear, read_raw
 from calibration.polarization import separate_parallel_crossed
 from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
 from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
 from reconstruct.raycast import Mesh, Surface, first_hits
 
-from ..store import FrameRecord, Store
+from ..store import Store
+from .images import FrameDataError, SessionImages, StepImage
 
-__all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
-           "StepBracket", "PoseSpec", "ViewPlan", "PassiveInput", "ProcessInputs", "read_calibration",
-           "merge_step", "merge_bracket", "view_plan", "pose_view", "passive_input", "session_inputs", "plan_inputs",
+__all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
+           "PassiveInput", "ProcessInputs", "read_calibration", "session_images", "session_inputs",
+           "PoseSpec", "ViewPlan", "view_plan", "pose_view", "merge_pose", "plan_inputs",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose", "load_mesh"]
 
 class ProcessError(ValueError):
@@ -235,102 +232,6 @@ def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
     return np.median(np.array(estimates), axis=0), True
 
 
-# -- images -------------------------------------------------------------------------------------
-@dataclass
-class StepImage:
-    """One step's merged HDR image. ``radiance`` (H, W, 3) float32 DN/s; ``valid`` (H, W) bool:
-    not clipped in every exposure."""
-
-    step: int
-    spec: dict[str, Any]
-    radiance: np.ndarray
-    valid: np.ndarray
-    frame_ids: list[int]
-
-
-@dataclass(frozen=True)
-class StepBracket:
-    """Where one step's raw bracket lies, for a merge that needs no store connection (a cluster
-    worker reads the files): the frame files ``paths`` and their exposure times ``exposures_s``,
-    the master darks ``darks`` (exposure s -> ``.npy`` object file), the read noise (DN)."""
-
-    step: int
-    spec: dict[str, Any]
-    paths: tuple[str, ...]
-    exposures_s: tuple[float, ...]
-    frame_ids: tuple[int, ...]
-    darks: tuple[tuple[float, str], ...]
-    read_noise_dn: float
-
-    def dark(self, t: float) -> np.ndarray | None:
-        """The master dark taken at ``t`` (within 1 %), or None."""
-        for te, path in self.darks:
-            if abs(te - t) <= 0.01 * t:
-                return np.load(path)
-        return None
-
-
-class _Frames:
-    """The session's frames by step and its master darks (from the stored dark calibration)."""
-
-    def __init__(self, store: Store, session: str) -> None:
-        self.store = store
-        self.info = store.session(session)
-        self.steps = {i: d for i, d, _ in store.steps(self.info.id)}
-        self.by_step: dict[int, list[FrameRecord]] = {}
-        for f in store.frames(self.info.id):
-            self.by_step.setdefault(f.step, []).append(f)
-        res = _latest(store, self.info.id)
-        self.darks: list[tuple[float, str]] = []
-        self.read_noise = 1.0
-        if "dark" in res:
-            d = res["dark"]
-            self.read_noise = float(d["result"].get("read_noise_dn") or 1.0)
-            for name, sha in d["artifacts"].items():
-                t = float(name.removeprefix("dark_").removesuffix("s.npy"))
-                self.darks.append((t, str(store.object_path(sha))))
-
-    def bracket(self, step: int) -> StepBracket:
-        """Step ``step``'s frames as files.
-
-        Raises
-        ------
-        ProcessError
-            The step has no stored frames or a frame lacks its exposure time (names the frame).
-        """
-        recs = self.by_step.get(step)
-        if not recs:
-            raise ProcessError(f"step {step} has no stored frames")
-        ts = []
-        for f in recs:
-            t = f.exposure_s or f.exposure_requested_s
-            if not t or t <= 0:
-                raise ProcessError(f"frame {f.id} (step {step}) has no exposure time")
-            ts.append(float(t))
-        return StepBracket(step, self.steps[step], tuple(str(self.store.object_path(f.sha256)) for f in recs),
-                           tuple(ts), tuple(f.id for f in recs), tuple(self.darks), self.read_noise)
-
-
-def merge_step(frames: _Frames, step: int) -> StepImage:
-    """HDR radiance of one step's raw bracket (all exposures and repeats), dark-subtracted
-    (:func:`merge_bracket` of the step's files)."""
-    return merge_bracket(frames.bracket(step))
-
-
-def merge_bracket(b: StepBracket) -> StepImage:
-    """HDR radiance of a raw bracket read from its files, dark-subtracted."""
-    raws = [read_raw(Path(path).read_bytes(), name=f"frame {fid} (step {b.step})")
-            for path, fid in zip(b.paths, b.frame_ids)]
-    found = [b.dark(t) for t in b.exposures_s]
-    darks = np.stack([raws[0].black_level if d is None else d for d in found])
-    hdr = merge_raw_brackets([r.data for r in raws], list(b.exposures_s), black_level=raws[0].black_level,
-                             white_level=raws[0].white_level, read_noise_dn=b.read_noise_dn, darks=darks)
-    img = demosaic_bilinear(hdr.radiance, raws[0].channels)
-    # a pixel is unusable where any photosite of its 3 x 3 demosaic neighbourhood clipped everywhere
-    clipped = cv2.dilate(hdr.saturated.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    return StepImage(b.step, b.spec, img, ~clipped, list(b.frame_ids))
-
-
 # -- the inputs of all methods -----------------------------------------------------------------
 @dataclass
 class PassiveInput:
@@ -413,15 +314,17 @@ def _analyser(angle: float | None) -> str | None:
 
 @dataclass(frozen=True)
 class PoseSpec:
-    """One measurement pose (turntable reading x light) before any image is read: its steps'
-    brackets (one per analyser state), which of them make the view (``used``: indices, parallel
-    then crossed when both were captured), its calibrated light (lab, mm) and object pose."""
+    """One measurement pose (turntable reading x light) before any image is read: its ``steps``
+    (one per analyser state), which of them make the view (``used``: indices, parallel then
+    crossed when both were captured), its calibrated light (lab, mm), whether it is held out and
+    the frames of the used steps."""
 
     reading: float
-    brackets: tuple[StepBracket, ...]
+    steps_all: tuple[int, ...]
     used: tuple[int, ...]
     light_mm: np.ndarray
     held_out: bool
+    frame_ids: tuple[int, ...]
 
     @property
     def separated(self) -> bool:
@@ -429,21 +332,17 @@ class PoseSpec:
 
     @property
     def steps(self) -> tuple[int, ...]:
-        return tuple(self.brackets[i].step for i in self.used)
-
-    @property
-    def frame_ids(self) -> list[int]:
-        return [f for i in self.used for f in self.brackets[i].frame_ids]
+        return tuple(self.steps_all[i] for i in self.used)
 
 
 @dataclass(frozen=True)
 class ViewPlan:
-    """What :func:`session_inputs` will read, as files: the measurement ``poses`` in capture
-    order and the ``passive`` step's bracket (None: none captured, or no mesh / probe map, with
-    the reason in ``notes``)."""
+    """What the inputs are made of, before any image is read: the measurement ``poses`` in
+    capture order and the ``passive`` step (None: none captured, or no mesh / probe map, with the
+    reason in ``notes``)."""
 
     poses: tuple[PoseSpec, ...]
-    passive: StepBracket | None
+    passive: int | None
     notes: tuple[str, ...]
 
     @property
@@ -452,9 +351,9 @@ class ViewPlan:
         return [p for p in self.poses if not p.held_out] + [p for p in self.poses if p.held_out]
 
 
-def view_plan(store: Store, session: str, cal: SessionCalibration, *, mesh: trimesh.Trimesh | None = None) -> ViewPlan:
-    """The session's measurement poses and passive step as files (:func:`session_inputs`'s
-    first half: no image is read).
+def view_plan(images: SessionImages, session: str, cal: SessionCalibration, *,
+              mesh: trimesh.Trimesh | None = None) -> ViewPlan:
+    """The session's measurement poses and passive step (no image is read).
 
     Raises
     ------
@@ -462,7 +361,7 @@ def view_plan(store: Store, session: str, cal: SessionCalibration, *, mesh: trim
         No measurement steps, a measurement step without a calibrated light, or every light
         held out.
     """
-    frames = _Frames(store, session)
+    frames = images
     measure = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "measure" and frames.by_step.get(i)]
     passive = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "passive" and frames.by_step.get(i)]
     if not measure:
@@ -479,17 +378,18 @@ def view_plan(store: Store, session: str, cal: SessionCalibration, *, mesh: trim
         grouped.setdefault((d.get("turntable_deg"), repr(_light_key(d["light"]))), []).append(i)
     poses = []
     for (reading, _), steps in grouped.items():
-        brackets = tuple(frames.bracket(s) for s in steps)
-        by = {_analyser(b.spec.get("polarizer_deg")): k for k, b in enumerate(brackets)}
+        by = {_analyser(frames.steps[s].get("polarizer_deg")): k for k, s in enumerate(steps)}
         if "parallel" in by and "crossed" in by:
             used = (by["parallel"], by["crossed"])
         else:  # one analyser state (or none): a plain view
             used = (next((by[a] for a in (None, "parallel") if a in by), 0),)
-        first = brackets[used[0]]
-        poses.append(PoseSpec(reading or 0.0, brackets, used, cal.lights_mm[first.step], bool(first.spec.get("held_out"))))
+        first = steps[used[0]]
+        poses.append(PoseSpec(reading or 0.0, tuple(steps), used, cal.lights_mm[first],
+                              bool(frames.steps[first].get("held_out")),
+                              tuple(f.id for i in used for f in frames.by_step[steps[i]])))
     if all(p.held_out for p in poses):
         raise ProcessError(f"session {session!r}: every measurement light is held out; nothing to fit")
-    notes, p_bracket = [], None
+    notes, p_step = [], None
     if passive:
         if cal.environment is None:
             notes.append("passive capture present but no mirror-probe environment map is stored: "
@@ -497,12 +397,12 @@ def view_plan(store: Store, session: str, cal: SessionCalibration, *, mesh: trim
         elif mesh is None:
             notes.append("passive capture present but no mesh: passive reflectometry skipped")
         else:
-            p_bracket = frames.bracket(passive[0])
-    return ViewPlan(tuple(poses), p_bracket, tuple(notes))
+            p_step = passive[0]
+    return ViewPlan(tuple(poses), p_step, tuple(notes))
 
 
 def pose_view(pose: PoseSpec, images: Sequence[StepImage], cal: SessionCalibration) -> View:
-    """The view of one pose from its merged brackets (``images`` in ``pose.brackets``' order):
+    """The view of one pose from its merged steps (``images`` in ``pose.steps_all``' order):
     parallel + crossed summed, with the polarization split, or the one plain image."""
     valid = np.logical_and.reduce([im.valid for im in images])
     if pose.separated:
@@ -516,12 +416,17 @@ def pose_view(pose: PoseSpec, images: Sequence[StepImage], cal: SessionCalibrati
                 valid=valid, diffuse=diffuse, specular=specular)
 
 
+def merge_pose(images: SessionImages, pose: PoseSpec, cal: SessionCalibration) -> View:
+    """One pose's view, its steps merged from the raw frames."""
+    return pose_view(pose, [_merge(images, s) for s in pose.steps_all], cal)
+
+
 def session_inputs(store: Store, session: str, *, calibration: SessionCalibration | None = None,
                    mesh: trimesh.Trimesh | None = None,
                    progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
     """Turn a calibrated session's measurement (and passive) steps into method inputs, every
-    view's images in memory (:func:`capture.pipeline.lumitexel_arrays.stream_lumitexels` is the
-    out-of-core route).
+    view's images in memory (``gonio process`` streams instead:
+    :mod:`capture.pipeline.lumitexel_arrays`).
 
     Parameters
     ----------
@@ -532,7 +437,7 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
     mesh : trimesh.Trimesh, optional
         The object's mesh (object frame, mm): needed for the passive input's normals.
     progress : callable(done, total), optional
-        After each merged step.
+        After each merged pose.
 
     Raises
     ------
@@ -540,31 +445,22 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
         No measurement steps, or a measurement step without a calibrated light.
     """
     cal = read_calibration(store, session) if calibration is None else calibration
-    plan = view_plan(store, session, cal, mesh=mesh)
-    total = sum(len(p.brackets) for p in plan.poses) + (plan.passive is not None)
-    done = 0
+    images = session_images(store, session)
+    plan = view_plan(images, session, cal, mesh=mesh)
     views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
-    for pose in plan.poses:
-        imgs = []
-        for b in pose.brackets:
-            imgs.append(merge_bracket(b))
-            done += 1
-            if progress is not None:
-                progress(done, total)
-        (held if pose.held_out else views).append(pose_view(pose, imgs, cal))
+    for done, pose in enumerate(plan.poses, 1):
+        (held if pose.held_out else views).append(merge_pose(images, pose, cal))
         (hsteps if pose.held_out else vsteps).append(pose.steps)
         frame_ids += pose.frame_ids
-    p_input = None
-    if plan.passive is not None:
-        p_input = passive_input(merge_bracket(plan.passive), cal, mesh)
         if progress is not None:
-            progress(total, total)
+            progress(done, len(plan.poses))
+    p_input = None if plan.passive is None else _passive_input(_merge(images, plan.passive), cal, mesh)
     return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
                          view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
                          notes=list(plan.notes))
 
 
-def plan_inputs(plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh | None, *,
+def plan_inputs(images: SessionImages, plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh | None, *,
                 images_of: int | None = None) -> ProcessInputs:
     """The method inputs of a streamed run (:mod:`capture.pipeline.lumitexel_arrays` holds the
     samples): every view's geometry (camera, light, pose) with ``radiance`` None, except the view
@@ -573,7 +469,7 @@ def plan_inputs(plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh |
     views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
     for k, pose in enumerate(plan.ordered):
         if k == images_of:
-            view = pose_view(pose, [merge_bracket(b) for b in pose.brackets], cal)
+            view = merge_pose(images, pose, cal)
         else:
             view = View(camera=cal.camera, radiance=None, light_position=pose.light_mm,
                         light_intensity=cal.light_intensity, object_to_world=cal.object_pose(pose.reading))
@@ -581,13 +477,31 @@ def plan_inputs(plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh |
         (hsteps if pose.held_out else vsteps).append(pose.steps)
     for pose in plan.poses:
         frame_ids += pose.frame_ids
-    p_input = None if plan.passive is None else passive_input(merge_bracket(plan.passive), cal, mesh)
+    p_input = None if plan.passive is None else _passive_input(_merge(images, plan.passive), cal, mesh)
     return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
                          view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
                          notes=list(plan.notes))
 
 
-def passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh) -> PassiveInput:
+def session_images(store: Store, session: str) -> SessionImages:
+    """The session's images with the master darks and read noise its dark calibration stored
+    (none stored: black level only, 1 DN read noise)."""
+    images = SessionImages(store, session)
+    dark = _latest(store, images.info.id).get("dark")
+    if dark is not None:
+        images.use_stored_darks([row["exposure_s"] for row in dark["result"]["darks"]],
+                                dark["artifacts"], dark["result"].get("read_noise_dn"))
+    return images
+
+
+def _merge(images: SessionImages, step: int) -> StepImage:
+    try:
+        return images.merge(step)
+    except FrameDataError as exc:
+        raise ProcessError(str(exc)) from None
+
+
+def _passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh) -> PassiveInput:
     """Per-pixel lab-frame normals and view directions of the object in the passive image."""
     cam = cal.camera
     pose = cal.object_pose(im.spec.get("turntable_deg") or 0.0)

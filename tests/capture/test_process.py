@@ -22,12 +22,12 @@ from typer.testing import CliRunner
 
 from capture.cli import app
 from capture.pipeline.demo_lab import DemoLab, fitter_mesh
-from capture.pipeline.run import process_session, relative_rms
+from capture.pipeline.run import process_session
 from capture.pipeline.cluster import ClusterOptions, Executor
 from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels
 from capture.plan import Plan
 from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, read_calibration,
-                             session_inputs, view_plan)
+                             session_images, session_inputs, view_plan)
 from capture.rigs import open_rig
 from capture.runner import Runner, create_session
 from capture.store import Store
@@ -229,12 +229,6 @@ def test_report_is_one_self_contained_file(processed):
     assert summary.is_file() and '"lambertian"' in summary.read_text()
 
 
-def test_relative_rms_closed_form():
-    m = np.array([[1.0, 2.0, 2.0]])
-    assert relative_rms(m * 1.1, m) == pytest.approx(0.1)
-    assert np.isnan(relative_rms(np.zeros((0, 3)), np.zeros((0, 3))))
-
-
 def test_uncalibrated_session_says_which_stage_is_missing(tmp_path):
     store = Store(tmp_path / "s", durable=False)
     with open_rig("sim", fast=True, frame_source=DemoLab()) as opened:
@@ -341,9 +335,10 @@ def _stream(captured, inputs, workers=0, block=700):
     store, lab, _ = captured
     cal = inputs[0]
     mesh = fitter_mesh(lab.object)
-    plan = view_plan(store, "proc", cal, mesh=mesh)
+    images = session_images(store, "proc")
+    plan = view_plan(images, "proc", cal, mesh=mesh)
     with Executor(ClusterOptions(workers=workers), store_root=store.root) as ex:
-        arrays = stream_lumitexels(store.root, "proc", cal, plan, mesh, ex, block_texels=block)
+        arrays = stream_lumitexels(images, "proc", cal, plan, mesh, ex, block_texels=block)
         return arrays, arrays.gather()
 
 
