@@ -7,7 +7,10 @@ time and peak memory against today's in-memory inputs.
 Parts (each prints its figures):
 
 - ``memory``: peak RSS (a fresh process each) of today's in-memory route (every view merged,
-  then :func:`reconstruct.lumitexels.assemble_lumitexels`) against the streamed one, with time;
+  then :func:`reconstruct.lumitexels.assemble_lumitexels`) against the streamed one under
+  ``--memory-limit`` MiB followed by a block-wise Lambertian albedo, with time;
+- ``today``: ``gonio process --methods lambertian`` with the base commit's code against this
+  branch's, alternated (needs ``git archive 0e5e740 | tar -x -C /tmp/gonio_today``);
 - ``executors``: the streamed lumitexels in-process, on 1 and on 2 local workers: stored
   ``samples`` array and gathered lumitexels compared bit for bit with the in-memory route's;
   time with 1 and 2 workers (ratio);
@@ -43,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
-from capture.pipeline.lumitexel_arrays import stream_lumitexels  # noqa: E402
+from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels  # noqa: E402
 from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
                                       session_inputs, view_plan)
 from capture.pipeline.run import _built_in_lab_options  # noqa: E402
@@ -83,29 +86,69 @@ def _stream(store, mesh, cal, workers: int, *, fresh: bool = True, on_start=None
         return lt, arrays, time.perf_counter() - t
 
 
-def one(route: str, store_path: str) -> None:
-    """Run one route in this (fresh) process and print its time and peak RSS as JSON."""
+def _albedo_blockwise(arrays) -> np.ndarray:
+    """Lambertian albedo per texel (the ``lambertian`` method's least squares), one texel block at
+    a time: a chunk-pure step, nothing but one block's samples in memory."""
+    out = []
+    for t0, t1 in arrays.blocks:
+        lt, held = arrays.block(t0, t1)
+        cos = lt.wi[~held, 2].astype(np.float64)
+        tex = lt.texel[~held]
+        num = np.stack([np.bincount(tex, cos * lt.reflectance[~held, c], lt.n_texels) for c in range(3)], axis=1)
+        out.append(np.pi * num / np.maximum(np.bincount(tex, cos * cos, lt.n_texels)[:, None], 1e-12))
+    return np.concatenate(out)
+
+
+def one(route: str, store_path: str, limit_mib: float) -> None:
+    """Run one route in this (fresh) process and print its time and peak RSS as JSON: today's
+    in-memory inputs, or the streamed ones under ``limit_mib`` followed by a block-wise albedo."""
     store, mesh, cal = _setup(store_path)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()
     if route == "in_memory":
-        lt = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
+        train, held = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
+        texels, samples = train.n_texels, train.n_samples + held.n_samples
     else:
-        lt, _, _ = _stream(store, mesh, cal, 0)
+        shutil.rmtree(Path(store.root) / "arrays", ignore_errors=True)
+        images = session_images(store, SESSION)
+        plan = view_plan(images, SESSION, cal, mesh=mesh)
+        block = block_texels_for(int(limit_mib * 2**20), n_views=len(plan.poses),
+                                 pixels=cal.camera.width * cal.camera.height)
+        with Executor(ClusterOptions(), store_root=store.root) as ex:
+            arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=block)
+        texels, samples = len(_albedo_blockwise(arrays)), -1
     dt = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(json.dumps({"route": route, "seconds": dt, "peak_rss_mib": peak / 1024,
-                      "peak_above_setup_mib": (peak - base) / 1024, "texels": lt[0].n_texels,
-                      "samples": lt[0].n_samples + lt[1].n_samples}))
+                      "peak_above_setup_mib": (peak - base) / 1024, "texels": texels, "samples": samples}))
 
 
-def memory(store_path: str) -> None:
+def memory(store_path: str, limit_mib: float) -> None:
     for route in ("in_memory", "streamed"):
-        out = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", route],
+        out = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", route,
+                              "--memory-limit", str(limit_mib)],
                              capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
         r = json.loads(out)
         print(f"memory  {route:10s} {r['seconds']:6.1f} s  peak RSS {r['peak_rss_mib']:7.0f} MiB "
-              f"({r['peak_above_setup_mib']:6.0f} MiB above the set-up)  {r['texels']} texels {r['samples']} samples")
+              f"({r['peak_above_setup_mib']:6.0f} MiB above the set-up: imports, store, calibration)"
+              + (f"  limit {limit_mib:.0f} MiB" if route == "streamed" else "") + f"  {r['texels']} texels")
+
+
+def today(store_path: str, limit_mib: float) -> None:
+    """``gonio process --methods lambertian`` with today's code (the base commit, unpacked by
+    ``git archive 0e5e740`` into /tmp/gonio_today) and this branch's, alternated twice each on
+    scratch copies of the store: wall time and the stage timings it reports."""
+    for rnd in range(2):
+        for name, code in (("today", "/tmp/gonio_today"), ("streamed", str(ROOT))):
+            scratch = _without_reconstructions(store_path)
+            env = {**os.environ, "PYTHONPATH": code}
+            t = time.perf_counter()
+            r = subprocess.run([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", scratch,
+                                "--methods", "lambertian", "--json", "-q"], env=env, capture_output=True, text=True)
+            dt = time.perf_counter() - t
+            summary = json.loads(r.stdout[r.stdout.index("{"):])
+            print(f"today  round {rnd}  {name:8s} exit {r.returncode}  {dt:6.1f} s  stages {summary['timings']}  "
+                  f"held-out rel. RMS {summary['methods'][0]['figures'].get('held_out_rel_rms')}")
 
 
 def executors(store_path: str) -> None:
@@ -209,20 +252,23 @@ def scheduler(store_path: str) -> None:
             p.wait()
 
 
-PARTS = {"memory": memory, "executors": executors, "resume": resume, "kill_worker": kill_worker,
+PARTS = {"memory": memory, "today": today, "executors": executors, "resume": resume, "kill_worker": kill_worker,
          "scheduler": scheduler}
+#: the parts that take the memory limit
+_LIMITED = {"memory", "today"}
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", required=True, help="a store holding the quick demo's session")
     ap.add_argument("--only", choices=sorted(PARTS), action="append")
+    ap.add_argument("--memory-limit", type=float, default=64.0, help="MiB for the streamed route (memory part)")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.one == "streamed_keep":   # the resume part's victim: a streamed run left to be killed
         s, m, c = _setup(a.store)
         _stream(s, m, c, 0, fresh=False)
     elif a.one:
-        one(a.one, a.store)
+        one(a.one, a.store, a.memory_limit)
     else:
         for name in a.only or PARTS:
-            PARTS[name](a.store)
+            PARTS[name](a.store, a.memory_limit) if name in _LIMITED else PARTS[name](a.store)

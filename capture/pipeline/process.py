@@ -447,29 +447,23 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
     cal = read_calibration(store, session) if calibration is None else calibration
     images = session_images(store, session)
     plan = view_plan(images, session, cal, mesh=mesh)
-    views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
-    for done, pose in enumerate(plan.poses, 1):
-        (held if pose.held_out else views).append(merge_pose(images, pose, cal))
-        (hsteps if pose.held_out else vsteps).append(pose.steps)
-        frame_ids += pose.frame_ids
-        if progress is not None:
-            progress(done, len(plan.poses))
-    p_input = None if plan.passive is None else _passive_input(_merge(images, plan.passive), cal, mesh)
-    return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
-                         view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
-                         notes=list(plan.notes))
+    return plan_inputs(images, plan, cal, mesh, images_of=range(len(plan.poses)), progress=progress)
 
 
 def plan_inputs(images: SessionImages, plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh | None, *,
-                images_of: int | None = None) -> ProcessInputs:
-    """The method inputs of a streamed run (:mod:`capture.pipeline.lumitexel_arrays` holds the
-    samples): every view's geometry (camera, light, pose) with ``radiance`` None, except the view
-    ``images_of`` (index in :attr:`ViewPlan.ordered`), merged again for the report's pictures;
-    the passive input merged from its one image."""
+                images_of: Sequence[int] = (), progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
+    """The method inputs of ``plan``: the views ``images_of`` (indices in
+    :attr:`ViewPlan.ordered`) merged from their raw frames, the others geometry only (camera,
+    light, pose; ``radiance`` None: a streamed run, whose samples
+    :mod:`capture.pipeline.lumitexel_arrays` holds, merges just the view the report draws); the
+    passive input merged from its one image. ``progress(done, total)`` after each merged view."""
     views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
+    wanted = set(images_of)
     for k, pose in enumerate(plan.ordered):
-        if k == images_of:
+        if k in wanted:
             view = merge_pose(images, pose, cal)
+            if progress is not None:
+                progress(len(views) + len(held) + 1, len(plan.poses))
         else:
             view = View(camera=cal.camera, radiance=None, light_position=pose.light_mm,
                         light_intensity=cal.light_intensity, object_to_world=cal.object_pose(pose.reading))

@@ -208,7 +208,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                                        progress=clock.sub("lumitexels"))
             train, held = arrays.gather()
         with clock.stage("inputs"):
-            inputs = plan_inputs(images, plan, cal, mesh, images_of=int(held.view.min()) if held.n_samples else None)
+            inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
         truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
         rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
                       "polarization_separated": inputs.separated, "texels": train.n_texels,
