@@ -25,6 +25,7 @@ Timings are wall-clock on whatever machine runs it; on a shared, loaded machine 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import resource
@@ -45,12 +46,14 @@ import zarr
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from calibration.raw import read_raw  # noqa: E402
 from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
 from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels  # noqa: E402
 from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
                                       session_inputs, view_plan)
 from capture.pipeline.run import _built_in_lab_options  # noqa: E402
 from capture.store import Store  # noqa: E402
+from sims.dng import write_dng  # noqa: E402
 
 SESSION = "demo-quick"
 BLOCK = 4096
@@ -221,6 +224,55 @@ def _without_reconstructions(store_path: str) -> str:
     return str(dest)
 
 
+def _enlarge(mosaic: np.ndarray, f: int) -> np.ndarray:
+    """A Bayer mosaic with each 2 x 2 colour tile repeated f x f times (the pattern kept)."""
+    H, W = mosaic.shape
+    tiles = mosaic.reshape(H // 2, 2, W // 2, 2).transpose(0, 2, 1, 3)
+    tiles = tiles.repeat(f, axis=0).repeat(f, axis=1)
+    return np.ascontiguousarray(tiles.transpose(0, 2, 1, 3).reshape(H * f, W * f))
+
+
+def upscale(store_path: str, f: int, dest: str) -> None:
+    """A synthesised large session: the quick demo's with every measurement and passive frame and
+    the master darks enlarged f x f (each Bayer tile repeated, so the merge, demosaic and
+    sampling run on f^2 times the pixels), the intrinsics scaled to match (same field of view).
+    Not a re-rendered scene: the figures of its fits are not the point, its time and memory are."""
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(store_path, dest, ignore=shutil.ignore_patterns("arrays"))
+    store = Store(dest, durable=False)
+    sid = store.session(SESSION).id
+    kinds = {i: d["kind"] for i, d, _ in store.steps(sid)}
+    with sqlite3.connect(Path(dest) / "gonio.sqlite") as db:
+        for fr in store.frames(sid):
+            if kinds.get(fr.step) not in ("measure", "passive"):
+                continue
+            raw = read_raw(store.read_object(fr.sha256))
+            blob = write_dng(_enlarge(raw.data, f), cfa_pattern=raw.cfa,
+                             black_level=tuple(int(round(v)) for v in raw.black_level_cfa.ravel()),
+                             white_level=int(raw.white_level), exposure_s=raw.exposure_s, iso=raw.iso)
+            sha = store.put_object(blob)
+            db.execute("UPDATE frames SET sha256 = ?, size = ? WHERE id = ?", (sha, len(blob), fr.id))
+        for rid, name, old in db.execute("SELECT result_id, name, sha256 FROM result_objects WHERE result_id IN "
+                                         "(SELECT id FROM results WHERE kind = 'dark')").fetchall():
+            dark = np.load(store.object_path(old))
+            buf = io.BytesIO()
+            np.save(buf, _enlarge(dark, f))
+            sha = store.put_object(buf.getvalue())
+            db.execute("UPDATE result_objects SET sha256 = ?, size = ? WHERE result_id = ? AND name = ?",
+                       (sha, len(buf.getvalue()), rid, name))
+        rid, text = db.execute("SELECT id, result_json FROM results WHERE kind = 'intrinsics'").fetchone()
+        r = json.loads(text)
+        K = np.array(r["K"])
+        K[0, 0] *= f
+        K[1, 1] *= f
+        K[:2, 2] = f * (K[:2, 2] + 0.5) - 0.5   # pixel centres: the enlarged pixel grid's
+        r["K"], r["image_size"] = K.tolist(), [f * v for v in r["image_size"]]
+        db.execute("UPDATE results SET result_json = ? WHERE id = ?", (json.dumps(r), rid))
+    store.close()
+    print(f"upscale  {dest}: measurement and passive frames and darks enlarged {f} x {f}, "
+          f"{r['image_size'][0]} x {r['image_size'][1]}")
+
+
 def scheduler(store_path: str) -> None:
     port = _free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -262,9 +314,14 @@ if __name__ == "__main__":
     ap.add_argument("--store", required=True, help="a store holding the quick demo's session")
     ap.add_argument("--only", choices=sorted(PARTS), action="append")
     ap.add_argument("--memory-limit", type=float, default=64.0, help="MiB for the streamed route (memory part)")
+    ap.add_argument("--upscale", type=int, metavar="F", help="only make a synthesised session F x F larger "
+                    "(every Bayer tile repeated) at --dest")
+    ap.add_argument("--dest", help="where --upscale writes its store")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     a = ap.parse_args()
-    if a.one == "streamed_keep":   # the resume part's victim: a streamed run left to be killed
+    if a.upscale:
+        upscale(a.store, a.upscale, a.dest)
+    elif a.one == "streamed_keep":   # the resume part's victim: a streamed run left to be killed
         s, m, c = _setup(a.store)
         _stream(s, m, c, 0, fresh=False)
     elif a.one:
