@@ -56,6 +56,8 @@ from capture.store import Store  # noqa: E402
 from sims.dng import write_dng  # noqa: E402
 
 SESSION = "demo-quick"
+#: rounds of the today part (each runs both codes once, alternated)
+ROUNDS = int(os.environ.get("SCALE_ROUNDS", "2"))
 BLOCK = 4096
 
 
@@ -140,18 +142,22 @@ def memory(store_path: str, limit_mib: float) -> None:
 def today(store_path: str, limit_mib: float) -> None:
     """``gonio process --methods lambertian`` with today's code (the base commit, unpacked by
     ``git archive 0e5e740`` into /tmp/gonio_today) and this branch's, alternated twice each on
-    scratch copies of the store: wall time and the stage timings it reports."""
-    for rnd in range(2):
+    scratch copies of the store: wall time, CPU time (the fairer figure on a shared machine) and
+    the stage timings it reports."""
+    for rnd in range(ROUNDS):
         for name, code in (("today", "/tmp/gonio_today"), ("streamed", str(ROOT))):
             scratch = _without_reconstructions(store_path)
             env = {**os.environ, "PYTHONPATH": code}
             t = time.perf_counter()
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
             r = subprocess.run([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", scratch,
                                 "--methods", "lambertian", "--json", "-q"], env=env, capture_output=True, text=True)
             dt = time.perf_counter() - t
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
             summary = json.loads(r.stdout[r.stdout.index("{"):])
-            print(f"today  round {rnd}  {name:8s} exit {r.returncode}  {dt:6.1f} s  stages {summary['timings']}  "
-                  f"held-out rel. RMS {summary['methods'][0]['figures'].get('held_out_rel_rms')}")
+            print(f"today  round {rnd}  {name:8s} exit {r.returncode}  wall {dt:6.1f} s  CPU (user + sys) {cpu:6.1f} s  "
+                  f"stages {summary['timings']}  held-out rel. RMS {summary['methods'][0]['figures'].get('held_out_rel_rms')}")
 
 
 def executors(store_path: str) -> None:
@@ -215,7 +221,7 @@ def _free_port() -> int:
 def _without_reconstructions(store_path: str) -> str:
     """A scratch copy of the store without its reconstruction results (so ``gonio process``
     runs the methods again but keeps the stored calibration)."""
-    dest = Path(store_path).resolve().parent / "scale-scratch"
+    dest = Path(store_path).resolve().parent / f"scale-scratch-{os.getpid()}"
     shutil.rmtree(dest, ignore_errors=True)
     shutil.copytree(store_path, dest, ignore=shutil.ignore_patterns("arrays"))
     with sqlite3.connect(dest / "gonio.sqlite") as db:
