@@ -72,6 +72,7 @@ from calibration.targets import TargetDetection, detect_charuco, detect_chessboa
 from calibration.turntable import TurntableFit, consistent_corner_order, fit_turntable, lab_frame
 
 from ..plan import CALIBRATION_KINDS
+from ..rigs import recorded_in_built_in_lab
 from ..store import FrameRecord, SessionNotFound, Store, StoreError
 from .images import FrameDataError, SessionImages, dark_artifact_name, exposure_s
 from .process import object_pose
@@ -951,10 +952,9 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
 
 def _session_targets(store: Store, info) -> LabTargets:
     """The built-in simulated lab's targets for a session recorded in it; else TargetsNeeded."""
-    from ..rigs import recorded_in_built_in_lab
     snapshots = store.rig_snapshots(info.id)
     if recorded_in_built_in_lab(snapshots):
-        from .demo_lab import DemoLab
+        from .demo_lab import DemoLab  # demo_lab imports LabTargets from here: a circle until it moves out
         return DemoLab().targets()
     rigs = {str(s["config"].get("rig", {}).get("name", "a rig file")) for s in snapshots}
     fields_ = ", ".join(f.name for f in fields(LabTargets))

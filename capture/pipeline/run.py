@@ -40,7 +40,9 @@ from .progress import Progress, ProgressSink, counter
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, plan_inputs, read_calibration,
                       session_images, view_plan)
 from .report_html import write_html_report
+from ..rigs import recorded_in_built_in_lab
 from ..store import Store
+from .demo_lab import demo_lab_for
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session"]
 
@@ -186,7 +188,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
     stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
     todo = [m for m in methods if force or m not in stored]
-    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
+    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m].id}); --force re-runs it",
                                  figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
                                  warnings=stored[m].result.get("warnings", []))
                 for m in methods if m not in todo}
@@ -241,10 +243,8 @@ def _jsonable(obj: Any) -> Any:
 def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
     """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
     (at its frames' resolution), None for any other rig."""
-    from ..rigs import recorded_in_built_in_lab
     if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
         return None
-    from .demo_lab import demo_lab_for
     return demo_lab_for(store, session).process_options()
 
 
