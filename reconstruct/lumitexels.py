@@ -47,7 +47,8 @@ class View:
     camera : CameraModel
         Intrinsics, distortion and world -> camera pose.
     radiance : ndarray of shape (H, W, 3)
-        Linear HDR radiance (float32), same units as ``light_intensity`` / mm^2.
+        Linear HDR radiance (float32), same units as ``light_intensity`` / mm^2. None only where
+        a pipeline keeps a view's geometry without its images (an out-of-core run).
     light_position : ndarray of shape (3,)
         Point light position, world frame, mm.
     light_intensity : float or ndarray of shape (3,)
@@ -161,17 +162,6 @@ class Lumitexels:
 # ----------------------------------------------------------------------------------------------
 # assembly
 # ----------------------------------------------------------------------------------------------
-def _object_frame_camera(view: View) -> CameraModel:
-    """The view's camera with its pose expressed relative to the object (object -> camera)."""
-    T = np.asarray(view.object_to_world, float)
-    return view.camera.with_pose(view.camera.R @ T[:3, :3], view.camera.R @ T[:3, 3] + view.camera.t)
-
-
-def _object_frame_point(view: View, p_world) -> np.ndarray:
-    T = np.asarray(view.object_to_world, float)
-    return np.linalg.solve(T[:3, :3], np.asarray(p_world, float) - T[:3, 3])
-
-
 def _check_views(views: Sequence[View]) -> None:
     if len(views) == 0:
         raise LumitexelError("no views given")
@@ -258,6 +248,187 @@ def _sample(img: np.ndarray, px: np.ndarray) -> np.ndarray:
     return top * (1 - fy) + bottom * fy
 
 
+@dataclass(frozen=True)
+class AssemblyGeometry:
+    """What every view's pass of the assembly shares (object frame, mm): the object ``surface``,
+    the ``blockers`` that hide or shadow it (the surface first), their bounding-box ``corners``
+    (None: unbounded), the rejection box ``reject_filter_px`` and depth jump ``jump_mm``, the
+    grazing cut ``min_cos`` and the surface's face count ``n_faces``."""
+
+    surface: Surface
+    blockers: tuple[Surface, ...]
+    corners: np.ndarray | None
+    reject_filter_px: int
+    jump_mm: float
+    min_cos: float
+    n_faces: int
+
+
+def assembly_geometry(mesh: trimesh.Trimesh | Surface, *, occluders: Sequence[Surface] = (),
+                      reject_filter_px: int = 5, reject_jump_mm: float | None = None,
+                      min_cos: float = 0.05) -> AssemblyGeometry:
+    """The shared part of :func:`assemble_lumitexels` (its parameters, same meaning)."""
+    surface = mesh if isinstance(mesh, Surface) else Mesh(mesh)
+    blockers = (surface, *occluders)
+    extent = float(np.ptp(surface.mesh.bounds, axis=0).max()) if isinstance(surface, Mesh) else \
+        2 * surface.bounding_radius
+    jump = 0.02 * extent if reject_jump_mm is None else reject_jump_mm
+    F = len(surface.mesh.faces) if isinstance(surface, Mesh) else 1
+    return AssemblyGeometry(surface, blockers, _bounds_corners(blockers), reject_filter_px, jump, min_cos, F)
+
+
+def object_frame_camera(camera: CameraModel, object_to_world: np.ndarray) -> CameraModel:
+    """``camera`` with its pose expressed relative to the object (object -> camera)."""
+    T = np.asarray(object_to_world, float)
+    return camera.with_pose(camera.R @ T[:3, :3], camera.R @ T[:3, 3] + camera.t)
+
+
+def object_frame_point(object_to_world: np.ndarray, p_world) -> np.ndarray:
+    """A world point (mm) in the object frame."""
+    T = np.asarray(object_to_world, float)
+    return np.linalg.solve(T[:3, :3], np.asarray(p_world, float) - T[:3, 3])
+
+
+@dataclass(frozen=True)
+class ViewHits:
+    """Pass 1 of one view (object frame): the flat indices ``pixel`` (N,) of the pixels whose rays
+    hit the object, their ``face`` (N,), hit ``position`` (N, 3) mm and interpolated ``normal``
+    (N, 3); and ``reject`` (H * W,) bool, the pixels near a depth jump or cast-shadow edge."""
+
+    pixel: np.ndarray
+    face: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    reject: np.ndarray
+
+    def face_areas(self, n_faces: int) -> np.ndarray:
+        """Visible pixels per face (F,): the measure of the paper's I_best."""
+        return np.bincount(np.maximum(self.face, 0), minlength=n_faces)
+
+
+def view_hits(geom: AssemblyGeometry, cam: CameraModel, light: np.ndarray) -> ViewHits:
+    """Pass 1 of one view: ray-cast the pixels that may see the object and make the rejection
+    map. ``cam`` and ``light`` (mm) in the object frame (:func:`object_frame_camera`,
+    :func:`object_frame_point`); needs no image."""
+    blockers = list(geom.blockers)
+    pix = _pixels_covering(cam, geom.corners)
+    o, d = cam.pixel_rays(np.stack([pix % cam.width, pix // cam.width], axis=1))
+    hits = first_hits(blockers, o, d)
+    on_obj = hits.surface_index == 0
+    if geom.reject_filter_px > 1:
+        depth = np.full(cam.width * cam.height, np.inf)
+        depth[pix[hits.mask]] = cam.depth(hits.position[hits.mask])
+        # cast shadows only: the attached-shadow terminator fades smoothly and is kept
+        shadow = np.zeros(cam.width * cam.height, bool)
+        idx = np.flatnonzero(hits.mask)
+        to_l = light - hits.position[idx]
+        dist = np.linalg.norm(to_l, axis=1)
+        to_l /= dist[:, None]
+        facing = np.einsum("ij,ij->i", hits.geometric_normal[idx], to_l) > 0
+        idx, to_l, dist = idx[facing], to_l[facing], dist[facing]
+        shadow[pix[idx]] = occluded(blockers, hits.position[idx], to_l, dist,
+                                    normals=hits.geometric_normal[idx])
+        reject = _reject_map(depth.reshape(cam.height, cam.width), shadow.reshape(cam.height, cam.width),
+                             filter_px=geom.reject_filter_px, jump_mm=geom.jump_mm).ravel()
+    else:
+        reject = np.zeros(cam.width * cam.height, bool)
+    return ViewHits(pix[on_obj], hits.face_index[on_obj], hits.position[on_obj], hits.normal[on_obj], reject)
+
+
+@dataclass(frozen=True)
+class Texels:
+    """Surface points (object frame): ``position`` (P, 3) mm, unit ``normal`` (P, 3), the view
+    each was made in ``best_view`` (P,) and its ``pixel`` (P, 2) there."""
+
+    position: np.ndarray
+    normal: np.ndarray
+    best_view: np.ndarray
+    pixel: np.ndarray
+
+
+def view_texels(hits: ViewHits, best: np.ndarray, k: int, width: int) -> Texels:
+    """The texels view ``k`` makes: the pixels of the faces whose best view (``best`` (F,)) is k;
+    normals not yet normalised (:func:`join_texels` does)."""
+    sel = best[np.maximum(hits.face, 0)] == k
+    pix = hits.pixel[sel]
+    return Texels(hits.position[sel], hits.normal[sel], np.full(sel.sum(), k, np.int32),
+                  np.stack([pix % width, pix // width], axis=1).astype(np.float32))
+
+
+def join_texels(parts: Sequence[Texels]) -> Texels:
+    """The views' texels in view order, normals made unit."""
+    parts = [p for p in parts if len(p.position)]
+    if not parts:
+        raise LumitexelError("the object is not visible in any view (check poses and the mesh frame)")
+    normal = np.concatenate([p.normal for p in parts])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return Texels(np.concatenate([p.position for p in parts]), normal,
+                  np.concatenate([p.best_view for p in parts]), np.concatenate([p.pixel for p in parts]))
+
+
+@dataclass(frozen=True)
+class ViewSamples:
+    """One view's reflectance samples of a block of texels: ``texel`` (n,) indices into the
+    block, ``wi`` / ``wo`` (n, 3) local unit directions, ``reflectance`` (n, 3) ``f_r cos``;
+    ``diffuse`` / ``specular`` (n, 3) or None (float32)."""
+
+    texel: np.ndarray
+    wi: np.ndarray
+    wo: np.ndarray
+    reflectance: np.ndarray
+    diffuse: np.ndarray | None
+    specular: np.ndarray | None
+
+
+def view_samples(geom: AssemblyGeometry, view: View, cam: CameraModel, light: np.ndarray,
+                 reject: np.ndarray, position: np.ndarray, normal: np.ndarray, *,
+                 separated: bool) -> ViewSamples:
+    """Pass 2 of one view over a block of texels (``position``, unit ``normal`` (n, 3), object
+    frame): a sample per texel where the point is seen and lit, not grazing, and none of the four
+    pixels its bilinear sample touches is rejected (``reject`` (H * W,)) or invalid. Each texel's
+    sample depends on that texel alone, so blocks give the same samples as the whole set."""
+    blockers = list(geom.blockers)
+    frames = tangent_frames(normal)
+    to_c = cam.center - position
+    dc = np.linalg.norm(to_c, axis=1)
+    to_c /= dc[:, None]
+    to_l = light - position
+    dl = np.linalg.norm(to_l, axis=1)
+    to_l /= dl[:, None]
+    cos_o = np.einsum("ij,ij->i", normal, to_c)
+    cos_i = np.einsum("ij,ij->i", normal, to_l)
+    cand = np.flatnonzero((cos_o > geom.min_cos) & (cos_i > geom.min_cos))
+    if len(cand) == 0:   # a block facing away (the projection takes no empty input)
+        empty = np.zeros((0, 3), np.float32)
+        return ViewSamples(cand, empty, empty, empty, empty if separated else None, empty if separated else None)
+    px = cam.project(position[cand])
+    inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= cam.width - 1) & \
+             (px[:, 1] <= cam.height - 1)
+    cand, px = cand[inside], px[inside]
+    seen = ~occluded(blockers, position[cand], to_c[cand], dc[cand], normals=normal[cand])
+    cand, px = cand[seen], px[seen]
+    lit = ~occluded(blockers, position[cand], to_l[cand], dl[cand], normals=normal[cand])
+    cand, px = cand[lit], px[lit]
+    # rejection and validity at the four pixels the bilinear sample touches
+    bad = reject.reshape(cam.height, cam.width)
+    if view.valid is not None:
+        bad = bad | ~np.asarray(view.valid, bool)
+    x0 = np.clip(np.floor(px[:, 0]).astype(int), 0, cam.width - 2)
+    y0 = np.clip(np.floor(px[:, 1]).astype(int), 0, cam.height - 2)
+    drop = bad[y0, x0] | bad[y0, x0 + 1] | bad[y0 + 1, x0] | bad[y0 + 1, x0 + 1]
+    cand, px = cand[~drop], px[~drop]
+    scale = dl[cand, None] ** 2 / np.broadcast_to(np.asarray(view.light_intensity, float), (3,))
+    sample = lambda img: (_sample(img, px) * scale).astype(np.float32)  # noqa: E731
+    return ViewSamples(cand, to_local(to_l[cand], frames[cand]).astype(np.float32),
+                       to_local(to_c[cand], frames[cand]).astype(np.float32), sample(view.radiance),
+                       sample(view.diffuse) if separated else None, sample(view.specular) if separated else None)
+
+
+def best_views(areas: np.ndarray) -> np.ndarray:
+    """I_best per face from the visible areas (F, V): the view where the face covers most pixels."""
+    return np.argmax(areas, axis=1)
+
+
 def assemble_lumitexels(mesh: trimesh.Trimesh | Surface, views: Sequence[View], *,
                         occluders: Sequence[Surface] = (), reject_filter_px: int = 5,
                         reject_jump_mm: float | None = None, min_cos: float = 0.05,
@@ -288,13 +459,16 @@ def assemble_lumitexels(mesh: trimesh.Trimesh | Surface, views: Sequence[View], 
         Sorted by texel. Points are made per triangle in the view where it covers the most
         pixels (the paper's I_best, measured on the visible, ray-cast area so occluded triangles
         are assigned where they are seen).
+
+    Notes
+    -----
+    Composed of the per-view steps :func:`view_hits`, :func:`view_texels` and
+    :func:`view_samples`, which an out-of-core run (``capture.pipeline.lumitexel_arrays``)
+    calls one view and one texel block at a time.
     """
     _check_views(views)
-    surface = mesh if isinstance(mesh, Surface) else Mesh(mesh)
-    blockers = [surface, *occluders]
-    extent = float(np.ptp(surface.mesh.bounds, axis=0).max()) if isinstance(surface, Mesh) else \
-        2 * surface.bounding_radius
-    jump = 0.02 * extent if reject_jump_mm is None else reject_jump_mm
+    geom = assembly_geometry(mesh, occluders=occluders, reject_filter_px=reject_filter_px,
+                             reject_jump_mm=reject_jump_mm, min_cos=min_cos)
     total = 2 * len(views)
     step = 0
 
@@ -304,116 +478,32 @@ def assemble_lumitexels(mesh: trimesh.Trimesh | Surface, views: Sequence[View], 
         if progress is not None:
             progress(step, total)
 
-    cams = [_object_frame_camera(v) for v in views]
-    lights = [_object_frame_point(v, v.light_position) for v in views]
-
-    # pass 1: per view, the pixels seeing the object, their faces, and the rejection maps
-    corners = _bounds_corners(blockers)
+    cams = [object_frame_camera(v.camera, v.object_to_world) for v in views]
+    lights = [object_frame_point(v.object_to_world, v.light_position) for v in views]
     per_view = []
-    for v, cam, light in zip(views, cams, lights):
-        pix = _pixels_covering(cam, corners)
-        o, d = cam.pixel_rays(np.stack([pix % cam.width, pix // cam.width], axis=1))
-        hits = first_hits(blockers, o, d)
-        on_obj = hits.surface_index == 0
-        if reject_filter_px > 1:
-            depth = np.full(cam.width * cam.height, np.inf)
-            depth[pix[hits.mask]] = cam.depth(hits.position[hits.mask])
-            # cast shadows only: the attached-shadow terminator fades smoothly and is kept
-            shadow = np.zeros(cam.width * cam.height, bool)
-            idx = np.flatnonzero(hits.mask)
-            to_l = light - hits.position[idx]
-            dist = np.linalg.norm(to_l, axis=1)
-            to_l /= dist[:, None]
-            facing = np.einsum("ij,ij->i", hits.geometric_normal[idx], to_l) > 0
-            idx, to_l, dist = idx[facing], to_l[facing], dist[facing]
-            shadow[pix[idx]] = occluded(blockers, hits.position[idx], to_l, dist,
-                                        normals=hits.geometric_normal[idx])
-            reject = _reject_map(depth.reshape(cam.height, cam.width),
-                                 shadow.reshape(cam.height, cam.width),
-                                 filter_px=reject_filter_px, jump_mm=jump).ravel()
-        else:
-            reject = np.zeros(cam.width * cam.height, bool)
-        per_view.append((pix[on_obj], hits.face_index[on_obj], hits.position[on_obj],
-                         hits.normal[on_obj], reject))
+    for cam, light in zip(cams, lights):
+        per_view.append(view_hits(geom, cam, light))
         tick()
-
-    # I_best per face: the view in which its visible area (in pixels) is largest
-    F = len(surface.mesh.faces) if isinstance(surface, Mesh) else 1
-    area = np.zeros((F, len(views)), np.int64)
-    for k, (_, faces, *_rest) in enumerate(per_view):
-        area[:, k] = np.bincount(np.maximum(faces, 0), minlength=F)
-    best = np.argmax(area, axis=1)
-
-    # texels: the pixels of each face in its best view (their ray hits are the surface points)
-    pos, nrm, bview, bpix = [], [], [], []
-    for k, (pix, faces, hit_pos, hit_nrm, _) in enumerate(per_view):
-        sel = best[np.maximum(faces, 0)] == k
-        if not sel.any():
-            continue
-        width = cams[k].width
-        pos.append(hit_pos[sel])
-        nrm.append(hit_nrm[sel])
-        bview.append(np.full(sel.sum(), k, np.int32))
-        bpix.append(np.stack([pix[sel] % width, pix[sel] // width], axis=1).astype(np.float32))
-    if not pos:
-        raise LumitexelError("the object is not visible in any view (check poses and the mesh frame)")
-    position = np.concatenate(pos)
-    normal = np.concatenate(nrm)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    frames = tangent_frames(normal)
+    best = best_views(np.stack([h.face_areas(geom.n_faces) for h in per_view], axis=1))
+    tex = join_texels([view_texels(h, best, k, cam.width) for k, (h, cam) in enumerate(zip(per_view, cams))])
 
     # pass 2: a reflectance sample per (texel, view) where the point is seen and lit
-    s_texel, s_view, s_wi, s_wo, s_r, s_dif, s_spec = [], [], [], [], [], [], []
     separated = all(v.diffuse is not None and v.specular is not None for v in views)
+    parts = []
     for k, (v, cam, light) in enumerate(zip(views, cams, lights)):
-        to_c = cam.center - position
-        dc = np.linalg.norm(to_c, axis=1)
-        to_c /= dc[:, None]
-        to_l = light - position
-        dl = np.linalg.norm(to_l, axis=1)
-        to_l /= dl[:, None]
-        cos_o = np.einsum("ij,ij->i", normal, to_c)
-        cos_i = np.einsum("ij,ij->i", normal, to_l)
-        cand = np.flatnonzero((cos_o > min_cos) & (cos_i > min_cos))
-        px = cam.project(position[cand])
-        inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= cam.width - 1) & \
-                 (px[:, 1] <= cam.height - 1)
-        cand, px = cand[inside], px[inside]
-        seen = ~occluded(blockers, position[cand], to_c[cand], dc[cand], normals=normal[cand])
-        cand, px = cand[seen], px[seen]
-        lit = ~occluded(blockers, position[cand], to_l[cand], dl[cand], normals=normal[cand])
-        cand, px = cand[lit], px[lit]
-        # rejection and validity at the four pixels the bilinear sample touches
-        reject = per_view[k][-1]
-        bad = reject.reshape(cam.height, cam.width)
-        if v.valid is not None:
-            bad = bad | ~np.asarray(v.valid, bool)
-        x0 = np.clip(np.floor(px[:, 0]).astype(int), 0, cam.width - 2)
-        y0 = np.clip(np.floor(px[:, 1]).astype(int), 0, cam.height - 2)
-        drop = bad[y0, x0] | bad[y0, x0 + 1] | bad[y0 + 1, x0] | bad[y0 + 1, x0 + 1]
-        cand, px = cand[~drop], px[~drop]
-        if len(cand) == 0:
-            tick()
-            continue
-        scale = dl[cand, None] ** 2 / np.broadcast_to(np.asarray(v.light_intensity, float), (3,))
-        s_r.append((_sample(v.radiance, px) * scale).astype(np.float32))
-        if separated:
-            s_dif.append((_sample(v.diffuse, px) * scale).astype(np.float32))
-            s_spec.append((_sample(v.specular, px) * scale).astype(np.float32))
-        s_texel.append(cand)
-        s_view.append(np.full(len(cand), k, np.int32))
-        s_wi.append(to_local(to_l[cand], frames[cand]).astype(np.float32))
-        s_wo.append(to_local(to_c[cand], frames[cand]).astype(np.float32))
+        s = view_samples(geom, v, cam, light, per_view[k].reject, tex.position, tex.normal, separated=separated)
+        if len(s.texel):
+            parts.append((k, s))
         tick()
-    if not s_texel:
+    if not parts:
         raise LumitexelError("no reflectance samples: no surface point is both seen and lit")
-    texel = np.concatenate(s_texel)
+    texel = np.concatenate([s.texel for _, s in parts])
     order = np.argsort(texel, kind="stable")
-    cat = lambda parts: np.concatenate(parts)[order]  # noqa: E731
+    cat = lambda name: np.concatenate([getattr(s, name) for _, s in parts])[order]  # noqa: E731
     lt = Lumitexels(
-        position=position, normal=normal, best_view=np.concatenate(bview),
-        pixel=np.concatenate(bpix), texel=texel[order], view=cat(s_view), wi=cat(s_wi),
-        wo=cat(s_wo), reflectance=cat(s_r), weight=np.ones(len(texel), np.float32),
-        diffuse=cat(s_dif) if separated else None, specular=cat(s_spec) if separated else None)
+        position=tex.position, normal=tex.normal, best_view=tex.best_view, pixel=tex.pixel,
+        texel=texel[order], view=np.concatenate([np.full(len(s.texel), k, np.int32) for k, s in parts])[order],
+        wi=cat("wi"), wo=cat("wo"), reflectance=cat("reflectance"), weight=np.ones(len(texel), np.float32),
+        diffuse=cat("diffuse") if separated else None, specular=cat("specular") if separated else None)
     # points never both seen and lit carry no information
     return lt.subset(np.flatnonzero(lt.counts > 0))

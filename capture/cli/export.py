@@ -32,7 +32,8 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
     scene per captured light, MERL tables; model.json names every file, its units, the exact BRDF
     formula and the export's approximation error."""
     from ..export.session import ExportError, export_session
-    from ..pipeline.process import ProcessError, load_mesh
+    from ..pipeline.mesh_checks import load_mesh
+    from ..pipeline.process import ProcessError
     kw = {}
     if mesh is not None:
         try:

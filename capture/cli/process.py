@@ -75,6 +75,13 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             out: Path = typer.Option(None, "--out", help="Report file (default: <session>-report.html "
                                      "beside the store)."),
             as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
+            workers: int = typer.Option(0, "--workers", min=0, help="Run the per-view tasks on a local Dask "
+                                        "cluster of N worker processes (0: in this process)."),
+            scheduler: str = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler "
+                                          "(tcp://HOST:8786); its workers must see the store at the same path."),
+            memory_limit: float = typer.Option(None, "--memory-limit", min=1, help="MiB the per-view tasks may "
+                                               "hold together (sets the texel chunk; default: half the "
+                                               "machine's memory)."),
             quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Reconstruct a captured session with every method its captures allow and write the report."""
     from ..pipeline.methods import DEFAULT_METHODS, METHODS
@@ -93,7 +100,12 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             check_out_file(out)
         except OutputError as exc:
             raise fail(str(exc)) from None
-    kw = {}
+    from ..pipeline.cluster import ClusterError, ClusterOptions
+    try:
+        cluster = ClusterOptions(workers=workers, scheduler=scheduler)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    kw = {"cluster": cluster, "memory_limit": None if memory_limit is None else int(memory_limit * 2**20)}
     if mesh is not None:
         try:
             kw["mesh"] = load_mesh(mesh)
@@ -117,7 +129,7 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         with bar:
             try:
                 rep = process_session(st, session, methods=names, force=force, progress=update,
-                                      report_path=report_path, **kw)
+                                      report_path=report_path, say=lambda text: console.print(escape(text)), **kw)
             except MeshError as exc:   # the mesh against the calibration: the user's input
                 bar.stop()
                 raise fail(str(exc)) from None
@@ -125,6 +137,9 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
                 bar.stop()
                 typer.secho(f"cannot process: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NO_INPUTS) from None
+            except (ClusterError, ValueError) as exc:   # a cluster unusable, a memory limit too small
+                bar.stop()
+                raise fail(str(exc)) from None
             except (SessionBusy, ObjectDamaged, OutputError) as exc:
                 bar.stop()
                 raise fail(str(exc)) from None

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import trimesh
@@ -49,6 +49,7 @@ from .images import FrameDataError, SessionImages, StepImage
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
            "PassiveInput", "ProcessInputs", "read_calibration", "session_images", "session_inputs",
+           "PoseSpec", "ViewPlan", "view_plan", "pose_view", "merge_pose", "plan_inputs",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose"]
 
 class ProcessError(ValueError):
@@ -302,29 +303,56 @@ def _analyser(angle: float | None) -> str | None:
     return None
 
 
-def session_inputs(store: Store, session: str, *, calibration: SessionCalibration | None = None,
-                   mesh: trimesh.Trimesh | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
-    """Turn a calibrated session's measurement (and passive) steps into method inputs.
+@dataclass(frozen=True)
+class PoseSpec:
+    """One measurement pose (turntable reading x light) before any image is read: its ``steps``
+    (one per analyser state), which of them make the view (``used``: indices, parallel then
+    crossed when both were captured), its calibrated light (lab, mm), whether it is held out and
+    the frames of the used steps."""
 
-    Parameters
-    ----------
-    store, session
-        The session (calibrated: see :func:`read_calibration`).
-    calibration : SessionCalibration, optional
-        Default: :func:`read_calibration` (no gray-card pose).
-    mesh : trimesh.Trimesh, optional
-        The object's mesh (object frame, mm): needed for the passive input's normals.
-    progress : callable(done, total), optional
-        After each merged step.
+    reading: float
+    steps_all: tuple[int, ...]
+    used: tuple[int, ...]
+    light_mm: np.ndarray
+    held_out: bool
+    frame_ids: tuple[int, ...]
+
+    @property
+    def separated(self) -> bool:
+        return len(self.used) == 2
+
+    @property
+    def steps(self) -> tuple[int, ...]:
+        return tuple(self.steps_all[i] for i in self.used)
+
+
+@dataclass(frozen=True)
+class ViewPlan:
+    """What the inputs are made of, before any image is read: the measurement ``poses`` in
+    capture order and the ``passive`` step (None: none captured, or no mesh / probe map, with the
+    reason in ``notes``)."""
+
+    poses: tuple[PoseSpec, ...]
+    passive: int | None
+    notes: tuple[str, ...]
+
+    @property
+    def ordered(self) -> list[PoseSpec]:
+        """Training poses then held-out ones: the view order of the lumitexels."""
+        return [p for p in self.poses if not p.held_out] + [p for p in self.poses if p.held_out]
+
+
+def view_plan(images: SessionImages, session: str, cal: SessionCalibration, *,
+              mesh: trimesh.Trimesh | None = None) -> ViewPlan:
+    """The session's measurement poses and passive step (no image is read).
 
     Raises
     ------
     ProcessError
-        No measurement steps, or a measurement step without a calibrated light.
+        No measurement steps, a measurement step without a calibrated light, or every light
+        held out.
     """
-    cal = read_calibration(store, session) if calibration is None else calibration
-    frames = session_images(store, session)
+    frames = images
     measure = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "measure" and frames.by_step.get(i)]
     passive = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "passive" and frames.by_step.get(i)]
     if not measure:
@@ -335,47 +363,24 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
                            f"{frames.steps[missing[0]].get('light')}): the {cal.light_source} calibration "
                            "does not cover them; add spheres captures at those lights")
     # poses: (turntable, light) -> the steps at each analyser angle
-    poses: dict[tuple, list[int]] = {}
+    grouped: dict[tuple, list[int]] = {}
     for i in measure:
         d = frames.steps[i]
-        poses.setdefault((d.get("turntable_deg"), repr(_light_key(d["light"]))), []).append(i)
-    total = len(measure) + len(passive)
-    done = 0
-    views, held, vsteps, hsteps, frame_ids, notes = [], [], [], [], [], []
-    separated_all = True
-    for (reading, _), steps in poses.items():
-        imgs = []
-        for s in steps:
-            imgs.append(_merge(frames, s))
-            done += 1
-            if progress is not None:
-                progress(done, total)
-        by = {_analyser(im.spec.get("polarizer_deg")): im for im in imgs}
-        valid = np.logical_and.reduce([im.valid for im in imgs])
+        grouped.setdefault((d.get("turntable_deg"), repr(_light_key(d["light"]))), []).append(i)
+    poses = []
+    for (reading, _), steps in grouped.items():
+        by = {_analyser(frames.steps[s].get("polarizer_deg")): k for k, s in enumerate(steps)}
         if "parallel" in by and "crossed" in by:
-            par, cro = by["parallel"], by["crossed"]
-            sep = separate_parallel_crossed(par.radiance, cro.radiance)
-            radiance, diffuse, specular = par.radiance + cro.radiance, sep.diffuse, sep.specular
-            used = [par, cro]
+            used = (by["parallel"], by["crossed"])
         else:  # one analyser state (or none): a plain view
-            im = by.get(None) or by.get("parallel") or imgs[0]
-            radiance, diffuse, specular, used = im.radiance, None, None, [im]
-            separated_all = False
-        spec = used[0].spec
-        view = View(camera=cal.camera, radiance=radiance, light_position=cal.lights_mm[used[0].step],
-                    light_intensity=cal.light_intensity, object_to_world=cal.object_pose(reading or 0.0),
-                    valid=valid, diffuse=diffuse, specular=specular)
-        ids = tuple(im.step for im in used)
-        if spec.get("held_out"):
-            held.append(view)
-            hsteps.append(ids)
-        else:
-            views.append(view)
-            vsteps.append(ids)
-        frame_ids += [f for im in used for f in im.frame_ids]
-    if not views:
+            used = (next((by[a] for a in (None, "parallel") if a in by), 0),)
+        first = steps[used[0]]
+        poses.append(PoseSpec(reading or 0.0, tuple(steps), used, cal.lights_mm[first],
+                              bool(frames.steps[first].get("held_out")),
+                              tuple(f.id for i in used for f in frames.by_step[steps[i]])))
+    if all(p.held_out for p in poses):
         raise ProcessError(f"session {session!r}: every measurement light is held out; nothing to fit")
-    p_input = None
+    notes, p_step = [], None
     if passive:
         if cal.environment is None:
             notes.append("passive capture present but no mirror-probe environment map is stored: "
@@ -383,13 +388,84 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
         elif mesh is None:
             notes.append("passive capture present but no mesh: passive reflectometry skipped")
         else:
-            im = _merge(frames, passive[0])
-            done += 1
+            p_step = passive[0]
+    return ViewPlan(tuple(poses), p_step, tuple(notes))
+
+
+def pose_view(pose: PoseSpec, images: Sequence[StepImage], cal: SessionCalibration) -> View:
+    """The view of one pose from its merged steps (``images`` in ``pose.steps_all``' order):
+    parallel + crossed summed, with the polarization split, or the one plain image."""
+    valid = np.logical_and.reduce([im.valid for im in images])
+    if pose.separated:
+        par, cro = (images[i] for i in pose.used)
+        sep = separate_parallel_crossed(par.radiance, cro.radiance)
+        radiance, diffuse, specular = par.radiance + cro.radiance, sep.diffuse, sep.specular
+    else:
+        radiance, diffuse, specular = images[pose.used[0]].radiance, None, None
+    return View(camera=cal.camera, radiance=radiance, light_position=pose.light_mm,
+                light_intensity=cal.light_intensity, object_to_world=cal.object_pose(pose.reading),
+                valid=valid, diffuse=diffuse, specular=specular)
+
+
+def merge_pose(images: SessionImages, pose: PoseSpec, cal: SessionCalibration) -> View:
+    """One pose's view, its steps merged from the raw frames."""
+    return pose_view(pose, [_merge(images, s) for s in pose.steps_all], cal)
+
+
+def session_inputs(store: Store, session: str, *, calibration: SessionCalibration | None = None,
+                   mesh: trimesh.Trimesh | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
+    """Turn a calibrated session's measurement (and passive) steps into method inputs, every
+    view's images in memory (``gonio process`` streams instead:
+    :mod:`capture.pipeline.lumitexel_arrays`).
+
+    Parameters
+    ----------
+    store, session
+        The session (calibrated: see :func:`read_calibration`).
+    calibration : SessionCalibration, optional
+        Default: :func:`read_calibration` (no gray-card pose).
+    mesh : trimesh.Trimesh, optional
+        The object's mesh (object frame, mm): needed for the passive input's normals.
+    progress : callable(done, total), optional
+        After each merged pose.
+
+    Raises
+    ------
+    ProcessError
+        No measurement steps, or a measurement step without a calibrated light.
+    """
+    cal = read_calibration(store, session) if calibration is None else calibration
+    images = session_images(store, session)
+    plan = view_plan(images, session, cal, mesh=mesh)
+    return plan_inputs(images, plan, cal, mesh, images_of=range(len(plan.poses)), progress=progress)
+
+
+def plan_inputs(images: SessionImages, plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh | None, *,
+                images_of: Sequence[int] = (), progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
+    """The method inputs of ``plan``: the views ``images_of`` (indices in
+    :attr:`ViewPlan.ordered`) merged from their raw frames, the others geometry only (camera,
+    light, pose; ``radiance`` None: a streamed run, whose samples
+    :mod:`capture.pipeline.lumitexel_arrays` holds, merges just the view the report draws); the
+    passive input merged from its one image. ``progress(done, total)`` after each merged view."""
+    views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
+    wanted = set(images_of)
+    for k, pose in enumerate(plan.ordered):
+        if k in wanted:
+            view = merge_pose(images, pose, cal)
             if progress is not None:
-                progress(done, total)
-            p_input = _passive_input(im, cal, mesh)
+                progress(len(views) + len(held) + 1, len(plan.poses))
+        else:
+            view = View(camera=cal.camera, radiance=None, light_position=pose.light_mm,
+                        light_intensity=cal.light_intensity, object_to_world=cal.object_pose(pose.reading))
+        (held if pose.held_out else views).append(view)
+        (hsteps if pose.held_out else vsteps).append(pose.steps)
+    for pose in plan.poses:
+        frame_ids += pose.frame_ids
+    p_input = None if plan.passive is None else _passive_input(_merge(images, plan.passive), cal, mesh)
     return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
-                         view_frames=frame_ids, passive=p_input, separated=separated_all, notes=notes)
+                         view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
+                         notes=list(plan.notes))
 
 
 def session_images(store: Store, session: str) -> SessionImages:

@@ -22,7 +22,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import trimesh
@@ -37,9 +37,11 @@ from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
+from .cluster import ClusterOptions, Executor
+from .lumitexel_arrays import block_texels_for, default_memory_limit, stream_lumitexels
 from .progress import Progress, ProgressSink, counter
-from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
-                      read_calibration, session_inputs)
+from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCalibration, plan_inputs,
+                      read_calibration, session_images, view_plan)
 from .report_html import write_html_report
 from ..outputs import session_file, write_atomically
 from ..rigs import recorded_in_built_in_lab
@@ -114,7 +116,9 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                     force: bool = False, rng: int = 0,
                     method_options: dict[str, dict[str, Any]] | None = None,
                     progress: ProgressSink | None = None,
-                    report_path: str | Path | None = None) -> ProcessReport:
+                    report_path: str | Path | None = None, cluster: ClusterOptions = ClusterOptions(),
+                    memory_limit: int | None = None,
+                    say: Callable[[str], None] = lambda text: None) -> ProcessReport:
     """Calibrate (if needed), build the inputs, run and store each method, write the report.
 
     A session recorded in the built-in simulated lab (``gonio capture run --rig sim``, ``gonio
@@ -150,6 +154,13 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         Each stage as it starts and its progress (:mod:`capture.pipeline.progress`).
     report_path : path, optional
         Where to write the HTML report (default: ``<session>-report.html`` beside the store).
+    cluster : ClusterOptions
+        Where the lumitexels' per-view tasks run (default: this process; :mod:`capture.pipeline.cluster`).
+    memory_limit : int, optional
+        Bytes the per-view tasks may hold together; sets the texel block size
+        (:func:`capture.pipeline.lumitexel_arrays.block_texels_for`; default: half the machine's memory).
+    say : callable(str), optional
+        One-line news (the Dask dashboard's address when a cluster is used).
 
     Raises
     ------
@@ -205,15 +216,26 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
         if todo:
             with clock.stage("inputs"):
-                inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
-            with clock.stage("lumitexels"):
-                train, held = lumitexels_with_held_out(mesh, inputs, progress=counter(progress, "lumitexels"))
+                images = session_images(store, session)
+                plan = view_plan(images, session, cal, mesh=mesh)
+            with clock.stage("lumitexels"), Executor(cluster, store_root=store.root, say=say) as executor:
+                limit = default_memory_limit() if memory_limit is None else memory_limit
+                block = block_texels_for(limit, n_views=len(plan.poses), pixels=cal.camera.width * cal.camera.height,
+                                         workers=1 if cluster.in_process else max(cluster.workers, 1))
+                arrays = stream_lumitexels(images, session, cal, plan, mesh, executor, block_texels=block,
+                                           progress=counter(progress, "lumitexels"))
+                train, held = arrays.gather()
+            with clock.stage("inputs"):
+                inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
             truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
             rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
                           "polarization_separated": inputs.separated, "texels": train.n_texels,
                           "training_samples": train.n_samples, "held_out_samples": held.n_samples,
                           "light_source": cal.light_source, "absolute_units": cal.absolute,
-                          "passive_capture": inputs.passive is not None, "notes": inputs.notes}
+                          "passive_capture": inputs.passive is not None, "notes": inputs.notes,
+                          "lumitexel_arrays": {"path": str(arrays.path.relative_to(Path(store.root))),
+                                               "digest": arrays.digest, "block_texels": arrays.block_texels,
+                                               "reused_views": arrays.reused_views}}
             if truth_r is not None:
                 scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
                 rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])

@@ -12,17 +12,22 @@ import base64
 import json
 import re
 import shutil
+from dataclasses import fields
+from pathlib import Path
 
 import numpy as np
 import pytest
+import zarr
 from typer.testing import CliRunner
 
 from capture.cli import app
 from capture.pipeline.demo_lab import DemoLab, fitter_mesh
 from capture.pipeline.run import process_session
+from capture.pipeline.cluster import ClusterOptions, Executor
+from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels
 from capture.plan import Plan
 from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, read_calibration,
-                             session_inputs)
+                             session_images, session_inputs, view_plan)
 from capture.rigs import open_rig
 from capture.runner import Runner, create_session
 from capture.store import Store
@@ -426,3 +431,68 @@ def test_a_bad_out_is_refused_before_any_work(captured, tmp_path, out, words, mo
 def test_methods_naming_nothing_is_refused(captured):
     r = CliRunner().invoke(app, ["process", "proc", "--store", str(captured[2] / "store"), "--methods", ",,,"])
     assert r.exit_code == 2 and "names no method" in r.output
+
+
+# -- out of core (capture.pipeline.lumitexel_arrays) and the Dask executor -----------------------
+# The streamed, Zarr-stored lumitexels must equal the in-memory assembly above (every view merged,
+# then assemble_lumitexels) bit for bit, whatever the texel block, after a resumed run, and on a
+# 2-process LocalCluster.
+
+def _assert_same(a, b):
+    for x, y in zip(a, b):
+        for f in fields(x):
+            u, v = getattr(x, f.name), getattr(y, f.name)
+            assert (u is None) == (v is None), f.name
+            if u is not None:
+                assert u.dtype == v.dtype and np.array_equal(u, v), f.name
+
+
+def _stream(captured, inputs, workers=0, block=700):
+    store, lab, _ = captured
+    cal = inputs[0]
+    mesh = fitter_mesh(lab.object)
+    images = session_images(store, "proc")
+    plan = view_plan(images, "proc", cal, mesh=mesh)
+    with Executor(ClusterOptions(workers=workers), store_root=store.root) as ex:
+        arrays = stream_lumitexels(images, "proc", cal, plan, mesh, ex, block_texels=block)
+        return arrays, arrays.gather()
+
+
+def test_streamed_lumitexels_equal_the_in_memory_assembly_and_resume(captured, inputs):
+    *_, train, held = inputs
+    shutil.rmtree(Path(captured[0].root) / "arrays", ignore_errors=True)
+    arrays, lt = _stream(captured, inputs)
+    assert len(arrays.blocks) >= 3 and arrays.reused_views == 0   # several texel chunks were written
+    _assert_same(lt, (train, held))
+    # a run killed mid-way: the last views' markers never written and their chunks garbage
+    done = arrays.path / "done"
+    lost = [3, arrays.n_views - 1]
+    for k in lost:
+        (done / f"samples-{k}").unlink()
+    zarr.open_array(str(arrays.path / "samples"), mode="r+")[:, lost, :] = 7.0
+    again, lt2 = _stream(captured, inputs)
+    assert again.reused_views == arrays.n_views - len(lost)
+    _assert_same(lt2, (train, held))
+    # other inputs (here the block size) are never read from stale arrays
+    fresh, lt3 = _stream(captured, inputs, block=1500)
+    assert fresh.reused_views == 0 and fresh.digest != arrays.digest
+    _assert_same(lt3, (train, held))
+
+
+def test_two_local_workers_store_the_same_arrays(captured, inputs):
+    *_, train, held = inputs
+    shutil.rmtree(Path(captured[0].root) / "arrays", ignore_errors=True)
+    arrays, lt = _stream(captured, inputs, workers=2)
+    _assert_same(lt, (train, held))
+
+
+def test_memory_limit_too_small_for_one_view_is_a_clear_error():
+    assert block_texels_for(2 * 2**30, n_views=36, pixels=320 * 240) > 50_000
+    with pytest.raises(ValueError, match=r"--memory-limit 64 MiB cannot hold one view's images .* at least"):
+        block_texels_for(64 * 2**20, n_views=60, pixels=2048 * 1536)
+
+
+def test_cli_rejects_a_scheduler_that_is_not_an_address(captured):
+    store, *_ = captured
+    r = CliRunner().invoke(app, ["process", "proc", "--store", str(store.root), "--scheduler", "localhost"])
+    assert r.exit_code == 2 and "--scheduler must be an address like tcp://HOST:8786" in r.output

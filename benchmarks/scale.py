@@ -1,0 +1,337 @@
+"""Streaming and Dask: the same lumitexels from every executor, resumed runs and killed workers;
+time and peak memory against today's in-memory inputs.
+
+    python benchmarks/scale.py --store /tmp/demo/store        # a `gonio demo --quick --out /tmp/demo` store
+    python benchmarks/scale.py --store ... --only scheduler    # one part
+
+Parts (each prints its figures):
+
+- ``memory``: peak RSS (a fresh process each) of today's in-memory route (every view merged,
+  then :func:`reconstruct.lumitexels.assemble_lumitexels`) against the streamed one under
+  ``--memory-limit`` MiB followed by a block-wise Lambertian albedo, with time;
+- ``today``: ``gonio process --methods lambertian`` with the base commit's code against this
+  branch's, alternated (needs ``git archive 0e5e740 | tar -x -C /tmp/gonio_today``);
+- ``executors``: the streamed lumitexels in-process, on 1 and on 2 local workers: stored
+  ``samples`` array and gathered lumitexels compared bit for bit with the in-memory route's;
+  time with 1 and 2 workers (ratio);
+- ``resume``: a streamed run SIGKILLed after a third of its views, then run again: the views
+  reused and the result compared;
+- ``kill_worker``: a 2-worker run in which one worker process is SIGKILLed mid-run;
+- ``scheduler``: ``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1 over TCP,
+  ``gonio process --scheduler`` on the session (lambertian), figures compared with in-process.
+
+Timings are wall-clock on whatever machine runs it; on a shared, loaded machine they swing.
+"""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import resource
+import shutil
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from calibration.raw import read_raw  # noqa: E402
+from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
+from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels  # noqa: E402
+from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
+                                      session_inputs, view_plan)
+from capture.pipeline.run import _built_in_lab_options  # noqa: E402
+from capture.store import Store  # noqa: E402
+from sims.dng import write_dng  # noqa: E402
+
+SESSION = "demo-quick"
+#: rounds of the today part (each runs both codes once, alternated)
+ROUNDS = int(os.environ.get("SCALE_ROUNDS", "2"))
+BLOCK = 4096
+
+
+def _setup(store_path: str):
+    store = Store(store_path, durable=False)
+    opts = _built_in_lab_options(store, SESSION)
+    cal = read_calibration(store, SESSION, gray_card=opts["gray_card"], probe_reflectance=opts["probe_reflectance"])
+    return store, opts["mesh"], cal
+
+
+def _same(a, b) -> bool:
+    for x, y in zip(a, b):
+        for f in fields(x):
+            u, v = getattr(x, f.name), getattr(y, f.name)
+            if not ((u is None and v is None) or (u.dtype == v.dtype and np.array_equal(u, v))):
+                return False
+    return True
+
+
+def _stream(store, mesh, cal, workers: int, *, fresh: bool = True, on_start=None):
+    if fresh:
+        shutil.rmtree(Path(store.root) / "arrays", ignore_errors=True)
+    images = session_images(store, SESSION)
+    plan = view_plan(images, SESSION, cal, mesh=mesh)
+    with Executor(ClusterOptions(workers=workers), store_root=store.root) as ex:
+        if on_start is not None:
+            on_start(ex)
+        t = time.perf_counter()
+        arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=BLOCK)
+        lt = arrays.gather()
+        return lt, arrays, time.perf_counter() - t
+
+
+def _albedo_blockwise(arrays) -> np.ndarray:
+    """Lambertian albedo per texel (the ``lambertian`` method's least squares), one texel block at
+    a time: a chunk-pure step, nothing but one block's samples in memory."""
+    out = []
+    for t0, t1 in arrays.blocks:
+        lt, held = arrays.block(t0, t1)
+        cos = lt.wi[~held, 2].astype(np.float64)
+        tex = lt.texel[~held]
+        num = np.stack([np.bincount(tex, cos * lt.reflectance[~held, c], lt.n_texels) for c in range(3)], axis=1)
+        out.append(np.pi * num / np.maximum(np.bincount(tex, cos * cos, lt.n_texels)[:, None], 1e-12))
+    return np.concatenate(out)
+
+
+def one(route: str, store_path: str, limit_mib: float) -> None:
+    """Run one route in this (fresh) process and print its time and peak RSS as JSON: today's
+    in-memory inputs, or the streamed ones under ``limit_mib`` followed by a block-wise albedo."""
+    store, mesh, cal = _setup(store_path)
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t = time.perf_counter()
+    if route == "in_memory":
+        train, held = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
+        texels, samples = train.n_texels, train.n_samples + held.n_samples
+    else:
+        shutil.rmtree(Path(store.root) / "arrays", ignore_errors=True)
+        images = session_images(store, SESSION)
+        plan = view_plan(images, SESSION, cal, mesh=mesh)
+        block = block_texels_for(int(limit_mib * 2**20), n_views=len(plan.poses),
+                                 pixels=cal.camera.width * cal.camera.height)
+        with Executor(ClusterOptions(), store_root=store.root) as ex:
+            arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=block)
+        texels, samples = len(_albedo_blockwise(arrays)), -1
+    dt = time.perf_counter() - t
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"route": route, "seconds": dt, "peak_rss_mib": peak / 1024,
+                      "peak_above_setup_mib": (peak - base) / 1024, "texels": texels, "samples": samples}))
+
+
+def memory(store_path: str, limit_mib: float) -> None:
+    for route in ("in_memory", "streamed"):
+        out = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", route,
+                              "--memory-limit", str(limit_mib)],
+                             capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
+        r = json.loads(out)
+        print(f"memory  {route:10s} {r['seconds']:6.1f} s  peak RSS {r['peak_rss_mib']:7.0f} MiB "
+              f"({r['peak_above_setup_mib']:6.0f} MiB above the set-up: imports, store, calibration)"
+              + (f"  limit {limit_mib:.0f} MiB" if route == "streamed" else "") + f"  {r['texels']} texels")
+
+
+def today(store_path: str, limit_mib: float) -> None:
+    """``gonio process --methods lambertian`` with today's code (the base commit, unpacked by
+    ``git archive 0e5e740`` into /tmp/gonio_today) and this branch's, alternated twice each on
+    scratch copies of the store: wall time, CPU time (the fairer figure on a shared machine) and
+    the stage timings it reports."""
+    for rnd in range(ROUNDS):
+        for name, code in (("today", "/tmp/gonio_today"), ("streamed", str(ROOT))):
+            scratch = _without_reconstructions(store_path)
+            env = {**os.environ, "PYTHONPATH": code}
+            t = time.perf_counter()
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            r = subprocess.run([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", scratch,
+                                "--methods", "lambertian", "--json", "-q"], env=env, capture_output=True, text=True)
+            dt = time.perf_counter() - t
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
+            summary = json.loads(r.stdout[r.stdout.index("{"):])
+            print(f"today  round {rnd}  {name:8s} exit {r.returncode}  wall {dt:6.1f} s  CPU (user + sys) {cpu:6.1f} s  "
+                  f"stages {summary['timings']}  held-out rel. RMS {summary['methods'][0]['figures'].get('held_out_rel_rms')}")
+
+
+def executors(store_path: str) -> None:
+    store, mesh, cal = _setup(store_path)
+    t = time.perf_counter()
+    ref = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
+    print(f"executors in-memory route {time.perf_counter() - t:6.1f} s")
+    samples = None
+    for w in (0, 1, 2):
+        lt, arrays, dt = _stream(store, mesh, cal, w)
+        s = zarr.open_array(str(arrays.path / "samples"), mode="r")[...]
+        same_store = samples is None or np.array_equal(s, samples)
+        samples = s if samples is None else samples
+        print(f"executors {'in-process' if w == 0 else f'{w} worker(s)':11s} {dt:6.1f} s  lumitexels identical to "
+              f"the in-memory route: {_same(lt, ref)}  stored samples identical to in-process: {same_store}")
+
+
+def resume(store_path: str) -> None:
+    store, mesh, cal = _setup(store_path)
+    ref, arrays, _ = _stream(store, mesh, cal, 0)
+    shutil.rmtree(Path(store.root) / "arrays")
+    proc = subprocess.Popen([sys.executable, __file__, "--store", store_path, "--one", "streamed_keep"])
+    done = arrays.path / "done"
+    target = arrays.n_views + arrays.n_views // 3
+    while proc.poll() is None and (not done.is_dir() or len(list(done.glob("*-*"))) < target):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    marks = len(list(done.glob("samples-*")))
+    lt, arrays2, dt = _stream(store, mesh, cal, 0, fresh=False)
+    print(f"resume  killed with {marks}/{arrays.n_views} views sampled; the re-run reused {arrays2.reused_views} "
+          f"and took {dt:.1f} s; identical to an uninterrupted run: {_same(lt, ref)}")
+
+
+def kill_worker(store_path: str) -> None:
+    store, mesh, cal = _setup(store_path)
+    ref, _, _ = _stream(store, mesh, cal, 0)
+    killed = {}
+
+    def arm(ex: Executor) -> None:
+        pids = ex.client.run(os.getpid)
+        victim = sorted(pids.values())[0]
+
+        def later():
+            time.sleep(4.0)
+            os.kill(victim, signal.SIGKILL)
+            killed["pid"] = victim
+        threading.Thread(target=later, daemon=True).start()
+
+    lt, _, dt = _stream(store, mesh, cal, 2, on_start=arm)
+    print(f"kill_worker  worker pid {killed.get('pid')} SIGKILLed 4 s into a 2-worker run ({dt:.1f} s): "
+          f"run completed, identical: {_same(lt, ref)}")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _without_reconstructions(store_path: str) -> str:
+    """A scratch copy of the store without its reconstruction results (so ``gonio process``
+    runs the methods again but keeps the stored calibration)."""
+    dest = Path(store_path).resolve().parent / f"scale-scratch-{os.getpid()}"
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(store_path, dest, ignore=shutil.ignore_patterns("arrays"))
+    with sqlite3.connect(dest / "gonio.sqlite") as db:
+        db.execute("DELETE FROM result_objects WHERE result_id IN (SELECT id FROM results WHERE category = 'reconstruction')")
+        db.execute("DELETE FROM results WHERE category = 'reconstruction'")
+    return str(dest)
+
+
+def _enlarge(mosaic: np.ndarray, f: int) -> np.ndarray:
+    """A Bayer mosaic with each 2 x 2 colour tile repeated f x f times (the pattern kept)."""
+    H, W = mosaic.shape
+    tiles = mosaic.reshape(H // 2, 2, W // 2, 2).transpose(0, 2, 1, 3)
+    tiles = tiles.repeat(f, axis=0).repeat(f, axis=1)
+    return np.ascontiguousarray(tiles.transpose(0, 2, 1, 3).reshape(H * f, W * f))
+
+
+def upscale(store_path: str, f: int, dest: str) -> None:
+    """A synthesised large session: the quick demo's with every measurement and passive frame and
+    the master darks enlarged f x f (each Bayer tile repeated, so the merge, demosaic and
+    sampling run on f^2 times the pixels), the intrinsics scaled to match (same field of view).
+    Not a re-rendered scene: the figures of its fits are not the point, its time and memory are."""
+    shutil.rmtree(dest, ignore_errors=True)
+    shutil.copytree(store_path, dest, ignore=shutil.ignore_patterns("arrays"))
+    store = Store(dest, durable=False)
+    sid = store.session(SESSION).id
+    kinds = {i: d["kind"] for i, d, _ in store.steps(sid)}
+    with sqlite3.connect(Path(dest) / "gonio.sqlite") as db:
+        for fr in store.frames(sid):
+            if kinds.get(fr.step) not in ("measure", "passive"):
+                continue
+            raw = read_raw(store.read_object(fr.sha256))
+            blob = write_dng(_enlarge(raw.data, f), cfa_pattern=raw.cfa,
+                             black_level=tuple(int(round(v)) for v in raw.black_level_cfa.ravel()),
+                             white_level=int(raw.white_level), exposure_s=raw.exposure_s, iso=raw.iso)
+            sha = store.put_object(blob)
+            db.execute("UPDATE frames SET sha256 = ?, size = ? WHERE id = ?", (sha, len(blob), fr.id))
+        for rid, name, old in db.execute("SELECT result_id, name, sha256 FROM result_objects WHERE result_id IN "
+                                         "(SELECT id FROM results WHERE kind = 'dark')").fetchall():
+            dark = np.load(store.object_path(old))
+            buf = io.BytesIO()
+            np.save(buf, _enlarge(dark, f))
+            sha = store.put_object(buf.getvalue())
+            db.execute("UPDATE result_objects SET sha256 = ?, size = ? WHERE result_id = ? AND name = ?",
+                       (sha, len(buf.getvalue()), rid, name))
+        rid, text = db.execute("SELECT id, result_json FROM results WHERE kind = 'intrinsics'").fetchone()
+        r = json.loads(text)
+        K = np.array(r["K"])
+        K[0, 0] *= f
+        K[1, 1] *= f
+        K[:2, 2] = f * (K[:2, 2] + 0.5) - 0.5   # pixel centres: the enlarged pixel grid's
+        r["K"], r["image_size"] = K.tolist(), [f * v for v in r["image_size"]]
+        db.execute("UPDATE results SET result_json = ? WHERE id = ?", (json.dumps(r), rid))
+    store.close()
+    print(f"upscale  {dest}: measurement and passive frames and darks enlarged {f} x {f}, "
+          f"{r['image_size'][0]} x {r['image_size'][1]}")
+
+
+def scheduler(store_path: str) -> None:
+    port = _free_port()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    procs = [subprocess.Popen(["dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", "127.0.0.1:0"], env=env, stderr=subprocess.DEVNULL)]
+    addr = f"tcp://127.0.0.1:{port}"
+    try:
+        time.sleep(3)
+        procs += [subprocess.Popen(["dask", "worker", addr, "--nthreads", "1", "--host", "127.0.0.1",
+                                    "--dashboard-address", "127.0.0.1:0"], env=env, stderr=subprocess.DEVNULL)
+                  for _ in range(2)]
+        time.sleep(5)
+        figures = {}
+        for how in ("in-process", "scheduler"):
+            scratch = _without_reconstructions(store_path)
+            cmd = ["gonio", "process", SESSION, "--store", scratch, "--methods", "lambertian",
+                   "--json", "-q"] + (["--scheduler", addr] if how == "scheduler" else [])
+            t = time.perf_counter()
+            r = subprocess.run(cmd, env=env, capture_output=True, text=True)
+            dt = time.perf_counter() - t
+            summary = json.loads(r.stdout[r.stdout.index("{"):])
+            figures[how] = summary["methods"][0]["figures"]
+            print(f"scheduler  {how:10s} exit {r.returncode}  {dt:6.1f} s  lambertian held-out rel. RMS "
+                  f"{figures[how].get('held_out_rel_rms')}")
+        print(f"scheduler  figures identical: {figures['in-process'] == figures['scheduler']}")
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait()
+
+
+PARTS = {"memory": memory, "today": today, "executors": executors, "resume": resume, "kill_worker": kill_worker,
+         "scheduler": scheduler}
+#: the parts that take the memory limit
+_LIMITED = {"memory", "today"}
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--store", required=True, help="a store holding the quick demo's session")
+    ap.add_argument("--only", choices=sorted(PARTS), action="append")
+    ap.add_argument("--memory-limit", type=float, default=64.0, help="MiB for the streamed route (memory part)")
+    ap.add_argument("--upscale", type=int, metavar="F", help="only make a synthesised session F x F larger "
+                    "(every Bayer tile repeated) at --dest")
+    ap.add_argument("--dest", help="where --upscale writes its store")
+    ap.add_argument("--one", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.upscale:
+        upscale(a.store, a.upscale, a.dest)
+    elif a.one == "streamed_keep":   # the resume part's victim: a streamed run left to be killed
+        s, m, c = _setup(a.store)
+        _stream(s, m, c, 0, fresh=False)
+    elif a.one:
+        one(a.one, a.store, a.memory_limit)
+    else:
+        for name in a.only or PARTS:
+            PARTS[name](a.store, a.memory_limit) if name in _LIMITED else PARTS[name](a.store)

@@ -1,0 +1,342 @@
+"""Lumitexels assembled out of core: one view at a time, samples written to texel-chunked Zarr
+arrays in the session's store folder (:mod:`capture.pipeline.chunks`).
+
+:func:`stream_lumitexels` runs :func:`reconstruct.lumitexels.assemble_lumitexels`'s two passes as
+tasks an :class:`capture.pipeline.cluster.Executor` maps onto this process or a Dask cluster:
+
+1. per view (no image read): ray-cast the object, store its hit pixels and rejection map
+   (``hits/<k>.npz``: one view's pixels, not texel-chunked) and its visible pixels per face (a
+   column of ``areas`` (F, V));
+2. here: the best view per face and the texels it makes, written in view order to
+   ``texels/{position,normal,best_view,pixel}`` (T, ...);
+3. per view: decode and merge its raw brackets (:func:`capture.pipeline.process.merge_bracket`),
+   make the view, sample it over the texels block by block and write each block's column of
+   ``samples`` (T, V, 16) float32, chunked (block, 1, 16): per (texel, view) ``wi``, ``wo``,
+   ``reflectance``, ``diffuse``, ``specular`` (3 each) and 1 where the pair holds a sample (one
+   array, one write per chunk: Zarr's per-call cost is ~5 ms on a loaded machine). A view's task
+   writes only its own chunks, then its ``done`` marker.
+
+Nothing holds more than one view's images and one texel block's samples; the memory a task
+needs is set by the camera's size and ``block_texels``. Each texel's sample of a view depends on
+that texel alone, so the stored samples equal the in-memory assembly's bit for bit; row-major
+order over (texel, view) is the in-memory assembly's sample order. A run stopped at any point
+resumes at the first view without a marker; a run with other inputs (calibration, frames, mesh,
+block size) recomputes everything (:class:`capture.pipeline.chunks.ChunkGroup`).
+
+Frames: object frame, mm; reflectance ``f_r cos theta_i`` in the calibration's units.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import trimesh
+import zarr
+
+from reconstruct.camera import CameraModel
+from reconstruct.lumitexels import (AssemblyGeometry, LumitexelError, Lumitexels, ViewHits, assembly_geometry,
+                                    best_views, object_frame_camera, object_frame_point, view_hits,
+                                    view_samples, view_texels)
+
+from .chunks import ChunkGroup, arrays_folder, mark_done
+from .cluster import Executor
+from ..store import Store
+from .images import SessionImages
+from .process import PoseSpec, SessionCalibration, ViewPlan, merge_pose, session_images
+
+__all__ = ["LumitexelArrays", "stream_lumitexels", "block_texels_for", "default_memory_limit", "reject_filter_for"]
+
+_SAMPLE_FIELDS = ("wi", "wo", "reflectance", "diffuse", "specular")
+#: the channel of ``samples`` that says whether the (texel, view) pair holds a sample
+_MASK = 3 * len(_SAMPLE_FIELDS)
+_CHANNELS = _MASK + 1
+#: bytes a texel of a block costs while a view is sampled or a block is read back (geometry,
+#: frames, per view mask + five float32 triples), measured ~ 40 + 61 V; rounded up
+_TEXEL_BYTES_FIXED, _TEXEL_BYTES_PER_VIEW = 200, 80
+#: bytes per pixel a view's task holds: raw bracket frames, the merge's float64 planes, the
+#: demosaiced radiance, diffuse, specular and validity (measured ~ 140 at 320 x 240, 2 x 2 frames)
+_PIXEL_BYTES = 160
+
+
+def reject_filter_for(width: int) -> int:
+    """The depth/shadow-edge rejection box: 5 px at 1200 px wide (the assembly's default), at
+    least 3 (at 320 x 240 a 5 px box dropped 40 % more samples for the same accuracy), odd."""
+    return max(3, int(round(5 * width / 1200)) | 1)
+
+
+def default_memory_limit() -> int:
+    """Half of this machine's physical memory, bytes (the rest for the methods and the OS)."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+
+
+def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: int = 1) -> int:
+    """Texels per block so that ``workers`` tasks, each holding one view's images and one
+    block, stay within ``memory_bytes`` (at least 1024: below that the per-chunk overhead rules).
+
+    Raises
+    ------
+    ValueError
+        The limit cannot hold even one view's images per worker (says how much it needs).
+    """
+    per_worker = memory_bytes / max(workers, 1)
+    image = _PIXEL_BYTES * pixels
+    if per_worker < 1.25 * image:
+        raise ValueError(f"--memory-limit {memory_bytes / 2**20:.0f} MiB cannot hold one view's images "
+                         f"per worker ({workers} x {image / 2**20:.0f} MiB at {pixels} pixels); give at least "
+                         f"{1.25 * image * max(workers, 1) / 2**20:.0f} MiB")
+    return int(max(1024, (per_worker - image) // (_TEXEL_BYTES_FIXED + _TEXEL_BYTES_PER_VIEW * n_views)))
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What every task of one assembly needs (pickled to the workers)."""
+
+    path: str
+    digest: str
+    store_root: str
+    session: str
+    mesh: trimesh.Trimesh
+    reject_filter_px: int
+    block_texels: int
+    separated: bool
+
+
+#: per worker process: the assembly geometry (its ray-casting scene) of the job being run,
+#: built once instead of once per task
+_GEOMETRY: dict[str, AssemblyGeometry] = {}
+
+
+#: per worker process: the session's images (a read-only store connection and its master darks)
+_IMAGES: dict[tuple[str, str], SessionImages] = {}
+
+
+def _images(job: _Job) -> SessionImages:
+    key = (job.store_root, job.session)
+    if key not in _IMAGES:
+        _IMAGES.clear()
+        _IMAGES[key] = session_images(Store(job.store_root, readonly=True), job.session)
+    return _IMAGES[key]
+
+
+def _geometry(job: _Job) -> AssemblyGeometry:
+    if job.digest not in _GEOMETRY:
+        _GEOMETRY.clear()
+        _GEOMETRY[job.digest] = assembly_geometry(job.mesh, reject_filter_px=job.reject_filter_px)
+    return _GEOMETRY[job.digest]
+
+
+def _hits_task(job: _Job, k: int, cam: CameraModel, light: np.ndarray) -> None:
+    """Pass 1 of view ``k``: its hits and rejection map, and its column of ``areas``."""
+    geom = _geometry(job)
+    hits = view_hits(geom, cam, light)
+    folder = Path(job.path) / "hits"
+    folder.mkdir(exist_ok=True)
+    tmp = folder / f".{k}.tmp{os.getpid()}.npz"
+    np.savez(tmp, **{name: getattr(hits, name) for name in ("pixel", "face", "position", "normal", "reject")})
+    os.replace(tmp, folder / f"{k}.npz")
+    zarr.open_array(str(Path(job.path) / "areas"), mode="r+")[:, k] = hits.face_areas(geom.n_faces)
+    mark_done(Path(job.path), f"hits-{k}")
+
+
+def _read_hits(path: str, k: int) -> ViewHits:
+    with np.load(Path(path) / "hits" / f"{k}.npz") as z:
+        return ViewHits(*(z[name] for name in ("pixel", "face", "position", "normal", "reject")))
+
+
+def _samples_task(job: _Job, k: int, pose: PoseSpec, cal: SessionCalibration, cam: CameraModel,
+                  light: np.ndarray, n_texels: int) -> None:
+    """Pass 2 of view ``k``: merge its brackets, sample it block by block, write its column."""
+    geom = _geometry(job)
+    view = merge_pose(_images(job), pose, cal)
+    reject = _read_hits(job.path, k).reject
+    root = Path(job.path)
+    position = zarr.open_array(str(root / "texels" / "position"), mode="r")
+    normal = zarr.open_array(str(root / "texels" / "normal"), mode="r")
+    out = zarr.open_array(str(root / "samples"), mode="r+")
+    for t0 in range(0, n_texels, job.block_texels):
+        t1 = min(t0 + job.block_texels, n_texels)
+        s = view_samples(geom, view, cam, light, reject, position[t0:t1], normal[t0:t1], separated=job.separated)
+        dense = np.zeros((t1 - t0, _CHANNELS), np.float32)
+        dense[s.texel, _MASK] = 1.0
+        for c, name in enumerate(_SAMPLE_FIELDS[:5 if job.separated else 3]):
+            dense[s.texel, 3 * c:3 * c + 3] = getattr(s, name)
+        out[t0:t1, k, :] = dense
+    mark_done(root, f"samples-{k}")
+
+
+def _mesh_digest(mesh: trimesh.Trimesh) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(mesh.vertices, np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, np.int64).tobytes())
+    return h.hexdigest()
+
+
+def _provenance(session: str, cal: SessionCalibration, plan: ViewPlan, mesh: trimesh.Trimesh,
+                reject_px: int, block: int) -> dict:
+    cam = cal.camera
+    return {"session": session, "calibration_ids": cal.ids, "mesh_sha256": _mesh_digest(mesh),
+            "camera": {"K": cam.K.tolist(), "dist": np.asarray(cam.dist).tolist(), "R": cam.R.tolist(),
+                       "t": np.asarray(cam.t).tolist(), "size": [cam.width, cam.height]},
+            "light_intensity": np.asarray(cal.light_intensity, float).tolist(), "angle_scale": cal.angle_scale,
+            "views": [{"frames": list(p.frame_ids), "steps": list(p.steps_all), "reading": p.reading,
+                       "light_mm": np.asarray(p.light_mm).tolist()} for p in plan.ordered],
+            "reject_filter_px": reject_px, "block_texels": block}
+
+
+@dataclass(frozen=True)
+class LumitexelArrays:
+    """The stored lumitexels of a session: ``n_texels`` texels (in view order of their making),
+    ``n_views`` views of which the first ``n_train`` are training views, the samples (T, V, 16)
+    per (texel, view) pair; read a block with
+    :meth:`block` or everything with :meth:`gather`."""
+
+    path: Path
+    digest: str
+    n_texels: int
+    n_views: int
+    n_train: int
+    block_texels: int
+    separated: bool
+    reused_views: int
+
+    def _open(self, *parts: str) -> zarr.Array:
+        return zarr.open_array(str(self.path.joinpath(*parts)), mode="r")
+
+    @property
+    def blocks(self) -> list[tuple[int, int]]:
+        """The texel blocks ``(t0, t1)``: the chunks of every array."""
+        return [(t0, min(t0 + self.block_texels, self.n_texels)) for t0 in range(0, self.n_texels, self.block_texels)]
+
+    def block(self, t0: int, t1: int) -> tuple[Lumitexels, np.ndarray]:
+        """Texels ``t0:t1`` with all their samples (texel indices from 0 within the block), and
+        the boolean per sample telling a held-out view's sample. Texels without a training
+        sample are left out (as :func:`capture.pipeline.process.split_samples` does)."""
+        block = self._open("samples")[t0:t1]
+        mask = block[:, :, _MASK] > 0
+        keep = np.flatnonzero(mask[:, :self.n_train].any(axis=1))
+        rows, cols = np.nonzero(mask[keep])   # row-major: by texel, then view: the assembly's order
+        picked = block[keep][rows, cols]
+        fields = {name: np.ascontiguousarray(picked[:, 3 * c:3 * c + 3])
+                  for c, name in enumerate(_SAMPLE_FIELDS[:5 if self.separated else 3])}
+        tex = {name: self._open("texels", name)[t0:t1][keep] for name in ("position", "normal", "best_view", "pixel")}
+        lt = Lumitexels(**tex, texel=rows.astype(np.int64), view=cols.astype(np.int32),
+                        weight=np.ones(len(rows), np.float32), **fields)
+        return lt, cols >= self.n_train
+
+    def gather(self) -> tuple[Lumitexels, Lumitexels]:
+        """``(train, held_out)`` over every texel with a training sample, in memory: what
+        :func:`capture.pipeline.process.lumitexels_with_held_out` returns, bit for bit."""
+        parts, offset = [], 0
+        for t0, t1 in self.blocks:
+            lt, held = self.block(t0, t1)
+            parts.append((lt, held, offset))
+            offset += lt.n_texels
+        if offset == 0:
+            raise LumitexelError("no reflectance samples: no surface point is both seen and lit")
+
+        def join(select_held: bool) -> Lumitexels:
+            kw = {name: np.concatenate([getattr(lt, name) for lt, _, _ in parts])
+                  for name in ("position", "normal", "best_view", "pixel")}
+            for name in ("view", "wi", "wo", "reflectance", "weight", *(("diffuse", "specular") if self.separated else ())):
+                kw[name] = np.concatenate([getattr(lt, name)[h == select_held] for lt, h, _ in parts])
+            kw["texel"] = np.concatenate([lt.texel[h == select_held] + off for lt, h, off in parts])
+            return Lumitexels(**kw)
+        return join(False), join(True)
+
+
+def stream_lumitexels(images: SessionImages, session: str, cal: SessionCalibration, plan: ViewPlan,
+                      mesh: trimesh.Trimesh, executor: Executor, *, block_texels: int,
+                      progress: Callable[[int, int], None] | None = None) -> LumitexelArrays:
+    """Assemble the session's lumitexels into ``<store>/arrays/<session>/lumitexels.zarr``
+    (reusing what a previous run with the same inputs stored).
+
+    Parameters
+    ----------
+    images, session
+        The session's images (:func:`capture.pipeline.process.session_images`: its store, whose
+        folder holds the arrays, and master darks) and its name.
+    cal, plan
+        The session's calibration and its views as files
+        (:func:`capture.pipeline.process.view_plan`).
+    mesh : trimesh.Trimesh
+        The object's mesh, object frame, mm.
+    executor : Executor
+        Where the per-view tasks run.
+    block_texels : int
+        Texels per chunk (:func:`block_texels_for` from a memory limit).
+    progress : callable(done, total), optional
+        After each task of either pass (one count over both).
+
+    Raises
+    ------
+    reconstruct.lumitexels.LumitexelError
+        The object is not visible in any view, or no point is both seen and lit.
+    """
+    store_root = str(Path(images.store.root).resolve())
+    _IMAGES.clear()
+    _IMAGES[(store_root, session)] = images   # an in-process run merges through the caller's store
+    poses = plan.ordered
+    V = len(poses)
+    reject_px = reject_filter_for(cal.camera.width)
+    group = ChunkGroup(arrays_folder(store_root, session) / "lumitexels.zarr",
+                       _provenance(session, cal, plan, mesh, reject_px, block_texels))
+    separated = all(p.separated for p in poses)
+    job = _Job(str(group.path), group.digest, store_root, session, mesh, reject_px, block_texels, separated)
+    cams = [object_frame_camera(cal.camera, cal.object_pose(p.reading)) for p in poses]
+    lights = [object_frame_point(cal.object_pose(p.reading), p.light_mm) for p in poses]
+    F = len(mesh.faces)
+    group.array("areas", (F, V), (F, 1), np.int64)
+    hits_todo = [k for k in range(V) if not group.done(f"hits-{k}")]
+    samples_todo = [k for k in range(V) if not group.done(f"samples-{k}")]
+    total, done = len(hits_todo) + len(samples_todo), 0
+
+    def tick(_d: int, _t: int) -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, total)
+
+    executor.map(_hits_task, [(job, k, cams[k], lights[k]) for k in hits_todo], progress=tick)
+    T = _write_texels(group, V, [c.width for c in cams], block_texels)
+    group.array("samples", (T, V, _CHANNELS), (block_texels, 1, _CHANNELS), np.float32)
+    # a view's task needs no probe map: keep it out of what is sent to the workers
+    slim = dataclasses.replace(cal, environment=None, environment_weight=None)
+    executor.map(_samples_task, [(job, k, poses[k], slim, cams[k], lights[k], T) for k in samples_todo],
+                 progress=tick)
+    n_train = sum(not p.held_out for p in poses)
+    return LumitexelArrays(group.path, group.digest, T, V, n_train, block_texels, separated,
+                           reused_views=V - len(samples_todo))
+
+
+def _write_texels(group: ChunkGroup, V: int, widths: list[int], block: int) -> int:
+    """Pass 1's reduction: the best view per face and the texels each view makes, written in view
+    order (one view's hits in memory at a time). Returns the texel count."""
+    areas = zarr.open_array(str(group.path / "areas"), mode="r")[...]
+    best = best_views(areas)
+    T = int(areas[np.arange(len(areas)), best].sum())
+    if group.done("texels"):
+        return T
+    if T == 0:
+        raise LumitexelError("the object is not visible in any view (check poses and the mesh frame)")
+    out = {"position": group.array("texels/position", (T, 3), (block, 3), np.float64),
+           "normal": group.array("texels/normal", (T, 3), (block, 3), np.float64),
+           "best_view": group.array("texels/best_view", (T,), (block,), np.int32),
+           "pixel": group.array("texels/pixel", (T, 2), (block, 2), np.float32)}
+    at = 0
+    for k in range(V):
+        part = view_texels(_read_hits(str(group.path), k), best, k, widths[k])
+        n = len(part.position)
+        if n == 0:
+            continue
+        normal = part.normal / np.linalg.norm(part.normal, axis=1, keepdims=True)
+        for name, value in (("position", part.position), ("normal", normal), ("best_view", part.best_view),
+                            ("pixel", part.pixel)):
+            out[name][at:at + n] = value
+        at += n
+    group.mark_done("texels")
+    return T
+
