@@ -28,8 +28,17 @@ KINEMATICS: dict[str, dict[str, Any]] = {
     "arm": {"type": "arm", "radius_mm": 500.0, "centre_mm": [0.0, 0.0, 0.0],
             "azimuth_limits_deg": [-180.0, 180.0], "elevation_limits_deg": [0.0, 85.0]},
     "gantry": {"type": "gantry", "origin_mm": [500.0, 500.0, 900.0], "yaw_deg": 0.0,
-               "travel_mm": {"X": [-1000.0, 0.0], "Y": [-1000.0, 0.0], "Z": [-1000.0, 0.0]},
+               "travel_mm": {"X": [-999.0, -1.0], "Y": [-999.0, -1.0], "Z": [-999.0, -1.0]},
                "centre_mm": [0.0, 0.0, 0.0], "default_distance_mm": 500.0},
+}
+
+#: where each kinematics' axes sit in the simulated GRBL's machine space (the rig file's
+#: ``machine_offset`` / ``machine_sign``): homing leaves GRBL at -$27 in [-$13x, 0], so the arm's
+#: azimuth -180..180 deg is centred in $130 = 370 (MPos -365..-5) and its elevation 0..85 deg in
+#: $131 = 95 (MPos -90..-5); the gantry's travel is already in machine coordinates
+MACHINE_MAPS: dict[str, dict[str, dict[str, float]]] = {
+    "arm": {"machine_offset": {"X": -185.0, "Y": -90.0}},
+    "gantry": {},
 }
 
 
@@ -55,11 +64,15 @@ class SimLab:
         Which devices to simulate (default: all four).
     options : mapping of role -> dict, optional
         Extra keyword arguments per simulator, e.g. ``{"turntable": {"speed_deg_s": 30}}``.
+    machine_map : mapping, optional
+        The positioner's ``machine_offset`` / ``machine_sign`` tables (default: the kinematics'
+        entry in :data:`MACHINE_MAPS`).
     """
 
     def __init__(self, fast: bool = True, frame_source: Callable[[dict], bytes] | None = None,
                  kinematics: str | Mapping[str, Any] = "arm", *, roles: Any = None,
-                 options: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+                 options: Mapping[str, Mapping[str, Any]] | None = None,
+                 machine_map: Mapping[str, Mapping[str, float]] | None = None) -> None:
         self.fast = fast
         self.frame_source = frame_source
         if isinstance(kinematics, str):
@@ -68,6 +81,8 @@ class SimLab:
                                  "or a table")
             kinematics = KINEMATICS[kinematics]
         self.kinematics = dict(kinematics)
+        self.machine_map = {k: dict(v) for k, v in (
+            machine_map if machine_map is not None else MACHINE_MAPS.get(self.kinematics.get("type"), {})).items()}
         self.roles = tuple(ROLES if roles is None else roles)
         unknown = set(self.roles) - set(ROLES)
         if unknown:
@@ -99,7 +114,8 @@ class SimLab:
         if role == "turntable":
             return ZaberSim(role, fast=self.fast, **opts)
         if role == "positioner":
-            return GrblSim(role, fast=self.fast, kinematics=self.kinematics, **opts)
+            return GrblSim(role, fast=self.fast, kinematics=self.kinematics, machine_map=self.machine_map,
+                           **opts)
         if role == "polarizer":
             # imported lazily: the polarizer and camera simulators are separate modules
             elliptec = importlib.import_module("sims.elliptec_sim")
@@ -137,7 +153,8 @@ class SimLab:
             if role == "turntable":
                 cfg[role] = {"driver": "zaber", "port": sim.port}
             elif role == "positioner":
-                cfg[role] = {"driver": "grbl", "port": sim.port, "kinematics": dict(self.kinematics)}
+                cfg[role] = {"driver": "grbl", "port": sim.port, "kinematics": dict(self.kinematics),
+                             **self.machine_map}
             elif role == "polarizer":
                 cfg[role] = {"driver": "elliptec", "port": sim.port}
             else:
@@ -163,4 +180,4 @@ class SimLab:
         return f"<SimLab {state} {', '.join(self.roles)} fast={self.fast}>"
 
 
-__all__ = ["SimLab", "ROLES", "KINEMATICS", "light_position_mm"]
+__all__ = ["SimLab", "ROLES", "KINEMATICS", "MACHINE_MAPS", "light_position_mm"]

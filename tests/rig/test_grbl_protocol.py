@@ -1,16 +1,17 @@
 """GRBL 1.1 codec and GrblPositioner against scripted byte exchanges (gnea/grbl interface.md)."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from rig import DeviceError, DeviceTimeout, LightTarget, LimitError, NotHomed, ProtocolError
+from rig import DeviceBusy, DeviceError, DeviceTimeout, LightTarget, LimitError, NotHomed, ProtocolError
 from rig.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblPositioner, format_move, parse_code,
                       parse_settings, parse_status, path_time_s)
 from rig.transport import ScriptedTransport
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 SETTINGS = b"".join(f"${n}={v}\r\n".encode() for n, v in [
-    (10, 1), (20, 0), (22, 1), (25, "3600.000"), (110, "5400.000"), (111, "5400.000"),
+    (10, 1), (20, 0), (22, 1), (25, "3600.000"), (27, "1.000"), (110, "5400.000"), (111, "5400.000"),
     (112, "5400.000"), (120, "360.000"), (121, "360.000"), (122, "360.000"), (130, "370.000"),
     (131, "95.000"), (132, "1.000")]) + b"ok\r\n"
 
@@ -22,9 +23,13 @@ def connect_script(state: str = "Alarm") -> list:
             (b"?", f"<{state}|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n".encode())]
 
 
+#: the arm's azimuth -180..180 and elevation 0..85 deg inside GRBL's machine space [-$13x, -$27]
+MACHINE_OFFSET = {"X": -185.0, "Y": -90.0}
+
+
 def positioner(script, state="Alarm") -> tuple[GrblPositioner, ScriptedTransport]:
     t = ScriptedTransport(connect_script(state) + script, device="positioner")
-    p = GrblPositioner("positioner", transport=t, poll_interval_s=0.0)
+    p = GrblPositioner("positioner", transport=t, poll_interval_s=0.0, machine_offset=MACHINE_OFFSET)
     p.connect()
     return p, t
 
@@ -106,17 +111,21 @@ def test_move_before_homing_is_refused_without_sending_gcode():
 
 
 def test_home_then_move_queues_gcode_and_polls_until_idle():
+    # $H is accepted in the alarm state (no reset first); the real firmware leaves each homed
+    # axis at minus the pull-off $27 (tests/rig/test_grbl_firmware.py): MPos -1 is azimuth 184,
+    # elevation 89 deg through the machine offset
     script = [(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
-              (b"\x18", BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
               (b"$H\n", b"ok\r\n"),
-              (b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
+              (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n"),
               # move: state check, queue, poll
-              (b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
-              (b"G53 G0 X45.000 Y30.000\n", b"ok\r\n"),
-              (b"?", b"<Run|MPos:20.000,13.000,0.000|FS:5400,0>\r\n"),
-              (b"?", b"<Idle|MPos:45.000,30.000,0.000|FS:0,0>\r\n")]
+              (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n"),
+              (b"G53 G0 X-140.000 Y-60.000\n", b"ok\r\n"),
+              (b"?", b"<Run|MPos:-160.000,-77.000,-1.000|FS:5400,0>\r\n"),
+              (b"?", b"<Idle|MPos:-140.000,-60.000,-1.000|FS:0,0>\r\n")]
     p, t = positioner(script)
-    assert p.home().wait(2) == pytest.approx((500.0, 0.0, 0.0))
+    az, el = np.radians(184.0), np.radians(89.0)
+    assert p.home().wait(2) == pytest.approx(
+        tuple(500 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])), abs=1e-6)
     assert p.homed
     x, y, z = p.move_to(LightTarget(azimuth_deg=45, elevation_deg=30)).wait(2)
     assert (x, y, z) == pytest.approx((306.186, 306.186, 250.0), abs=1e-3)
@@ -139,10 +148,14 @@ def test_error_reply_maps_to_device_error_with_meaning():
 
 
 def test_alarm_during_move_fails_the_status():
-    script = [(b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
-              (b"G53 G0 X90.000 Y10.000\n", b"ok\r\n"),
-              (b"?", b"<Run|MPos:10.000,1.000,0.000|FS:5400,0>\r\n"),
-              (b"?", b"ALARM:1\r\n[MSG:Reset to continue]\r\n<Alarm|MPos:30.000,3.000,0.000|FS:0,0>\r\n")]
+    # real GRBL after a hard limit: the alarm, the message, then no status report until a soft
+    # reset, which the driver sends itself (tests/rig/test_grbl_firmware.py)
+    script = [(b"?", b"<Idle|MPos:-185.000,-90.000,0.000|FS:0,0>\r\n"),
+              (b"G53 G0 X-95.000 Y-80.000\n", b"ok\r\n"),
+              (b"?", b"<Run|MPos:-175.000,-89.000,0.000|FS:5400,0>\r\n"),
+              (b"?", b"ALARM:1\r\n[MSG:Reset to continue]\r\n"),
+              (b"\x18", BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+              (b"?", b"<Alarm|MPos:-160.000,-87.000,0.000|FS:0,0>\r\n")]
     p, t = positioner(script, state="Idle")
     p._homed = True
     with pytest.raises(GrblAlarm, match="hard limit") as info:
@@ -150,13 +163,51 @@ def test_alarm_during_move_fails_the_status():
     assert info.value.alarm == 1 and info.value.code == "ALARM:1"
     assert not p.homed  # a hard limit loses the position
     assert "Reset to continue" in p.messages
+    assert p.status().state == "Alarm"  # answering again: recovered by the driver's reset
     t.assert_done()
 
 
-def test_alarm_push_instead_of_ok():
-    p, t = positioner([(b"G53 G0 X1.000\n", b"ALARM:2\r\n")], state="Idle")
-    with pytest.raises(GrblAlarm, match="soft limit"):
+def test_soft_limit_alarm_is_recovered_by_reset_and_unlock():
+    # bytes of the real firmware (test_grbl_firmware.py): ALARM:2 and the critical-event message
+    # instead of 'ok'; the rejected line's 'ok' comes on the reset, before the banner; the
+    # position is kept, so the driver unlocks ("the alarm may be safely unlocked")
+    p, t = positioner([(b"G53 G0 X1.000\n", b"ALARM:2\r\n[MSG:Reset to continue]\r\n"),
+                       (b"\x18", b"ok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+                       (b"$X\n", b"[MSG:Caution: Unlocked]\r\nok\r\n"),
+                       (b"?", b"<Idle|MPos:-5.000,-5.000,-1.000|FS:0,0>\r\n")], state="Idle")
+    with pytest.raises(GrblAlarm, match="soft limit") as info:
         p.send("G53 G0 X1.000")
+    assert info.value.alarm == 2 and p.homed
+    assert p.status().state == "Idle"
+    t.assert_done()
+
+
+def test_failed_homing_waits_for_grbls_own_reset():
+    # real GRBL after ALARM:9: the 'ok' of $H, then its own reset's banner; a '?' sent before the
+    # banner is dropped, so the driver reads up to the banner before it fails the homing
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
+                       (b"$H\n", b"ALARM:9\r\nok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+                       (b"?", b"<Alarm|MPos:-30.000,-30.000,-1.000|FS:0,0>\r\n")])
+    with pytest.raises(GrblAlarm, match="could not find the limit switch") as info:
+        p.home().wait(2)
+    assert info.value.alarm == 9 and not p.homed
+    assert p.status().state == "Alarm"
+    t.assert_done()
+
+
+def test_stop_during_homing_is_a_reset_at_once():
+    # GRBL ignores '!' in the homing cycle and answers no '?': the stop is Ctrl-X, not a hold
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", None),
+                       (b"\x18", b"ALARM:6\r\nok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+                       (b"?", b"<Alarm|MPos:-3.000,-3.000,-1.000|FS:0,0>\r\n")])
+    status = p.home()
+    with pytest.raises(DeviceBusy, match="homing"):
+        p.status()
+    p.stop()
+    with pytest.raises(GrblAlarm, match="homing cycle was reset"):
+        status.wait(2)
+    assert not p.homed and t.written[-1] == b"\x18"
+    assert p.status().state == "Alarm"
     t.assert_done()
 
 
@@ -190,6 +241,16 @@ def test_unlock_resume_and_sync_bytes():
     assert p.messages[-1] == "Caution: Unlocked"
     p.resume()
     p.sync(timeout_s=1)
+    t.assert_done()
+
+
+def test_status_poll_keeps_a_reply_for_the_waiting_line():
+    # a status poll reading the 'ok' of a line another thread waits for hands it over
+    p, t = positioner([(b"G4 P0\n", None), (b"?", b"ok\r\n<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n")],
+                      state="Idle")
+    p.transport.write(b"G4 P0\n")  # as send() does, then a poll before it reads
+    assert p.status().state == "Idle"
+    assert list(p._inbox) == ["ok"]
     t.assert_done()
 
 
