@@ -35,7 +35,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 from .device import LightPositioner, LightTarget, reading
 from .errors import DeviceBusy, DeviceError, DeviceTimeout, NotHomed, ProtocolError
@@ -311,13 +311,15 @@ class GrblPositioner(SerialDriver, LightPositioner):
         Consecutive garbled or unanswered status reports tolerated during a move.
     position_tolerance : float
         How close (machine units) the read-back must be to the target to count as arrived.
+    home_timeout_s : float, optional
+        Longest wait for the homing cycle, seconds (default: from ``$130``-``$132`` and ``$25``).
     """
 
     def __init__(self, name: str = "positioner", port: str | None = None, *, transport: Any = None,
                  kinematics: Kinematics | str | dict = "arm", machine_offset: dict | None = None,
                  machine_sign: dict | None = None, baudrate: int = 115200, timeout_s: float = 1.0,
                  poll_interval_s: float = 0.02, poll_retries: int = 2,
-                 position_tolerance: float = 0.01) -> None:
+                 position_tolerance: float = 0.01, home_timeout_s: float | None = None) -> None:
         super().__init__(name)
         if transport is None and not port:
             raise ValueError(f"{name}: give a serial port or a transport")
@@ -332,6 +334,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
         self.poll_interval_s = poll_interval_s
         self.poll_retries = poll_retries
         self.position_tolerance = position_tolerance
+        self.home_timeout_s = home_timeout_s
         self.settings: dict[int, float] = {}
         self.version = ""
         self.build = ""
@@ -345,6 +348,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
         self._connected = False
         self._banner_version = ""
         self._banners = 0  # banners seen (each one is a reset): the reset waiters count them
+        self._reset_requested = False  # '[MSG:Reset to continue]' came after the last alarm
         self._alarms = 0  # ALARM lines seen: a waiter notices one another thread read
         self._alarm_mark = 0  # _banners when the last ALARM line arrived
         self._inbox: deque[str] = deque()  # replies a status poll read for a waiting send()
@@ -354,10 +358,11 @@ class GrblPositioner(SerialDriver, LightPositioner):
     def from_config(cls, name: str, section: dict[str, Any], **context: Any) -> "GrblPositioner":
         """Build from a rig-file section: ``port``, ``kinematics`` (``"arm"``, ``"gantry"`` or
         an inline table), optional ``machine_offset`` / ``machine_sign`` tables, ``baudrate``,
-        ``timeout_s``, ``poll_interval_s``, ``poll_retries``, ``position_tolerance``."""
+        ``timeout_s``, ``poll_interval_s``, ``poll_retries``, ``position_tolerance``,
+        ``home_timeout_s``."""
         from .rig import ConfigError, driver_options
         allowed = {"kinematics", "machine_offset", "machine_sign", "baudrate", "timeout_s",
-                   "poll_interval_s", "poll_retries", "position_tolerance"}
+                   "poll_interval_s", "poll_retries", "position_tolerance", "home_timeout_s"}
         options = driver_options(name, section, "grbl", allowed)
         try:
             return cls(name, section["port"], **options)
@@ -375,12 +380,14 @@ class GrblPositioner(SerialDriver, LightPositioner):
             raise ProtocolError("non-ASCII reply", device=self.name, raw=raw) from None
         if line.startswith("ALARM:"):
             self.last_alarm = parse_code(line, "ALARM")
+            self._reset_requested = False
             self._alarms += 1
             self._alarm_mark = self._banners
             if self.last_alarm in POSITION_LOST_ALARMS:
                 self._homed = not self.homing_enabled
         elif line.startswith("[MSG:"):
             self.messages.append(line[5:-1])
+            self._reset_requested |= line == "[MSG:Reset to continue]"
         elif (m := BANNER.search(line)):
             self._banner_version = m.group(1)
             self._banners += 1
@@ -409,28 +416,47 @@ class GrblPositioner(SerialDriver, LightPositioner):
                     return line
             time.sleep(0)  # let a waiting stop() take the lock
 
-    def _await_banner(self, mark: int, what: str) -> str:
-        """Read (and drop) lines until a banner newer than ``mark`` has been seen; GRBL's version."""
-        timeout = 2.0 * self.timeout_s + 1.0  # the board may still be printing its boot lines
+    def _await(self, done: Callable[[], bool], what: str, timeout: float) -> None:
+        """Read (and drop) lines until ``done()``; the port lock is held one slice at a time."""
         deadline = time.monotonic() + timeout
-        while self._banners <= mark:
+        while not done():
             with self.transport.lock:
-                if self._banners > mark:
+                if done():
                     break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise DeviceTimeout(f"no banner after {what}", device=self.name, timeout_s=timeout)
+                    raise DeviceTimeout(f"no {what}", device=self.name, timeout_s=timeout)
                 try:
                     self._read_line(min(remaining, READ_SLICE_S))
                 except DeviceTimeout:
                     pass
             time.sleep(0)
+
+    def _await_banner(self, mark: int, what: str) -> str:
+        """Wait for a banner newer than ``mark`` (a reset's end); GRBL's version."""
+        timeout = 2.0 * self.timeout_s + 1.0  # the board may still be printing its boot lines
+        self._await(lambda: self._banners > mark, f"banner after {what}", timeout)
         return self._banner_version
 
     def _recover(self, code: int | None) -> GrblAlarm:
         """Bring GRBL back to answering after ``ALARM:code``; the error for the caller to raise."""
         if code in CRITICAL_ALARMS:
-            self.soft_reset()  # only a reset is answered now
+            # protocol.c prints the alarm and the message, then drops any pending reset ("Disable
+            # any existing reset") before it waits for one: a reset sent on the alarm line alone
+            # was lost on the real firmware. Wait for the message, and repeat an unanswered reset.
+            try:
+                self._await(lambda: self._reset_requested, "'[MSG:Reset to continue]'", self.timeout_s)
+            except DeviceTimeout:
+                pass  # the message was lost or garbled: reset anyway
+            for attempt in range(3):
+                mark = self._banners
+                self.transport.write(SOFT_RESET)
+                try:
+                    self._await(lambda: self._banners > mark, "banner after a soft reset", self.timeout_s)
+                    break
+                except DeviceTimeout:
+                    if attempt == 2:
+                        raise
             if code == 2 and self._homed:
                 self.send("$X")  # soft limit: position retained, "the alarm may be safely unlocked"
         elif code in RESETTING_ALARMS:
@@ -639,11 +665,18 @@ class GrblPositioner(SerialDriver, LightPositioner):
                               device=self.name, name="move")
 
     def _wait_arrived(self, end: dict[str, float], timeout: float) -> tuple[float, float, float]:
+        """Poll until idle at ``end``. ``timeout`` (s) is the planned time with a margin; it is
+        extended while the position keeps changing (a rapid override ``Ov:`` below 100 %, or a
+        controller slower than planned), so only a stalled move times out."""
         deadline = time.monotonic() + timeout
         moved = False
         grace = time.monotonic() + 0.25  # GRBL may report Idle for a moment before the block starts
+        last = None
         while True:
             st = self._poll(self.status)
+            if st.state == "Run" and st.mpos != last:
+                deadline = max(deadline, time.monotonic() + max(1.0, self.timeout_s))
+            last = st.mpos
             if st.state == "Alarm":
                 raise GrblAlarm(self.last_alarm, device=self.name)
             if st.state == "Idle":
@@ -666,15 +699,19 @@ class GrblPositioner(SerialDriver, LightPositioner):
         """Run the homing cycle ``$H``; the status completes with the light position there.
 
         ``$H`` is written before this returns, so a :meth:`stop` right after it soft-resets the
-        cycle; the wait for its ``ok`` does not hold the port. A failed homing (``ALARM:6..9``)
-        fails the status with :class:`GrblAlarm` once GRBL's own reset is over.
+        cycle; the wait for its ``ok`` does not hold the port. After ``ALARM:9`` (no switch found
+        within the search distance) the driver waits for GRBL's own reset and homes once more;
+        a failed homing otherwise (``ALARM:6..9``) fails the status with :class:`GrblAlarm` once
+        GRBL's reset is over.
         """
         self._require()
         if not self.homing_enabled:
             raise DeviceError("error:5", ERROR_CODES[5], device=self.name)
         travel = [self.settings.get(130 + i, 500.0) for i in range(3)]
         seek = self.settings.get(25, 500.0) / 60.0  # $25 homing seek rate, units/min -> /s
-        timeout = 2.0 * max(travel) / max(seek, 1e-6) + 5.0
+        # GRBL answers nothing during the cycle, so only a fixed bound: a search of 1.5 x travel
+        # per cycle (Z, then X and Y), with a margin
+        timeout = self.home_timeout_s or 2.0 * 1.5 * max(travel) / max(seek, 1e-6) + 5.0
         try:
             self.status()  # reads (and recovers from) any alarm pushed since the last call
         except GrblAlarm:
@@ -690,8 +727,20 @@ class GrblPositioner(SerialDriver, LightPositioner):
             raise
 
         def _wait() -> tuple[float, float, float]:
+            nonlocal alarms
             try:
-                self._await_ok("'$H'", timeout, alarms)
+                try:
+                    self._await_ok("'$H'", timeout, alarms)
+                except GrblAlarm as exc:
+                    if exc.alarm != 9:
+                        raise
+                    # no switch within 1.5 x $13x: GRBL has reset itself; a second search goes on
+                    # from where the first one ended (a machine powered up far from its switches)
+                    log.warning("%s: homing found no limit switch (ALARM:9); searching again", self.name)
+                    with self.transport.lock:
+                        alarms = self._alarms
+                        self.transport.write(b"$H\n")
+                    self._await_ok("'$H'", timeout, alarms)
             finally:
                 self._homing = False
             self._homed = True

@@ -49,18 +49,23 @@ class GrblFirmware(SerialSim):
         (``GRBL_SIM_LIMITS``). None: no switch is ever pressed.
     start : (3,) float
         Physical axis position at power-up, machine units (``GRBL_SIM_START``).
+    switch_width : float, optional
+        A switch reads pressed only within this many units past its position (a flag switch;
+        ``GRBL_SIM_SWITCH_WIDTH``). None: pressed everywhere beyond it (an end stop).
     press_file : path, optional
         While a file exists at this path every limit switch reads pressed (``GRBL_SIM_PRESS``).
     max_catchup_ms : float
         Bound on how much simulated time catches up at once after the host descheduled the
-        firmware (``GRBL_SIM_MAX_CATCHUP_MS``); keeps a loaded host from ending a homing
-        approach early.
+        firmware (``GRBL_SIM_MAX_CATCHUP_MS``). Unbounded, a burst drains GRBL's segment buffer
+        (6 segments of ~10 ms) and ends a homing approach early (ALARM:9); a small bound makes
+        simulated time lag far behind on a loaded host (2 ms: moves took 2-5x their planned time
+        at a load average of 10 on 2 cores); 20 ms is below the buffer's depth.
     """
 
     def __init__(self, exe: str | os.PathLike, workdir: str | os.PathLike, name: str = "positioner", *,
                  limits: tuple[Sequence[float], Sequence[float]] | None = None,
-                 start: Sequence[float] = (0.0, 0.0, 0.0), press_file: str | os.PathLike | None = None,
-                 max_catchup_ms: float = 2.0) -> None:
+                 start: Sequence[float] = (0.0, 0.0, 0.0), switch_width: float | None = None,
+                 press_file: str | os.PathLike | None = None, max_catchup_ms: float = 20.0) -> None:
         super().__init__(name)
         self.exe = Path(exe)
         if not self.exe.is_file():
@@ -72,6 +77,8 @@ class GrblFirmware(SerialSim):
         if limits is not None:
             lo, hi = _triple(limits[0], "limits low"), _triple(limits[1], "limits high")
             self.env["GRBL_SIM_LIMITS"] = ",".join(f"{a:g}:{b:g}" for a, b in zip(lo, hi))
+        if switch_width is not None:
+            self.env["GRBL_SIM_SWITCH_WIDTH"] = f"{switch_width:g}"
         if press_file is not None:
             self.env["GRBL_SIM_PRESS"] = str(press_file)
         self.wire_log: list[tuple[float, bytes]] = []  # (monotonic time, bytes from the driver)

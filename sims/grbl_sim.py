@@ -426,6 +426,7 @@ class GrblSim(SerialSim):
             self.state = "Idle"
         self.critical = False
         self._report_after_home = False
+        self._wco_counter = self._ovr_counter = 0  # GRBL clears its system state on a reset
         out += b"ok\r\n" * self._late_oks + BANNER
         self._late_oks = 0
         if self.state == "Alarm":

@@ -182,12 +182,19 @@ def test_soft_limit_alarm_is_recovered_by_reset_and_unlock():
     t.assert_done()
 
 
-def test_failed_homing_waits_for_grbls_own_reset():
+def test_failed_homing_waits_for_grbls_own_reset_and_searches_again():
     # real GRBL after ALARM:9: the 'ok' of $H, then its own reset's banner; a '?' sent before the
-    # banner is dropped, so the driver reads up to the banner before it fails the homing
-    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
-                       (b"$H\n", b"ALARM:9\r\nok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
-                       (b"?", b"<Alarm|MPos:-30.000,-30.000,-1.000|FS:0,0>\r\n")])
+    # banner is dropped, so the driver reads up to the banner, then homes once more
+    fail = b"ALARM:9\r\nok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", fail),
+                       (b"$H\n", b"ok\r\n"),
+                       (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n")])
+    p.home().wait(2)
+    assert p.homed and p.last_alarm == 9
+    t.assert_done()
+    # a second ALARM:9 fails the homing, after GRBL's reset, and the next call is answered
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", fail),
+                       (b"$H\n", fail), (b"?", b"<Alarm|MPos:-30.000,-30.000,-1.000|FS:0,0>\r\n")])
     with pytest.raises(GrblAlarm, match="could not find the limit switch") as info:
         p.home().wait(2)
     assert info.value.alarm == 9 and not p.homed
