@@ -365,9 +365,10 @@ class GrblPositioner(SerialDriver, LightPositioner):
                    "poll_interval_s", "poll_retries", "position_tolerance", "home_timeout_s"}
         options = driver_options(name, section, "grbl", allowed)
         try:
-            return cls(name, section["port"], **options)
+            MachineMap.from_config(options.get("machine_offset"), options.get("machine_sign"))
         except ValueError as exc:
             raise ConfigError(f"[{name}] {exc}") from None
+        return cls(name, section["port"], **options)
 
     # -- wire -------------------------------------------------------------------------------------
     def _read_line(self, timeout: float) -> str:

@@ -1,12 +1,18 @@
 """GRBL 1.1 codec and GrblPositioner against scripted byte exchanges (gnea/grbl interface.md)."""
 from __future__ import annotations
 
+import re
+import tomllib
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from rig import DeviceBusy, DeviceError, DeviceTimeout, LightTarget, LimitError, NotHomed, ProtocolError
-from rig.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblPositioner, format_move, parse_code,
-                      parse_settings, parse_status, path_time_s)
+from rig.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblPositioner, check_machine_space,
+                      format_move, machine_space, parse_code, parse_settings, parse_status, path_time_s)
+from rig.kinematics import MachineMap, kinematics_from_config
+from rig.rig import ConfigError
 from rig.transport import ScriptedTransport
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
@@ -266,3 +272,49 @@ def test_late_status_report_and_banner_do_not_confuse_a_response():
                         + b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n")], state="Idle")
     assert p.send("$G") == ["[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]"]
     t.assert_done()
+
+
+# -- machine space ----------------------------------------------------------------------------------
+def test_machine_space_follows_homing_direction_and_pull_off():
+    settings = {22: 1, 23: 0b010, 27: 1.0, 130: 365.0, 131: 90.0, 132: 2.0}
+    assert machine_space(settings, "X") == (-365.0, -1.0)  # towards +: switch at 0, pulled off
+    assert machine_space(settings, "Y") == (-89.0, 0.0)  # towards -: switch at -$131
+
+
+def test_machine_map_round_trip_and_bad_tables():
+    m = MachineMap.from_config({"X": -182.0}, {"Y": -1})
+    assert m.to_machine({"X": 10.0, "Y": 20.0, "Z": 1.0}) == {"X": -172.0, "Y": -20.0, "Z": 1.0}
+    assert m.to_axes(m.to_machine({"X": 10.0, "Y": 20.0})) == {"X": 10.0, "Y": 20.0}
+    assert m.machine_range("Y", 0.0, 85.0) == (-85.0, 0.0)
+    for offset, sign, message in [({"Q": 1.0}, None, "axis 'Q'"), ({"X": "a"}, None, "finite number"),
+                                  (None, {"X": 2}, "1 or -1"), ([1.0], None, "table")]:
+        with pytest.raises(ValueError, match=message):
+            MachineMap.from_config(offset, sign)
+
+
+def test_docs_worked_example_passes_the_check_and_a_wrong_offset_is_refused():
+    """The GRBL arm of docs/rig-file.md: its settings and rig-file section are consistent; the
+    same arm without the machine map is refused with a message naming the settings."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "rig-file.md").read_text()
+    toml_block = doc.split("**Worked example.**")[1].split("```toml")[1].split("```")[0]
+    section = tomllib.loads(toml_block)["positioner"]
+    settings = {int(n): float(v) for n, v in re.findall(r"\$(\d+)=([\d.]+)",
+                                                         doc.split("**Worked example.**")[1].split("```toml")[0])}
+    assert settings[130] == 365 and settings[23] == 0
+    kin = kinematics_from_config(section["kinematics"])
+    check_machine_space(settings, kin, MachineMap.from_config(section["machine_offset"], None))
+    with pytest.raises(ConfigError, match=r"axis X .*\$130=365, \$27=1, \$23=0\): set machine_offset X = "
+                                          r"-183 \(centred\), or change \$130; axis Y .*\$131=90"):
+        check_machine_space(settings, kin, MachineMap.from_config(None, None))
+    # the variant homed towards -: $23 bit 0 set, offset -183
+    check_machine_space({**settings, 23: 1}, kin, MachineMap.from_config({"X": -183.0, "Y": -88.0}, None))
+    check_machine_space({**settings, 22: 0}, kin, MachineMap.from_config(None, None))  # no homing: no check
+
+
+def test_rig_file_machine_map_keys():
+    p = GrblPositioner.from_config("positioner", {"driver": "grbl", "port": "/dev/null",
+                                                  "machine_offset": {"X": -182.0}, "machine_sign": {"Y": -1}})
+    assert p.describe()["machine_offset"] == {"X": -182.0} and p.machine_map.sign == {"Y": -1}
+    with pytest.raises(ConfigError, match=r"\[positioner\] machine_sign X = 3 must be 1 or -1"):
+        GrblPositioner.from_config("positioner", {"driver": "grbl", "port": "/dev/null",
+                                                  "machine_sign": {"X": 3}})
