@@ -305,7 +305,8 @@ class GrblSim(SerialSim):
                 return
             self.mpos = end.copy()
             self._active = None
-            if kind == "home":
+            if kind == "home":  # GRBL sets MPos to where the axes physically stand
+                self.mpos = self.mpos + self._offset
                 self._offset = np.zeros(3)
                 if self._report_after_home:
                     self._report_after_home = False

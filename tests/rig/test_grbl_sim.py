@@ -292,3 +292,36 @@ def test_simulator_bytes_and_framing():
     assert sim.handle(b"$110=6000") == b"ok\r\n" and sim.settings[110] == 6000
     assert b"$110=6000.000\r\n" in sim.handle(b"$$")
     assert sim.handle(b"\x18") == b"\r\nGrbl 1.1h ['$' for help]\r\n"  # idle reset: no lock
+
+
+def test_simulator_as_the_real_firmware():
+    """What gnea/grbl 1.1h answered on the host build (test_grbl_firmware.py runs the same
+    exchange against both when gcc is present): post-homing MPos, soft limit, silence, the late
+    ok, GRBL's own $ error numbers, ok for an empty line, the WCO / Ov refresh."""
+    sim = GrblSim(fast=True, settings={20: 1})  # not started: handle() is the firmware
+    assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n"
+    assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>\r\n"
+    assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"
+    assert sim.handle(b"$Z") == b"error:2\r\n" and sim.handle(b"$100=-1") == b"error:4\r\n"
+    assert sim.handle(b"") == b"ok\r\n"
+    assert sim.handle(b"$H") is None and sim.tick() == b"ok\r\n"  # ok when the cycle is done
+    assert sim.mpos.tolist() == [-1.0, -1.0, -1.0]  # minus the pull-off $27
+    assert sim.handle(b"G53 G0 X5") == b"ALARM:2\r\n[MSG:Reset to continue]\r\n"
+    assert sim.handle(b"?") is None and sim.handle(b"$X") is None  # silent until a reset
+    assert sim.handle(b"\x18") == b"ok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
+    assert sim.handle(b"$X") == b"[MSG:Caution: Unlocked]\r\nok\r\n"
+    assert sim.handle(b"?").startswith(b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0|WCO:")
+    assert sim.split(bytearray(b"??")) == [b"?"]  # one status request flag: one report
+
+
+def test_simulator_homes_towards_minus_and_answers_no_status_during_homing():
+    sim = GrblSim(fast=False, settings={23: 0b001}, power_up_position=(-300.0, -10.0, -1.0))
+    assert sim.handle(b"$H") is None
+    assert sim.handle(b"?") is None  # limits.c polls only reset, door and cycle stop
+    deadline = time.monotonic() + 5
+    out = b""
+    while b"ok" not in out and time.monotonic() < deadline:
+        out += sim.tick() or b""
+        time.sleep(0.01)
+    # X homed towards -: at -$130 + $27; the '?' answered once the cycle ends, before its ok
+    assert out.startswith(b"<Home|MPos:-369.000,-1.000,-1.000|") and out.endswith(b"ok\r\n")
