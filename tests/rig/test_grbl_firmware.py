@@ -21,6 +21,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -76,23 +77,62 @@ def grbl_build(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture
-def firmware(grbl_build, tmp_path, request):
-    """A fresh firmware process with the configured EEPROM, axes at -10, -10, -1 at power-up."""
-    work = tmp_path / "grbl"
+def start_firmware(build: Path, folder: Path, **opts) -> GrblFirmware:
+    """A fresh firmware process with the configured EEPROM, axes at -10, -10, -1 at power-up;
+    the file ``folder / "press"`` presses every switch while it exists."""
+    work = folder / "grbl"
     work.mkdir()
-    shutil.copy(grbl_build / "eeprom" / "EEPROM.DAT", work / "EEPROM.DAT")
-    opts = getattr(request, "param", {})
-    fw = GrblFirmware(grbl_build / "grbl_sim.exe", work, switch_width=0.5, press_file=tmp_path / "press",
+    shutil.copy(build / "eeprom" / "EEPROM.DAT", work / "EEPROM.DAT")
+    fw = GrblFirmware(build / "grbl_sim.exe", work, switch_width=0.5, press_file=folder / "press",
                       **{"start": (-10.0, -10.0, -1.0), "limits": SWITCHES, **opts})
     fw.start()
+    return fw
+
+
+@pytest.fixture
+def firmware(grbl_build, tmp_path, request):
+    fw = start_firmware(grbl_build, tmp_path, **getattr(request, "param", {}))
     yield fw
     fw.stop()
 
 
+@dataclass
+class HomedArm:
+    """One firmware and driver for the tests that start and end homed and idle (homing takes
+    about a second of firmware time, so it is done once)."""
+
+    firmware: GrblFirmware
+    driver: GrblPositioner
+    press: Path  # every limit switch reads pressed while this file exists
+    power_up_state: str
+    homed_mpos: tuple[float, ...]
+
+
+@pytest.fixture(scope="module")
+def arm(grbl_build, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("arm")
+    fw = start_firmware(grbl_build, folder)
+    p = driver(fw)
+    state = report(p).state
+    home(p)
+    yield HomedArm(fw, p, folder / "press", state, report(p).mpos)
+    p.close()
+    fw.stop()
+
+
+@pytest.fixture
+def homed(arm) -> GrblPositioner:
+    """The shared arm, checked homed and idle (each test using it leaves it so)."""
+    if not arm.driver.connected:
+        arm.driver.connect()
+    assert arm.driver.homed and report(arm.driver).state == "Idle"
+    return arm.driver
+
+
 def driver(fw: GrblFirmware, **kw) -> GrblPositioner:
     p = GrblPositioner("positioner", fw.port, kinematics=KINEMATICS, timeout_s=TIMEOUT,
-                       poll_interval_s=0.01, home_timeout_s=30.0, **{"machine_offset": MACHINE_OFFSET, **kw})
+                       poll_interval_s=0.01, poll_retries=6, home_timeout_s=30.0,
+                       **{"machine_offset": MACHINE_OFFSET, **kw})
     deadline = time.monotonic() + 20.0
     while b"['$' for help]" not in fw.replies:  # the firmware boots in about a second
         assert time.monotonic() < deadline, f"firmware did not boot: {bytes(fw.replies)!r}"
@@ -102,19 +142,32 @@ def driver(fw: GrblFirmware, **kw) -> GrblPositioner:
 
 
 def report(p: GrblPositioner):
-    """A status report, retried like the driver's own polls (``_poll``): under load the
-    harness's threads garble a byte now and then (seen: ``<Ho8d:1|MPos:...>``)."""
+    """A status report, retried like the driver's own polls (``_poll``): the harness runs GRBL's
+    main loop and its serial interrupt on two threads, and now and then the interrupt sends a
+    byte of the ring buffer before the main loop's store of it lands (seen under load:
+    ``<Ho8d:1|MPos:...>``, ``<Ala1m|...>``; a race the single-core AVR cannot have)."""
     return p._poll(p.status)
 
 
-def test_connect_home_and_moves_by_status_polling(firmware):
-    p = driver(firmware)
+def home(p: GrblPositioner) -> None:
+    """``home()``, repeated on ALARM:9: on a loaded host the harness's stepper thread can drain
+    GRBL's segment buffer while the main loop waits for a CPU, which ends a homing approach early
+    (third_party/grbl/README.md). The driver's own recovery is tested strictly below."""
+    for attempt in range(3):
+        try:
+            p.home().wait(30)
+            return
+        except GrblAlarm as exc:
+            if exc.alarm != 9 or attempt == 2:
+                raise
+
+
+def test_connect_home_and_moves_by_status_polling(arm, homed):
+    p = homed
     assert p.version == "1.1h" and p.build == "1.1h.20190830"
     assert p.settings[130] == 20 and p.settings[27] == 1 and p.homing_enabled
-    assert not p.homed and report(p).state == "Alarm"  # homing enabled: locked at power-up
-    p.home().wait(30)
-    st = report(p)
-    assert st.state == "Idle" and st.mpos == (-1.0, -1.0, -1.0)  # minus the pull-off, all axes
+    assert arm.power_up_state == "Alarm"  # homing enabled: locked at power-up
+    assert arm.homed_mpos == (-1.0, -1.0, -1.0)  # minus the pull-off, all three axes
     for az, el in [(5.0, 3.0), (-8.0, 14.0)]:
         final = p.move_to(LightTarget(azimuth_deg=az, elevation_deg=el)).wait(15)
         mpos = p.machine_position()
@@ -122,12 +175,11 @@ def test_connect_home_and_moves_by_status_polling(firmware):
         assert mpos["X"] == pytest.approx(MACHINE_OFFSET["X"] + az, abs=0.026)
         assert mpos["Y"] == pytest.approx(MACHINE_OFFSET["Y"] + el, abs=0.026)
         assert final == pytest.approx(p.kinematics.forward({"X": az, "Y": el}), abs=0.3)
-    p.close()
 
 
-def test_feed_hold_resume_and_stop_keep_position(firmware):
-    p = driver(firmware)
-    p.home().wait(30)
+def test_feed_hold_resume_and_stop_keep_position(arm, homed):
+    p, firmware = homed, arm.firmware
+    mark = len(firmware.replies)
     status = p.move_to(LightTarget(azimuth_deg=-9.0, elevation_deg=0.0))  # 18 deg: ~0.5 s
     time.sleep(0.15)
     p.feed_hold()
@@ -148,15 +200,12 @@ def test_feed_hold_resume_and_stop_keep_position(firmware):
         status.wait(3)
     st = report(p)
     assert st.state == "Idle" and -19.0 < st.mpos[0] < -1.0  # hold, then reset: no ALARM:3
-    assert b"ALARM" not in firmware.replies
+    assert b"ALARM" not in firmware.replies[mark:]
     assert p.move_to(LightTarget(azimuth_deg=0.0, elevation_deg=5.0)).wait(15)
-    p.close()
 
 
-def test_soft_limit_alarm_2_is_recovered_by_the_driver(firmware):
-    p = driver(firmware)
-    p.home().wait(30)
-    p.move_to(LightTarget(azimuth_deg=0.0, elevation_deg=5.0)).wait(15)
+def test_soft_limit_alarm_2_is_recovered_by_the_driver(arm, homed):
+    p, firmware = homed, arm.firmware
     before = p.machine_position()
     with pytest.raises(GrblAlarm, match="soft limit") as info:
         p.send("G53 G0 X5.000")  # beyond machine space [-20, 0]: $20=1 rejects it
@@ -166,16 +215,14 @@ def test_soft_limit_alarm_2_is_recovered_by_the_driver(firmware):
     assert p.homed and report(p).state == "Idle"  # reset and $X by the driver: position kept
     assert p.machine_position() == before
     assert p.move_to(LightTarget(azimuth_deg=3.0, elevation_deg=5.0)).wait(15)
-    p.close()
 
 
-def test_hard_limit_alarm_1_is_an_alarm_not_a_timeout(firmware, tmp_path):
-    p = driver(firmware)
-    p.home().wait(30)
-    press = tmp_path / "press"
+def test_hard_limit_alarm_1_is_an_alarm_not_a_timeout(arm, homed):
+    p, firmware, press = homed, arm.firmware, arm.press
+    mark = len(firmware.replies)
     press.touch()  # every switch pressed while idle: hard limit
     t0 = time.monotonic()
-    while b"ALARM:1" not in firmware.replies:
+    while b"ALARM:1" not in firmware.replies[mark:]:
         assert time.monotonic() - t0 < 2, "no ALARM:1 from the firmware"
         time.sleep(0.01)
     press.unlink()
@@ -184,7 +231,7 @@ def test_hard_limit_alarm_1_is_an_alarm_not_a_timeout(firmware, tmp_path):
         p.status()
     assert info.value.alarm == 1 and not p.homed
     assert report(p).state == "Alarm"  # answered again: the driver's reset ended the silence
-    p.home().wait(30)
+    home(p)
     # the same during a move: the driver's status poll meets the alarm and fails the move
     status = p.move_to(LightTarget(azimuth_deg=-9.0, elevation_deg=0.0))
     time.sleep(0.1)
@@ -203,9 +250,8 @@ def test_hard_limit_alarm_1_is_an_alarm_not_a_timeout(firmware, tmp_path):
     assert info.value.alarm in (1, 3)
     assert not p.homed
     time.sleep(0.02)
-    p.home().wait(30)
-    assert p.move_to(LightTarget(azimuth_deg=0.0, elevation_deg=0.0)).wait(15)
-    p.close()
+    home(p)
+    assert p.homed and report(p).mpos == (-1.0, -1.0, -1.0)
 
 
 @pytest.mark.parametrize("firmware", [{"start": (-19.5, -19.5, -1.0)}], indirect=True)
@@ -238,23 +284,35 @@ def test_failed_homing_alarm_9_is_recovered(firmware):
     p.close()
 
 
-def test_inconsistent_configuration_is_refused_naming_the_settings(firmware):
+def test_inconsistent_configuration_is_refused_naming_the_settings(arm, homed):
+    homed.close()  # the port for the drivers under test; the fixture reconnects it
     with pytest.raises(ConfigError, match=r"axis X .*\$130=20, \$27=1, \$23=0.*machine_offset X = -10"):
-        driver(firmware, machine_offset={"Y": -17.0})  # azimuth -9..9 at MPos -9..9: beyond 0
-    p = driver(firmware)  # the consistent one connects
+        driver(arm.firmware, machine_offset={"Y": -17.0})  # azimuth -9..9 at MPos -9..9: beyond 0
+    p = driver(arm.firmware)  # the consistent one connects, and finds the machine homed
+    assert p.homed
     p.close()
 
 
-def _exchange(port, requests: list[bytes]) -> list[bytes]:
-    """Each request, then every byte until the line goes quiet for 0.15 s."""
+#: (request, the bytes that end its answer; None: the answer is silence), and ``$H``
+EXCHANGE: list[tuple[bytes, bytes | None]] = [
+    (b"\x18", b"unlock]\r\n"), (b"?", b">\r\n"), (b"$Z\n", b"\r\n"), (b"$100=-1\n", b"\r\n"),
+    (b"\n", b"\r\n"), (b"$H\n", b"ok\r\n"), (b"?", b">\r\n"), (b"?", b">\r\n"),
+    (b"G53 G0 X5.000\n", b"continue]\r\n"), (b"?", None), (b"\x18", b"unlock]\r\n"), (b"?", b">\r\n"),
+    (b"$X\n", b"ok\r\n"), (b"?", b">\r\n"), (b"?", b">\r\n")]
+
+
+def _exchange(port) -> list[bytes]:
+    """Each request of EXCHANGE and its answer (plus whatever follows within 50 ms)."""
     out = []
-    for req in requests:
-        port.write(req)
-        got, quiet = b"", time.monotonic() + 0.15
+    for request, end in EXCHANGE:
+        if request == b"$H\n":
+            out.append(_home_until_it_works(port))
+            continue
+        port.write(request)
+        got = _read_until(port, end) if end is not None else b""
+        quiet = time.monotonic() + (0.3 if end is None else 0.05)
         while time.monotonic() < quiet:
-            chunk = port.read(4096)
-            if chunk:
-                got, quiet = got + chunk, time.monotonic() + 0.15
+            got += port.read(4096)
         out.append(got)
     return out
 
@@ -264,31 +322,36 @@ def test_simulator_answers_as_the_firmware(firmware):
     answers where the driver relies on them."""
     import serial
     driver(firmware).close()  # booted and reset
-    requests = [b"\x18", b"?", b"$Z\n", b"$100=-1\n", b"\n", b"$H\n", b"?", b"?",
-                b"G53 G0 X5.000\n", b"?", b"\x18", b"?", b"$X\n", b"?", b"?"]
     with GrblSim(fast=False, kinematics=KINEMATICS, settings=SETTINGS, travel=SWITCHES,
                  power_up_position=(-10.0, -10.0, -1.0)) as sim:
         answers = {}
         for name, path in (("firmware", firmware.port), ("sim", sim.port)):
             port = serial.Serial(path, 115200, timeout=0.02)
             try:
-                answers[name] = _exchange(port, requests[:5]) + [_read_after_home(port)] + \
-                    _exchange(port, requests[6:])
+                answers[name] = _exchange(port)
             finally:
                 port.close()
     real, simulated = answers["firmware"], answers["sim"]
+    requests = [r for r, _ in EXCHANGE]
     assert real[0] == simulated[0] == b"\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
-    for i in (2, 3, 4, 8, 10, 12):  # errors, empty line, soft limit, late ok + banner, unlock
+    for i in (2, 3, 4, 8, 9, 10, 12):  # errors, empty line, soft limit, silence, late ok, unlock
         assert simulated[i] == real[i], (requests[i], real[i], simulated[i])
-    assert real[8] == b"ALARM:2\r\n[MSG:Reset to continue]\r\n"
-    assert real[9] == simulated[9] == b""  # silent after a critical alarm
-    for i in (1, 5, 6, 7, 11, 13, 14):  # status reports: state and position; WCO / Ov as GRBL
+    assert real[8] == b"ALARM:2\r\n[MSG:Reset to continue]\r\n" and real[9] == b""
+    assert real[10].startswith(b"ok\r\n\r\nGrbl 1.1h")
+    for i in (1, 6, 7, 11, 13, 14):  # status reports: state and position; WCO / Ov as GRBL
         assert _fields(simulated[i]) == _fields(real[i]), (requests[i], real[i], simulated[i])
 
 
-def _read_after_home(port) -> bytes:
-    port.write(b"$H\n")
-    return _read_until(port, b"ok\r\n")
+def _home_until_it_works(port) -> bytes:
+    """``$H`` until it succeeds: under load the harness can end a homing approach early
+    (ALARM:9; third_party/grbl/README.md); GRBL then resets itself and homes again on request."""
+    for _ in range(3):
+        port.write(b"$H\n")
+        out = _read_until(port, b"ok\r\n", timeout=30)
+        if b"ALARM" not in out:
+            return out
+        _read_until(port, b"unlock]\r\n")
+    raise AssertionError(f"homing failed three times: {out!r}")
 
 
 def _fields(reply: bytes) -> list[str]:
