@@ -122,7 +122,8 @@ AXES = "XYZ"
 class GrblAlarm(DeviceError):
     """GRBL entered its alarm state (``ALARM:N``); motion is locked out."""
 
-    hint = "re-home (positioner.home(), which soft-resets first when needed)"
+    hint = "the driver has brought GRBL back to answering; after a hard limit or a failed homing, " \
+           "re-home (positioner.home())"
 
     def __init__(self, alarm: int | None, *, device: str = "") -> None:
         self.alarm = alarm
@@ -778,7 +779,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
         while time.monotonic() < deadline:
             try:
                 st = self.status()
-            except DeviceBusy:  # a homing cycle began meanwhile
+            except (DeviceBusy, GrblAlarm):  # a homing cycle began, or an alarm halted the motion
                 break
             if st.state in ("Idle", "Alarm") or (st.state == "Hold" and st.substate == 0):
                 break
