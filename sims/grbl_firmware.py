@@ -25,6 +25,54 @@ from typing import Sequence
 
 from .serial_sim import SerialSim
 
+#: a small, fast machine for tests and benchmarks (the firmware runs in real time): homing on,
+#: towards +, 1 unit pull-off; soft and hard limits on; 20 units of travel on X and Y, 2 on Z;
+#: 20 steps per unit, 3000 units/min, 1000 units/s^2; homing seek 3000, locate 600 units/min,
+#: 10 ms debounce
+FAST_SETTINGS: dict[int, float] = {
+    22: 1, 20: 1, 21: 1, 23: 0, 27: 1, 130: 20, 131: 20, 132: 2, 25: 3000, 24: 600, 26: 10,
+    100: 20, 101: 20, 102: 20, 110: 3000, 111: 3000, 112: 3000, 120: 1000, 121: 1000, 122: 1000}
+#: switches of that machine (machine units): the home switch at 0, an end stop at -22 (-4 on Z)
+FAST_SWITCHES = ((-22.0, -22.0, -4.0), (0.0, 0.0, 0.0))
+
+
+def build_firmware(grbl_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """Compile ``grbl_dir/build.sh`` (GRBL 1.1h + grbl-sim, needs gcc and make) into ``out``;
+    return the path of ``grbl_sim.exe``. Raises ``subprocess.CalledProcessError`` with the
+    build's output on failure."""
+    grbl_dir, out = Path(grbl_dir), Path(out)
+    subprocess.run(["bash", str(grbl_dir / "build.sh"), str(grbl_dir / "grbl-1.1h"), str(grbl_dir / "grbl-sim"),
+                    str(out)], check=True, capture_output=True, timeout=300)
+    return out / "grbl_sim.exe"
+
+
+def write_eeprom(exe: str | os.PathLike, folder: str | os.PathLike, settings: dict[int, float],
+                 timeout_s: float = 20.0) -> Path:
+    """Boot the firmware once in ``folder`` and store ``settings`` (``$n=value``) in its EEPROM;
+    return the ``EEPROM.DAT`` to copy into a firmware's working directory."""
+    import serial  # pyserial: the driver's own dependency
+
+    def read_until(port: serial.Serial, marker: bytes) -> bytes:
+        out, deadline = b"", time.monotonic() + timeout_s
+        while marker not in out:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no {marker!r} from the GRBL firmware within {timeout_s} s: {out!r}")
+            out += port.read(4096)
+        return out
+
+    fw = GrblFirmware(exe, folder)
+    port = serial.Serial(fw.start(), 115200, timeout=0.05)
+    try:
+        read_until(port, b"['$' for help]")  # first boot: error:7 (blank EEPROM), defaults, banner
+        for n, value in settings.items():
+            port.write(f"${n}={value}\n".encode())
+            if b"ok\r\n" not in (reply := read_until(port, b"\r\n")):
+                raise ValueError(f"GRBL refused ${n}={value}: {reply!r}")
+    finally:
+        port.close()
+        fw.stop()
+    return Path(folder) / "EEPROM.DAT"
+
 
 def _triple(values: Sequence[float], what: str) -> list[float]:
     out = [float(v) for v in values]

@@ -19,7 +19,6 @@ hard or soft limit errors send this".
 from __future__ import annotations
 
 import shutil
-import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,15 +28,12 @@ import pytest
 from rig import DeviceBusy, LightTarget
 from rig.grbl import GrblAlarm, GrblPositioner
 from rig.rig import ConfigError
-from sims.grbl_firmware import GrblFirmware
+from sims.grbl_firmware import FAST_SETTINGS, FAST_SWITCHES, GrblFirmware, build_firmware, write_eeprom
 from sims.grbl_sim import GrblSim
 
 GRBL_DIR = Path(__file__).resolve().parents[3] / "shared" / "third_party" / "grbl"
 
-#: fast, small machine (see the module docstring); written to the firmware's EEPROM once
-SETTINGS = {22: 1, 20: 1, 21: 1, 23: 0, 27: 1, 130: 20, 131: 20, 132: 2, 25: 3000, 24: 600, 26: 10,
-            100: 20, 101: 20, 102: 20, 110: 3000, 111: 3000, 112: 3000, 120: 1000, 121: 1000, 122: 1000}
-SWITCHES = ((-22.0, -22.0, -4.0), (0.0, 0.0, 0.0))
+SETTINGS, SWITCHES = FAST_SETTINGS, FAST_SWITCHES  # written to the firmware's EEPROM once
 KINEMATICS = {"type": "arm", "radius_mm": 500.0, "azimuth_limits_deg": [-9.0, 9.0],
               "elevation_limits_deg": [0.0, 15.0]}
 MACHINE_OFFSET = {"X": -10.0, "Y": -17.0}
@@ -61,19 +57,7 @@ def grbl_build(tmp_path_factory) -> Path:
     if not (GRBL_DIR / "build.sh").is_file():
         pytest.skip(f"{GRBL_DIR} is absent (the GRBL sources ship beside the repository, not in it)")
     out = tmp_path_factory.mktemp("grbl")
-    subprocess.run(["bash", str(GRBL_DIR / "build.sh"), str(GRBL_DIR / "grbl-1.1h"),
-                    str(GRBL_DIR / "grbl-sim"), str(out)], check=True, capture_output=True, timeout=300)
-    import serial
-    fw = GrblFirmware(out / "grbl_sim.exe", out / "eeprom", limits=SWITCHES)
-    port = serial.Serial(fw.start(), 115200, timeout=0.05)
-    try:
-        _read_until(port, b"['$' for help]")  # first boot: error:7 (blank EEPROM), defaults, banner
-        for n, value in SETTINGS.items():
-            port.write(f"${n}={value}\n".encode())
-            _read_until(port, b"ok\r\n")
-    finally:
-        port.close()
-        fw.stop()
+    write_eeprom(build_firmware(GRBL_DIR, out), out / "eeprom", SETTINGS)
     return out
 
 
