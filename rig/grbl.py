@@ -539,14 +539,15 @@ class GrblPositioner(SerialDriver, LightPositioner):
                         self._wco = st.wco
                     return st
                 if text.startswith("ALARM:"):
-                    raise self._recover(self.last_alarm)
-                if text == "ok" or text.startswith(("error:", "[VER", "[OPT", "[GC", "[HLP", "$")) or \
+                    break  # recovered outside the port lock: a waiting send() must see the alarm
+                if text == "ok" or text.startswith(("error:", "$")) or \
                         (text.startswith("[") and not text.startswith("[MSG:")):
                     self._inbox.append(text)  # the reply to a line a send() is waiting for
                 elif text and not (text.startswith("[MSG:") or BANNER.search(text)):
                     t.reset_input()  # noise may have split the report: drop the rest of it
                     raise ProtocolError("garbled line while waiting for a status report",
                                         device=self.name, raw=text.encode())
+        raise self._recover(self.last_alarm)
 
     def soft_reset(self) -> str:
         """Ctrl-X, at once (without the port lock): abort motion, flush buffers; wait for the

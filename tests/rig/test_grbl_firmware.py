@@ -257,10 +257,10 @@ def test_stop_during_homing_reaches_the_wire_at_once(firmware):
 
 
 # the end stop moved out of the way (-60): X powered up beyond it would have its pin pressed
-@pytest.mark.parametrize("firmware", [{"start": (-50.0, -10.0, -1.0),
+@pytest.mark.parametrize("firmware", [{"start": (-35.0, -10.0, -1.0),
                                        "limits": ((-60.0, -22.0, -4.0), (0.0, 0.0, 0.0))}], indirect=True)
 def test_failed_homing_alarm_9_is_recovered(firmware):
-    # X powered up 50 deg from its switch: the first search (1.5 x $130 = 30 deg) ends short
+    # X powered up 35 deg from its switch: the first search (1.5 x $130 = 30 deg) ends short
     p = driver(firmware)
     p.home().wait(30)
     assert b"ALARM:9\r\nok\r\n\r\nGrbl 1.1h ['$' for help]\r\n" in firmware.replies
@@ -286,7 +286,7 @@ EXCHANGE: list[tuple[bytes, bytes | None]] = [
 
 
 def _exchange(port) -> list[bytes]:
-    """Each request of EXCHANGE and its answer (plus whatever follows within 50 ms)."""
+    """Each request of EXCHANGE and its answer (plus whatever follows within 30 ms)."""
     out = []
     for request, end in EXCHANGE:
         if request == b"$H\n":
@@ -294,7 +294,7 @@ def _exchange(port) -> list[bytes]:
             continue
         port.write(request)
         got = _read_until(port, end) if end is not None else b""
-        quiet = time.monotonic() + (0.3 if end is None else 0.05)
+        quiet = time.monotonic() + (0.3 if end is None else 0.03)
         while time.monotonic() < quiet:
             got += port.read(4096)
         out.append(got)
