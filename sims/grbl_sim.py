@@ -69,14 +69,15 @@ BANNER = f"\r\nGrbl {VERSION} ['$' for help]\r\n".encode()
 REALTIME = frozenset(b"?!~\x18")
 
 #: default settings (GRBL's $-numbers); units of the arm: degrees, of the gantry: millimetres
+#: (the arm's elevation, Y, homes towards - ($23 bit 1): to the horizontal, where jogs go up)
 ARM_SETTINGS: dict[int, float] = {
     0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0, 20: 0, 21: 1,
-    22: 1, 23: 0, 24: 25.0, 25: 3600.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
+    22: 1, 23: 2, 24: 25.0, 25: 3600.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
     100: 80.0, 101: 80.0, 102: 80.0, 110: 5400.0, 111: 5400.0, 112: 5400.0,
     120: 360.0, 121: 360.0, 122: 360.0, 130: 370.0, 131: 95.0, 132: 1.0,
 }
 GANTRY_SETTINGS: dict[int, float] = {
-    **ARM_SETTINGS, 100: 80.0, 101: 80.0, 102: 400.0, 110: 12000.0, 111: 12000.0, 112: 6000.0,
+    **ARM_SETTINGS, 23: 0, 100: 80.0, 101: 80.0, 102: 400.0, 110: 12000.0, 111: 12000.0, 112: 6000.0,
     120: 500.0, 121: 500.0, 122: 300.0, 130: 1000.0, 131: 1000.0, 132: 1000.0, 25: 6000.0,
 }
 
@@ -136,8 +137,8 @@ class GrblSim(SerialSim):
         ``$n`` overrides, e.g. ``{22: 0}`` to disable homing.
     travel : ((3,), (3,)) float, optional
         Limit switch positions in the homed machine frame (machine units), low and high per
-        axis. Default: the home switch at 0 and an end stop 2 units beyond -``$13x``; none
-        when homing is disabled (``$22=0``).
+        axis. Default: the home switch at the end ``$23`` homes towards (0, or -``$13x``) and an
+        end stop 2 units beyond the other end; none when homing is disabled (``$22=0``).
     power_up_position : (3,) float, optional
         Physical position at power-up in the homed machine frame; GRBL reports 0,0,0 there
         until homed. Default: where homing leaves the axes (0 with homing disabled).
@@ -160,8 +161,10 @@ class GrblSim(SerialSim):
         defaults = ARM_SETTINGS if self.kinematics["type"] == "arm" else GANTRY_SETTINGS
         self.defaults = {**defaults, **(settings or {})}
         self.settings = dict(self.defaults)
-        if travel is None and self.settings[22]:
-            travel = (tuple(-self.settings[130 + i] - 2.0 for i in range(3)), (0.0, 0.0, 0.0))
+        if travel is None and self.settings[22]:  # the home switch at its end, an end stop 2 beyond the other
+            towards_minus = [bool(int(self.settings[23]) & (1 << i)) for i in range(3)]
+            travel = (tuple(-self.settings[130 + i] - (0.0 if m else 2.0) for i, m in enumerate(towards_minus)),
+                      tuple(2.0 if m else 0.0 for m in towards_minus))
         elif travel is None:  # homing disabled: a machine without switches
             travel = ((-math.inf,) * 3, (math.inf,) * 3)
         self.travel = (np.asarray(travel[0], dtype=float), np.asarray(travel[1], dtype=float))

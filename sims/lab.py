@@ -33,13 +33,17 @@ KINEMATICS: dict[str, dict[str, Any]] = {
 }
 
 #: where each kinematics' axes sit in the simulated GRBL's machine space (the rig file's
-#: ``machine_offset`` / ``machine_sign``): homing leaves GRBL at -$27 in [-$13x, 0], so the arm's
-#: azimuth -180..180 deg is centred in $130 = 370 (MPos -365..-5) and its elevation 0..85 deg in
-#: $131 = 95 (MPos -90..-5); the gantry's travel is already in machine coordinates
+#: ``machine_offset`` / ``machine_sign``), which is [-$13x, 0]: the arm's azimuth homes towards +
+#: and stops at MPos -$27 = -1, azimuth 180 deg, so -180..180 deg is MPos -361..-1 in $130 = 370;
+#: its elevation homes towards - ($23 = 2) and stops at -$131 + $27 = -94, elevation 0, so
+#: 0..85 deg is MPos -94..-9 in $131 = 95; the gantry's travel is already in machine coordinates
 MACHINE_MAPS: dict[str, dict[str, dict[str, float]]] = {
-    "arm": {"machine_offset": {"X": -185.0, "Y": -90.0}},
+    "arm": {"machine_offset": {"X": -181.0, "Y": -94.0}},
     "gantry": {},
 }
+#: where the arm stands at power-up (machine units): azimuth 0, elevation 0, the light on +x
+#: (GRBL reports MPos 0 there until homed); the gantry powers up where homing leaves it
+ARM_POWER_UP = (-181.0, -94.0, -1.0)
 
 
 #: the ``[rig] name`` of the simulated lab's config: a session's rig snapshot says by it that the
@@ -114,6 +118,8 @@ class SimLab:
         if role == "turntable":
             return ZaberSim(role, fast=self.fast, **opts)
         if role == "positioner":
+            if self.kinematics.get("type") == "arm" and self.machine_map == MACHINE_MAPS["arm"]:
+                opts = {"power_up_position": ARM_POWER_UP, **opts}
             return GrblSim(role, fast=self.fast, kinematics=self.kinematics, machine_map=self.machine_map,
                            **opts)
         if role == "polarizer":

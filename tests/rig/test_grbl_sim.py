@@ -298,7 +298,7 @@ def test_simulator_as_the_real_firmware():
     """What gnea/grbl 1.1h answered on the host build (test_grbl_firmware.py runs the same
     exchange against both when gcc is present): post-homing MPos, soft limit, silence, the late
     ok, GRBL's own $ error numbers, ok for an empty line, the WCO / Ov refresh."""
-    sim = GrblSim(fast=True, settings={20: 1})  # not started: handle() is the firmware
+    sim = GrblSim(fast=True, settings={20: 1, 23: 0})  # not started: handle() is the firmware
     assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n"
     assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>\r\n"
     assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"
@@ -315,7 +315,8 @@ def test_simulator_as_the_real_firmware():
 
 
 def test_simulator_homes_towards_minus_and_answers_no_status_during_homing():
-    sim = GrblSim(fast=False, settings={23: 0b001}, power_up_position=(-300.0, -10.0, -1.0))
+    sim = GrblSim(fast=False, settings={23: 0b001}, power_up_position=(-300.0, -10.0, -1.0),
+                  travel=((-372.0, -97.0, -3.0), (2.0, 0.0, 0.0)))
     assert sim.handle(b"$H") is None
     assert sim.handle(b"?") is None  # limits.c polls only reset, door and cycle stop
     deadline = time.monotonic() + 5
