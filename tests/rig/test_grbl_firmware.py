@@ -12,7 +12,11 @@ Evidence recorded from the firmware (these bytes are asserted below):
   then ``ok`` (the rejected line's), the banner, ``[MSG:'$H'|'$X' to unlock]``;
 - after ``$H``: ``MPos:-1.000,-1.000,-1.000`` (minus the pull-off $27);
 - failed homing: ``ALARM:9\\r\\nok\\r\\n`` and the banner of GRBL's own reset;
-- ``$Z`` -> ``error:2``, ``$100=-1`` -> ``error:4``, an empty line -> ``ok``.
+- ``$Z`` -> ``error:2``, ``$100=-1`` -> ``error:4``, an empty line -> ``ok``;
+- a reset sent the moment ``ALARM:2`` arrived, before ``[MSG:Reset to continue]``, was lost
+  (protocol.c clears a pending reset after printing the alarm): the driver waits for the message;
+- ``??`` in one write was answered with one or with two reports, depending on timing (a status
+  request is a flag the main loop polls); the driver never sends it.
 GRBL's interface.md on ALARM: "Reset is required before Grbl accepts any other commands ... Only
 hard or soft limit errors send this".
 """
