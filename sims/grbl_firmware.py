@@ -9,9 +9,10 @@ the driver opens (the slave of a second pty, behind a stable symlink, as every
 it reached this end of the wire (:attr:`wire_log`), so a test can measure when an E-stop byte
 arrived.
 
-The firmware keeps its settings in ``EEPROM.DAT`` in its working directory (``workdir``); the
+The firmware keeps its settings in ``EEPROM.DAT`` in its working directory (``workdir``):
+:func:`write_eeprom` boots it once to store settings, :func:`build_firmware` runs the build. The
 harness models the limit switches from the step pulses (``limits``, ``start``; see
-``harness_limits.c``).
+``harness_limits.c``). GPL sources, used for testing only: nothing of gonio links them.
 """
 from __future__ import annotations
 
