@@ -315,7 +315,7 @@ def test_simulator_as_the_real_firmware():
 
 
 def test_simulator_homes_towards_minus_and_answers_no_status_during_homing():
-    sim = GrblSim(fast=False, settings={23: 0b001}, power_up_position=(-300.0, -10.0, -1.0),
+    sim = GrblSim(fast=False, settings={23: 0b001}, power_up_position=(-360.0, -5.0, -1.0),
                   travel=((-372.0, -97.0, -3.0), (2.0, 0.0, 0.0)))
     assert sim.handle(b"$H") is None
     assert sim.handle(b"?") is None  # limits.c polls only reset, door and cycle stop
