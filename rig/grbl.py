@@ -314,13 +314,17 @@ class GrblPositioner(SerialDriver, LightPositioner):
         How close (machine units) the read-back must be to the target to count as arrived.
     home_timeout_s : float, optional
         Longest wait for the homing cycle, seconds (default: from ``$130``-``$132`` and ``$25``).
+    park : dict, optional
+        A light target (``{azimuth_deg = 0, elevation_deg = 0}``) the light moves to after each
+        homing: the home switches sit at an end of the travel, often not where a lamp is useful.
     """
 
     def __init__(self, name: str = "positioner", port: str | None = None, *, transport: Any = None,
                  kinematics: Kinematics | str | dict = "arm", machine_offset: dict | None = None,
                  machine_sign: dict | None = None, baudrate: int = 115200, timeout_s: float = 1.0,
                  poll_interval_s: float = 0.02, poll_retries: int = 2,
-                 position_tolerance: float = 0.01, home_timeout_s: float | None = None) -> None:
+                 position_tolerance: float = 0.01, home_timeout_s: float | None = None,
+                 park: dict | None = None) -> None:
         super().__init__(name)
         if transport is None and not port:
             raise ValueError(f"{name}: give a serial port or a transport")
@@ -336,6 +340,10 @@ class GrblPositioner(SerialDriver, LightPositioner):
         self.poll_retries = poll_retries
         self.position_tolerance = position_tolerance
         self.home_timeout_s = home_timeout_s
+        try:
+            self.park = None if park is None else LightTarget(**park)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name}: park = {park!r}: {exc}") from None
         self.settings: dict[int, float] = {}
         self.version = ""
         self.build = ""
@@ -360,16 +368,15 @@ class GrblPositioner(SerialDriver, LightPositioner):
         """Build from a rig-file section: ``port``, ``kinematics`` (``"arm"``, ``"gantry"`` or
         an inline table), optional ``machine_offset`` / ``machine_sign`` tables, ``baudrate``,
         ``timeout_s``, ``poll_interval_s``, ``poll_retries``, ``position_tolerance``,
-        ``home_timeout_s``."""
+        ``home_timeout_s``, ``park``."""
         from .rig import ConfigError, driver_options
         allowed = {"kinematics", "machine_offset", "machine_sign", "baudrate", "timeout_s",
-                   "poll_interval_s", "poll_retries", "position_tolerance", "home_timeout_s"}
+                   "poll_interval_s", "poll_retries", "position_tolerance", "home_timeout_s", "park"}
         options = driver_options(name, section, "grbl", allowed)
         try:
-            MachineMap.from_config(options.get("machine_offset"), options.get("machine_sign"))
+            return cls(name, section["port"], **options)
         except ValueError as exc:
-            raise ConfigError(f"[{name}] {exc}") from None
-        return cls(name, section["port"], **options)
+            raise ConfigError(f"[{name}] {str(exc).removeprefix(name + ': ')}") from None
 
     # -- wire -------------------------------------------------------------------------------------
     def _read_line(self, timeout: float) -> str:
@@ -747,6 +754,8 @@ class GrblPositioner(SerialDriver, LightPositioner):
             finally:
                 self._homing = False
             self._homed = True
+            if self.park is not None:
+                return self.move_to(self.park).wait(60.0)
             return self.light_position_mm
 
         return MoveStatus.run(_wait, target="home", device=self.name, name="home")

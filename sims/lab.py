@@ -44,6 +44,9 @@ MACHINE_MAPS: dict[str, dict[str, dict[str, float]]] = {
 #: where the arm stands at power-up (machine units): azimuth 0, elevation 0, the light on +x
 #: (GRBL reports MPos 0 there until homed); the gantry powers up where homing leaves it
 ARM_POWER_UP = (-181.0, -94.0, -1.0)
+#: after homing (at azimuth 180 deg, behind the object) the arm parks its light at azimuth 0,
+#: elevation 0, beside the camera: calibration steps that do not place the light are lit as before
+PARK: dict[str, dict[str, dict[str, float]]] = {"arm": {"park": {"azimuth_deg": 0.0, "elevation_deg": 0.0}}}
 
 
 #: the ``[rig] name`` of the simulated lab's config: a session's rig snapshot says by it that the
@@ -160,7 +163,7 @@ class SimLab:
                 cfg[role] = {"driver": "zaber", "port": sim.port}
             elif role == "positioner":
                 cfg[role] = {"driver": "grbl", "port": sim.port, "kinematics": dict(self.kinematics),
-                             **self.machine_map}
+                             **self.machine_map, **PARK.get(self.kinematics.get("type"), {})}
             elif role == "polarizer":
                 cfg[role] = {"driver": "elliptec", "port": sim.port}
             else:
