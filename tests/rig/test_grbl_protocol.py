@@ -318,3 +318,19 @@ def test_rig_file_machine_map_keys():
     with pytest.raises(ConfigError, match=r"\[positioner\] machine_sign X = 3 must be 1 or -1"):
         GrblPositioner.from_config("positioner", {"driver": "grbl", "port": "/dev/null",
                                                   "machine_sign": {"X": 3}})
+
+
+def test_home_then_park_moves_the_light_to_the_park_target():
+    script = [(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", b"ok\r\n"),
+              (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n"),
+              (b"G53 G0 X-185.000 Y-90.000\n", b"ok\r\n"),
+              (b"?", b"<Idle|MPos:-185.000,-90.000,-1.000|FS:0,0>\r\n")]
+    t = ScriptedTransport(connect_script() + script, device="positioner")
+    p = GrblPositioner("positioner", transport=t, poll_interval_s=0.0, machine_offset=MACHINE_OFFSET,
+                       park={"azimuth_deg": 0.0, "elevation_deg": 0.0})
+    p.connect()
+    assert p.home().wait(2) == pytest.approx((500.0, 0.0, 0.0))
+    t.assert_done()
+    with pytest.raises(ConfigError, match=r"\[positioner\] park = \{'azimuth_deg': 0\}"):
+        GrblPositioner.from_config("positioner", {"driver": "grbl", "port": "/dev/null",
+                                                  "park": {"azimuth_deg": 0}})
