@@ -64,7 +64,7 @@ def main() -> int:
         work = out / "run"
         work.mkdir()
         (work / "EEPROM.DAT").write_bytes(eeprom.read_bytes())
-        fw = GrblFirmware(exe, work, limits=FAST_SWITCHES, switch_width=0.5, start=(-10.0, -10.0, -1.0))
+        fw = GrblFirmware(exe, work, limits=FAST_SWITCHES, start=(-10.0, -10.0, -1.0))
         t0 = time.monotonic()
         fw.start()
         while b"['$' for help]" not in fw.replies:

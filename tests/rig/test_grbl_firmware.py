@@ -4,7 +4,7 @@
 The firmware runs in real time, so the machine is small and fast: 20 steps per degree, 3000
 deg/min, 1000 deg/s^2, 20 deg of travel on X and Y, 2 on Z, homing towards + with a 1 deg pull-off.
 The harness models the switches from the step pulses: the home switch at machine 0, an end stop
-at -22 (0.5 deg wide, so an axis beyond it is free again). The arm's azimuth -9..9 deg and
+at -22. The arm's azimuth -9..9 deg and
 elevation 0..15 deg sit at MPos -19..-1 and -17..-2 (machine_offset X = -10, Y = -17).
 
 Evidence recorded from the firmware (these bytes are asserted below):
@@ -71,7 +71,9 @@ def start_firmware(build: Path, folder: Path, **opts) -> GrblFirmware:
     work = folder / "grbl"
     work.mkdir()
     shutil.copy(build / "eeprom" / "EEPROM.DAT", work / "EEPROM.DAT")
-    fw = GrblFirmware(build / "grbl_sim.exe", work, switch_width=0.5, press_file=folder / "press",
+    # end stops (pressed everywhere beyond the switch): a narrow flag switch can pass unseen
+    # while the harness's main-loop thread waits for a CPU, failing the homing with ALARM:9
+    fw = GrblFirmware(build / "grbl_sim.exe", work, press_file=folder / "press",
                       **{"start": (-10.0, -10.0, -1.0), "limits": SWITCHES, **opts})
     fw.start()
     return fw
@@ -255,7 +257,9 @@ def test_stop_during_homing_reaches_the_wire_at_once(firmware):
     assert arrived is not None and arrived - t0 < 0.050, f"E-stop took {arrived - t0:.3f} s"
     with pytest.raises(GrblAlarm) as info:
         status.wait(3)
-    assert info.value.alarm == 6  # "homing fail: the active homing cycle was reset"
+    # "homing fail: the active homing cycle was reset"; a reset during a pull-off, with the switch
+    # still pressed, is reported as ALARM:8 (limits.c sets 6, then overwrites it with the pull-off check)
+    assert info.value.alarm in (6, 8)
     assert not p.homed and report(p).state == "Alarm"
     p.close()
 
