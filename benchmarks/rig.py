@@ -85,7 +85,7 @@ def bench_round_trip(n: int = 3000) -> None:
             med, p99, best = _time(lambda: stage.request(""), n)
             print(f"  {'zaber status poll (/1 1 id:CC)':<34} {label:<22} {med:8.1f} {p99:8.1f} {best:18.1f}")
             stage.close()
-        with GrblSim(fast=True) as sim:
+        with GrblSim(fast=True, settings={22: 0}) as sim:  # homing off: no machine map needed
             light = GrblPositioner("positioner", transport=transport_cls(sim.port, device="positioner"))
             light.connect()
             med, p99, best = _time(light.status, n)

@@ -117,13 +117,20 @@ def open_rig(spec: str | Path | dict[str, Any], *, fast: bool = True, connect: b
         if sim_roles:
             if "positioner" in sim_roles and "kinematics" in cfg["positioner"]:
                 lab_options.setdefault("kinematics", _kinematics_table(cfg["positioner"]["kinematics"]))
+            if "positioner" in sim_roles:
+                given = {k: cfg["positioner"][k] for k in ("machine_offset", "machine_sign")
+                         if k in cfg["positioner"]}
+                if given:
+                    lab_options.setdefault("machine_map", given)
             if "camera" in sim_roles:
                 prepare_target, _ = _sim_scene(fast, lab_options, prepare_target)
             elif "resolution" in lab_options:
                 raise ValueError(f"resolution: {where} simulates no camera")
             lab = SimLab(fast=fast, roles=sim_roles, **lab_options).start()
             served = lab.rig_config()
-            cfg = {role: ({**section, "port": served[role]["port"]} if role in sim_roles else section)
+            # the lab's keys (the simulated GRBL's machine map) fill in what the section leaves out
+            cfg = {role: ({**served[role], **section, "port": served[role]["port"]} if role in sim_roles
+                          else section)
                    for role, section in cfg.items()}
     try:
         context = {"usb_backend": lab.usb_backend} if lab is not None and lab.usb_backend is not None else {}

@@ -15,13 +15,16 @@ letter.
   taken about ``centre_mm`` at ``distance_mm`` (default ``default_distance_mm``).
 
 ``kinematics_from_config`` builds either from a rig-file value (``"arm"``, ``"gantry"`` or an
-inline table with ``type = ...``). The forward maps are mirrored, for the scene renderer, in
+inline table with ``type = ...``). :class:`MachineMap` places the kinematics' axis coordinates
+in the controller's machine space (GRBL homes to ``MPos`` = -pull-off and keeps its machine space
+in [-max travel, 0]: ``machine = offset + sign * axis``). The forward maps are mirrored, for the scene renderer, in
 ``sims/grbl_sim.py`` (sims may not import rig); a test keeps the two in agreement.
 """
 from __future__ import annotations
 
 import abc
 import math
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
@@ -232,6 +235,65 @@ class GantryKinematics(Kinematics):
         return {"type": "gantry", "origin_mm": self.origin_mm.tolist(), "rotation": self.rotation.tolist(),
                 "travel_mm": {k: list(v) for k, v in self.travel_mm.items()},
                 "centre_mm": self.centre_mm.tolist(), "default_distance_mm": self.default_distance_mm}
+
+
+@dataclass(frozen=True)
+class MachineMap:
+    """Per-axis affine map from kinematic axis coordinates to controller machine coordinates:
+    ``machine = offset + sign * axis`` (machine units; e.g. arm degrees to GRBL ``MPos``).
+
+    ``offset[a]`` is the machine coordinate where axis ``a`` reads 0 (the arm's azimuth 0, say);
+    ``sign[a]`` is +1 or -1 (-1 where the controller counts the other way). Axes not named map
+    unchanged.
+    """
+
+    offset: dict[str, float]
+    sign: dict[str, int]
+
+    @classmethod
+    def from_config(cls, offset: Mapping[str, Any] | None, sign: Mapping[str, Any] | None, *,
+                    axes: tuple[str, ...] = ("X", "Y", "Z")) -> "MachineMap":
+        """From the rig-file tables ``machine_offset = {X = -185.0}``, ``machine_sign = {X = -1}``."""
+        out_offset, out_sign = {}, {}
+        for key, table in (("machine_offset", offset), ("machine_sign", sign)):
+            if table is None:
+                continue
+            if not isinstance(table, Mapping):
+                raise ValueError(f"{key} must be a table of axis letter -> number, got {table!r}")
+            for axis, value in table.items():
+                if axis not in axes:
+                    raise ValueError(f"{key} names axis {axis!r}; the machine axes are {', '.join(axes)}")
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                    raise ValueError(f"{key} {axis} = {value!r} must be a finite number")
+                if key == "machine_sign":
+                    if value not in (1, -1):
+                        raise ValueError(f"machine_sign {axis} = {value!r} must be 1 or -1")
+                    out_sign[axis] = int(value)
+                else:
+                    out_offset[axis] = float(value)
+        return cls(out_offset, out_sign)
+
+    def to_machine(self, axes: Mapping[str, float]) -> dict[str, float]:
+        """Machine coordinates of kinematic axis coordinates ``axes`` (by axis letter)."""
+        return {a: self.offset.get(a, 0.0) + self.sign.get(a, 1) * v for a, v in axes.items()}
+
+    def to_axes(self, machine: Mapping[str, float]) -> dict[str, float]:
+        """Kinematic axis coordinates of machine coordinates ``machine`` (inverse of to_machine)."""
+        return {a: (v - self.offset.get(a, 0.0)) * self.sign.get(a, 1) for a, v in machine.items()}
+
+    def machine_range(self, axis: str, low: float, high: float) -> tuple[float, float]:
+        """The machine interval an axis interval [low, high] maps onto."""
+        a, b = self.to_machine({axis: low})[axis], self.to_machine({axis: high})[axis]
+        return (min(a, b), max(a, b))
+
+    def to_config(self) -> dict[str, dict[str, float]]:
+        """The rig-file keys that rebuild this map (empty where the map is the identity)."""
+        out: dict[str, dict[str, float]] = {}
+        if self.offset:
+            out["machine_offset"] = dict(self.offset)
+        if self.sign:
+            out["machine_sign"] = dict(self.sign)
+        return out
 
 
 KINEMATICS: dict[str, type[Kinematics]] = {"arm": ArmKinematics, "gantry": GantryKinematics}

@@ -3,7 +3,10 @@
 Drivers get a :class:`SerialTransport` (or anything with the same methods, e.g. a scripted fake
 in protocol tests) and never see pyserial's exceptions: a vanished port becomes ``Disconnected``,
 a missing answer ``DeviceTimeout``. A lock makes one request/reply exchange atomic, so a
-poll thread and the caller can share a port.
+poll thread and the caller can share a port. An emergency stop is written *without* the lock
+(``write`` needs none): it must not wait for an exchange in flight, and each ``write`` of a short
+request is one ``write(2)``, which a tty does not interleave with another thread's (Linux holds
+the tty's write lock for the whole call); the driver then reads the stop's reply under the lock.
 """
 from __future__ import annotations
 

@@ -377,6 +377,7 @@ class ZaberRotaryStage(SerialDriver, Axis):
         self._accel_deg_s2 = accel_deg_s2
         self._ids = itertools.cycle(range(100))
         self._id_lock = threading.Lock()
+        self._stray: dict[int, ZaberMessage] = {}  # replies read by a request they were not for
         self._connected = False
         # unsolicited alerts seen (comm.alert = 1), newest last; bounded: one per move otherwise
         self.alerts: deque[ZaberMessage] = deque(maxlen=100)
@@ -395,8 +396,11 @@ class ZaberRotaryStage(SerialDriver, Axis):
 
     # -- wire -------------------------------------------------------------------------------------
     def _next_id(self) -> int:
+        """A message id for a new request; a stale reply kept for its last use is dropped."""
         with self._id_lock:
-            return next(self._ids)
+            mid = next(self._ids)
+            self._stray.pop(mid, None)
+            return mid
 
     def request(self, command: str, *, scope_device: bool = False,
                 timeout_s: float | None = None) -> ZaberMessage:
@@ -411,13 +415,21 @@ class ZaberRotaryStage(SerialDriver, Axis):
         """
         axis = 0 if scope_device else self.axis_number
         timeout = self.timeout_s if timeout_s is None else timeout_s
+        with self.transport.lock:
+            mid = self._next_id()
+            self.transport.write(encode_command(command, device=self.address, axis=axis, message_id=mid,
+                                                with_checksum=self.use_checksum))
+            return self._await_reply(command, mid, axis, timeout)
+
+    def _await_reply(self, command: str, mid: int, axis: int, timeout: float) -> ZaberMessage:
+        """The reply with message id ``mid``: kept aside by another request that read it, or read
+        from the port (under the port lock). Replies to other ids are kept for their waiter."""
         t = self.transport
         with t.lock:
-            mid = self._next_id()
-            t.write(encode_command(command, device=self.address, axis=axis, message_id=mid,
-                                   with_checksum=self.use_checksum))
             deadline = time.monotonic() + timeout
             while True:
+                if (kept := self._stray.pop(mid, None)) is not None:
+                    return kept
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise DeviceTimeout(f"no reply to {command!r}", device=self.name, timeout_s=timeout)
@@ -439,6 +451,9 @@ class ZaberRotaryStage(SerialDriver, Axis):
                         raise ProtocolError(f"reply to {command!r} carries no checksum although "
                                             "comm.checksum = 1", device=self.name, raw=line)
                     return msg
+                if msg.kind == "@" and msg.device == self.address and msg.message_id is not None:
+                    self._stray[msg.message_id] = msg  # e.g. the reply to a stop() written meanwhile
+                    continue
                 log.debug("%s: skipped %r while waiting for id %d", self.name, line, mid)
 
     def command(self, command: str, *, scope_device: bool = False) -> ZaberMessage:
@@ -648,9 +663,19 @@ class ZaberRotaryStage(SerialDriver, Axis):
                               device=self.name, name="home")
 
     def stop(self) -> None:
-        """Decelerate to a stop now; a pending move's status then fails (interrupted)."""
+        """Decelerate to a stop now; a pending move's status then fails (interrupted).
+
+        The command is written at once, without waiting for the port lock: a request in flight
+        (a status poll waiting out a silent line) must not delay an emergency stop. Its reply
+        is then read under the lock (a request that reads it first keeps it aside by message id).
+        """
         self._require()
-        self.command("stop")
+        mid = self._next_id()
+        self.transport.write(encode_command("stop", device=self.address, axis=self.axis_number,
+                                            message_id=mid, with_checksum=self.use_checksum))
+        msg = self._await_reply("stop", mid, self.axis_number, self.timeout_s)
+        if msg.rejected:
+            raise rejection_error(msg, "stop", device=self.name)
 
     def _wait_idle(self, target_deg: float | None, timeout: float) -> float:
         deadline = time.monotonic() + timeout

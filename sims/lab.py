@@ -28,9 +28,25 @@ KINEMATICS: dict[str, dict[str, Any]] = {
     "arm": {"type": "arm", "radius_mm": 500.0, "centre_mm": [0.0, 0.0, 0.0],
             "azimuth_limits_deg": [-180.0, 180.0], "elevation_limits_deg": [0.0, 85.0]},
     "gantry": {"type": "gantry", "origin_mm": [500.0, 500.0, 900.0], "yaw_deg": 0.0,
-               "travel_mm": {"X": [-1000.0, 0.0], "Y": [-1000.0, 0.0], "Z": [-1000.0, 0.0]},
+               "travel_mm": {"X": [-999.0, -1.0], "Y": [-999.0, -1.0], "Z": [-999.0, -1.0]},
                "centre_mm": [0.0, 0.0, 0.0], "default_distance_mm": 500.0},
 }
+
+#: where each kinematics' axes sit in the simulated GRBL's machine space (the rig file's
+#: ``machine_offset`` / ``machine_sign``), which is [-$13x, 0]: the arm's azimuth homes towards +
+#: and stops at MPos -$27 = -1, azimuth 180 deg, so -180..180 deg is MPos -361..-1 in $130 = 370;
+#: its elevation homes towards - ($23 = 2) and stops at -$131 + $27 = -94, elevation 0, so
+#: 0..85 deg is MPos -94..-9 in $131 = 95; the gantry's travel is already in machine coordinates
+MACHINE_MAPS: dict[str, dict[str, dict[str, float]]] = {
+    "arm": {"machine_offset": {"X": -181.0, "Y": -94.0}},
+    "gantry": {},
+}
+#: where the arm stands at power-up (machine units): azimuth 0, elevation 0, the light on +x
+#: (GRBL reports MPos 0 there until homed); the gantry powers up where homing leaves it
+ARM_POWER_UP = (-181.0, -94.0, -1.0)
+#: after homing (at azimuth 180 deg, behind the object) the arm parks its light at azimuth 0,
+#: elevation 0, beside the camera: calibration steps that do not place the light are lit as before
+PARK: dict[str, dict[str, dict[str, float]]] = {"arm": {"park": {"azimuth_deg": 0.0, "elevation_deg": 0.0}}}
 
 
 #: the ``[rig] name`` of the simulated lab's config: a session's rig snapshot says by it that the
@@ -55,11 +71,15 @@ class SimLab:
         Which devices to simulate (default: all four).
     options : mapping of role -> dict, optional
         Extra keyword arguments per simulator, e.g. ``{"turntable": {"speed_deg_s": 30}}``.
+    machine_map : mapping, optional
+        The positioner's ``machine_offset`` / ``machine_sign`` tables (default: the kinematics'
+        entry in :data:`MACHINE_MAPS`).
     """
 
     def __init__(self, fast: bool = True, frame_source: Callable[[dict], bytes] | None = None,
                  kinematics: str | Mapping[str, Any] = "arm", *, roles: Any = None,
-                 options: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+                 options: Mapping[str, Mapping[str, Any]] | None = None,
+                 machine_map: Mapping[str, Mapping[str, float]] | None = None) -> None:
         self.fast = fast
         self.frame_source = frame_source
         if isinstance(kinematics, str):
@@ -68,6 +88,8 @@ class SimLab:
                                  "or a table")
             kinematics = KINEMATICS[kinematics]
         self.kinematics = dict(kinematics)
+        self.machine_map = {k: dict(v) for k, v in (
+            machine_map if machine_map is not None else MACHINE_MAPS.get(self.kinematics.get("type"), {})).items()}
         self.roles = tuple(ROLES if roles is None else roles)
         unknown = set(self.roles) - set(ROLES)
         if unknown:
@@ -99,7 +121,10 @@ class SimLab:
         if role == "turntable":
             return ZaberSim(role, fast=self.fast, **opts)
         if role == "positioner":
-            return GrblSim(role, fast=self.fast, kinematics=self.kinematics, **opts)
+            if self.kinematics.get("type") == "arm" and self.machine_map == MACHINE_MAPS["arm"]:
+                opts = {"power_up_position": ARM_POWER_UP, **opts}
+            return GrblSim(role, fast=self.fast, kinematics=self.kinematics, machine_map=self.machine_map,
+                           **opts)
         if role == "polarizer":
             # imported lazily: the polarizer and camera simulators are separate modules
             elliptec = importlib.import_module("sims.elliptec_sim")
@@ -137,7 +162,8 @@ class SimLab:
             if role == "turntable":
                 cfg[role] = {"driver": "zaber", "port": sim.port}
             elif role == "positioner":
-                cfg[role] = {"driver": "grbl", "port": sim.port, "kinematics": dict(self.kinematics)}
+                cfg[role] = {"driver": "grbl", "port": sim.port, "kinematics": dict(self.kinematics),
+                             **self.machine_map, **PARK.get(self.kinematics.get("type"), {})}
             elif role == "polarizer":
                 cfg[role] = {"driver": "elliptec", "port": sim.port}
             else:
@@ -163,4 +189,4 @@ class SimLab:
         return f"<SimLab {state} {', '.join(self.roles)} fast={self.fast}>"
 
 
-__all__ = ["SimLab", "ROLES", "KINEMATICS", "light_position_mm"]
+__all__ = ["SimLab", "ROLES", "KINEMATICS", "MACHINE_MAPS", "light_position_mm"]

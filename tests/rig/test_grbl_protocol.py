@@ -1,16 +1,23 @@
 """GRBL 1.1 codec and GrblPositioner against scripted byte exchanges (gnea/grbl interface.md)."""
 from __future__ import annotations
 
+import re
+import tomllib
+from pathlib import Path
+
+import numpy as np
 import pytest
 
-from rig import DeviceError, DeviceTimeout, LightTarget, LimitError, NotHomed, ProtocolError
-from rig.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblPositioner, format_move, parse_code,
-                      parse_settings, parse_status, path_time_s)
+from rig import DeviceBusy, DeviceError, DeviceTimeout, LightTarget, LimitError, NotHomed, ProtocolError
+from rig.grbl import (ALARM_CODES, ERROR_CODES, GrblAlarm, GrblPositioner, check_machine_space,
+                      format_move, machine_space, parse_code, parse_settings, parse_status, path_time_s)
+from rig.kinematics import MachineMap, kinematics_from_config
+from rig.rig import ConfigError
 from rig.transport import ScriptedTransport
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 SETTINGS = b"".join(f"${n}={v}\r\n".encode() for n, v in [
-    (10, 1), (20, 0), (22, 1), (25, "3600.000"), (110, "5400.000"), (111, "5400.000"),
+    (10, 1), (20, 0), (22, 1), (25, "3600.000"), (27, "1.000"), (110, "5400.000"), (111, "5400.000"),
     (112, "5400.000"), (120, "360.000"), (121, "360.000"), (122, "360.000"), (130, "370.000"),
     (131, "95.000"), (132, "1.000")]) + b"ok\r\n"
 
@@ -22,9 +29,13 @@ def connect_script(state: str = "Alarm") -> list:
             (b"?", f"<{state}|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n".encode())]
 
 
+#: the arm's azimuth -180..180 and elevation 0..85 deg inside GRBL's machine space [-$13x, -$27]
+MACHINE_OFFSET = {"X": -185.0, "Y": -90.0}
+
+
 def positioner(script, state="Alarm") -> tuple[GrblPositioner, ScriptedTransport]:
     t = ScriptedTransport(connect_script(state) + script, device="positioner")
-    p = GrblPositioner("positioner", transport=t, poll_interval_s=0.0)
+    p = GrblPositioner("positioner", transport=t, poll_interval_s=0.0, machine_offset=MACHINE_OFFSET)
     p.connect()
     return p, t
 
@@ -106,17 +117,21 @@ def test_move_before_homing_is_refused_without_sending_gcode():
 
 
 def test_home_then_move_queues_gcode_and_polls_until_idle():
+    # $H is accepted in the alarm state (no reset first); the real firmware leaves each homed
+    # axis at minus the pull-off $27 (tests/rig/test_grbl_firmware.py): MPos -1 is azimuth 184,
+    # elevation 89 deg through the machine offset
     script = [(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
-              (b"\x18", BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
               (b"$H\n", b"ok\r\n"),
-              (b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
+              (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n"),
               # move: state check, queue, poll
-              (b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
-              (b"G53 G0 X45.000 Y30.000\n", b"ok\r\n"),
-              (b"?", b"<Run|MPos:20.000,13.000,0.000|FS:5400,0>\r\n"),
-              (b"?", b"<Idle|MPos:45.000,30.000,0.000|FS:0,0>\r\n")]
+              (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n"),
+              (b"G53 G0 X-140.000 Y-60.000\n", b"ok\r\n"),
+              (b"?", b"<Run|MPos:-160.000,-77.000,-1.000|FS:5400,0>\r\n"),
+              (b"?", b"<Idle|MPos:-140.000,-60.000,-1.000|FS:0,0>\r\n")]
     p, t = positioner(script)
-    assert p.home().wait(2) == pytest.approx((500.0, 0.0, 0.0))
+    az, el = np.radians(184.0), np.radians(89.0)
+    assert p.home().wait(2) == pytest.approx(
+        tuple(500 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])), abs=1e-6)
     assert p.homed
     x, y, z = p.move_to(LightTarget(azimuth_deg=45, elevation_deg=30)).wait(2)
     assert (x, y, z) == pytest.approx((306.186, 306.186, 250.0), abs=1e-3)
@@ -139,10 +154,14 @@ def test_error_reply_maps_to_device_error_with_meaning():
 
 
 def test_alarm_during_move_fails_the_status():
-    script = [(b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n"),
-              (b"G53 G0 X90.000 Y10.000\n", b"ok\r\n"),
-              (b"?", b"<Run|MPos:10.000,1.000,0.000|FS:5400,0>\r\n"),
-              (b"?", b"ALARM:1\r\n[MSG:Reset to continue]\r\n<Alarm|MPos:30.000,3.000,0.000|FS:0,0>\r\n")]
+    # real GRBL after a hard limit: the alarm, the message, then no status report until a soft
+    # reset, which the driver sends itself (tests/rig/test_grbl_firmware.py)
+    script = [(b"?", b"<Idle|MPos:-185.000,-90.000,0.000|FS:0,0>\r\n"),
+              (b"G53 G0 X-95.000 Y-80.000\n", b"ok\r\n"),
+              (b"?", b"<Run|MPos:-175.000,-89.000,0.000|FS:5400,0>\r\n"),
+              (b"?", b"ALARM:1\r\n[MSG:Reset to continue]\r\n"),
+              (b"\x18", BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+              (b"?", b"<Alarm|MPos:-160.000,-87.000,0.000|FS:0,0>\r\n")]
     p, t = positioner(script, state="Idle")
     p._homed = True
     with pytest.raises(GrblAlarm, match="hard limit") as info:
@@ -150,13 +169,58 @@ def test_alarm_during_move_fails_the_status():
     assert info.value.alarm == 1 and info.value.code == "ALARM:1"
     assert not p.homed  # a hard limit loses the position
     assert "Reset to continue" in p.messages
+    assert p.status().state == "Alarm"  # answering again: recovered by the driver's reset
     t.assert_done()
 
 
-def test_alarm_push_instead_of_ok():
-    p, t = positioner([(b"G53 G0 X1.000\n", b"ALARM:2\r\n")], state="Idle")
-    with pytest.raises(GrblAlarm, match="soft limit"):
+def test_soft_limit_alarm_is_recovered_by_reset_and_unlock():
+    # bytes of the real firmware (test_grbl_firmware.py): ALARM:2 and the critical-event message
+    # instead of 'ok'; the rejected line's 'ok' comes on the reset, before the banner; the
+    # position is kept, so the driver unlocks ("the alarm may be safely unlocked")
+    p, t = positioner([(b"G53 G0 X1.000\n", b"ALARM:2\r\n[MSG:Reset to continue]\r\n"),
+                       (b"\x18", b"ok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+                       (b"$X\n", b"[MSG:Caution: Unlocked]\r\nok\r\n"),
+                       (b"?", b"<Idle|MPos:-5.000,-5.000,-1.000|FS:0,0>\r\n")], state="Idle")
+    with pytest.raises(GrblAlarm, match="soft limit") as info:
         p.send("G53 G0 X1.000")
+    assert info.value.alarm == 2 and p.homed
+    assert p.status().state == "Idle"
+    t.assert_done()
+
+
+def test_failed_homing_waits_for_grbls_own_reset_and_searches_again():
+    # real GRBL after ALARM:9: the 'ok' of $H, then its own reset's banner; a '?' sent before the
+    # banner is dropped, so the driver reads up to the banner, then homes once more
+    fail = b"ALARM:9\r\nok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", fail),
+                       (b"$H\n", b"ok\r\n"),
+                       (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n")])
+    p.home().wait(2)
+    assert p.homed and p.last_alarm == 9
+    t.assert_done()
+    # a second ALARM:9 fails the homing, after GRBL's reset, and the next call is answered
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", fail),
+                       (b"$H\n", fail), (b"?", b"<Alarm|MPos:-30.000,-30.000,-1.000|FS:0,0>\r\n")])
+    with pytest.raises(GrblAlarm, match="could not find the limit switch") as info:
+        p.home().wait(2)
+    assert info.value.alarm == 9 and not p.homed
+    assert p.status().state == "Alarm"
+    t.assert_done()
+
+
+def test_stop_during_homing_is_a_reset_at_once():
+    # GRBL ignores '!' in the homing cycle and answers no '?': the stop is Ctrl-X, not a hold
+    p, t = positioner([(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", None),
+                       (b"\x18", b"ALARM:6\r\nok\r\n" + BANNER + b"[MSG:'$H'|'$X' to unlock]\r\n"),
+                       (b"?", b"<Alarm|MPos:-3.000,-3.000,-1.000|FS:0,0>\r\n")])
+    status = p.home()
+    with pytest.raises(DeviceBusy, match="homing"):
+        p.status()
+    p.stop()
+    with pytest.raises(GrblAlarm, match="homing cycle was reset"):
+        status.wait(2)
+    assert not p.homed and t.written[-1] == b"\x18"
+    assert p.status().state == "Alarm"
     t.assert_done()
 
 
@@ -193,8 +257,80 @@ def test_unlock_resume_and_sync_bytes():
     t.assert_done()
 
 
+def test_status_poll_keeps_a_reply_for_the_waiting_line():
+    # a status poll reading the 'ok' of a line another thread waits for hands it over
+    p, t = positioner([(b"G4 P0\n", None), (b"?", b"ok\r\n<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n")],
+                      state="Idle")
+    p.transport.write(b"G4 P0\n")  # as send() does, then a poll before it reads
+    assert p.status().state == "Idle"
+    assert list(p._inbox) == ["ok"]
+    t.assert_done()
+
+
 def test_late_status_report_and_banner_do_not_confuse_a_response():
     p, t = positioner([(b"$G\n", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n" + BANNER
                         + b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n")], state="Idle")
     assert p.send("$G") == ["[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]"]
     t.assert_done()
+
+
+# -- machine space ----------------------------------------------------------------------------------
+def test_machine_space_follows_homing_direction_and_pull_off():
+    settings = {22: 1, 23: 0b010, 27: 1.0, 130: 365.0, 131: 90.0, 132: 2.0}
+    assert machine_space(settings, "X") == (-365.0, -1.0)  # towards +: switch at 0, pulled off
+    assert machine_space(settings, "Y") == (-89.0, 0.0)  # towards -: switch at -$131
+
+
+def test_machine_map_round_trip_and_bad_tables():
+    m = MachineMap.from_config({"X": -182.0}, {"Y": -1})
+    assert m.to_machine({"X": 10.0, "Y": 20.0, "Z": 1.0}) == {"X": -172.0, "Y": -20.0, "Z": 1.0}
+    assert m.to_axes(m.to_machine({"X": 10.0, "Y": 20.0})) == {"X": 10.0, "Y": 20.0}
+    assert m.machine_range("Y", 0.0, 85.0) == (-85.0, 0.0)
+    for offset, sign, message in [({"Q": 1.0}, None, "axis 'Q'"), ({"X": "a"}, None, "finite number"),
+                                  (None, {"X": 2}, "1 or -1"), ([1.0], None, "table")]:
+        with pytest.raises(ValueError, match=message):
+            MachineMap.from_config(offset, sign)
+
+
+def test_docs_worked_example_passes_the_check_and_a_wrong_offset_is_refused():
+    """The GRBL arm of docs/rig-file.md: its settings and rig-file section are consistent; the
+    same arm without the machine map is refused with a message naming the settings."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "rig-file.md").read_text()
+    toml_block = doc.split("**Worked example.**")[1].split("```toml")[1].split("```")[0]
+    section = tomllib.loads(toml_block)["positioner"]
+    settings = {int(n): float(v) for n, v in re.findall(r"\$(\d+)=([\d.]+)",
+                                                         doc.split("**Worked example.**")[1].split("```toml")[0])}
+    assert settings[130] == 365 and settings[23] == 0
+    kin = kinematics_from_config(section["kinematics"])
+    check_machine_space(settings, kin, MachineMap.from_config(section["machine_offset"], None))
+    with pytest.raises(ConfigError, match=r"axis X .*\$130=365, \$27=1, \$23=0\): set machine_offset X = "
+                                          r"-183 \(centred\), or change \$130; axis Y .*\$131=90"):
+        check_machine_space(settings, kin, MachineMap.from_config(None, None))
+    # the variant homed towards -: $23 bit 0 set, offset -183
+    check_machine_space({**settings, 23: 1}, kin, MachineMap.from_config({"X": -183.0, "Y": -88.0}, None))
+    check_machine_space({**settings, 22: 0}, kin, MachineMap.from_config(None, None))  # no homing: no check
+
+
+def test_rig_file_machine_map_keys():
+    p = GrblPositioner.from_config("positioner", {"driver": "grbl", "port": "/dev/null",
+                                                  "machine_offset": {"X": -182.0}, "machine_sign": {"Y": -1}})
+    assert p.describe()["machine_offset"] == {"X": -182.0} and p.machine_map.sign == {"Y": -1}
+    with pytest.raises(ConfigError, match=r"\[positioner\] machine_sign X = 3 must be 1 or -1"):
+        GrblPositioner.from_config("positioner", {"driver": "grbl", "port": "/dev/null",
+                                                  "machine_sign": {"X": 3}})
+
+
+def test_home_then_park_moves_the_light_to_the_park_target():
+    script = [(b"?", b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"), (b"$H\n", b"ok\r\n"),
+              (b"?", b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>\r\n"),
+              (b"G53 G0 X-185.000 Y-90.000\n", b"ok\r\n"),
+              (b"?", b"<Idle|MPos:-185.000,-90.000,-1.000|FS:0,0>\r\n")]
+    t = ScriptedTransport(connect_script() + script, device="positioner")
+    p = GrblPositioner("positioner", transport=t, poll_interval_s=0.0, machine_offset=MACHINE_OFFSET,
+                       park={"azimuth_deg": 0.0, "elevation_deg": 0.0})
+    p.connect()
+    assert p.home().wait(2) == pytest.approx((500.0, 0.0, 0.0))
+    t.assert_done()
+    with pytest.raises(ConfigError, match=r"\[positioner\] park = \{'azimuth_deg': 0\}"):
+        GrblPositioner.from_config("positioner", {"driver": "grbl", "port": "/dev/null",
+                                                  "park": {"azimuth_deg": 0}})

@@ -10,21 +10,21 @@ import pytest
 from rig import DeviceError, DeviceTimeout, Disconnected, LightTarget, NotHomed, ProtocolError
 from rig.grbl import GrblAlarm, GrblPositioner, path_time_s
 from sims.grbl_sim import GrblSim
-from sims.lab import KINEMATICS
+from sims.lab import KINEMATICS, MACHINE_MAPS
 
 TIMEOUT = 0.5  # generous: other test suites may load the machine
 
 
 def make(sim, **kw) -> GrblPositioner:
     p = GrblPositioner("positioner", sim.port, kinematics=sim.kinematics, timeout_s=TIMEOUT,
-                       poll_interval_s=0.005, **kw)
+                       poll_interval_s=0.005, **{**sim.machine_map, **kw})
     p.connect()
     return p
 
 
 @pytest.fixture
 def sim():
-    with GrblSim(fast=True, kinematics=KINEMATICS["arm"]) as s:
+    with GrblSim(fast=True, kinematics=KINEMATICS["arm"], machine_map=MACHINE_MAPS["arm"]) as s:
         yield s
 
 
@@ -63,7 +63,7 @@ def test_point_target_on_the_sphere(pos, sim):
 
 
 def test_homing_corrects_power_up_position():
-    with GrblSim(fast=True, power_up_position=(30.0, 20.0, 0.0)) as sim:
+    with GrblSim(fast=True, machine_map=MACHINE_MAPS["arm"], power_up_position=(-150.0, -40.0, -1.0)) as sim:
         p = make(sim)
         assert sim.light_position_mm != pytest.approx(p.light_position_mm)  # MPos is 0 until homed
         p.home().wait(2)
@@ -182,9 +182,11 @@ def test_hard_limit_alarm_then_rehome(pos, sim):
 
 
 def test_limit_switch_at_travel_edge():
-    # the driver is configured wider than the machine: the switch at +185 deg trips
+    # the driver is configured wider than the machine (no homing, so no machine-space check):
+    # the switch at +185 deg trips
     kin = {**KINEMATICS["arm"], "azimuth_limits_deg": [-200.0, 200.0]}
-    with GrblSim(fast=True, kinematics=kin, settings={22: 0}) as sim:
+    with GrblSim(fast=True, kinematics=kin, settings={22: 0},
+                 travel=((-185.0, -5.0, -1.0), (185.0, 90.0, 1.0)), power_up_position=(0, 0, 0)) as sim:
         p = make(sim)
         with pytest.raises(GrblAlarm) as info:
             p.move_to(LightTarget(azimuth_deg=195, elevation_deg=0)).wait(2)
@@ -277,15 +279,50 @@ def test_homed_state_survives_a_new_connection(pos, sim):
 def test_simulator_bytes_and_framing():
     sim = GrblSim(fast=True)  # not started: split() frames, handle() is the firmware
     buf = bytearray(b"G0 X1?0\r\n$X\n$I\nG0")
-    assert sim.split(buf) == [b"?", b"G0 X10", b"$X", b"$I"]  # '?' picked out of the line
+    # '?' picked out of the line; '\r' and '\n' each end a line, so "\r\n" adds an empty one
+    assert sim.split(buf) == [b"?", b"G0 X10", b"", b"$X", b"$I"]
     assert buf == bytearray(b"G0")  # the unfinished line waits
     assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n"
     assert sim.handle(b"G0 X10") == b"error:9\r\n"  # locked after power-up (homing enabled)
     assert sim.handle(b"$X") == b"[MSG:Caution: Unlocked]\r\nok\r\n"
     assert sim.handle(b"$I") == b"[VER:1.1h.20190825:]\r\n[OPT:V,15,128]\r\nok\r\n"
     for line, code in [(b"G0 X", 2), (b"#1", 1), (b"G2 X1", 20), (b"G1 X1", 22), (b"G0 X1 X2", 25),
-                       (b"G53 X1", 30), (b"G4", 28), (b"$Q", 3), (b"$999=1", 3)]:
+                       (b"G53 X1", 30), (b"G4", 28), (b"$Q", 2), (b"$999=1", 3), (b"$100", 3), (b"$100=-1", 4)]:
         assert sim.handle(line) == f"error:{code}\r\n".encode(), line
     assert sim.handle(b"$110=6000") == b"ok\r\n" and sim.settings[110] == 6000
     assert b"$110=6000.000\r\n" in sim.handle(b"$$")
     assert sim.handle(b"\x18") == b"\r\nGrbl 1.1h ['$' for help]\r\n"  # idle reset: no lock
+
+
+def test_simulator_as_the_real_firmware():
+    """What gnea/grbl 1.1h answered on the host build (test_grbl_firmware.py runs the same
+    exchange against both when gcc is present): post-homing MPos, soft limit, silence, the late
+    ok, GRBL's own $ error numbers, ok for an empty line, the WCO / Ov refresh."""
+    sim = GrblSim(fast=True, settings={20: 1, 23: 0})  # not started: handle() is the firmware
+    assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>\r\n"
+    assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>\r\n"
+    assert sim.handle(b"?") == b"<Alarm|MPos:0.000,0.000,0.000|FS:0,0>\r\n"
+    assert sim.handle(b"$Z") == b"error:2\r\n" and sim.handle(b"$100=-1") == b"error:4\r\n"
+    assert sim.handle(b"") == b"ok\r\n"
+    assert sim.handle(b"$H") is None and sim.tick() == b"ok\r\n"  # ok when the cycle is done
+    assert sim.mpos.tolist() == [-1.0, -1.0, -1.0]  # minus the pull-off $27
+    assert sim.handle(b"G53 G0 X5") == b"ALARM:2\r\n[MSG:Reset to continue]\r\n"
+    assert sim.handle(b"?") is None and sim.handle(b"$X") is None  # silent until a reset
+    assert sim.handle(b"\x18") == b"ok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
+    assert sim.handle(b"$X") == b"[MSG:Caution: Unlocked]\r\nok\r\n"
+    assert sim.handle(b"?").startswith(b"<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0|WCO:")
+    assert sim.split(bytearray(b"??")) == [b"?"]  # one status request flag: one report
+
+
+def test_simulator_homes_towards_minus_and_answers_no_status_during_homing():
+    sim = GrblSim(fast=False, settings={23: 0b001}, power_up_position=(-360.0, -5.0, -1.0),
+                  travel=((-372.0, -97.0, -3.0), (2.0, 0.0, 0.0)))
+    assert sim.handle(b"$H") is None
+    assert sim.handle(b"?") is None  # limits.c polls only reset, door and cycle stop
+    deadline = time.monotonic() + 5
+    out = b""
+    while b"ok" not in out and time.monotonic() < deadline:
+        out += sim.tick() or b""
+        time.sleep(0.01)
+    # X homed towards -: at -$130 + $27; the '?' answered once the cycle ends, before its ok
+    assert out.startswith(b"<Home|MPos:-369.000,-1.000,-1.000|") and out.endswith(b"ok\r\n")

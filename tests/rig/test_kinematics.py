@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rig import LightTarget, LimitError
-from rig.kinematics import ArmKinematics, GantryKinematics, kinematics_from_config
+from rig.kinematics import ArmKinematics, GantryKinematics, MachineMap, kinematics_from_config
 from sims.grbl_sim import light_position_mm as sim_forward
 from sims.lab import KINEMATICS
 
@@ -105,3 +105,13 @@ def test_light_target_rejects_non_finite_and_incomplete_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LightTarget(**kwargs)
     assert LightTarget(azimuth_deg=np.int64(30), elevation_deg=np.float32(12.5)).azimuth_deg == 30
+
+
+def test_sim_machine_map_matches_rig():
+    """sims/grbl_sim.py repeats the machine map (sims may not import rig): same light position."""
+    table = {"machine_offset": {"X": -181.0, "Y": -94.0}, "machine_sign": {"Y": -1}}
+    m = MachineMap.from_config(table["machine_offset"], table["machine_sign"])
+    kin = kinematics_from_config(KINEMATICS["arm"])
+    for machine in [(-181.0, -94.0, -1.0), (-361.0, -150.0, 0.0), (-1.0, -40.5, -1.0)]:
+        expected = kin.forward(m.to_axes(dict(zip("XYZ", machine))))
+        assert sim_forward(KINEMATICS["arm"], machine, table) == pytest.approx(expected, abs=1e-9)

@@ -43,7 +43,8 @@ def test_lab_subset_and_gantry():
     with SimLab(roles=("positioner",), kinematics="gantry") as lab:
         assert set(lab.sims) == {"positioner"} and lab.usb_backend is None
         assert lab.rig_config()["positioner"]["kinematics"]["type"] == "gantry"
-        assert lab.state()["light_position_mm"] == pytest.approx((500.0, 500.0, 900.0))
+        # powered up where its last homing left it: each axis at minus the pull-off ($27 = 1 mm)
+        assert lab.state()["light_position_mm"] == pytest.approx((499.0, 499.0, 899.0))
 
 
 def test_lab_rejects_bad_arguments():
