@@ -33,6 +33,7 @@ from calibration.polarization import separate_parallel_crossed  # noqa: E402
 from reconstruct.brdf import CookTorrance, OrenNayar  # noqa: E402
 from reconstruct.distant import shade_distant  # noqa: E402
 from reconstruct.lensch import fit_lafortune  # noqa: E402
+from reconstruct.metrics import relative_rms  # noqa: E402
 from reconstruct.sharing import (RbfModel, SpatialRbfBRDF, fit_isotropic, fit_rbf,  # noqa: E402
                                  fit_spatial, samples_from_images)
 from reconstruct.sharing.baselines import fit_per_point, fit_ward  # noqa: E402
@@ -49,11 +50,9 @@ MATERIALS = {
 def rel_errors(pred, truth):
     """(pooled, median of per-image) relative RMS errors of (K, P, 3) stacks; images with no lit
     pixel are left out of the median."""
-    per = np.sqrt(((pred - truth) ** 2).sum(axis=(1, 2)) / np.maximum((truth ** 2).sum(axis=(1, 2)),
-                                                                       1e-300))
+    per = relative_rms(pred, truth, axis=(1, 2))
     lit = truth.max(axis=(1, 2)) > 0
-    pooled = np.sqrt(((pred - truth) ** 2).sum() / (truth ** 2).sum())
-    return float(pooled), float(np.median(per[lit]))
+    return relative_rms(pred, truth), float(np.median(per[lit]))
 
 
 def _plot(path, title, xlabel, curves, hlines=()):

@@ -23,12 +23,11 @@ the error (naming the frame) and the others continue. Bad data never raises: onl
 session (:class:`SessionNotFound`) and a session with nothing to calibrate
 (:class:`NothingToCalibrate`) do; any other exception is a bug and propagates.
 
-Images: the camera's raw bytes -> :func:`calibration.raw.read_raw` ->
-:func:`calibration.hdr.merge_raw_brackets` in the mosaic domain (master dark of the same exposure, else the black level; unclipped samples
-weighted by inverse variance with the read noise measured on the darks) -> bilinear demosaic.
-Radiance unit: DN per second, camera RGB, float32 H x W x 3. Calibration steps' images stay in
-memory during a run; measurement steps are merged for their figures and dropped (the
-polarization check merges the few poses it looks at again).
+Images: :class:`capture.pipeline.images.SessionImages` (the one HDR path, shared with processing),
+with the master darks this run's dark stage computes. Radiance unit: DN per second, camera RGB,
+float32 H x W x 3. Calibration steps' images stay in memory during a run; measurement steps are
+merged for their figures and dropped (the polarization check merges the few poses it looks at
+again).
 
 Frames: pixels x right, y down; camera frame OpenCV, mm. The *lab frame* is the world frame of
 DESIGN.md, fixed in the room: origin on the turntable axis at the platter surface, +z up the
@@ -60,14 +59,13 @@ import cv2
 import numpy as np
 
 from calibration.errors import CalibrationError, TargetNotFound
-from calibration.hdr import master_frame, merge_raw_brackets
+from calibration.hdr import master_frame
 from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from calibration.lights import (PositionerModel, detect_sphere, fit_positioner_model, ray_weights, sphere_center_from_silhouette,
                                 triangulate_point_light)
 from calibration.polarization import fit_polarization, separate_parallel_crossed
 from calibration.probe import merge_probes, mirror_sphere_to_latlong
 from calibration.radiometry import find_gray_card, gray_card_scale
-from calibration.raw import RawMosaic, demosaic_bilinear, read_raw
 from calibration.spheres import (find_mirror_sphere, lamp_spots, pick_lamp_highlights, project_spheres,
                                  sphere_silhouettes)
 from calibration.targets import TargetDetection, detect_charuco, detect_chessboard, make_charuco_board, to_gray_u8
@@ -75,6 +73,7 @@ from calibration.turntable import TurntableFit, consistent_corner_order, fit_tur
 
 from ..plan import CALIBRATION_KINDS
 from ..store import FrameRecord, SessionNotFound, Store, StoreError
+from .images import FrameDataError, SessionImages, dark_artifact_name, exposure_s
 from .process import object_pose
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
@@ -282,8 +281,8 @@ class MeasuredLight:
 
 
 class StageDataError(ValueError):
-    """The session's stored data cannot feed a stage: a frame without an exposure time, a step
-    without the read-back or planned value a stage needs (the message names it)."""
+    """The session's stored data cannot feed a stage: a step without the read-back or planned
+    value a stage needs (the message names it)."""
 
 
 @dataclass
@@ -340,15 +339,11 @@ class _Context:
     def __init__(self, store: Store, name: str, targets: LabTargets, measure_hdr: bool) -> None:
         self.store = store
         self.measure_hdr = measure_hdr
-        self.info = store.session(name)
+        self.images = SessionImages(store, name)          # darks: filled by the dark stage
+        self.info = self.images.info
         self.targets = targets
-        self.steps = {idx: d for idx, d, _ in store.steps(self.info.id)}
-        self.frames: dict[int, list[FrameRecord]] = {}
-        for f in store.frames(self.info.id):
-            if f.step in self.steps:
-                self.frames.setdefault(f.step, []).append(f)
-        self.darks: dict[float, np.ndarray] = {}       # exposure s -> master dark (DN, incl. black)
-        self.read_noise_dn: float | None = None        # from the dark frames' frame-to-frame scatter
+        self.steps = self.images.steps
+        self.frames: dict[int, list[FrameRecord]] = self.images.by_step
         self.hdr: dict[int, np.ndarray] = {}           # calibration step -> (H, W, 3) radiance
         self.bad_steps: set[int] = set()               # steps whose frames could not be merged
         self.tick: Callable[[str], None] = lambda label: None  # progress inside a stage
@@ -366,38 +361,6 @@ class _Context:
 
     def frame_ids(self, steps) -> list[int]:
         return [f.id for s in steps for f in self.frames[s]]
-
-    def raw(self, f: FrameRecord) -> RawMosaic:
-        return read_raw(self.store.read_object(f.sha256), name=f"frame {f.id} (step {f.step})")
-
-    @property
-    def read_noise(self) -> float:
-        """Read noise (DN) for the merge's noise model: from the darks, else 1 DN."""
-        return self.read_noise_dn if self.read_noise_dn else 1.0
-
-    def merge(self, step: int) -> tuple[np.ndarray, dict[str, Any]]:
-        """HDR radiance (H, W, 3) float32, DN/s, of one step's frames (all brackets and repeats)
-        and its figures. Raises InvalidInput naming an unreadable frame."""
-        frames = self.frames[step]
-        raws = [self.raw(f) for f in frames]
-        ts = [_exposure(f) for f in frames]
-        found = [self.dark_for(t) for t in ts]
-        # a frame without a dark at its exposure falls back to the black level alone
-        darks = np.stack([raws[0].black_level if d is None else d for d in found])
-        hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
-                                 white_level=raws[0].white_level, read_noise_dn=self.read_noise, darks=darks)
-        img = demosaic_bilinear(hdr.radiance, raws[0].channels)
-        pos = hdr.radiance[~hdr.saturated & (hdr.radiance > 0)]
-        dr = float(np.log2(pos.max() / max(np.percentile(pos, 1), 1e-12))) if pos.size else 0.0
-        return img, {"step": step, "kind": self.steps[step]["kind"], "frames": len(frames),
-                     "exposures_s": sorted(set(ts)), "dark_subtracted": sum(d is not None for d in found),
-                     "saturated_fraction": float(hdr.saturated.mean()), "dynamic_range_stops": round(dr, 2)}
-
-    def dark_for(self, exposure_s: float) -> np.ndarray | None:
-        for t, dark in self.darks.items():
-            if abs(t - exposure_s) <= 0.01 * exposure_s:
-                return dark
-        return None
 
     def merged_steps(self, kind: str) -> list[int]:
         """Steps of ``kind`` with an HDR image; skips the stage when there are none."""
@@ -420,13 +383,6 @@ class _Context:
         return float(np.mean(vals))
 
 
-def _exposure(f: FrameRecord) -> float:
-    t = f.exposure_s if f.exposure_s else f.exposure_requested_s
-    if not t or t <= 0:
-        raise StageDataError(f"frame {f.id} (step {f.step}) has no exposure time")
-    return float(t)
-
-
 # -- stages -------------------------------------------------------------------------------------
 def _stage_dark(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.steps_of("dark")
@@ -435,27 +391,27 @@ def _stage_dark(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     by_t: dict[float, list[FrameRecord]] = {}
     for s in steps:
         for f in ctx.frames[s]:
-            by_t.setdefault(round(_exposure(f), 9), []).append(f)
+            by_t.setdefault(round(exposure_s(f), 9), []).append(f)
     out, artifacts, scatter = [], {}, []
     for t, frames in sorted(by_t.items()):
-        raws = [ctx.raw(f) for f in frames]
+        raws = [ctx.images.raw(f) for f in frames]
         stack = np.stack([r.data for r in raws]).astype(np.float32)
         master = master_frame(stack, "mean")
-        ctx.darks[t] = master
+        ctx.images.darks[t] = master
         if len(frames) > 1:  # temporal scatter about the master: read noise (+ dark shot noise)
             scatter.append(float(np.std(stack - master)) * np.sqrt(len(frames) / (len(frames) - 1)))
         above = master - raws[0].black_level
         buf = io.BytesIO()
         np.save(buf, master)
-        artifacts[f"dark_{t:g}s.npy"] = buf.getvalue()
+        artifacts[dark_artifact_name(t)] = buf.getvalue()
         out.append({"exposure_s": t, "frames": len(frames), "mean_above_black_dn": float(above.mean()),
                     "std_dn": float(above.std()), "hot_pixels": int(np.count_nonzero(
                         above > above.mean() + 8 * max(float(above.std()), 1e-6)))})
-    ctx.read_noise_dn = float(np.median(scatter)) if scatter else None
+    noise = ctx.images.read_noise_dn = float(np.median(scatter)) if scatter else None
     figures = {"exposures": len(out),
                "mean_above_black_dn": round(float(np.mean([o["mean_above_black_dn"] for o in out])), 3),
-               "read_noise_dn": None if ctx.read_noise_dn is None else round(ctx.read_noise_dn, 2)}
-    return StageOutput({"darks": out, "read_noise_dn": ctx.read_noise_dn, "artifacts": "master dark per exposure "
+               "read_noise_dn": None if noise is None else round(noise, 2)}
+    return StageOutput({"darks": out, "read_noise_dn": noise, "artifacts": "master dark per exposure "
                         "(DN, black level included), .npy"}, figures, ctx.frame_ids(steps), artifacts)
 
 
@@ -468,26 +424,29 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     for k, s in enumerate(steps):
         ctx.tick(f"hdr {k + 1}/{len(steps)} steps")
         try:
-            img, meta = ctx.merge(s)
-        except (CalibrationError, StageDataError) as exc:  # an unreadable frame loses its step only
+            im = ctx.images.merge(s)
+        except (CalibrationError, FrameDataError) as exc:  # an unreadable frame loses its step only
             errors.append(str(exc))
             ctx.bad_steps.add(s)
             continue
         # calibration images stay in memory for the later stages; measurement steps (a session
         # can hold thousands, hundreds of MB each) are merged again where a stage needs them
         if ctx.steps[s]["kind"] != "measure":
-            ctx.hdr[s] = img
-        per_step.append(meta)
-        if example is None or len(meta["exposures_s"]) > len(example[1]["exposures_s"]):
-            example = (s, meta, img)
+            ctx.hdr[s] = im.radiance
+        per_step.append({"step": s, "kind": im.spec["kind"], "frames": len(im.frame_ids),
+                         "exposures_s": im.exposures_s, "dark_subtracted": im.dark_subtracted,
+                         "saturated_fraction": im.saturated_fraction,
+                         "dynamic_range_stops": im.dynamic_range_stops})
+        if example is None or len(im.exposures_s) > len(example.exposures_s):
+            example = im
     if example is None:
         raise CalibrationError("no step could be merged: " + "; ".join(errors))
-    rep.plots["hdr_example"] = {"step": example[0], "image": example[2],
-                                "exposures_s": example[1]["exposures_s"]}
+    rep.plots["hdr_example"] = {"step": example.step, "image": example.radiance,
+                                "exposures_s": example.exposures_s}
     figures = {"steps": len(per_step), "failed_steps": len(errors),
                "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
                "dark_subtracted_frames": sum(m["dark_subtracted"] for m in per_step)}
-    return StageOutput({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": ctx.read_noise,
+    return StageOutput({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": ctx.images.read_noise_dn or 1.0,
                         "steps": per_step, "errors": errors}, figures, ctx.frame_ids([m["step"] for m in per_step]),
                        errors=errors)
 
@@ -872,7 +831,7 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         # analyser angle relative to the light's polarizer (the lab mounts it at 0 deg)
         angles = np.array([ctx.reading(s, "polarizer_deg") for s in steps])
         distinct = np.unique(np.round(angles % 180, 1))
-        stack = np.stack([ctx.hdr[s] if s in ctx.hdr else ctx.merge(s)[0] for s in steps])
+        stack = np.stack([ctx.hdr[s] if s in ctx.hdr else ctx.images.merge(s).radiance for s in steps])
         if len(distinct) == 2 and abs(abs(distinct[1] - distinct[0]) - 90) < 1:
             par = int(np.argmin(np.abs(((angles + 90) % 180) - 90)))   # nearest 0 mod 180
             cro = int(np.argmin(np.abs((angles % 180) - 90)))
@@ -981,7 +940,7 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
         out = _RUNNERS[name](ctx, rep)
     except _Skip as skip:
         return StageResult(name, "skipped", str(skip))
-    except (CalibrationError, StageDataError, StoreError) as exc:
+    except (CalibrationError, StageDataError, FrameDataError, StoreError) as exc:
         return StageResult(name, "failed", f"{type(exc).__name__}: {exc}")
     cid = ctx.store.add_calibration(ctx.info.id, RESULT_KIND[name], result=out.result, params=out.params,
                                     input_frames=out.input_frames, artifacts=out.artifacts)

@@ -7,8 +7,8 @@ position for every step, the lamp's radiant intensity in HDR units (from the gra
 mirror-probe environment map. :func:`session_inputs` then turns every measurement pose into a
 :class:`reconstruct.lumitexels.View`:
 
-- HDR radiance per step from the raw bracket (:func:`merge_step`: the master darks the dark
-  stage stored, a noise-weighted raw merge, bilinear demosaic), in DN/s of camera RGB;
+- HDR radiance per step from the raw bracket (:mod:`capture.pipeline.images` with the master
+  darks the dark stage stored), in DN/s of camera RGB;
 - the object pose ``Rz(angle_scale * reading)`` about the lab's +z (the object frame is the lab
   frame at turntable reading 0, which is also the frame of the simulated lab's meshes);
 - the light position from the positioner model (or the lights stage for the same commanded
@@ -33,24 +33,22 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
-import cv2
 import numpy as np
 import trimesh
 
-from calibration.hdr import merge_raw_brackets
-from calibration.raw import demosaic_bilinear, read_raw
 from calibration.polarization import separate_parallel_crossed
 from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
 from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
 from reconstruct.raycast import Mesh, Surface, first_hits
 
-from ..store import FrameRecord, Store
+from ..store import Store
+from .images import FrameDataError, SessionImages, StepImage
 
-__all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration", "StepImage",
-           "PassiveInput", "ProcessInputs", "read_calibration", "merge_step", "session_inputs",
+__all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
+           "PassiveInput", "ProcessInputs", "read_calibration", "session_images", "session_inputs",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose", "load_mesh"]
 
 class ProcessError(ValueError):
@@ -233,74 +231,6 @@ def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
     return np.median(np.array(estimates), axis=0), True
 
 
-# -- images -------------------------------------------------------------------------------------
-@dataclass
-class StepImage:
-    """One step's merged HDR image. ``radiance`` (H, W, 3) float32 DN/s; ``valid`` (H, W) bool:
-    not clipped in every exposure."""
-
-    step: int
-    spec: dict[str, Any]
-    radiance: np.ndarray
-    valid: np.ndarray
-    frame_ids: list[int]
-
-
-class _Frames:
-    """The session's frames by step and its master darks (from the stored dark calibration)."""
-
-    def __init__(self, store: Store, session: str) -> None:
-        self.store = store
-        self.info = store.session(session)
-        self.steps = {i: d for i, d, _ in store.steps(self.info.id)}
-        self.by_step: dict[int, list[FrameRecord]] = {}
-        for f in store.frames(self.info.id):
-            self.by_step.setdefault(f.step, []).append(f)
-        res = _latest(store, self.info.id)
-        self.darks: dict[float, np.ndarray] = {}
-        self.read_noise = 1.0
-        if "dark" in res:
-            d = res["dark"]
-            self.read_noise = float(d["result"].get("read_noise_dn") or 1.0)
-            for name, sha in d["artifacts"].items():
-                t = float(name.removeprefix("dark_").removesuffix("s.npy"))
-                self.darks[t] = np.load(io.BytesIO(store.read_object(sha)))
-
-    def dark(self, t: float) -> np.ndarray | None:
-        for te, dark in self.darks.items():
-            if abs(te - t) <= 0.01 * t:
-                return dark
-        return None
-
-
-def merge_step(frames: _Frames, step: int) -> StepImage:
-    """HDR radiance of one step's raw bracket (all exposures and repeats), dark-subtracted.
-
-    Raises
-    ------
-    ProcessError
-        The step has no stored frames or a frame lacks its exposure time (names the frame).
-    """
-    recs = frames.by_step.get(step)
-    if not recs:
-        raise ProcessError(f"step {step} has no stored frames")
-    raws, ts = [], []
-    for f in recs:
-        t = f.exposure_s or f.exposure_requested_s
-        if not t or t <= 0:
-            raise ProcessError(f"frame {f.id} (step {step}) has no exposure time")
-        raws.append(read_raw(frames.store.read_object(f.sha256), name=f"frame {f.id} (step {step})"))
-        ts.append(float(t))
-    found = [frames.dark(t) for t in ts]
-    darks = np.stack([raws[0].black_level if d is None else d for d in found])
-    hdr = merge_raw_brackets([r.data for r in raws], ts, black_level=raws[0].black_level,
-                             white_level=raws[0].white_level, read_noise_dn=frames.read_noise, darks=darks)
-    img = demosaic_bilinear(hdr.radiance, raws[0].channels)
-    # a pixel is unusable where any photosite of its 3 x 3 demosaic neighbourhood clipped everywhere
-    clipped = cv2.dilate(hdr.saturated.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    return StepImage(step, frames.steps[step], img, ~clipped, [f.id for f in recs])
-
-
 # -- the inputs of all methods -----------------------------------------------------------------
 @dataclass
 class PassiveInput:
@@ -403,7 +333,7 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
         No measurement steps, or a measurement step without a calibrated light.
     """
     cal = read_calibration(store, session) if calibration is None else calibration
-    frames = _Frames(store, session)
+    frames = session_images(store, session)
     measure = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "measure" and frames.by_step.get(i)]
     passive = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "passive" and frames.by_step.get(i)]
     if not measure:
@@ -425,7 +355,7 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
     for (reading, _), steps in poses.items():
         imgs = []
         for s in steps:
-            imgs.append(merge_step(frames, s))
+            imgs.append(_merge(frames, s))
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -462,13 +392,31 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
         elif mesh is None:
             notes.append("passive capture present but no mesh: passive reflectometry skipped")
         else:
-            im = merge_step(frames, passive[0])
+            im = _merge(frames, passive[0])
             done += 1
             if progress is not None:
                 progress(done, total)
             p_input = _passive_input(im, cal, mesh)
     return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
                          view_frames=frame_ids, passive=p_input, separated=separated_all, notes=notes)
+
+
+def session_images(store: Store, session: str) -> SessionImages:
+    """The session's images with the master darks and read noise its dark calibration stored
+    (none stored: black level only, 1 DN read noise)."""
+    images = SessionImages(store, session)
+    dark = _latest(store, images.info.id).get("dark")
+    if dark is not None:
+        images.use_stored_darks([row["exposure_s"] for row in dark["result"]["darks"]],
+                                dark["artifacts"], dark["result"].get("read_noise_dn"))
+    return images
+
+
+def _merge(images: SessionImages, step: int) -> StepImage:
+    try:
+        return images.merge(step)
+    except FrameDataError as exc:
+        raise ProcessError(str(exc)) from None
 
 
 def _passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh) -> PassiveInput:

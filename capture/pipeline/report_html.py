@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..store import Store
+from .pictures import SLICE_THETA_I_DEG
 
 __all__ = ["write_html_report", "METHOD_NOTES"]
 
@@ -241,7 +242,6 @@ def _calibration_section(rep, truth, store: Store, session_id: int) -> str:
 
 
 def _method_section(i: int, outcome, stored: dict | None, pics: dict[str, np.ndarray] | None) -> str:
-    from .run import SLICE_THETA_I_DEG
     name = outcome.method
     parts = [f"<h3>{i}. {html.escape(name)}</h3>", f"<p>{html.escape(METHOD_NOTES.get(name, ''))}</p>"]
     if outcome.status in ("skipped", "failed"):

@@ -27,41 +27,18 @@ import numpy as np
 import trimesh
 
 from reconstruct.frames import tangent_frames, to_local, to_world
-from reconstruct.lumitexels import Lumitexels, View
+from reconstruct.lumitexels import Lumitexels
+from reconstruct.metrics import relative_rms, trimmed_relative_rms
 
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
-from .methods import DEFAULT_METHODS, METHODS, Fitted, MethodSkipped, fit_method
+from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
+from .pictures import method_pictures
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
-                      read_calibration, select_samples, session_inputs)
+                      read_calibration, session_inputs)
+from .report_html import write_html_report
 from ..store import Store
 
-__all__ = ["MethodOutcome", "ProcessReport", "process_session", "relative_rms", "SLICE_THETA_I_DEG"]
-
-#: incidence angle of the BRDF slices the report draws (in the plane of incidence), degrees
-SLICE_THETA_I_DEG = 30.0
-#: texels per material whose recovered BRDFs are averaged into a slice
-SLICE_TEXELS = 200
-
-
-def relative_rms(predicted: np.ndarray, measured: np.ndarray) -> float:
-    """``sqrt(sum (p - m)^2 / sum m^2)`` over all samples and channels (NaN when empty)."""
-    m = np.asarray(measured, float)
-    if m.size == 0:
-        return float("nan")
-    return float(np.sqrt(np.sum((np.asarray(predicted, float) - m) ** 2) / max(np.sum(m ** 2), 1e-300)))
-
-
-def trimmed_relative_rms(predicted: np.ndarray, measured: np.ndarray, trim: float = 0.01) -> float:
-    """:func:`relative_rms` without the ``trim`` fraction of samples with the largest squared
-    error: the pooled figure of a glossy object is carried by its few worst highlight samples
-    (99 % of it by 1 % on the demo object), so it swings with the noise draw; this one does not."""
-    m = np.asarray(measured, float).reshape(len(measured), -1)
-    if m.size == 0:
-        return float("nan")
-    err = np.sum((np.asarray(predicted, float).reshape(m.shape) - m) ** 2, axis=1)
-    keep = err <= np.quantile(err, 1.0 - trim)
-    return relative_rms(np.asarray(predicted, float).reshape(m.shape)[keep], m[keep])
-
+__all__ = ["MethodOutcome", "ProcessReport", "process_session"]
 
 @dataclass
 class MethodOutcome:
@@ -231,7 +208,6 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                                              rep.inputs, clock.sub(name), (method_options or {}).get(name, {}))
             outcomes[name].seconds = round(time.perf_counter() - started, 3)
     rep.methods = [outcomes[m] for m in methods]
-    from .report_html import write_html_report
     with clock.stage("report"):
         rep.report_path = write_html_report(store, session, rep, truth=truth,
                                             path=report_path or Path(store.root).resolve().parent / f"{session}-report.html")
@@ -295,7 +271,7 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
         if true_n is not None:   # detail the mesh lacks: the fitted normals should recover it
             figures["normal_error_mesh_deg"] = _median_angle_deg(train.normal, true_n)
             figures["normal_error_fitted_deg"] = _median_angle_deg(fit.normals, true_n)
-    pictures = _pictures(fit, train, held, inputs, truth)
+    pictures = method_pictures(fit, train, held, inputs, truth)
     result = {"figures": figures, "warnings": fit.warnings,
               "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
                          "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
@@ -382,80 +358,3 @@ def calibration_against_truth(store: Store, session: str, cal: SessionCalibratio
 
 def _key(light: dict) -> tuple:
     return round(light["azimuth_deg"], 3), round(light["elevation_deg"], 3)
-
-
-# -- pictures for the report --------------------------------------------------------------------
-def _splat(lt: Lumitexels, values: np.ndarray, view: View) -> np.ndarray:
-    """Per-sample values drawn at their texels' pixels in ``view`` (H, W, C), NaN elsewhere;
-    one-pixel holes between texels filled from their neighbours (normalised 3 x 3 box)."""
-    import cv2
-    cam = view.camera
-    pw = lt.position[lt.texel] @ view.object_to_world[:3, :3].T + view.object_to_world[:3, 3]
-    px = np.rint(cam.project(pw)).astype(int)
-    inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] < cam.height)
-    px, values = px[inside], np.asarray(values, np.float64)[inside]
-    C = values.shape[1]
-    acc = np.zeros((cam.height, cam.width, C))
-    cnt = np.zeros((cam.height, cam.width))
-    np.add.at(acc, (px[:, 1], px[:, 0]), values)
-    np.add.at(cnt, (px[:, 1], px[:, 0]), 1.0)
-    hit = cnt > 0
-    acc_b = cv2.blur(acc.astype(np.float32), (3, 3))
-    cnt_b = cv2.blur(cnt.astype(np.float32), (3, 3))
-    fill = (~hit) & (cnt_b > 0.3)
-    out = np.full((cam.height, cam.width, C), np.nan)
-    out[hit] = acc[hit] / cnt[hit, None]
-    out[fill] = acc_b[fill] / cnt_b[fill, None]
-    return out.astype(np.float32)
-
-
-def _radiance(lt: Lumitexels, r: np.ndarray, view: View) -> np.ndarray:
-    """Reflectance ``f_r cos`` of samples -> radiance in ``view`` (``r I / d^2``)."""
-    T = view.object_to_world
-    pw = lt.position[lt.texel] @ T[:3, :3].T + T[:3, 3]
-    d2 = np.sum((np.asarray(view.light_position, float) - pw) ** 2, axis=1)
-    return r * np.broadcast_to(np.asarray(view.light_intensity, float), (3,)) / d2[:, None]
-
-
-def _pictures(fit: Fitted, train: Lumitexels, held: Lumitexels, inputs: ProcessInputs, truth) -> dict[str, np.ndarray]:
-    """Arrays the report draws: the first held-out view captured / predicted (radiance), BRDF
-    slices (recovered, and true per material with truth) and the normal map."""
-    out: dict[str, np.ndarray] = {}
-    if held.n_samples:
-        k0 = int(held.view.min())
-        view = inputs.held_out[k0 - len(inputs.views)]
-        sub = select_samples(held, held.view == k0)
-        out["heldout_captured"] = np.asarray(view.radiance, np.float32)   # the capture itself
-        out["heldout_predicted"] = _splat(sub, _radiance(sub, fit.predict(sub), view), view)
-    theta = np.radians(np.linspace(-85, 85, 69))
-    ti = np.radians(SLICE_THETA_I_DEG)
-    wi = np.tile([-np.sin(ti), 0.0, np.cos(ti)], (len(theta), 1))
-    wo = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], axis=1)  # +theta: the mirror side
-    out["slice_theta_o_deg"] = np.degrees(theta)
-    rng = np.random.default_rng(0)
-    groups = {"all": np.arange(train.n_texels)}
-    if truth is not None:
-        try:
-            ids, materials = truth.materials(train.position)
-            groups = {f"m{k}": np.flatnonzero(ids == k) for k in range(len(materials))}
-            for k, m in enumerate(materials):
-                out[f"slice_true_m{k}"] = m.evaluate(wi, wo)
-        except ValueError:
-            pass
-    for g, texels in groups.items():
-        if len(texels) == 0:
-            continue
-        pick = rng.choice(texels, min(SLICE_TEXELS, len(texels)), replace=False)
-        model = fit.brdf(np.repeat(pick, len(theta)))
-        f = model.evaluate(np.tile(wi, (len(pick), 1)), np.tile(wo, (len(pick), 1)))
-        out[f"slice_fit_{g}"] = np.median(f.reshape(len(pick), len(theta), 3), axis=0)
-    if fit.normals is not None and inputs.views:
-        view = inputs.views[0]
-        first = select_samples(train, train.view == 0)
-        R = view.object_to_world[:3, :3]
-        out["normals_mesh"] = _splat(first, train.normal[first.texel] @ R.T, view)
-        out["normals_fitted"] = _splat(first, fit.normals[first.texel] @ R.T, view)
-        true_n = truth.normals(train.position) if truth is not None else None
-        if true_n is not None:
-            out["normals_true"] = _splat(first, true_n[first.texel] @ R.T, view)
-    return out

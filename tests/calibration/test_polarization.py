@@ -6,6 +6,7 @@ import pytest
 
 from calibration.errors import DegenerateFit, TooFewViews
 from calibration.polarization import fit_polarization, separate_parallel_crossed
+from reconstruct.metrics import relative_rms
 
 
 def _truth(rng, shape=(120, 160, 3)):
@@ -20,16 +21,12 @@ def _observe(D, S, theta_deg, rng, phase_deg=0.0, noise=0.002):
     return I + rng.normal(0, noise, I.shape)
 
 
-def _rel_rms(est, truth):
-    return np.sqrt(np.mean((est - truth) ** 2)) / np.sqrt(np.mean(truth ** 2))
-
-
 def test_two_image_separation_within_2_percent():
     rng = np.random.default_rng(0)
     D, S = _truth(rng)
     sep = separate_parallel_crossed(_observe(D, S, 0, rng), _observe(D, S, 90, rng), read_sigma=0.002)
-    assert _rel_rms(sep.diffuse, D) < 0.02
-    assert _rel_rms(sep.specular, S) < 0.02
+    assert relative_rms(sep.diffuse, D) < 0.02
+    assert relative_rms(sep.specular, S) < 0.02
     assert sep.specular.min() >= 0
     # the mask finds the lobe and rejects the specular-free corners
     assert sep.specular_mask[60, 80].all() and sep.specular_mask[:5, :5].mean() < 0.01
@@ -42,8 +39,8 @@ def test_n_angle_fit_within_2_percent(angles):
     stack = np.stack([_observe(D, S, a, rng, phase_deg=12.0) for a in angles])
     fit = fit_polarization(stack, angles)
     assert fit.diffuse.shape == D.shape and fit.diffuse.dtype == np.float32
-    assert _rel_rms(fit.diffuse, D) < 0.02
-    assert _rel_rms(fit.specular, S) < 0.02
+    assert relative_rms(fit.diffuse, D) < 0.02
+    assert relative_rms(fit.specular, S) < 0.02
     strong = S[..., 0] > 0.5
     assert np.abs(fit.phase_deg[..., 0][strong] - 12.0).max() < 1.0
     dop_true = S / (D + S)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from capture import store as store_mod  # noqa: E402
+from capture.store import crash as store_crash  # noqa: E402
 from capture.plan import Plan  # noqa: E402
 from capture.runner import RetryPolicy, Runner, create_session  # noqa: E402
 from capture.store import SessionNotFound, Store  # noqa: E402
@@ -35,7 +35,7 @@ def run_session(root: Path, n_angles: int, on_event=None) -> int:
         if on_event is not None:
             runner.bus.subscribe(on_event)
         state = runner.run()
-    print(f"state={state} hooks={store_mod._crash_count}", flush=True)
+    print(f"state={state} hooks={store_crash.count}", flush=True)
     return 0 if state == "done" else 1
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 
 from capture import store as store_mod
+from capture.store import crash as store_crash
 from capture.store import Store, sha256_file
 from crash_child import run_session
 
@@ -46,7 +47,7 @@ def _forked(store_dir: Path, after: int | None, n_angles: int, err_path: Path,
     Event) is set once ``frames`` frames of the session are stored."""
     if after is not None:
         os.environ["GONIO_CRASH_AFTER"] = str(after)
-    store_mod._crash_count = 0
+    store_crash.count = 0
     fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
     os.dup2(fd, 2)
 

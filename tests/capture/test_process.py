@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from capture.cli import app
 from capture.pipeline.demo_lab import DemoLab, fitter_mesh
-from capture.pipeline.run import process_session, relative_rms
+from capture.pipeline.run import process_session
 from capture.plan import Plan
 from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, read_calibration,
                              session_inputs)
@@ -222,12 +222,6 @@ def test_report_is_one_self_contained_file(processed):
         assert heading in text
     summary = rep.report_path.with_suffix(".json")
     assert summary.is_file() and '"lambertian"' in summary.read_text()
-
-
-def test_relative_rms_closed_form():
-    m = np.array([[1.0, 2.0, 2.0]])
-    assert relative_rms(m * 1.1, m) == pytest.approx(0.1)
-    assert np.isnan(relative_rms(np.zeros((0, 3)), np.zeros((0, 3))))
 
 
 def test_uncalibrated_session_says_which_stage_is_missing(tmp_path):

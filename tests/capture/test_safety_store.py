@@ -17,6 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 from capture import store as store_mod
+from capture.store import version as store_version
 from capture.cli.capture import app as capture_app
 from capture.cli.session import app as session_app
 from capture.events import EventKind
@@ -299,13 +300,13 @@ def test_every_commit_failing_for_space_still_pauses_through_the_reserve(tmp_pat
 
 def test_code_version_is_computed_outside_the_write_lock(tmp_path, monkeypatch):
     """The git subprocess ran inside the write transaction (holding the database lock)."""
-    store_mod.code_version.cache_clear()
+    store_version.code_version.cache_clear()
     seen = []
 
     def probe():
         seen.append(store._db.in_transaction)
         return "gonio test"
-    monkeypatch.setattr(store_mod, "code_version", probe)
+    monkeypatch.setattr(store_version, "code_version", probe)
     with Store(tmp_path / "st") as store:
         sid = store.create_session("s", plan={}, plan_hash="h", steps=[]).id
         store.add_calibration(sid, "dark", result={"level": 1})

@@ -10,6 +10,7 @@ import stat
 import pytest
 
 from capture import store as store_mod
+from capture.store import crash as store_crash
 from capture.events import Event, EventKind
 from capture.store import (SCHEMA_VERSION, SchemaError, SessionBusy, SessionExists, SessionNotFound,
                            Store, StoreError, StoreFull)
@@ -95,7 +96,7 @@ def test_identical_bytes_are_stored_once(tmp_path):
         _, a = _frame(st, sid, 0, 0, data)
         _, b = _frame(st, sid, 0, 1, data)
         assert a == b
-        assert len(list(st._object_files())) == 1
+        assert len(list(st._files.files())) == 1
         assert len(st.frames(sid)) == 2
 
 
@@ -127,7 +128,7 @@ def test_replacement_killed_before_commit_keeps_the_old_file(tmp_path, monkeypat
         def kill(name):
             if name == "before_commit":
                 raise _Killed(name)
-        monkeypatch.setattr(store_mod, "_crash_point", kill)
+        monkeypatch.setattr(store_crash, "point", kill)
         with pytest.raises(_Killed):
             _frame(st, sid, 0, 0, b"new" * 100)
         monkeypatch.undo()
@@ -192,7 +193,7 @@ def test_writer_start_never_collects_an_object_whose_row_is_being_committed(tmp_
         if name == "object_renamed" and threading.current_thread().name == "calibrate":
             renamed.set()
             release.wait(10)
-    monkeypatch.setattr(store_mod, "_crash_point", hold)
+    monkeypatch.setattr(store_crash, "point", hold)
     with Store(tmp_path) as st, Store(tmp_path) as runner_side:
         sid = _session(st).id
         out = {}
@@ -228,7 +229,7 @@ def test_disk_full_records_nothing_and_leaves_no_temp(tmp_path, monkeypatch):
 
         def full(fd):
             raise OSError(errno.ENOSPC, "No space left on device")
-        monkeypatch.setattr(store_mod.os, "fsync", full)
+        monkeypatch.setattr(os, "fsync", full)
         with pytest.raises(StoreFull, match="no space left"):
             _frame(st, sid, 0, 0, b"z" * 1000)
         monkeypatch.undo()

@@ -13,6 +13,7 @@ from calibration.polarization import separate_parallel_crossed
 from reconstruct.brdf import CookTorrance, Lambertian, OrenNayar
 from reconstruct.distant import shade_distant
 from reconstruct.lensch import fit_lafortune
+from reconstruct.metrics import relative_rms
 from reconstruct.sharing import (SharingError, fit_isotropic, fit_spatial, group_median,
                                  samples_from_images)
 from reconstruct.sharing.baselines import fit_per_point, fit_ward
@@ -22,16 +23,12 @@ from sims.distant_scenes import (RingHighlight, hemisphere_lights, ramp_material
 SPHERE = 32
 
 
-def _rel(pred, truth, axis=None):
-    return np.sqrt(((pred - truth) ** 2).sum(axis=axis) / (truth ** 2).sum(axis=axis))
-
-
 def _median_error(brdf, test):
     """Median over the held-out images with any lit pixel (at this size the most grazing
     crescent can be empty)."""
     lit = test.radiance.max(axis=(1, 2)) > 0
     pred = render_distant(brdf, SPHERE, test.directions[lit]).radiance
-    return float(np.median(_rel(pred, test.radiance[lit], axis=(1, 2))))
+    return float(np.median(relative_rms(pred, test.radiance[lit], axis=(1, 2))))
 
 
 def _sphere_problem(material):
@@ -103,14 +100,14 @@ def test_spatial_sharing_beats_per_point_interpolation_from_more_images():
         s = samples_from_images(tr.normals, tr.radiance, tr.directions)
         interp = fit_per_point(s.point, s.wi, s.wo, s.brdf, valid=s.valid, n_points=len(xy))
         pred = interp(test_s.point, test_s.wi, test_s.wo) * np.maximum(test_s.wi[:, 2:3], 0)
-        return _rel(pred.reshape(test.radiance.shape), test.radiance)
+        return relative_rms(pred.reshape(test.radiance.shape), test.radiance)
 
     tr = render_distant(material, size, hemisphere_lights(5))
     s = samples_from_images(tr.normals, tr.radiance, tr.directions)
     fit = fit_spatial(xy[s.point], s.wi, s.wo, s.brdf, texel=s.point, valid=s.valid,
                       max_centers=800)
     assert fit.mode == "5d"
-    sharing = _rel(render_distant(fit.brdf, size, test.directions).radiance, test.radiance)
+    sharing = relative_rms(render_distant(fit.brdf, size, test.directions).radiance, test.radiance)
     assert sharing < 0.06
     assert sharing < no_sharing(20) < no_sharing(5)
 
@@ -126,7 +123,7 @@ def test_single_image_fit_and_view_dependent_prediction():
                        max_centers=400)
     assert fit1.mode == "single-image"
     again = render_distant(fit1.brdf, size, one.directions).radiance
-    assert _rel(again, one.radiance) < 0.03  # the input image is reproduced
+    assert relative_rms(again, one.radiance) < 0.03  # the input image is reproduced
 
     tr = render_distant(material, size, hemisphere_lights(5))
     s = samples_from_images(tr.normals, tr.radiance, tr.directions)
@@ -140,7 +137,7 @@ def test_single_image_fit_and_view_dependent_prediction():
     pred = shade_distant(fit.brdf.take(np.flatnonzero(seen)), normals[seen], light, np.ones(1),
                          view_dirs=view)
     fixed_view = tr.radiance[2][seen]  # what a view-independent model would predict
-    assert _rel(pred, truth) < 0.5 * _rel(fixed_view, truth)
+    assert relative_rms(pred, truth) < 0.5 * relative_rms(fixed_view, truth)
 
 
 def test_dichromatic_fit_from_polarized_captures():
@@ -167,7 +164,7 @@ def test_dichromatic_fit_from_polarized_captures():
     novel = np.array([[0.2, -0.15, -np.sqrt(1 - 0.2 ** 2 - 0.15 ** 2)]])
     truth = render_distant(material, size, novel).radiance
     pred = render_distant(fit.brdf, size, novel).radiance
-    assert _rel(pred, truth) < 0.095  # the paper's face: 9.5 % (real data)
+    assert relative_rms(pred, truth) < 0.095  # the paper's face: 9.5 % (real data)
 
 
 def test_group_median_matches_numpy():

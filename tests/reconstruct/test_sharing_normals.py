@@ -13,6 +13,7 @@ import pytest
 from reconstruct.brdf import CookTorrance, Lafortune
 from reconstruct.distant import shade_distant
 from reconstruct.frames import tangent_frames, to_world
+from reconstruct.metrics import relative_rms
 from reconstruct.sharing import SharingError, fit_spatial, photometric_normals, samples_from_images
 from sims.distant_scenes import VIEW, hemisphere_lights, visible_points
 
@@ -21,10 +22,6 @@ SIZE = 32
 
 def _angle_deg(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
-
-
-def _rel(pred, truth):
-    return float(np.sqrt(np.sum((pred - truth) ** 2) / np.sum(truth ** 2)))
 
 
 def _tilted(normals, xy, amplitude, freq, phase):
@@ -78,7 +75,7 @@ def test_normals_from_the_diffuse_samples_restore_the_held_out_prediction(case):
     truth = _render(material, true_n, test_l)
     ts = samples_from_images(smooth, truth, test_l)
     pred = [f.predict(ts.point, ts.wi, ts.wo).reshape(truth.shape) for f in (plain, fitted)]
-    e_plain, e_fit = _rel(pred[0], truth), _rel(pred[1], truth)
+    e_plain, e_fit = relative_rms(pred[0], truth), relative_rms(pred[1], truth)
     # seen: cook-torrance 1.09 -> 0.12, phong-70 1.35 -> 0.16 (the smooth normals put the
     # highlights where they are not: worse than predicting none)
     assert e_fit < 0.2 * e_plain, (e_plain, e_fit)

@@ -21,325 +21,38 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import functools
 import hashlib
 import json
 import os
-import re
 import shutil
-import signal
 import sqlite3
-import stat
-import subprocess
-import tarfile
 import tempfile
 import threading
 import time
 import urllib.parse
-import zipfile
-import zlib
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from .events import Event
+from ..events import Event
+from . import crash, version
+from .archive import archive_suffix, extract_safely, is_archive, pack
+from .errors import (ForeignDatabase, SchemaError, SessionBusy, SessionExists, SessionNotFound,
+                     StoreDamaged, StoreError, StoreFull)
+from .migrations import MIGRATIONS, SCHEMA_VERSION
+from .names import check_session_name, inside
+from .objects import TMP_PREFIX, ObjectFiles, copy_hashed, sha256_file
+from .records import FrameRecord, Progress, SessionInfo, VerifyReport
 
 DB_NAME = "gonio.sqlite"
 STATES = ("planned", "running", "paused", "done", "aborted")
-_TMP_PREFIX = ".tmp-"
 #: free space below which an SQLite I/O error is taken for a full disk, bytes
 FULL_BELOW_BYTES = 1 << 20
 #: disk space a writer holds back to record a pause when the disk fills, bytes
 RESERVE_BYTES = 1 << 20
 RESERVE_NAME = "space-reserve"
 
-
-class StoreError(Exception):
-    """Base of the store's errors; the message says what to do."""
-
-
-class SessionNotFound(StoreError):
-    """No session of that name in this store."""
-
-
-class SessionExists(StoreError):
-    """A session of that name already exists."""
-
-
-class SessionBusy(StoreError):
-    """Another process (or runner) is writing this session right now."""
-
-
-class StoreFull(StoreError):
-    """The disk holding the store ran out of space while writing a frame."""
-
-
-class SchemaError(StoreError):
-    """The database was written by a newer gonio (unknown schema version)."""
-
-
-class StoreDamaged(StoreError):
-    """The database file is damaged, truncated or empty while frame files exist."""
-
-
-class ForeignDatabase(StoreError):
-    """``gonio.sqlite`` is some other program's SQLite database."""
-
-
-class InvalidName(StoreError, ValueError):
-    """A session name outside the safe set (see :func:`check_session_name`)."""
-
-
-#: letters, digits, ``_``, then also ``.`` and ``-``: never ``.``/``..``, a separator, a control
-#: character or a leading ``-`` (read as an option); names become folder names in exports
-_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
-NAME_MAX = 100
-#: an object's name: its SHA-256 as 64 lowercase hex digits (paths are built from it)
-_SHA_RE = re.compile(r"[0-9a-f]{64}")
-#: SQL condition true for a ``sha256`` column value that is not such a hash
+#: SQL condition true for a ``sha256`` column value that is not an object name (see objects.py)
 _BAD_SHA_SQL = "(typeof({0}) != 'text' OR length({0}) != 64 OR {0} GLOB '*[^0-9a-f]*')"
-
-
-def check_session_name(name: object, argument: str = "session name") -> str:
-    """Return ``name`` if it is a safe session name, else raise :class:`InvalidName`.
-
-    A safe name is 1 to :data:`NAME_MAX` characters of ``A-Z a-z 0-9 _ . -``, starting with a
-    letter, digit or ``_`` (so never ``.``, ``..``, a path or an option).
-    """
-    if not isinstance(name, str) or not name:
-        raise InvalidName(f"{argument} must be a non-empty string, not {name!r}")
-    if len(name) > NAME_MAX or not _NAME_RE.fullmatch(name):
-        raise InvalidName(f"{argument} {name[:NAME_MAX + 20]!r} is not allowed: use 1-{NAME_MAX} "
-                          "ASCII letters, digits, '_', '.' or '-', starting with a letter, digit or '_'")
-    return name
-
-
-def safe_name_from(text: str, fallback: str = "session") -> str:
-    """A safe session-name stem made from free text (a plan's name): unsafe runs become ``-``."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip(".-")[:NAME_MAX - 20]
-    return stem if stem and _NAME_RE.fullmatch(stem) else fallback
-
-
-def inside(base: Path, *parts: str) -> Path:
-    """``base / parts`` after checking that it stays inside ``base`` (no ``..``, no absolute
-    part, no symlink out); raises :class:`StoreError` otherwise."""
-    path = base.joinpath(*parts)
-    if not path.resolve().is_relative_to(base.resolve()):
-        raise StoreError(f"refusing {path}: it leads outside {base}")
-    return path
-
-
-# -- crash hook points (tests kill the process here: GONIO_CRASH_AFTER=N) -----------------------
-_crash_lock = threading.Lock()
-_crash_count = 0
-
-
-def _crash_point(name: str) -> None:
-    """Kill this process with SIGKILL at the N-th hook point if ``GONIO_CRASH_AFTER=N`` is set.
-
-    The crash test walks N over every write/rename/commit point of a session to prove that a
-    kill at any of them leaves a store that ``resume`` completes with exactly the planned frames.
-    """
-    after = os.environ.get("GONIO_CRASH_AFTER")
-    if not after:
-        return
-    global _crash_count
-    with _crash_lock:
-        _crash_count += 1
-        if _crash_count == int(after):
-            os.write(2, f"GONIO_CRASH at {name}\n".encode())  # fd 2: unbuffered, never redirected
-            os.kill(os.getpid(), signal.SIGKILL)
-
-
-# -- schema and forward migrations ------------------------------------------------------------
-def _run_script(db: sqlite3.Connection, script: str) -> None:
-    # statement by statement: executescript() would COMMIT the migration transaction midway
-    for statement in script.split(";"):
-        if statement.strip():
-            db.execute(statement)
-
-
-def _m1_initial(db: sqlite3.Connection) -> None:
-    _run_script(db, """
-    CREATE TABLE sessions (
-        id INTEGER PRIMARY KEY,
-        name TEXT NOT NULL UNIQUE,
-        operator TEXT NOT NULL DEFAULT '',
-        object TEXT NOT NULL DEFAULT '',
-        notes TEXT NOT NULL DEFAULT '',
-        state TEXT NOT NULL CHECK (state IN ('planned','running','paused','done','aborted')),
-        plan_json TEXT NOT NULL,
-        plan_hash TEXT NOT NULL,
-        plan_path TEXT,
-        created REAL NOT NULL,
-        updated REAL NOT NULL
-    );
-    CREATE TABLE rig_snapshots (
-        id INTEGER PRIMARY KEY,
-        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
-        taken REAL NOT NULL,
-        config_json TEXT NOT NULL,
-        describe_json TEXT NOT NULL
-    );
-    CREATE TABLE steps (
-        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
-        idx INTEGER NOT NULL,
-        step_json TEXT NOT NULL,
-        frames INTEGER NOT NULL,
-        done INTEGER NOT NULL DEFAULT 0,
-        done_at REAL,
-        PRIMARY KEY (session_id, idx)
-    );
-    CREATE TABLE frames (
-        id INTEGER PRIMARY KEY,
-        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
-        step INTEGER NOT NULL,
-        bracket_index INTEGER NOT NULL,
-        repeat INTEGER NOT NULL,
-        sha256 TEXT NOT NULL,
-        size INTEGER NOT NULL,
-        filename TEXT NOT NULL,
-        format TEXT NOT NULL,
-        exposure_requested_s REAL,
-        exposure_s REAL,
-        iso REAL,
-        fnumber REAL,
-        positions_json TEXT NOT NULL,
-        captured_at REAL NOT NULL,
-        stored_at REAL NOT NULL,
-        metadata_json TEXT NOT NULL,
-        UNIQUE (session_id, step, bracket_index, repeat)
-    );
-    CREATE TABLE events (
-        id INTEGER PRIMARY KEY,
-        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
-        time REAL NOT NULL,
-        kind TEXT NOT NULL,
-        step INTEGER,
-        device TEXT,
-        message TEXT NOT NULL,
-        data_json TEXT NOT NULL
-    );
-    CREATE TABLE results (
-        id INTEGER PRIMARY KEY,
-        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
-        category TEXT NOT NULL CHECK (category IN ('calibration','reconstruction')),
-        kind TEXT NOT NULL,
-        created REAL NOT NULL,
-        params_json TEXT NOT NULL,
-        result_json TEXT NOT NULL,
-        input_frames_json TEXT NOT NULL,
-        code_version TEXT NOT NULL
-    );
-    CREATE TABLE result_objects (
-        result_id INTEGER NOT NULL REFERENCES results(id) ON DELETE CASCADE,
-        name TEXT NOT NULL,
-        sha256 TEXT NOT NULL,
-        size INTEGER NOT NULL,
-        PRIMARY KEY (result_id, name)
-    );
-    """)
-
-
-def _m2_indexes(db: sqlite3.Connection) -> None:
-    # reference look-ups (dedupe, garbage collection) and per-session event queries
-    _run_script(db, """
-    CREATE INDEX frames_sha ON frames(sha256);
-    CREATE INDEX result_objects_sha ON result_objects(sha256);
-    CREATE INDEX events_session ON events(session_id, id);
-    """)
-
-
-#: ordered forward migrations; migration i brings the schema to version i + 1
-MIGRATIONS: list[Callable[[sqlite3.Connection], None]] = [_m1_initial, _m2_indexes]
-SCHEMA_VERSION = len(MIGRATIONS)
-
-
-@functools.cache
-def code_version() -> str:
-    """``gonio <version>`` plus ``+g<commit>`` when the code runs from a git checkout."""
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        text = f"gonio {version('gonio')}"
-    except PackageNotFoundError:
-        text = "gonio (not installed)"
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).parent,
-                                capture_output=True, text=True, timeout=5)
-        if commit.returncode == 0 and commit.stdout.strip():
-            text += f"+g{commit.stdout.strip()}"
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return text
-
-
-# -- records ----------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class SessionInfo:
-    """One session row. ``plan`` is the canonical plan dict; times are Unix seconds."""
-
-    id: int
-    name: str
-    state: str
-    operator: str
-    object: str
-    notes: str
-    plan: dict[str, Any]
-    plan_hash: str
-    plan_path: str | None
-    created: float
-    updated: float
-
-
-@dataclass(frozen=True)
-class FrameRecord:
-    """One stored frame. Exposures in seconds; ``positions`` are read-backs (degrees, mm)."""
-
-    id: int
-    session_id: int
-    step: int
-    bracket_index: int
-    repeat: int
-    sha256: str
-    size: int
-    filename: str
-    format: str
-    exposure_requested_s: float | None
-    exposure_s: float | None
-    iso: float | None
-    fnumber: float | None
-    positions: dict[str, Any]
-    captured_at: float
-    stored_at: float
-    metadata: dict[str, Any]
-
-
-@dataclass(frozen=True)
-class Progress:
-    """Counts of a session: planned and done steps, planned frames, stored frames and bytes."""
-
-    steps_total: int
-    steps_done: int
-    frames_total: int
-    frames_stored: int
-    bytes_stored: int
-
-
-@dataclass
-class VerifyReport:
-    """Outcome of :meth:`Store.verify`: lists of SHA-256 names / paths, empty when all is well."""
-
-    checked: int = 0
-    missing: list[str] = field(default_factory=list)
-    corrupt: list[str] = field(default_factory=list)
-    orphans: list[str] = field(default_factory=list)
-    incomplete_steps: list[int] = field(default_factory=list)
-    #: sha256 -> where the session uses it (``step 3 frame 1 ...``, ``result dark #2 ...``)
-    where: dict[str, list[str]] = field(default_factory=dict)
-
-    @property
-    def ok(self) -> bool:
-        return not (self.missing or self.corrupt or self.orphans or self.incomplete_steps)
 
 
 def _dumps(obj: Any) -> str:
@@ -359,26 +72,6 @@ def _is_full(exc: sqlite3.Error) -> bool:
     return getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _copy_hashed(src: Path, dst: Path, chunk: int = 1 << 22) -> str:
-    """Copy ``src`` to a new file ``dst`` in one pass, returning the SHA-256 hex of the bytes
-    copied. ``dst`` is created exclusively ("xb"): an existing file (the source itself, say) is
-    never truncated."""
-    h = hashlib.sha256()
-    with open(src, "rb") as fin, open(dst, "xb") as fout:
-        while block := fin.read(chunk):
-            h.update(block)
-            fout.write(block)
-    return h.hexdigest()
-
-
 def _try_lock(fd: int) -> bool:
     """Take ``fd``'s exclusive flock without waiting; False when another holder has it."""
     try:
@@ -387,37 +80,6 @@ def _try_lock(fd: int) -> bool:
         return False
     return True
 
-
-def sha256_file(path: Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
-def _unsafe_member(name: str) -> bool:
-    parts = Path(name).parts
-    return not parts or Path(name).is_absolute() or ".." in parts or "\\" in name
-
-
-def _extract_safely(archive: Path, dest: Path) -> None:
-    """Extract a ``.tar``/``.zip`` export into ``dest`` after checking every member: only plain
-    files and folders with relative names inside ``dest``; else :class:`StoreError` naming it."""
-    try:
-        if zipfile.is_zipfile(archive):
-            with zipfile.ZipFile(archive) as z:
-                for info in z.infolist():
-                    if _unsafe_member(info.filename) or stat.S_ISLNK(info.external_attr >> 16):
-                        raise StoreError(f"{archive}: refusing unsafe member {info.filename!r} (an "
-                                         "absolute path, '..' or a link); a gonio export has none")
-                z.extractall(dest)
-            return
-        with tarfile.open(archive) as t:
-            for m in t.getmembers():
-                if _unsafe_member(m.name) or not (m.isfile() or m.isdir()):
-                    raise StoreError(f"{archive}: refusing unsafe member {m.name!r} (an absolute "
-                                     "path, '..', a link or a device); a gonio export has none")
-            t.extractall(dest, filter="data")
-    except (tarfile.TarError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
-        raise StoreError(f"{archive}: damaged archive ({exc})") from None
 
 
 class Store:
@@ -465,7 +127,8 @@ class Store:
                 raise StoreError(f"{self.root} is not a gonio store (no {DB_NAME}); "
                                  "give --store the folder a session was recorded in")
             self.root.mkdir(parents=True, exist_ok=True)
-        self.objects = self.root / "objects"
+        self._files = ObjectFiles(self.root, self.db_path, self.durable)
+        self.objects = self._files.root
         self._lock = threading.RLock()
         self._cleanup: Callable[[], None] | None = None
         try:
@@ -508,7 +171,7 @@ class Store:
                 tables = {r[0] for r in self._db.execute(
                     "SELECT name FROM sqlite_master WHERE type = 'table'")}
             if not tables:
-                files = sum(1 for _ in self._object_files())
+                files = sum(1 for _ in self._files.files())
                 if files:
                     raise StoreDamaged(
                         f"{self.db_path} is empty but {self.objects} holds {files} file(s) of "
@@ -559,7 +222,7 @@ class Store:
         """An SQLite error as the store error that says what to do, or ``exc`` itself."""
         code = (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF
         if code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB):
-            files = sum(1 for _ in self._object_files())
+            files = sum(1 for _ in self._files.files())
             return StoreDamaged(
                 f"{self.db_path} is damaged ({exc}). The {files} frame file(s) in {self.objects} "
                 "are separate and untouched. Restore gonio.sqlite from a backup or an export "
@@ -591,11 +254,11 @@ class Store:
         extracted. ``readonly`` opens the database without writing to it (see :class:`Store`).
         """
         path = Path(path)
-        if not (path.is_file() and (tarfile.is_tarfile(path) or zipfile.is_zipfile(path))):
+        if not is_archive(path):
             return cls(path, create=create, readonly=readonly)
         tmp = Path(tempfile.mkdtemp(prefix="gonio-store-"))
         try:
-            _extract_safely(path, tmp)
+            extract_safely(path, tmp)
             inner = [p.parent for p in tmp.rglob(DB_NAME)]
             if len(inner) != 1:
                 raise StoreError(f"{path}: archive holds {len(inner)} gonio stores, expected 1")
@@ -624,8 +287,8 @@ class Store:
             db.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
             row = db.execute("SELECT version FROM schema_version").fetchone()
             current = self._check_version(db)
-            for version in range(current, SCHEMA_VERSION):
-                MIGRATIONS[version](db)
+            for v in range(current, SCHEMA_VERSION):
+                MIGRATIONS[v](db)
             if row is None:
                 db.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
             else:
@@ -656,7 +319,7 @@ class Store:
             try:
                 self._db.execute("BEGIN IMMEDIATE")
                 yield self._db
-                _crash_point("before_commit")
+                crash.point("before_commit")
                 self._db.execute("COMMIT")
             except BaseException as exc:
                 if self._db.in_transaction:
@@ -667,7 +330,7 @@ class Store:
                 if isinstance(exc, sqlite3.Error) and self._translate(exc) is not exc:
                     raise self._translate(exc) from exc
                 raise
-            _crash_point("after_commit")
+            crash.point("after_commit")
 
     @contextlib.contextmanager
     def _read(self) -> Iterator[sqlite3.Connection]:
@@ -868,66 +531,10 @@ class Store:
     def object_path(self, sha256: str) -> Path:
         """``objects/ab/cdef...`` for a SHA-256 hex; :class:`StoreDamaged` for anything else
         (a path is never built from a malformed hash read from the database)."""
-        if not isinstance(sha256, str) or not _SHA_RE.fullmatch(sha256):
-            raise StoreDamaged(f"{self.db_path}: refusing object hash {str(sha256)[:80]!r}: not 64 "
-                               "lowercase hex digits (a damaged or crafted row)")
-        return self.objects / sha256[:2] / sha256[2:]
+        return self._files.path(sha256)
 
     def read_object(self, sha256: str) -> bytes:
         return self.object_path(sha256).read_bytes()
-
-    def _write_object(self, data: bytes | memoryview, sha: str) -> None:
-        path = self.object_path(sha)
-        try:
-            if not self.objects.is_dir():
-                self.objects.mkdir(parents=True, exist_ok=True)
-                self._sync_dir(self.root)
-            if not path.parent.is_dir():
-                path.parent.mkdir(exist_ok=True)
-                self._sync_dir(self.objects)
-            self._write_file(data, path)
-        except OSError as exc:
-            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise StoreFull(f"no space left on the disk holding {self.root} while writing a "
-                                f"{len(data) / 1e6:.1f} MB frame; free space and resume") from None
-            raise
-
-    def _sync_dir(self, path: Path) -> None:
-        if self.durable:
-            _fsync_dir(path)
-
-    def _write_file(self, data: bytes | memoryview, path: Path) -> None:
-        """Temp file in the final directory, fsync, rename, fsync the directory."""
-        fd, tmp = tempfile.mkstemp(prefix=_TMP_PREFIX, dir=path.parent)
-        try:
-            view = memoryview(data)
-            half = len(view) // 2
-            with os.fdopen(fd, "wb") as f:
-                f.write(view[:half])
-                f.flush()
-                _crash_point("object_half_written")
-                f.write(view[half:])
-                f.flush()
-                if self.durable:
-                    os.fsync(f.fileno())
-            os.chmod(tmp, 0o444)  # content-addressed files are immutable
-            _crash_point("object_fsynced")
-            os.replace(tmp, path)
-            _crash_point("object_renamed")
-            self._sync_dir(path.parent)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
-
-    def _ensure_object(self, data: bytes | memoryview, sha: str) -> None:
-        path = self.object_path(sha)
-        try:
-            if path.stat().st_size == len(data):
-                return  # identical bytes are stored once
-        except FileNotFoundError:
-            pass
-        self._write_object(data, sha)
 
     def put_object(self, data: bytes) -> str:
         """Store bytes durably (without a row referencing them); return their SHA-256 hex.
@@ -936,7 +543,7 @@ class Store:
         writer active collects it. Use :meth:`add_result` ``artifacts`` to store and reference
         bytes in one step."""
         sha = hashlib.sha256(data).hexdigest()
-        self._ensure_object(data, sha)
+        self._files.ensure(data, sha)
         return sha
 
     @contextlib.contextmanager
@@ -989,12 +596,12 @@ class Store:
         sha = hashlib.sha256(data).hexdigest()
         now = time.time()
         with self._writing():
-            self._ensure_object(data, sha)
+            self._files.ensure(data, sha)
             with self._write() as db:
                 # a concurrent writer may have dropped an identical, then-unreferenced file
                 # between our check and this transaction; writes are serialised, so re-check here
                 if not self.object_path(sha).exists():
-                    self._write_object(data, sha)
+                    self._files.write(data, sha)
                 old = db.execute("SELECT sha256 FROM frames WHERE session_id = ? AND step = ? AND "
                                  "bracket_index = ? AND repeat = ?",
                                  (session_id, step, bracket_index, repeat)).fetchone()
@@ -1077,14 +684,14 @@ class Store:
         frame_ids = sorted(set(int(i) for i in input_frames))
         blobs = {name: (hashlib.sha256(blob).hexdigest(), blob)
                  for name, blob in (artifacts or {}).items()}
-        version = code_version()  # may run git: never while holding the database's write lock
+        code = version.code_version()  # may run git: never while holding the database's write lock
         with self._writing():
             for sha, blob in blobs.values():
-                self._ensure_object(blob, sha)
+                self._files.ensure(blob, sha)
             with self._write() as db:
                 for sha, blob in blobs.values():  # as in add_frame: re-check inside
                     if not self.object_path(sha).exists():
-                        self._write_object(blob, sha)
+                        self._files.write(blob, sha)
                 stored = {name: (sha, len(blob)) for name, (sha, blob) in blobs.items()}
                 if frame_ids:
                     known = db.execute(f"SELECT count(*) FROM frames WHERE session_id = ? AND id IN "
@@ -1096,7 +703,7 @@ class Store:
                 cur = db.execute("INSERT INTO results (session_id, category, kind, created, params_json, "
                                  "result_json, input_frames_json, code_version) VALUES (?,?,?,?,?,?,?,?)",
                                  (session_id, category, kind, time.time(), _dumps(params or {}),
-                                  _dumps(result), _dumps(frame_ids), version))
+                                  _dumps(result), _dumps(frame_ids), code))
                 rid = cur.lastrowid
                 db.executemany("INSERT INTO result_objects (result_id, name, sha256, size) VALUES (?,?,?,?)",
                                [(rid, n, sha, size) for n, (sha, size) in stored.items()])
@@ -1136,12 +743,6 @@ class Store:
             return ({r[0] for r in db.execute("SELECT sha256 FROM frames")}
                     | {r[0] for r in db.execute("SELECT sha256 FROM result_objects")})
 
-    def _object_files(self) -> Iterator[Path]:
-        if self.objects.is_dir():
-            for sub in sorted(self.objects.iterdir()):
-                if sub.is_dir():
-                    yield from sorted(sub.iterdir())
-
     def orphans(self, *, min_age_s: float = 0.0) -> list[Path]:
         """Object files no row references, and temporary files of interrupted writes, last
         modified at least ``min_age_s`` seconds ago (a running writer's file in flight is young).
@@ -1149,8 +750,8 @@ class Store:
         refs = self._referenced()
         cutoff = time.time() - min_age_s
         out = []
-        for p in self._object_files():
-            if p.name.startswith(_TMP_PREFIX) or p.parent.name + p.name not in refs:
+        for p in self._files.files():
+            if p.name.startswith(TMP_PREFIX) or p.parent.name + p.name not in refs:
                 with contextlib.suppress(FileNotFoundError):
                     if p.stat().st_mtime <= cutoff:
                         out.append(p)
@@ -1273,8 +874,7 @@ class Store:
         object file is re-hashed while copied; a corrupt one aborts the export.
         """
         dest = Path(dest)
-        name = dest.name.lower()
-        archive = next((s for s in (".tar.gz", ".tgz", ".tar", ".zip") if name.endswith(s)), None)
+        archive = archive_suffix(dest)
         if dest.exists() and (archive or any(dest.iterdir())):
             raise StoreError(f"export destination {dest} already exists; choose a new path")
         info = self.session(session)
@@ -1308,21 +908,13 @@ class Store:
                 if not src.is_file():
                     raise StoreError(f"cannot export {session!r}: object {sha} is missing; "
                                      f"run 'gonio session verify {session}'")
-                if _copy_hashed(src, dst) != sha:
+                if copy_hashed(src, dst) != sha:
                     raise StoreError(f"cannot export {session!r}: object {sha} is corrupt; "
                                      f"run 'gonio session verify {session}'")
                 os.chmod(dst, 0o444)
             if archive is None:
                 return dest
-            if archive == ".zip":
-                with zipfile.ZipFile(dest, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
-                    for p in sorted(folder.rglob("*")):
-                        if p.is_file():
-                            z.write(p, p.relative_to(work))
-            else:
-                mode = "w:gz" if archive in (".tar.gz", ".tgz") else "w"
-                with tarfile.open(dest, mode) as t:
-                    t.add(folder, arcname=folder.name)
+            pack(folder, dest, archive)
             return dest
         except BaseException as exc:  # leave nothing half-exported behind
             if archive and dest.exists():
@@ -1341,3 +933,4 @@ class Store:
         finally:
             if archive:
                 shutil.rmtree(work, ignore_errors=True)
+

@@ -1,0 +1,74 @@
+"""Typed rows the store returns."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """One session row. ``plan`` is the canonical plan dict; times are Unix seconds."""
+
+    id: int
+    name: str
+    state: str
+    operator: str
+    object: str
+    notes: str
+    plan: dict[str, Any]
+    plan_hash: str
+    plan_path: str | None
+    created: float
+    updated: float
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One stored frame. Exposures in seconds; ``positions`` are read-backs (degrees, mm)."""
+
+    id: int
+    session_id: int
+    step: int
+    bracket_index: int
+    repeat: int
+    sha256: str
+    size: int
+    filename: str
+    format: str
+    exposure_requested_s: float | None
+    exposure_s: float | None
+    iso: float | None
+    fnumber: float | None
+    positions: dict[str, Any]
+    captured_at: float
+    stored_at: float
+    metadata: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Counts of a session: planned and done steps, planned frames, stored frames and bytes."""
+
+    steps_total: int
+    steps_done: int
+    frames_total: int
+    frames_stored: int
+    bytes_stored: int
+
+
+@dataclass
+class VerifyReport:
+    """Outcome of :meth:`Store.verify`: lists of SHA-256 names / paths, empty when all is well."""
+
+    checked: int = 0
+    missing: list[str] = field(default_factory=list)
+    corrupt: list[str] = field(default_factory=list)
+    orphans: list[str] = field(default_factory=list)
+    incomplete_steps: list[int] = field(default_factory=list)
+    #: sha256 -> where the session uses it (``step 3 frame 1 ...``, ``result dark #2 ...``)
+    where: dict[str, list[str]] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not (self.missing or self.corrupt or self.orphans or self.incomplete_steps)
+
