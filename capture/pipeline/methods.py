@@ -95,9 +95,9 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
 
 
 # -- Lensch et al. 2003 -------------------------------------------------------------------------
-def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, **options) -> Fitted:
     mod = _module("reconstruct.lensch", "fit_svbrdf_lumitexels", "lensch")
-    fit = mod.fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress)
+    fit = mod.fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress, **options)
 
     def predict(lt: Lumitexels) -> np.ndarray:
         return fit.predict(lt.texel, lt.wi, lt.wo)   # fitted normals applied

@@ -130,3 +130,33 @@ def test_existing_session_is_refused_untouched(tmp_path):
                                  "--store", str(tmp_path / "store")])
     assert r.exit_code == 2 and "already exists" in r.output
     assert st.progress(st.session("diligent-ball").id) == before and len(st.sessions()) == 1
+
+
+def test_process_runs_on_an_imported_set_and_says_what_it_skips(tmp_path):
+    """``gonio process`` on an imported set: no mesh asked for, every calibration stage listed as
+    skipped with its reason, sharing and passive skipped (no polarization, no probe), the
+    Lambertian reference relights the held-out lights of a Lambertian sphere to within the
+    16-bit quantisation, and results are stored with the frames they came from."""
+    write_set(tmp_path / "ball")
+    import_diligent(tmp_path / "ball", tmp_path / "store")
+    r = CliRunner().invoke(app, ["process", "diligent-ball", "--store", str(tmp_path / "store"),
+                                 "--methods", "lambertian,sharing,passive", "--json", "-q"])
+    assert r.exit_code == 0, r.output
+    import json
+    out = json.loads(r.output[r.output.index("{"):])
+    stages = {c["stage"]: c for c in out["calibration"]}
+    assert stages["turntable"]["status"] == "skipped" and "no turntable" in stages["turntable"]["reason"]
+    assert stages["lights_directional"]["status"] == "stored"
+    methods = {m["method"]: m for m in out["methods"]}
+    assert methods["sharing"]["status"] == "skipped" and "polariz" in methods["sharing"]["reason"]
+    assert methods["passive"]["status"] == "skipped" and "probe" in methods["passive"]["reason"]
+    assert methods["lambertian"]["status"] == "ok"
+    assert methods["lambertian"]["figures"]["held_out_rel_rms"] < 2e-3
+    # least squares is biased where a training light grazes the rim (attached shadow clipped to
+    # 0); the robust variant drops those lights
+    assert out["inputs"]["normal_error_robust_deg"] < 0.2
+    assert out["inputs"]["normal_error_robust_deg"] < out["inputs"]["normal_error_least_squares_deg"] < 2
+    st = Store.open(tmp_path / "store")
+    info = st.session("diligent-ball")
+    (res,) = st.results(info.id, "reconstruction")
+    assert len(res["input_frames"]) == 10 and "model.npz" in res["artifacts"]
