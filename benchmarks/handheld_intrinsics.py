@@ -60,10 +60,10 @@ def intrinsics_errors(store: Store, name: str, lab: DemoLab) -> dict:
     if stage.status != "ok":
         raise RuntimeError(f"intrinsics {stage.status}: {stage.reason}")
     f, true = stage.figures, lab.truth().camera.K
-    stored = [r for r in store.results(store.session(name).id, "calibration") if r["kind"] == "intrinsics"][-1]
+    stored = [r for r in store.results(store.session(name).id, "calibration") if r.kind == "intrinsics"][-1]
     return {"f_err_pct": 100 * (np.array([f["fx_px"], f["fy_px"]]) / true[0, 0] - 1),
             "pp_err_px": np.array([f["cx_px"], f["cy_px"]]) - true[:2, 2],
-            "pp_std_px": np.asarray(stored["result"]["K_std"], float)[2:4], "figures": f}
+            "pp_std_px": np.asarray(stored.result["K_std"], float)[2:4], "figures": f}
 
 
 def main() -> None:

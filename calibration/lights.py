@@ -591,7 +591,7 @@ def fit_positioner_model(azimuth_deg, elevation_deg, positions_mm, *, rays=None,
     them (spheres 200 mm apart seeing a lamp 500 mm away: ~5x worse in depth); the arm model
     ties all poses together, and fitting it to the rays themselves weighs each direction by what
     it measures instead of trusting every triangulated depth alike (simulated lab, 9 poses at
-    320 x 240: worst light 2.3 % -> see docs/architecture.md).
+    320 x 240: worst light 2.3 % -> see docs/measurements.md).
 
     Parameters
     ----------

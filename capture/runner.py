@@ -239,6 +239,13 @@ class Runner:
             with contextlib.suppress(StoreFull):
                 self._set_state(state)
 
+    def on_frame_stored(self, callback: Callable[[int, int], None] | None) -> None:
+        """Call ``callback(frames_done, frames_total)`` of the whole session after every stored
+        frame (the counts the ``frame_stored`` events carry); None: nothing to call."""
+        if callback is not None:
+            self.bus.subscribe(lambda e: callback(e.data["frames_done"], e.data["frames_total"])
+                               if e.kind == EventKind.FRAME_STORED else None)
+
     # -- the run ------------------------------------------------------------------------------
     def run(self) -> str:
         """Run (or resume) the session until done, paused or aborted; return that state.
@@ -389,9 +396,9 @@ class Runner:
         at the first measurement pose (the metering shots are kept as a calibration result)."""
         sid, plan_exposure = self._session.id, self._session.plan["exposure"]
         base = plan_exposure["base_s"]
-        stored = [r for r in self.store.results(sid, "calibration") if r["kind"] == "metering"]
+        stored = [r for r in self.store.results(sid, "calibration") if r.kind == "metering"]
         if stored:
-            metered = stored[-1]["result"]["exposure_s"]
+            metered = stored[-1].result["exposure_s"]
         else:
             step = next((s for s in steps if s.kind == "measure"),
                         next(s for s in steps if s.auto_exposure))

@@ -1,4 +1,4 @@
-"""The device API every driver implements (see docs/architecture.md).
+"""The device API every driver implements (see docs/measurements.md).
 
 - Every device: ``connect()``, ``close()``, ``read() -> dict``, ``describe() -> dict``, and use as a
   context manager.

@@ -24,6 +24,7 @@ from rich.table import Table
 from rig.tomlfile import read_toml
 
 from ..pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
+from ..pipeline.progress import Progress as PipelineProgress
 from .session import STORE_OPTION, fail, open_store
 from ..store import SessionNotFound, StoreError, check_session_name, inside
 
@@ -76,8 +77,9 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
                       console=Console(stderr=True), transient=True, disable=quiet) as progress:
             task = progress.add_task("calibrate", total=len(STAGES), stage="")
 
-            def advance(stage: str, index: int, total: int) -> None:
-                progress.update(task, completed=index, stage=stage)
+            def advance(p: PipelineProgress) -> None:
+                part = p.part if p.part_total is None else f"{p.part} {p.part_done}/{p.part_total}"
+                progress.update(task, completed=p.done, stage=part)
 
             try:
                 report = calibrate_session(st, session, progress=advance, targets=lab_targets,

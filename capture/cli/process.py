@@ -11,6 +11,7 @@ inputs (no measurement steps, a stage of the calibration missing: the message sa
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import typer
 from rich.console import Console
@@ -18,6 +19,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
+from ..pipeline.progress import Progress as PipelineProgress
 from ..store import SessionNotFound
 from .calibrate import _targets
 from .session import STORE_OPTION, fail, open_store
@@ -25,14 +27,16 @@ from .session import STORE_OPTION, fail, open_store
 EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS = 0, 1, 3
 
 
-def progress_bar(quiet: bool) -> tuple[Progress, callable]:
-    """A rich progress bar on stderr and the ``progress(stage, done, total)`` callable feeding it."""
+def progress_bar(quiet: bool) -> tuple[Progress, Callable[[PipelineProgress], None]]:
+    """A rich progress bar on stderr and the progress sink (:mod:`capture.pipeline.progress`)
+    feeding it."""
     bar = Progress(TextColumn("{task.fields[stage]:<12}"), BarColumn(), MofNCompleteColumn(),
                    console=Console(stderr=True), transient=True, disable=quiet)
     task = bar.add_task("process", total=1, stage="")
 
-    def update(stage: str, done: int, total: int) -> None:
-        bar.update(task, completed=done, total=max(total, 1), stage=stage)
+    def update(p: PipelineProgress) -> None:
+        label = f"{p.stage} {p.part}" if p.part else p.stage
+        bar.update(task, completed=p.done, total=max(p.total, 1), stage=label)
     return bar, update
 
 

@@ -21,6 +21,7 @@ import inspect
 import json
 import re
 from collections import Counter
+from dataclasses import asdict
 from pathlib import Path
 from typing import Iterator
 
@@ -175,7 +176,8 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
                                "created": info.created, "updated": info.updated,
                                "progress": p.__dict__, "steps_by_kind": kinds,
                                "rig": snaps[-1] if snaps else None, "faults": faults,
-                               "events": recent, "results": results}, indent=2, default=str))
+                               "events": recent, "results": [asdict(r) for r in results]},
+                               indent=2, default=str))
         return
     c = Console(width=140, highlight=False)
     e = escape  # every stored text is the user's (names, plan, device messages): never markup
@@ -209,9 +211,9 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
                           e(ev["device"] or ""), e(ev["message"]))
         c.print(table)
     for r in results:
-        c.print(e(f"{r['category']} {r['kind']} #{r['id']} ({_when(r['created'])}, {r['code_version']}, "
-                  f"{len(r['input_frames'])} input frames, artifacts: "
-                  f"{', '.join(r['artifacts']) or '-'})"))
+        c.print(e(f"{r.category} {r.kind} #{r.id} ({_when(r.created)}, {r.code_version}, "
+                  f"{len(r.input_frames)} input frames, artifacts: "
+                  f"{', '.join(r.artifacts) or '-'})"))
 
 
 @app.command()

@@ -72,9 +72,11 @@ from calibration.targets import TargetDetection, detect_charuco, detect_chessboa
 from calibration.turntable import TurntableFit, consistent_corner_order, fit_turntable, lab_frame
 
 from ..plan import CALIBRATION_KINDS
+from ..rigs import recorded_in_built_in_lab
 from ..store import FrameRecord, SessionNotFound, Store, StoreError
 from .images import FrameDataError, SessionImages, dark_artifact_name, exposure_s
 from .process import object_pose
+from .progress import Progress, ProgressSink
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
            "NothingToCalibrate", "calibrate_session", "SessionNotFound"]
@@ -346,7 +348,7 @@ class _Context:
         self.frames: dict[int, list[FrameRecord]] = self.images.by_step
         self.hdr: dict[int, np.ndarray] = {}           # calibration step -> (H, W, 3) radiance
         self.bad_steps: set[int] = set()               # steps whose frames could not be merged
-        self.tick: Callable[[str], None] = lambda label: None  # progress inside a stage
+        self.tick: Callable[[int, int], None] = lambda done, total: None  # progress inside a stage
         # what the stages made for the later ones (None: that stage did not succeed)
         self.intrinsics: IntrinsicsResult | None = None
         self.detections: dict[int, TargetDetection] = {}    # checkerboard step -> corners
@@ -422,7 +424,7 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         raise _Skip("no frames besides dark frames in this session")
     per_step, example, errors = [], None, []
     for k, s in enumerate(steps):
-        ctx.tick(f"hdr {k + 1}/{len(steps)} steps")
+        ctx.tick(k + 1, len(steps))
         try:
             im = ctx.images.merge(s)
         except (CalibrationError, FrameDataError) as exc:  # an unreadable frame loses its step only
@@ -950,10 +952,9 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
 
 def _session_targets(store: Store, info) -> LabTargets:
     """The built-in simulated lab's targets for a session recorded in it; else TargetsNeeded."""
-    from ..rigs import recorded_in_built_in_lab
     snapshots = store.rig_snapshots(info.id)
     if recorded_in_built_in_lab(snapshots):
-        from .demo_lab import DemoLab
+        from .demo_lab import DemoLab  # demo_lab imports LabTargets from here: a circle until it moves out
         return DemoLab().targets()
     rigs = {str(s["config"].get("rig", {}).get("name", "a rig file")) for s in snapshots}
     fields_ = ", ".join(f.name for f in fields(LabTargets))
@@ -965,7 +966,7 @@ def _session_targets(store: Store, info) -> LabTargets:
 
 
 def calibrate_session(store: Store, session_name: str, *,
-                      progress: Callable[[str, int, int], None] | None = None,
+                      progress: ProgressSink | None = None,
                       targets: LabTargets | None = None, stages: tuple[str, ...] = STAGES,
                       measurement_hdr: bool = True) -> CalibrationReport:
     """Run every calibration the session's captures allow and store the results.
@@ -975,9 +976,10 @@ def calibrate_session(store: Store, session_name: str, *,
     store : Store
         The session store (results are added with :meth:`Store.add_calibration`).
     session_name : str
-    progress : callable(label, index, total), optional
-        Called before each stage with its name (``index`` 0-based of ``total`` stages), during
-        the long hdr stage with ``'hdr k/n steps'``, and once with ``('done', total, total)``.
+    progress : callable(Progress), optional
+        Receives ``Progress("calibration", i, total, part=stage)`` before each stage (``i``
+        0-based of ``total`` stages), with ``part_done`` / ``part_total`` steps merged during the
+        long hdr stage, and ``Progress("calibration", total, total)`` at the end.
     targets : LabTargets, optional
         Physical targets (board geometry, sphere radius, card albedo); default: the built-in
         simulated lab's (:meth:`capture.pipeline.demo_lab.DemoLab.targets`) when every rig
@@ -1033,13 +1035,14 @@ def calibrate_session(store: Store, session_name: str, *,
     try:
         for i, name in enumerate(STAGES):
             if progress is not None:
-                progress(name, i, total)
-                ctx.tick = lambda label, i=i: progress(label, i, total)
+                progress(Progress("calibration", i, total, part=name))
+                ctx.tick = lambda done, n, i=i, name=name: progress(
+                    Progress("calibration", i, total, part=name, part_done=done, part_total=n))
             started = time.perf_counter()
             rep.stages.append(_run_stage(ctx, rep, name, name in stages))
             rep.stages[-1].seconds = round(time.perf_counter() - started, 3)
     finally:
         cv2.setNumThreads(threads)
     if progress is not None:
-        progress("done", total, total)
+        progress(Progress("calibration", total, total))
     return rep

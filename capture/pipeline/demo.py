@@ -17,13 +17,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .demo_lab import FAST_RESOLUTION, FULL_RESOLUTION
-from ..events import EventKind
-from .run import ProcessReport, process_session
 from ..plan import Plan
 from ..rigs import open_rig
 from ..runner import Runner, create_session
 from ..store import Store
+from .demo_lab import FAST_RESOLUTION, FULL_RESOLUTION
+from .progress import ProgressSink, counter
+from .run import ProcessReport, process_session
 
 __all__ = ["DEMO_PLANS", "DemoSettings", "run_demo", "demo_plan"]
 
@@ -48,7 +48,7 @@ def demo_plan(quick: bool) -> DemoSettings:
 
 
 def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
-             progress: Callable[[str, int, int], None] | None = None,
+             progress: ProgressSink | None = None,
              say: Callable[[str], None] = lambda text: None) -> ProcessReport:
     """Capture, calibrate, reconstruct and report on the simulated lab.
 
@@ -58,7 +58,7 @@ def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
         A folder for the store and the report (created; default: a new temporary folder).
     quick : bool
         The small plan at 320 x 240 (under 3 minutes on 2 cores) instead of the full one.
-    progress : callable(stage, done, total), optional
+    progress : callable(Progress), optional
         ``capture`` (frames stored of the plan's), then the stages of :func:`process_session`.
     say : callable(str), optional
         Receives one-line news for the console (folders, what is happening).
@@ -78,10 +78,7 @@ def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
         with open_rig("sim", fast=True, home=True, resolution=settings.resolution) as opened:
             name = create_session(store, plan, opened.rig, name=plan.name, reserve_bytes=0).name
             runner = Runner(opened.rig, store, name, reserve_bytes=0, prepare_target=opened.prepare_target)
-            if progress is not None:
-                runner.bus.subscribe(lambda e: progress("capture", e.data.get("frames_done", 0),
-                                                        e.data.get("frames_total", 1))
-                                     if e.kind == EventKind.FRAME_STORED else None)
+            runner.on_frame_stored(counter(progress, "capture"))
             say(f"capturing {settings.plan.name} on the simulated lab ({settings.resolution[0]} x "
                 f"{settings.resolution[1]} camera)")
             state = runner.run()

@@ -40,9 +40,9 @@ from reconstruct.camera import CameraModel
 from reconstruct.raycast import Mesh, Plane
 from reconstruct.render import SceneObject
 from sims.objects import OBJECTS, GroundTruthObject, make_object
-from sims.targets import CHROME_REFLECTANCE, CharucoTarget, GrayCard
-from sims.world import (LIGHT_INTENSITY, SimWorld, Target, board_on_turntable, default_camera,
-                        light_position, spheres_target, standing_pose)
+from sims.targets import CHROME_REFLECTANCE, GrayCard
+from sims.world import (CAPTURE_CHARUCO, LIGHT_INTENSITY, SimWorld, Target, board_on_turntable,
+                        default_camera, light_position, spheres_target, standing_pose)
 
 from .calibrate import LabTargets
 from .process import GrayCardPose
@@ -54,8 +54,8 @@ from .process import GrayCardPose
 #: 240: ~1 s), an hour for examples/demo.toml.
 FAST_RESOLUTION = (320, 240)
 FULL_RESOLUTION = (640, 480)
-#: the demo's calibration board (fills much of the 320 x 240 frame)
-BOARD = CharucoTarget(squares=(10, 7), square_mm=28.0, marker_mm=21.0)
+#: the demo's calibration board (fills much of the 320 x 240 frame): the simulated lab's one board
+BOARD = CAPTURE_CHARUCO
 SPHERE_RADIUS_MM = 25.0
 #: the lamp's diffuser radius as the spheres see it: its highlight spans a few pixels
 SPHERES_LAMP_RADIUS_MM = 60.0

@@ -136,7 +136,7 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
     rep = ProcessReport(session)
     rep.calibration = [{"stage": s, "status": "skipped", "reason": why, "figures": {}}
                        for s, why in SKIPPED_STAGES.items()]
-    rep.calibration += [{"stage": r["kind"], "status": "stored", "reason": f"result {r['id']} "
+    rep.calibration += [{"stage": r.kind, "status": "stored", "reason": f"result {r.id} "
                          "(given with the set)", "figures": {}}
                         for r in store.results(info.id, "calibration")]
     t0 = time.perf_counter()
@@ -155,13 +155,13 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
                          view_frames=frames, notes=[
                              "passive: " + SKIPPED_STAGES["probe"],
                              "sharing: no polarization-separated images in an imported set"])
-    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+    stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
     for name in methods:
         if name in stored and not force:
-            rep.methods.append(MethodOutcome(name, "done", f"stored before (result {stored[name]['id']});"
+            rep.methods.append(MethodOutcome(name, "done", f"stored before (result {stored[name].id});"
                                              " --force re-runs it",
-                                             figures=stored[name]["result"].get("figures", {}),
-                                             result_id=stored[name]["id"]))
+                                             figures=stored[name].result.get("figures", {}),
+                                             result_id=stored[name].id))
             continue
         started = time.perf_counter()
         sub = None if progress is None else (lambda d, t, n=name: progress(n, d, t))

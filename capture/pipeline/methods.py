@@ -4,8 +4,9 @@ Each adapter takes the session's training lumitexels (and the rest of
 :class:`capture.process.ProcessInputs`) and returns a :class:`Fitted`: a per-sample predictor
 (reflectance ``f_r cos theta_i`` of any lumitexels on the same texels, so held-out samples score
 the model), the arrays to store, the parameters it ran with and its headline figures. An adapter
-raises :class:`MethodSkipped` with the reason when the captures do not allow the method or its
-code is not installed, so ``gonio process`` can say which methods it skipped and why.
+raises :class:`MethodSkipped` with the reason when the captures do not allow the method, so
+``gonio process`` can say which methods it skipped and why. The methods' code is imported plainly:
+a broken dependency fails the import, never turns into a skipped method.
 
 ``lambertian`` is the reference every method must beat: one albedo per texel (closed-form least
 squares of ``r = albedo / pi * cos theta_i``), the model a photograph without a reflectance
@@ -13,7 +14,6 @@ capture implies.
 """
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -21,7 +21,10 @@ import numpy as np
 
 from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.frames import tangent_frames, to_world
+from reconstruct.lensch import fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
+from reconstruct.passive import passive_reflectometry
+from reconstruct.sharing import fit_spatial
 
 from .process import ProcessInputs
 
@@ -65,17 +68,6 @@ class Fitted:
     normals: np.ndarray | None = None
 
 
-def _module(name: str, attr: str, method: str):
-    """The reconstruction module ``name`` if it offers ``attr``, else skip ``method``."""
-    try:
-        mod = importlib.import_module(name)
-    except ModuleNotFoundError:
-        raise MethodSkipped(f"{method}: {name} is not part of this gonio yet") from None
-    if not hasattr(mod, attr):
-        raise MethodSkipped(f"{method}: {name} has no {attr} yet")
-    return mod
-
-
 # -- reference: one albedo per texel ------------------------------------------------------------
 def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
     cos = train.wi[:, 2].astype(np.float64)
@@ -96,8 +88,7 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
 
 # -- Lensch et al. 2003 -------------------------------------------------------------------------
 def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, **options) -> Fitted:
-    mod = _module("reconstruct.lensch", "fit_svbrdf_lumitexels", "lensch")
-    fit = mod.fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress, **options)
+    fit = fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress, **options)
 
     def predict(lt: Lumitexels) -> np.ndarray:
         return fit.predict(lt.texel, lt.wi, lt.wo)   # fitted normals applied
@@ -120,13 +111,12 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
     if train.diffuse is None or train.specular is None:
         raise MethodSkipped("sharing: no polarized frames (the dichromatic model needs parallel and "
                             "crossed captures of each pose)")
-    mod = _module("reconstruct.sharing", "fit_spatial", "sharing")
     xy = _surface_xy(train.position)
     cos = np.maximum(train.wi[:, 2:3], 1e-6)
-    fit = mod.fit_spatial(xy[train.texel], train.wi, train.wo, None, texel=train.texel,
-                          diffuse=train.diffuse / cos, specular=train.specular / cos,
-                          max_centers=max_centers, fit_normals=fit_normals, m_xy=m_xy, rng=rng,
-                          progress=progress)
+    fit = fit_spatial(xy[train.texel], train.wi, train.wo, None, texel=train.texel,
+                      diffuse=train.diffuse / cos, specular=train.specular / cos,
+                      max_centers=max_centers, fit_normals=fit_normals, m_xy=m_xy, rng=rng,
+                      progress=progress)
 
     def per_texel(t: np.ndarray) -> BRDF:   # about the fitted normals, where there are
         t = np.asarray(t)
@@ -165,9 +155,8 @@ def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
         why = "; ".join(n for n in inputs.notes if "passive" in n) or \
             "no passive capture (add [[calibration]] kind = \"passive\": lamp off, room lit)"
         raise MethodSkipped(f"passive: {why}")
-    mod = _module("reconstruct.passive", "passive_reflectometry", "passive")
-    fit = mod.passive_reflectometry(p.image, p.normals, p.mask, p.environment, view_dirs=p.view_dirs,
-                                    environment_weight=p.environment_weight, rng=rng, progress=progress)
+    fit = passive_reflectometry(p.image, p.normals, p.mask, p.environment, view_dirs=p.view_dirs,
+                                environment_weight=p.environment_weight, rng=rng, progress=progress)
     brdf = fit.brdf
 
     def predict(lt: Lumitexels) -> np.ndarray:
@@ -204,7 +193,7 @@ def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int 
     Raises
     ------
     MethodSkipped
-        The session's captures do not allow it, or its code is not installed (says which).
+        The session's captures do not allow it (says why).
     ValueError
         ``name`` is not a method.
     """

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 import trimesh
@@ -44,7 +44,7 @@ from reconstruct.envmap import EnvironmentMap
 from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
 from reconstruct.raycast import Mesh, Surface, first_hits
 
-from ..store import Store
+from ..store import ResultRecord, Store
 from .images import FrameDataError, SessionImages, StepImage
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
@@ -122,15 +122,12 @@ def object_pose(angle_deg: float) -> np.ndarray:
     return T
 
 
-def _latest(store: Store, session_id: int) -> dict[str, dict[str, Any]]:
+def _latest(store: Store, session_id: int) -> dict[str, ResultRecord]:
     """The newest stored calibration result of each kind."""
-    out: dict[str, dict[str, Any]] = {}
-    for r in store.results(session_id, "calibration"):
-        out[r["kind"]] = r
-    return out
+    return {r.kind: r for r in store.results(session_id, "calibration")}
 
 
-def _need(results: dict, kind: str, stage: str, why: str) -> dict[str, Any]:
+def _need(results: dict[str, ResultRecord], kind: str, stage: str, why: str) -> ResultRecord:
     if kind not in results:
         raise MissingCalibration(f"no stored {stage} calibration ({why}); run `gonio calibrate` on the "
                                  "session and check that stage")
@@ -152,19 +149,19 @@ def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | No
     """
     info = store.session(session)
     res = _latest(store, info.id)
-    intr = _need(res, "intrinsics", "intrinsics", "the camera matrix")["result"]
-    tt = _need(res, "turntable", "turntable", "the lab frame and the object's pose per turntable angle")["result"]
+    intr = _need(res, "intrinsics", "intrinsics", "the camera matrix").result
+    tt = _need(res, "turntable", "turntable", "the lab frame and the object's pose per turntable angle").result
     w, h = intr["image_size"]
     lab = tt["lab_to_camera"]
     camera = CameraModel(K=np.array(intr["K"]), width=int(w), height=int(h), dist=np.array(intr["dist"]),
                          R=np.array(lab["R"]), t=np.array(lab["t_mm"]))
     steps = {i: d for i, d, _ in store.steps(info.id)}
     lights, source = _step_lights(res, steps)
-    ids = {k: r["id"] for k, r in res.items()}
+    ids = {k: r.id for k, r in res.items()}
     intensity, absolute = _light_intensity(res, steps, lights, tt, gray_card)
     env, weight = None, None
-    if "environment_map" in res and "environment.npz" in res["environment_map"]["artifacts"]:
-        with np.load(io.BytesIO(store.read_object(res["environment_map"]["artifacts"]["environment.npz"]))) as z:
+    if "environment_map" in res and "environment.npz" in res["environment_map"].artifacts:
+        with np.load(io.BytesIO(store.read_object(res["environment_map"].artifacts["environment.npz"]))) as z:
             if not 0 < probe_reflectance <= 1:
                 raise ValueError(f"probe_reflectance must be in (0, 1], got {probe_reflectance!r}")
             env = EnvironmentMap(np.maximum(z["env"], 0.0) / probe_reflectance)
@@ -187,9 +184,9 @@ def _step_lights(res: dict, steps: dict[int, dict]) -> tuple[dict[int, np.ndarra
     """A light position (lab, mm) for every step with a light: from the positioner model when it
     was fitted, else from the lights stage's measurement at the same commanded light."""
     if "positioner_model" in res:
-        rows = res["positioner_model"]["result"]["step_lights"]
+        rows = res["positioner_model"].result["step_lights"]
         return {int(r["step"]): np.asarray(r["position_lab_mm"], float) for r in rows}, "positioner"
-    rows = _need(res, "light_positions", "lights", "where the lamp was for each capture")["result"]["lights"]
+    rows = _need(res, "light_positions", "lights", "where the lamp was for each capture").result["lights"]
     by_key = {}
     for r in rows:
         if "position_lab_mm" in r and _light_key(r.get("commanded")) is not None:
@@ -207,7 +204,7 @@ def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
     gc = res.get("gray_card")
     if gc is None:
         return np.ones(3), False
-    r = gc["result"]
+    r = gc.result
     albedo = float(r["albedo"])
     estimates = []
     for row in r["cards"]:
@@ -407,8 +404,8 @@ def session_images(store: Store, session: str) -> SessionImages:
     images = SessionImages(store, session)
     dark = _latest(store, images.info.id).get("dark")
     if dark is not None:
-        images.use_stored_darks([row["exposure_s"] for row in dark["result"]["darks"]],
-                                dark["artifacts"], dark["result"].get("read_noise_dn"))
+        images.use_stored_darks([row["exposure_s"] for row in dark.result["darks"]],
+                                dark.artifacts, dark.result.get("read_noise_dn"))
     return images
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..store import Store
+from ..store import ResultRecord, Store
 from .pictures import SLICE_THETA_I_DEG
 
 __all__ = ["write_html_report", "METHOD_NOTES"]
@@ -198,10 +198,10 @@ def _lights_figure(rows: list[dict[str, Any]]) -> str:
 
 def _environment_figure(store: Store, session_id: int) -> str:
     import matplotlib.pyplot as plt
-    probe = [r for r in store.results(session_id, "calibration") if r["kind"] == "environment_map"]
-    if not probe or "environment.npz" not in probe[-1]["artifacts"]:
+    probe = [r for r in store.results(session_id, "calibration") if r.kind == "environment_map"]
+    if not probe or "environment.npz" not in probe[-1].artifacts:
         return ""
-    with np.load(io.BytesIO(store.read_object(probe[-1]["artifacts"]["environment.npz"]))) as z:
+    with np.load(io.BytesIO(store.read_object(probe[-1].artifacts["environment.npz"]))) as z:
         env, weight = z["env"], z["weight"]
     fig, ax = plt.subplots(figsize=(7, 3.6))
     img = _tonemap(env, float(np.percentile(env, 99)) or 1.0) * np.clip(weight, 0, 1)[..., None]
@@ -241,13 +241,13 @@ def _calibration_section(rep, truth, store: Store, session_id: int) -> str:
     return "\n".join(parts)
 
 
-def _method_section(i: int, outcome, stored: dict | None, pics: dict[str, np.ndarray] | None) -> str:
+def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str, np.ndarray] | None) -> str:
     name = outcome.method
     parts = [f"<h3>{i}. {html.escape(name)}</h3>", f"<p>{html.escape(METHOD_NOTES.get(name, ''))}</p>"]
     if outcome.status in ("skipped", "failed"):
         parts.append(f"<p class='{outcome.status}'><b>{outcome.status}</b>: {html.escape(outcome.reason)}</p>")
         return "\n".join(parts)
-    figures = (stored or {}).get("result", {}).get("figures", outcome.figures)
+    figures = outcome.figures if stored is None else stored.result.get("figures", outcome.figures)
     rows = [{"measure": k, "value": v} for k, v in figures.items() if k != "table_ii_rms"]
     parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
                  "the captures under lights it never saw (<b>_trimmed</b>: without the 1 % worst samples, which "
@@ -257,7 +257,7 @@ def _method_section(i: int, outcome, stored: dict | None, pics: dict[str, np.nda
         parts.append("<p>Lensch Table II: the RMS fitting error after each stage (single average BRDF, "
                      "per cluster, projection, PFA, normal fitting) — it should fall from left to right.</p>"
                      + _table([figures["table_ii_rms"]]))
-    warnings = (stored or {}).get("result", {}).get("warnings", outcome.warnings)
+    warnings = outcome.warnings if stored is None else stored.result.get("warnings", outcome.warnings)
     if warnings:
         parts.append("<ul class='warn'>" + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul>")
     if pics:
@@ -286,7 +286,7 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
     import matplotlib
     matplotlib.use("Agg")
     info = store.session(session)
-    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+    stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
     prog = store.progress(info.id)
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>gonio: {html.escape(session)}</title>"
              f"<style>{_CSS}</style></head><body>",
@@ -297,11 +297,14 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
              "recovered the object's reflectance; each is judged by predicting captures under lights it "
              "was never shown." + (" This session comes from the simulated lab, so every figure is also "
                                    "compared with the ground truth." if truth is not None else "") + "</p>"]
+    def figures(m) -> dict:
+        r = stored.get(m.method)
+        return m.figures if r is None else r.result.get("figures", m.figures)
+
     headline = [{"method": m.method, "status": m.status,
-                 "held-out rel. RMS": (stored.get(m.method, {}).get("result", {}).get("figures", m.figures)
-                                       .get("held_out_rel_rms", float("nan"))),
-                 **({"vs truth rel. RMS": stored.get(m.method, {}).get("result", {}).get("figures", m.figures)
-                     .get("truth_rel_rms", float("nan"))} if truth is not None else {})}
+                 "held-out rel. RMS": figures(m).get("held_out_rel_rms", float("nan")),
+                 **({"vs truth rel. RMS": figures(m).get("truth_rel_rms", float("nan"))}
+                    if truth is not None else {})}
                 for m in rep.methods]
     parts.append("<h2>Summary</h2>" + _table(headline))
     plan = info.plan
@@ -318,8 +321,8 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
     for i, m in enumerate(rep.methods, 1):
         pics = None
         r = stored.get(m.method)
-        if r is not None and "report.npz" in r["artifacts"]:
-            with np.load(io.BytesIO(store.read_object(r["artifacts"]["report.npz"]))) as z:
+        if r is not None and "report.npz" in r.artifacts:
+            with np.load(io.BytesIO(store.read_object(r.artifacts["report.npz"]))) as z:
                 pics = {k: z[k] for k in z.files}
         parts.append(_method_section(i, m, r, pics))
     parts.append("<h2>5. Timings</h2>" + _table([{"stage": k, "seconds": v} for k, v in rep.timings.items()]))

@@ -16,12 +16,13 @@ model's error against the truth on the held-out samples.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import trimesh
@@ -33,10 +34,13 @@ from reconstruct.metrics import relative_rms, trimmed_relative_rms
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
+from .progress import Progress, ProgressSink, counter
 from .process import (GrayCardPose, ProcessInputs, SessionCalibration, lumitexels_with_held_out,
                       read_calibration, session_inputs)
 from .report_html import write_html_report
+from ..rigs import recorded_in_built_in_lab
 from ..store import Store
+from .demo_lab import demo_lab_for
 
 __all__ = ["MethodOutcome", "ProcessReport", "process_session"]
 
@@ -82,27 +86,21 @@ class ProcessReport:
 
 
 class _Clock:
-    def __init__(self, report: ProcessReport, progress) -> None:
+    """Times each stage into the report and announces it to the progress sink."""
+
+    def __init__(self, report: ProcessReport, progress: ProgressSink | None) -> None:
         self.report, self.progress = report, progress
 
-    def stage(self, name: str):
-        clock = self
-
-        class _Timer:
-            def __enter__(self):
-                if clock.progress is not None:
-                    clock.progress(name, 0, 1)
-                self.t = time.perf_counter()
-
-            def __exit__(self, *exc):
-                clock.report.timings[name] = round(clock.report.timings.get(name, 0.0)
-                                                   + time.perf_counter() - self.t, 3)
-        return _Timer()
-
-    def sub(self, name: str) -> Callable[[int, int], None] | None:
-        if self.progress is None:
-            return None
-        return lambda done, total: self.progress(name, done, total)
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        if self.progress is not None:
+            self.progress(Progress(name, 0, 1))
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.report.timings[name] = round(self.report.timings.get(name, 0.0)
+                                              + time.perf_counter() - started, 3)
 
 
 def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFAULT_METHODS,
@@ -110,7 +108,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                     gray_card: GrayCardPose | None = None, probe_reflectance: float | None = None, truth=None,
                     force: bool = False, rng: int = 0,
                     method_options: dict[str, dict[str, Any]] | None = None,
-                    progress: Callable[[str, int, int], None] | None = None,
+                    progress: ProgressSink | None = None,
                     report_path: str | Path | None = None) -> ProcessReport:
     """Calibrate (if needed), build the inputs, run and store each method, write the report.
 
@@ -143,8 +141,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     method_options : dict of str -> dict, optional
         Per method, its own options (:func:`capture.methods.fit_method`; they replace the built-in
         lab's for that method).
-    progress : callable(stage, done, total), optional
-        Stage name and progress within it.
+    progress : callable(Progress), optional
+        Each stage as it starts and its progress (:mod:`capture.pipeline.progress`).
     report_path : path, optional
         Where to write the HTML report (default: ``<session>-report.html`` beside the store).
 
@@ -177,23 +175,23 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     rep = ProcessReport(session)
     clock = _Clock(rep, progress)
     with clock.stage("calibration"):
-        rep.calibration = _calibration(store, session, targets, force, clock.sub("calibration"))
+        rep.calibration = _calibration(store, session, targets, force, progress)
     cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
     if truth is not None:
         rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
-    stored = {r["kind"]: r for r in store.results(info.id, "reconstruction")}
+    stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
     todo = [m for m in methods if force or m not in stored]
-    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
-                                 figures=stored[m]["result"].get("figures", {}), result_id=stored[m]["id"],
-                                 warnings=stored[m]["result"].get("warnings", []))
+    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m].id}); --force re-runs it",
+                                 figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
+                                 warnings=stored[m].result.get("warnings", []))
                 for m in methods if m not in todo}
     if outcomes:
-        rep.inputs = stored[next(iter(outcomes))]["result"].get("inputs_summary", {})
+        rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
     if todo:
         with clock.stage("inputs"):
-            inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=clock.sub("inputs"))
+            inputs = session_inputs(store, session, calibration=cal, mesh=mesh, progress=counter(progress, "inputs"))
         with clock.stage("lumitexels"):
-            train, held = lumitexels_with_held_out(mesh, inputs, progress=clock.sub("lumitexels"))
+            train, held = lumitexels_with_held_out(mesh, inputs, progress=counter(progress, "lumitexels"))
         truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
         rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
                       "polarization_separated": inputs.separated, "texels": train.n_texels,
@@ -209,7 +207,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             started = time.perf_counter()
             with clock.stage(name):
                 outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                             rep.inputs, clock.sub(name), (method_options or {}).get(name, {}))
+                                             rep.inputs, counter(progress, name), (method_options or {}).get(name, {}))
             outcomes[name].seconds = round(time.perf_counter() - started, 3)
     rep.methods = [outcomes[m] for m in methods]
     with clock.stage("report"):
@@ -228,22 +226,20 @@ def _jsonable(obj: Any) -> Any:
 def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
     """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
     (at its frames' resolution), None for any other rig."""
-    from ..rigs import recorded_in_built_in_lab
     if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
         return None
-    from .demo_lab import demo_lab_for
     return demo_lab_for(store, session).process_options()
 
 
-def _calibration(store: Store, session: str, targets, force: bool, progress) -> list[dict[str, Any]]:
+def _calibration(store: Store, session: str, targets, force: bool,
+                 progress: ProgressSink | None) -> list[dict[str, Any]]:
     info = store.session(session)
     stored = [r for r in store.results(info.id, "calibration")]
     if stored and not force:
-        return [{"stage": r["kind"], "status": "stored", "reason": f"result {r['id']}", "figures": {}}
+        return [{"stage": r.kind, "status": "stored", "reason": f"result {r.id}", "figures": {}}
                 for r in stored]
     try:
-        report = calibrate_session(store, session, targets=targets, measurement_hdr=False,
-                                   progress=None if progress is None else (lambda label, i, n: progress(i, n)))
+        report = calibrate_session(store, session, targets=targets, measurement_hdr=False, progress=progress)
     except NothingToCalibrate as exc:
         return [{"stage": "calibration", "status": "skipped", "reason": str(exc), "figures": {}}]
     return [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,

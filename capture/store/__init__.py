@@ -11,12 +11,12 @@ from .errors import (ForeignDatabase, InvalidName, SchemaError, SessionBusy, Ses
 from .migrations import MIGRATIONS, SCHEMA_VERSION
 from .names import NAME_MAX, check_session_name, inside, safe_name_from
 from .objects import sha256_file
-from .records import FrameRecord, Progress, SessionInfo, VerifyReport
+from .records import FrameRecord, Progress, ResultRecord, SessionInfo, VerifyReport
 from .version import code_version
 
 __all__ = [
     "DB_NAME", "FULL_BELOW_BYTES", "MIGRATIONS", "NAME_MAX", "RESERVE_BYTES", "RESERVE_NAME",
-    "SCHEMA_VERSION", "STATES", "ForeignDatabase", "FrameRecord", "InvalidName", "Progress",
+    "SCHEMA_VERSION", "STATES", "ForeignDatabase", "FrameRecord", "InvalidName", "Progress", "ResultRecord",
     "SchemaError", "SessionBusy", "SessionExists", "SessionInfo", "SessionNotFound", "Store",
     "StoreDamaged", "StoreError", "StoreFull", "VerifyReport", "check_session_name",
     "code_version", "inside", "safe_name_from", "sha256_file",

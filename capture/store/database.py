@@ -41,7 +41,7 @@ from .errors import (ForeignDatabase, SchemaError, SessionBusy, SessionExists, S
 from .migrations import MIGRATIONS, SCHEMA_VERSION
 from .names import check_session_name, inside
 from .objects import TMP_PREFIX, ObjectFiles, copy_hashed, sha256_file
-from .records import FrameRecord, Progress, SessionInfo, VerifyReport
+from .records import FrameRecord, Progress, ResultRecord, SessionInfo, VerifyReport
 
 DB_NAME = "gonio.sqlite"
 STATES = ("planned", "running", "paused", "done", "aborted")
@@ -717,9 +717,8 @@ class Store:
         """:meth:`add_result` with ``category='reconstruction'``."""
         return self.add_result(session_id, "reconstruction", method, **kw)
 
-    def results(self, session_id: int, category: str | None = None) -> list[dict[str, Any]]:
-        """Stored results, oldest first; ``artifacts`` maps name -> sha256 (read with
-        :meth:`read_object`)."""
+    def results(self, session_id: int, category: str | None = None) -> list[ResultRecord]:
+        """Stored results of a session (of one ``category`` if given), oldest first."""
         sql, args = "SELECT * FROM results WHERE session_id = ?", [session_id]
         if category is not None:
             sql += " AND category = ?"
@@ -730,11 +729,11 @@ class Store:
             for r in rows:
                 arts = {a[0]: a[1] for a in db.execute(
                     "SELECT name, sha256 FROM result_objects WHERE result_id = ?", (r["id"],))}
-                out.append({"id": r["id"], "category": r["category"], "kind": r["kind"],
-                            "created": r["created"], "params": json.loads(r["params_json"]),
-                            "result": json.loads(r["result_json"]),
-                            "input_frames": json.loads(r["input_frames_json"]),
-                            "code_version": r["code_version"], "artifacts": arts})
+                out.append(ResultRecord(id=r["id"], category=r["category"], kind=r["kind"],
+                                        created=r["created"], params=json.loads(r["params_json"]),
+                                        result=json.loads(r["result_json"]),
+                                        input_frames=json.loads(r["input_frames_json"]),
+                                        code_version=r["code_version"], artifacts=arts))
         return out
 
     # -- integrity ----------------------------------------------------------------------------

@@ -46,6 +46,26 @@ class FrameRecord:
 
 
 @dataclass(frozen=True)
+class ResultRecord:
+    """One stored calibration or reconstruction result with its provenance.
+
+    ``category`` ``calibration`` or ``reconstruction``; ``kind`` what it is (``intrinsics``,
+    ``lensch`` ...); ``result`` / ``params`` the JSON the computation stored; ``input_frames``
+    the frame ids it used; ``artifacts`` name -> SHA-256 of its stored objects (read with
+    :meth:`~capture.store.Store.read_object`); ``created`` Unix seconds."""
+
+    id: int
+    category: str
+    kind: str
+    created: float
+    params: dict[str, Any]
+    result: dict[str, Any]
+    input_frames: list[int]
+    code_version: str
+    artifacts: dict[str, str]
+
+
+@dataclass(frozen=True)
 class Progress:
     """Counts of a session: planned and done steps, planned frames, stored frames and bytes."""
 

@@ -623,8 +623,8 @@ class GonioApp(App[None]):
     @work(thread=True, exclusive=True, group="process")
     def _process(self, session: str) -> None:
         """``gonio process`` on ``session`` (calibration if needed, every method, the report)."""
-        def progress(stage: str, done: int, total: int) -> None:
-            self.post_message(ProcessProgress(session, stage, done, total))
+        def progress(p: backend.ProgressEvent) -> None:
+            self.post_message(ProcessProgress(session, f"{p.stage} {p.part}".strip(), p.done, p.total))
         try:
             report = backend.process(self.store, session, progress=progress, **self.process_options)
         except Exception as exc:  # noqa: BLE001 - shown to the operator, the console goes on

@@ -7,6 +7,7 @@ from typing import Any, Callable
 
 from rig.rig import Rig
 
+from ..pipeline.progress import Progress as ProgressEvent
 from ..plan import MotionModel, Plan, Step
 from ..rigs import OpenedRig, home_all
 from ..rigs import open_rig as _open_rig
@@ -119,7 +120,7 @@ def make_runner(rig: Rig, store: Store, *, plan: Plan | None = None, plan_path: 
     return Runner(rig, store, info, **runner_options), steps, summary
 
 
-def process(store: Store, session: str, *, progress: Callable[[str, int, int], None] | None = None,
+def process(store: Store, session: str, *, progress: Callable[[ProgressEvent], None] | None = None,
             mesh: Any = None, **options: Any) -> Any:
     """``gonio process`` on ``session``: ``mesh`` the object's (trimesh; a session recorded in the
     built-in simulated lab brings its own, with targets and truth); ``options`` go to

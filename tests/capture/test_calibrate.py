@@ -111,7 +111,7 @@ def session(tmp_path_factory):
 
 
 def _stored(store: Store) -> dict[str, dict]:
-    return {r["kind"]: r for r in store.results(store.session("cal").id, "calibration")}
+    return {r.kind: r for r in store.results(store.session("cal").id, "calibration")}
 
 
 def _angle_deg(u, v) -> float:
@@ -129,17 +129,17 @@ def test_every_stage_runs_in_order_and_is_stored_with_provenance(session):
     frames = {f.id: f for f in store.frames(info.id)}
     steps = {i: d for i, d, _ in store.steps(info.id)}
     for s in report.stages:
-        r = next(x for x in store.results(info.id) if x["id"] == s.calibration_id)
-        assert r["input_frames"] and set(r["input_frames"]) <= set(frames)
-        assert r["code_version"].startswith("gonio ")
+        r = next(x for x in store.results(info.id) if x.id == s.calibration_id)
+        assert r.input_frames and set(r.input_frames) <= set(frames)
+        assert r.code_version.startswith("gonio ")
     def kinds_of(kind):
-        return {steps[frames[i].step]["kind"] for i in stored[kind]["input_frames"]}
+        return {steps[frames[i].step]["kind"] for i in stored[kind].input_frames}
     assert kinds_of("intrinsics") == {"checkerboard", "handheld_board"}
     assert kinds_of("light_positions") == {"spheres"}
     assert kinds_of("dark") == {"dark"}
-    assert stored["intrinsics"]["params"]["targets"]["sphere_radius_mm"] == SPHERE_RADIUS_MM
+    assert stored["intrinsics"].params["targets"]["sphere_radius_mm"] == SPHERE_RADIUS_MM
     # the master darks are stored as objects and read back as arrays of the sensor's size
-    arts = stored["dark"]["artifacts"]
+    arts = stored["dark"].artifacts
     assert sorted(arts) == ["dark_0.005s.npy", "dark_0.02s.npy"]
     import io
     dark = np.load(io.BytesIO(store.read_object(arts["dark_0.02s.npy"])))
@@ -157,7 +157,7 @@ def test_dark_read_noise_matches_the_sensor(session):
 
 def test_intrinsics_match_the_sim_camera(session):
     store, report, camera, _ = session
-    r = _stored(store)["intrinsics"]["result"]
+    r = _stored(store)["intrinsics"].result
     K, K_std = np.array(r["K"]), np.array(r["K_std"])
     assert r["target"] == "charuco" and r["image_size"] == [W, H]
     assert r["rms_px"] < 0.4
@@ -173,7 +173,7 @@ def test_intrinsics_match_the_sim_camera(session):
 
 def test_turntable_axis_matches_the_sim(session):
     store, report, camera, _ = session
-    r = _stored(store)["turntable"]["result"]
+    r = _stored(store)["turntable"].result
     truth = camera.R @ np.array([0.0, 0.0, 1.0])  # world +z (the platter axis) in the camera frame
     # seen: 0.9 deg, mostly from the principal point error above
     assert _angle_deg(r["axis_camera"], truth) < 1.5
@@ -190,7 +190,7 @@ def _light_truth(camera, light) -> np.ndarray:
 
 def test_light_positions_match_the_sim(session):
     store, report, camera, _ = session
-    r = _stored(store)["light_positions"]["result"]
+    r = _stored(store)["light_positions"].result
     centres = np.array(r["sphere_centres_camera_mm"])
     truth_centres = SPHERES.points_world(0.0) @ camera.R.T + camera.t
     # sphere centres from their known lab positions through the fitted lab frame (turntable fit
@@ -205,12 +205,13 @@ def test_light_positions_match_the_sim(session):
     for row in r["lights"]:
         t = _light_truth(camera, row["commanded"])
         p = np.array(row["position_camera_mm"])
-        # direction from the spheres within 4 deg (seen: 0.6-2.6); distance within 25 % (seen:
-        # 7-21 % long): at 320 x 240 a 25 mm ball is ~21 px wide, and three balls 180 mm apart
-        # triangulate a light 500 mm away with ~25 mm depth error per 0.1 px of highlight or
-        # sphere-centre error, plus the lab frame's 14 mm shift
-        assert _angle_deg(p - mid, t - mid) < 4.0, (p, t)
-        assert abs(np.linalg.norm(p - mid) - np.linalg.norm(t - mid)) < 0.25 * np.linalg.norm(t - mid)
+        # This fixture is far from the lights' 0.5 % / 0.25 deg target, which the full demo meets
+        # at 640 x 480 (docs/measurements.md): at 320 x 240 a 25 mm ball is ~21 px wide, and three
+        # balls 180 mm apart triangulate a light 500 mm away with ~25 mm depth error per 0.1 px of
+        # highlight or sphere-centre error, plus the lab frame's 14 mm shift. Bounds: the measured
+        # worst plus ~25 % (seen: direction 0.5-2.4 deg; distance 3-16 % long, never short)
+        assert _angle_deg(p - mid, t - mid) < 3.0, (p, t)
+        assert -0.02 < np.linalg.norm(p - mid) / np.linalg.norm(t - mid) - 1 < 0.20, (p, t)
 
 
 def test_lights_fall_back_to_silhouettes_without_a_lab_frame(session):
@@ -222,7 +223,7 @@ def test_lights_fall_back_to_silhouettes_without_a_lab_frame(session):
     assert report.stage("lights").status == "ok", report.stage("lights").reason
     assert report.stage("lights").figures["centres"] == "silhouettes"
     r = next(x for x in store.results(store.session("cal").id)
-             if x["id"] == report.stage("lights").calibration_id)["result"]
+             if x.id == report.stage("lights").calibration_id).result
     truth = SPHERES.points_world(0.0) @ camera.R.T + camera.t
     # within 4 % of their distance (seen: 2.1-3.6 %, the silhouette's depth from a ~40 px disc)
     err = np.linalg.norm(np.array(r["sphere_centres_camera_mm"]) - truth, axis=1)
@@ -234,7 +235,7 @@ def test_lab_frame_matches_the_sim_world(session):
     """The lab frame (axis at the platter, +x towards the camera) is the sims' world frame: the
     camera centre lands on the simulated eye point."""
     store, _, camera, _ = session
-    r = _stored(store)["turntable"]["result"]
+    r = _stored(store)["turntable"].result
     eye = camera.center
     got = np.array(r["camera_centre_lab_mm"])
     # seen: ~3 % of the distance, mostly the focal length of a 320 x 240 intrinsics fit (scale)
@@ -280,7 +281,7 @@ def test_scene_targets_come_from_the_sim_scenes():
 
 def test_positioner_model_gives_every_measurement_step_a_light(session):
     store, report, camera, _ = session
-    r = _stored(store)["positioner_model"]["result"]
+    r = _stored(store)["positioner_model"].result
     info = store.session("cal")
     steps = {i: d for i, d, _ in store.steps(info.id)}
     measured = {row["step"]: row for row in r["step_lights"]}
@@ -290,8 +291,10 @@ def test_positioner_model_gives_every_measurement_step_a_light(session):
     for i in measure_steps:
         t = _light_truth(camera, steps[i]["light"])
         p = np.array(measured[i]["position_camera_mm"])
-        assert _angle_deg(p - mid, t - mid) < 6.0
-        assert abs(np.linalg.norm(p - mid) - np.linalg.norm(t - mid)) < 0.2 * np.linalg.norm(t - mid)
+        # the arm model through the six lights above (seen: direction <= 1.5 deg, distance 7.6-11.8 %
+        # long; the 0.5 % target holds at 640 x 480 only): the measured worst plus ~25 %
+        assert _angle_deg(p - mid, t - mid) < 2.0, (p, t)
+        assert -0.02 < np.linalg.norm(p - mid) / np.linalg.norm(t - mid) - 1 < 0.15, (p, t)
 
 
 def _truth_dn_per_s(world, frame, polarizer_deg: float) -> tuple[np.ndarray, np.ndarray]:
@@ -309,7 +312,7 @@ def test_polarization_gray_card_and_probe(session):
     stored = _stored(store)
     info = store.session("cal")
     worlds = SceneSwitch().worlds  # the same deterministic scenes the session was captured in
-    poses = stored["polarization_check"]["result"]["poses"]
+    poses = stored["polarization_check"].result["poses"]
     assert len(poses) == 4 and all(p["method"] == "parallel/crossed" for p in poses)
     # specular fraction against the renderer's truth: (parallel - crossed) / (parallel + crossed)
     # per channel (equal weights, as the demosaiced image has), from the noise-free sensor signal
@@ -324,7 +327,7 @@ def test_polarization_gray_card_and_probe(session):
         # (seen: 0.030 for a true 0.025); an analyser at the wrong angle gives ~0 or ~2x
         assert truth > 0.01 and abs(pose["specular_fraction"] - truth) < 0.4 * truth, (pose, truth)
     # the gray card's value per channel against the same truth on the card's (eroded) pixels
-    card = stored["gray_card"]["result"]
+    card = stored["gray_card"].result
     # the card's spread is the lamp's fall-off across it plus cos^4 vignetting (seen: 11 %)
     assert len(card["cards"]) == 1 and card["cards"][0]["relative_spread"] < 0.2
     row = card["cards"][0]
@@ -337,12 +340,12 @@ def test_polarization_gray_card_and_probe(session):
     np.testing.assert_allclose(row["value_rgb"], truth_rgb, rtol=0.03)
     np.testing.assert_allclose(card["relative_scale_rgb"], card["albedo"] / truth_rgb, rtol=0.03)
     probe = stored["environment_map"]
-    assert probe["result"]["frame"] == "lab" and probe["result"]["valid_fraction"] > 0.9
+    assert probe.result["frame"] == "lab" and probe.result["valid_fraction"] > 0.9
     import io
-    env = np.load(io.BytesIO(store.read_object(probe["artifacts"]["environment.npz"])))
+    env = np.load(io.BytesIO(store.read_object(probe.artifacts["environment.npz"])))
     # the probe keeps its own resolution: at least 128 x 256, one row per pixel of sphere radius
     h = env["env"].shape[0]
-    assert h >= 128 and h >= probe["result"]["views"][0]["radius_px"]
+    assert h >= 128 and h >= probe.result["views"][0]["radius_px"]
     assert env["env"].shape == (h, 2 * h, 3) and np.all(np.isfinite(env["env"]))
     # the blind cone behind the sphere (15 deg half-angle) is masked out: the solid angle left is
     # 1 - (1 - cos 15 deg) / 2 of the sphere (closed form; lat-long rows weighted by sin(theta))
@@ -495,8 +498,8 @@ def test_calibration_hdr_only_skips_measurement_steps(session):
     kinds = {i: d["kind"] for i, d, _ in store.steps(info.id)}
     report = calibrate_session(store, "cal", targets=TARGETS, measurement_hdr=False,
                                stages=("dark", "hdr", "polarization"))
-    hdr = next(r for r in store.results(info.id) if r["id"] == report.stage("hdr").calibration_id)
-    merged = {m["step"] for m in hdr["result"]["steps"]}
+    hdr = next(r for r in store.results(info.id) if r.id == report.stage("hdr").calibration_id)
+    merged = {m["step"] for m in hdr.result["steps"]}
     assert merged == {i for i, k in kinds.items() if k not in ("dark", "measure")}
     # the polarization check merges the measurement poses it needs by itself
     assert report.stage("polarization").status == "ok"
@@ -534,8 +537,8 @@ def _default_session(root, world: SimWorld):
 
 def _located_lights(store, camera):
     """(light rows, truth camera-frame positions, truth sphere centres) of the default session."""
-    r = {x["kind"]: x for x in store.results(store.session("default").id, "calibration")}
-    lights = r["light_positions"]["result"]
+    r = {x.kind: x for x in store.results(store.session("default").id, "calibration")}
+    lights = r["light_positions"].result
     truth_centres = spheres_target("steel").points_world(0.0) @ camera.R.T + camera.t
     return lights, [_light_truth(camera, row["commanded"]) for row in lights["lights"]], truth_centres
 

@@ -88,7 +88,7 @@ def test_stored_darks_are_keyed_by_their_recorded_exposure(tmp_path):
                           artifacts={dark_artifact_name(t): buf.getvalue()})
     [row] = store.results(sid, "calibration")
     images = SessionImages(store, "s")
-    images.use_stored_darks([t], row["artifacts"], 2.5)
+    images.use_stored_darks([t], row.artifacts, 2.5)
     assert list(images.darks) == [t] and images.read_noise_dn == 2.5
     assert images.merge(0).dark_subtracted == 1
     store.close()

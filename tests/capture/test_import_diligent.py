@@ -62,7 +62,7 @@ def test_import_round_trip_and_normals(tmp_path):
     assert (name, info.state, info.object) == ("diligent-ball", "done", "ball")
     prov = info.plan["imported"]
     assert prov["source"] == str((tmp_path / "ball").resolve()) and len(prov["sha256"]) == 8 + 5
-    assert {r["kind"] for r in st.results(info.id)} == {"lights_directional", "camera_orthographic"}
+    assert {r.kind for r in st.results(info.id)} == {"lights_directional", "camera_orthographic"}
     data = read_imported_session(st, name)
     direct = read_diligent(tmp_path / "ball")
     assert np.array_equal(data.images, direct.images) and data.images.dtype == np.uint16
@@ -159,4 +159,4 @@ def test_process_runs_on_an_imported_set_and_says_what_it_skips(tmp_path):
     st = Store.open(tmp_path / "store")
     info = st.session("diligent-ball")
     (res,) = st.results(info.id, "reconstruction")
-    assert len(res["input_frames"]) == 10 and "model.npz" in res["artifacts"]
+    assert len(res.input_frames) == 10 and "model.npz" in res.artifacts

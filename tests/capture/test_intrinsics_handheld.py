@@ -33,15 +33,17 @@ def test_hand_held_views_bring_the_intrinsics_to_the_targets(tmp_path):
     assert intr.status == "ok" and axis.status == "ok", (intr.reason, axis.reason)
     f = intr.figures
     true = lab.truth().camera.K
-    stored = [r for r in store.results(store.session("board").id, "calibration") if r["kind"] == "intrinsics"][-1]
-    pp_std = np.asarray(stored["result"]["K_std"], float)[2:4]
-    # the focal-length target (issue 13): within 0.2 % (seen: -0.14 %; seeds 1, 2: -0.32, -0.25 %;
-    # the turntable sweep alone: -0.30 / -0.75 %). The principal point is at this board's
+    stored = [r for r in store.results(store.session("board").id, "calibration") if r.kind == "intrinsics"][-1]
+    pp_std = np.asarray(stored.result["K_std"], float)[2:4]
+    # the focal length: the 0.2 % target (issue 13) is met on this seed only (-0.14 %); the noise
+    # seeds 0, 1, 2 give -0.14, -0.32, -0.25 % (benchmarks/handheld_intrinsics.py runs them), the
+    # turntable sweep alone -0.30 / -0.75 %; so the bound is 0.4 %, what 0.13 px corners allow at
+    # 320 x 240 on any seed, as in tests/capture/test_demo.py. The principal point is at this board's
     # statistical limit at 320 x 240 (its 1-sigma ~1.8 / 1.2 px; seen -1.8 / 0.0 px; the sweep
     # alone: 1-sigma 2.9 / 2.3 px), so the check is that the stated uncertainty covers the truth
     focal_err = 100 * (np.array([f["fx_px"], f["fy_px"]]) / true[0, 0] - 1)
     pp_err = np.array([f["cx_px"], f["cy_px"]]) - true[:2, 2]
-    assert np.all(np.abs(focal_err) < 0.2), focal_err
+    assert np.all(np.abs(focal_err) < 0.4), focal_err
     assert np.all(pp_std < 2.2) and np.all(np.abs(pp_err) < 2 * pp_std), (pp_err, pp_std)
     # both kinds of view went in; the axis stays the sweep's alone
     assert f["views_handheld_board"] >= 22 and f["views_checkerboard"] >= 10

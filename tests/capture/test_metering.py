@@ -94,9 +94,9 @@ def test_runner_meters_once_and_resume_reuses_it(tmp_path):
         r.bus.subscribe(lambda e: e.kind == EventKind.STEP_DONE and e.step == 1 and r.request_pause())
         assert r.run() == "paused"
         assert r.run() == "done"
-        [metering] = [x for x in store.results(info.id) if x["kind"] == "metering"]
-        t = metering["result"]["exposure_s"]
-        assert 0.002 < t < 0.05 and metering["artifacts"]  # the metering shots are kept
+        [metering] = [x for x in store.results(info.id) if x.kind == "metering"]
+        t = metering.result["exposure_s"]
+        assert 0.002 < t < 0.05 and metering.artifacts  # the metering shots are kept
         metered = [e for e in events if e.kind == EventKind.METERED]
         assert len(metered) == 2 and "stored metering" in metered[1].message
         frames = store.frames(info.id)

@@ -163,15 +163,15 @@ def test_process_stores_scored_results_with_provenance(processed, captured, inpu
     assert lam.status == "ok" and rep.calibration[0]["status"] == "stored"
     # honest scores: a matte model cannot predict highlights; it is still far better than nothing
     assert 0.2 < lam.figures["held_out_rel_rms"] < 0.95
-    r = next(x for x in store.results(store.session("proc").id, "reconstruction") if x["id"] == lam.result_id)
-    assert r["code_version"].startswith("gonio ") and r["kind"] == "lambertian"
+    r = next(x for x in store.results(store.session("proc").id, "reconstruction") if x.id == lam.result_id)
+    assert r.code_version.startswith("gonio ") and r.kind == "lambertian"
     frames = {f.id: f for f in store.frames(store.session("proc").id)}
-    assert r["input_frames"] and set(r["input_frames"]) <= set(frames)
-    assert {frames[i].step for i in r["input_frames"]} >= {i for ids in r["result"]["inputs"]["held_out_views"]
+    assert r.input_frames and set(r.input_frames) <= set(frames)
+    assert {frames[i].step for i in r.input_frames} >= {i for ids in r.result["inputs"]["held_out_views"]
                                                           for i in ids}
-    assert set(r["result"]["inputs"]["calibration_ids"]) >= {"intrinsics", "turntable", "gray_card"}
+    assert set(r.result["inputs"]["calibration_ids"]) >= {"intrinsics", "turntable", "gray_card"}
     import io
-    model = np.load(io.BytesIO(store.read_object(r["artifacts"]["model.npz"])))
+    model = np.load(io.BytesIO(store.read_object(r.artifacts["model.npz"])))
     train = inputs[2]
     assert model["albedo"].shape == (train.n_texels, 3)
     # a material's fitted albedo: at least its diffuse albedo (Lafortune rho_d), the highlights
@@ -204,7 +204,7 @@ def test_process_skips_what_is_stored_unless_forced(processed, captured):
     assert {c["stage"] for c in forced.calibration} >= {"intrinsics", "lights", "gray_card"}   # re-calibrated
     # the same figure from a fresh calibration: calibrate_session runs OpenCV on one thread, so
     # the same frames give the same bits (with its thread pool they were 0.04 % and 1.3 % apart;
-    # docs/architecture.md)
+    # docs/measurements.md)
     assert forced.method("lambertian").figures["held_out_rel_rms"] == pytest.approx(
         lam.figures["held_out_rel_rms"], rel=1e-9)
 
@@ -288,8 +288,8 @@ async def test_console_processes_the_selected_session(captured):
         text = app.session_pane.processing_text or ""
         assert "proc processed; report:" in text, text
         assert "proc-report.html" in text
-        stored = {r["kind"]: r for r in store.results(store.session("proc").id, "reconstruction")}  # newest
-        rms = stored["lambertian"]["result"]["figures"]["held_out_rel_rms"]
+        stored = {r.kind: r for r in store.results(store.session("proc").id, "reconstruction")}  # newest
+        rms = stored["lambertian"].result["figures"]["held_out_rel_rms"]
         assert re.search(rf"lambertian: (ok|done) held-out rel\. RMS {rms:.3f}", text), text
         assert "passive: skipped" in text
 

@@ -42,6 +42,16 @@ def _assert_complete(store, info):
     assert store.session("s").state == "done"
 
 
+def test_frame_progress_reaches_the_planned_frames_in_order(setup):
+    """``on_frame_stored`` (what ``gonio demo``'s capture bar reads) counts 1..N of N frames."""
+    store, rig, info = setup
+    seen = []
+    runner = _runner(store, rig)
+    runner.on_frame_stored(lambda done, total: seen.append((done, total)))
+    assert runner.run() == "done"
+    assert seen == [(k, PLANNED_FRAMES) for k in range(1, PLANNED_FRAMES + 1)]
+
+
 def test_runs_every_step_with_readbacks_and_events(setup):
     store, rig, info = setup
     events = []

@@ -310,7 +310,7 @@ def test_code_version_is_computed_outside_the_write_lock(tmp_path, monkeypatch):
     with Store(tmp_path / "st") as store:
         sid = store.create_session("s", plan={}, plan_hash="h", steps=[]).id
         store.add_calibration(sid, "dark", result={"level": 1})
-        assert seen == [False] and store.results(sid)[0]["code_version"] == "gonio test"
+        assert seen == [False] and store.results(sid)[0].code_version == "gonio test"
 
 
 @pytest.mark.parametrize("size, frame_bytes", [("16k", 500), ("400k", 300_000)])

@@ -206,7 +206,7 @@ def test_writer_start_never_collects_an_object_whose_row_is_being_committed(tmp_
         release.set()
         t.join(10)
         [res] = st.results(sid)
-        sha = res["artifacts"]["k.npz"]
+        sha = res.artifacts["k.npz"]
         assert st.read_object(sha) == b"K" * 64 and st.verify("s1").ok
 
 
@@ -284,9 +284,9 @@ def test_results_keep_provenance_and_artifacts(tmp_path):
         rid = st.add_calibration(sid, "intrinsics", result={"rms_px": 0.21}, params={"board": "7x9"},
                                  input_frames=[f1], artifacts={"K.npy": b"\x93NUMPY..."})
         [res] = st.results(sid, "calibration")
-        assert res["id"] == rid and res["input_frames"] == [f1] and res["params"] == {"board": "7x9"}
-        assert res["code_version"].startswith("gonio ")
-        assert st.read_object(res["artifacts"]["K.npy"]) == b"\x93NUMPY..."
+        assert res.id == rid and res.input_frames == [f1] and res.params == {"board": "7x9"}
+        assert res.code_version.startswith("gonio ")
+        assert st.read_object(res.artifacts["K.npy"]) == b"\x93NUMPY..."
         with pytest.raises(StoreError, match="not frames of this session"):
             st.add_reconstruction(sid, "lensch2003", result={}, input_frames=[f1, 999])
         assert st.verify("s1").ok
@@ -307,7 +307,7 @@ def test_export_is_self_contained_and_opens(tmp_path, dest):
         info = ex.session("s1")
         assert [f.size for f in ex.frames(info.id)] == [100, 100]
         assert ex.read_object(ex.frames(info.id)[1].sha256) == b"b" * 100
-        assert ex.results(info.id)[0]["result"] == {"level": 512.0}
+        assert ex.results(info.id)[0].result == {"level": 512.0}
         assert ex.verify("s1").ok  # the other session's object was not copied
     with pytest.raises(StoreError, match="already exists"):
         Store(tmp_path / "st").export("s1", out)
