@@ -33,6 +33,7 @@ def _register() -> None:
     from .process import process; app.command("process")(process)  # noqa: E702
     from .demo import demo; app.command("demo")(demo)  # noqa: E702
     from .export import export; app.command("export")(export)  # noqa: E702
+    from .importers import app as import_app; app.add_typer(import_app, name="import")  # noqa: E702
     pass
 
 

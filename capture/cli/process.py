@@ -119,7 +119,9 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             info = st.session(session)
         except SessionNotFound as exc:
             raise fail(str(exc)) from None
-        if mesh is None and not recorded_in_built_in_lab(st.rig_snapshots(info.id)):
+        from ..pipeline.imported import is_imported
+        if mesh is None and not recorded_in_built_in_lab(st.rig_snapshots(info.id)) and \
+                not is_imported(st, session):
             raise fail("--mesh FILE is needed: the object's mesh (sessions recorded on --rig sim bring "
                        "their own)")
         # a stored name is not trusted as a file name (``../../x``): see capture.outputs

@@ -87,8 +87,8 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
 
 
 # -- Lensch et al. 2003 -------------------------------------------------------------------------
-def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
-    fit = fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress)
+def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, **options) -> Fitted:
+    fit = fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress, **options)
 
     def predict(lt: Lumitexels) -> np.ndarray:
         return fit.predict(lt.texel, lt.wi, lt.wo)   # fitted normals applied

@@ -179,6 +179,10 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     if unknown:
         raise ValueError(f"methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
     info = store.session(session)
+    from .imported import is_imported, process_imported_session
+    if is_imported(store, session):  # no rig, no mesh: its own path (calibration given)
+        return process_imported_session(store, session, methods=methods, force=force, rng=rng,
+                                        progress=progress, report_path=report_path)
     given = {"mesh": mesh, "targets": targets, "gray_card": gray_card, "probe_reflectance": probe_reflectance,
              "truth": truth, "method_options": method_options}
     lab = _built_in_lab_options(store, session)

@@ -19,7 +19,8 @@ from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, LafortuneFitError, albedo_unit, check_samples,
                             fit_geometry, lobe_geometry, model_of, params_of)
 from .normals import fit_normals_chunk
-from .projection import (cluster_errors, cluster_residuals, make_bases, pfa_refine, project_chunk)
+from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
+                         project_chunk)
 
 
 class SvbrdfError(LafortuneFitError):
@@ -103,6 +104,7 @@ class SvbrdfFit:
         B = self.weights.shape[1]
         P = 1 + 3 * self.materials[0].n_lobes
         table = np.zeros((K, B, 3, P))
+        table[..., 3::3] = 1.0  # unused basis slots (weight 0; a lone material has no neighbour)
         for k, models in enumerate(self.basis):
             for b, m in enumerate(models):
                 table[k, b] = params_of(m)
@@ -195,7 +197,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
                weight=None, noise: str = "absolute", max_materials: int = 12,
                cluster_texels: int = 4000, fit_texels: int = 20000, min_samples: int = 3,
                normal_rounds: int = 2, weight_prior: float = 1e-3,
-               select_projection: bool = True,
+               select_projection: bool = True, robust_samples: bool = False,
                chunk_texels: int = 100_000) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
@@ -249,6 +251,13 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         beats its cluster's BRDF alone (``select`` of ``project_chunk``); otherwise the texel gets
         the cluster's BRDF. Without it, texels whose highlight a single sample shows fit that
         sample exactly with a sharper / brighter basis BRDF and mispredict held-out lights.
+    robust_samples : bool
+        Before each round of normal fitting, leave out the samples the current per-texel BRDF
+        misses by more than 3 robust standard deviations of its texel's residuals (plus 5 % of
+        the prediction): cast shadows (dark where the model is lit) and inter-reflections
+        (bright where it is not), which the paper's synthetic and mesh-shadowed data lack and
+        which pull a normal towards the wrong side on real photographs. The BRDF refit of that
+        round uses the same samples; the RMS columns still count every sample.
     chunk_texels : int
         Texels per chunk of the per-texel steps.
 
@@ -297,7 +306,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     # clustering fits in absolute units (cheaper); the final fits below use ``noise``
     clus = split_recluster_fit(smp, n_materials=n_materials, n_lobes=n_lobes,
                                max_materials=max_materials,
-                               min_texels=max(3, min(10, len(chosen) // 20)))
+                               min_texels=max(3, min(10, len(chosen) // 20)), rng=rng)
     tick()
 
     # Eq. 10 for every texel, then each cluster's BRDF refit on (up to fit_texels of) its texels
@@ -345,9 +354,11 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
             # clusterings of the demo object a round's refit blew the training error up 10x)
             before = (normals_local, fits, mats, basis, size, weights, sse, wi, wo, t, z, cos_i)
             tilt = np.tile([0.0, 0.0, 1.0], (T, 1))  # relative to the current normals
+            w_fit = w * _inliers(basis, size, labels, weights, offsets, tx, t, z, cos_i, r, T,
+                                 chunk_texels) if robust_samples else w
             for c in _chunks(T, chunk_texels):
                 s = slice(offsets[c.start], offsets[c.stop])
-                tilt[c] = fit_normals_chunk(tx[s] - c.start, wi[s], wo[s], r[s], w[s], labels[c],
+                tilt[c] = fit_normals_chunk(tx[s] - c.start, wi[s], wo[s], r[s], w_fit[s], labels[c],
                                             weights[c], basis, size, min_samples=min_samples)[0]
             normals_local = normalize(to_world(tilt, tangent_frames(normals_local)))
             tick()
@@ -357,7 +368,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
             cos_i = np.where(visible, wi[:, 2], 0.0)
-            fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels, rng,
+            fits = _refit(mats, labels, tx, t, z, cos_i, r, w_fit, n_lobes, noise, fit_texels, rng,
                           max_albedo, keep=visible, texels=_confident(errors))
             mats = np.stack([f.channel_params for f in fits])
             basis, size = make_bases(mats, similar)
@@ -471,6 +482,28 @@ def _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, limit, rng, max_
         fits.append(fit_geometry(t[idx], z[idx], cos_i[idx], r[idx], w[idx], n_lobes=n_lobes,
                                  init=m, noise=noise, max_albedo=max_albedo))
     return fits
+
+
+def _inliers(basis, size, labels, weights, offsets, tx, t, z, cos_i, r, T, chunk,
+             spread: float = 3.0) -> np.ndarray:
+    """Samples the per-texel BRDFs explain, (S,) bool: |r - f cos| (RGB norm) within ``spread``
+    robust standard deviations (1.4826 x median) of its texel's residuals, floored at the median
+    texel's, plus 5 % of the prediction."""
+    keep = np.ones(len(t), bool)
+    for c in _chunks(T, chunk):
+        s = slice(offsets[c.start], offsets[c.stop])
+        ct = tx[s] - c.start
+        n = c.stop - c.start
+        A = basis_values(t[s], z[s], cos_i[s], ct, labels[c], basis, size)
+        pred = np.einsum("sbc,sb->sc", A, weights[c][ct])
+        e = np.linalg.norm(r[s] - pred, axis=1)
+        order = np.lexsort((e, ct))
+        counts = np.bincount(ct, minlength=n)
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        med = np.where(counts > 0, e[order][np.minimum(start + (counts - 1) // 2, len(e) - 1)], 0.0)
+        sigma = 1.4826 * np.maximum(med, np.median(med[counts > 0]))
+        keep[s] = e <= spread * sigma[ct] + 0.05 * np.linalg.norm(pred, axis=1)
+    return keep
 
 
 def _most_similar(errors, labels, K):

@@ -1,0 +1,135 @@
+"""DiLiGenT (real photographs, calibrated directional lights): normals and relighting per method.
+
+    PYTHONPATH=. python benchmarks/diligent.py [--texels 5000] [--objects pot1,bear,goblet]
+                                               [--ablation]
+
+For each object of ``../shared/data/diligent`` (8-bit crops; every 4th light held out, as in
+``gonio import diligent``) prints
+1. the mean angular error of the normals (deg, against ``Normal_gt``) of least squares, the
+   robust variant and Lensch normal fitting, on the same ``--texels`` random mask pixels, beside
+   the published rows of the benchmark (L2, IA14, ST14, PS-FCN: the README's table, 16-bit data,
+   all pixels; least squares on the whole mask is printed too);
+2. held-out relighting: relative RMS of each model's prediction of the held-out lights
+   (Lambertian with least-squares / robust normals and per-channel albedo; Lensch's per-texel
+   BRDFs with its fitted normals);
+3. Lensch's material count and the time per stage (read, photometric stereo, lumitexels, each
+   Lensch stage).
+
+``--ablation`` also runs Lensch the paper's way and one step at a time, to say what each step
+buys: frames from least squares with every sample; from the robust normals; plus robust sample
+selection; plus a second lobe. Timings are wall-clock on whatever machine runs it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from capture.importers import read_diligent  # noqa: E402
+from capture.pipeline.imported import ImportedInputs  # noqa: E402
+from reconstruct.lensch import fit_svbrdf_lumitexels  # noqa: E402
+from reconstruct.metrics import relative_rms  # noqa: E402
+from reconstruct.photometric_stereo import angular_error_deg  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data" / "diligent"
+#: Published mean angular errors (deg) from the benchmark's tables (16-bit originals, all pixels),
+#: as listed in ``../shared/data/diligent/README.md``.
+PUBLISHED = {"L2 (least squares)": {"pot1": 8.89, "bear": 8.39, "goblet": 18.50},
+             "IA14": {"pot1": 6.64, "bear": 7.11, "goblet": 9.71},
+             "ST14": {"pot1": 6.51, "bear": 6.12, "goblet": 10.09},
+             "PS-FCN (learned)": {"pot1": 7.13, "bear": 7.55, "goblet": 8.60}}
+#: Lensch options of the final configuration (what ``gonio process`` runs on an imported set).
+FINAL = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2}
+ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "robust_samples": False,
+                                               "n_lobes": 1},
+            "+ robust frames": {"frames_from": "robust", "robust_samples": False, "n_lobes": 1},
+            "+ robust samples": {"frames_from": "robust", "robust_samples": True, "n_lobes": 1},
+            "+ second lobe": FINAL}
+
+
+def lambertian_relighting(inp: ImportedInputs, ps) -> float:
+    """Held-out rel. RMS of rho_c max(0, n . l) with a photometric-stereo result's normals and
+    per-channel albedo, on the held-out samples of the texels."""
+    held = inp.held
+    rows, cols = inp.pixels[held.texel, 0], inp.pixels[held.texel, 1]
+    n = ps.normals[rows, cols].astype(np.float64)
+    shade = np.maximum(np.sum(n * inp.data.light_directions[held.view], axis=1), 0.0)
+    pred = ps.albedo[rows, cols].astype(np.float64) * shade[:, None]
+    use = held.weight > 0
+    return relative_rms(pred[use], held.reflectance[use])
+
+
+def run_lensch(inp: ImportedInputs, options: dict, rng: int = 0):
+    stages, t0 = [], time.perf_counter()
+    fit = fit_svbrdf_lumitexels(inp.train, fit_normals=True, rng=rng, n_lobes=options["n_lobes"],
+                                robust_samples=options["robust_samples"],
+                                progress=lambda d, n: stages.append(time.perf_counter() - t0))
+    held = inp.held
+    use = held.weight > 0
+    pred = fit.predict(held.texel, held.wi, held.wo)
+    rel = relative_rms(pred[use], held.reflectance[use])
+    return fit, time.perf_counter() - t0, np.diff([0.0, *stages]), rel
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--texels", type=int, default=5000)
+    ap.add_argument("--objects", default="pot1,bear,goblet")
+    ap.add_argument("--ablation", action="store_true")
+    ap.add_argument("--rng", type=int, default=0)
+    a = ap.parse_args(argv)
+    if not DATA.is_dir():
+        sys.exit(f"{DATA} is absent (it ships beside the repository)")
+    objects = [o for o in a.objects.split(",") if o]
+    rows: dict[str, dict[str, float]] = {}
+    relight: dict[str, dict[str, float]] = {}
+    configs = ABLATION if a.ablation else {"lensch": FINAL}
+    for obj in objects:
+        t = time.perf_counter()
+        data = read_diligent(DATA / obj)
+        t_read = time.perf_counter() - t
+        per_frames, t_inputs = {}, 0.0
+        for frames_from in sorted({c["frames_from"] for c in configs.values()}):
+            t = time.perf_counter()
+            per_frames[frames_from] = ImportedInputs(data, max_texels=a.texels, rng=a.rng,
+                                                     frames_from=frames_from)
+            t_inputs += time.perf_counter() - t
+        inp = per_frames["robust" if "robust" in per_frames else "least_squares"]
+        full = angular_error_deg(inp.ls.normals[data.mask], data.normals_gt[data.mask]).mean()
+        rows.setdefault("least squares, whole mask", {})[obj] = full
+        rows.setdefault("least squares", {})[obj] = inp.normal_errors(inp.normals_ls)
+        rows.setdefault("robust least squares", {})[obj] = inp.normal_errors(inp.normals_robust)
+        relight.setdefault("Lambertian, LS normals", {})[obj] = lambertian_relighting(inp, inp.ls)
+        relight.setdefault("Lambertian, robust normals", {})[obj] = lambertian_relighting(inp, inp.robust)
+        print(f"\n== {obj}: {inp.train.n_texels} texels, {inp.train.n_samples / inp.train.n_texels:.1f} "
+              f"training samples per texel; read {t_read:.1f} s, photometric stereo + lumitexels "
+              f"{t_inputs:.1f} s ==", flush=True)
+        for name, opts in configs.items():
+            fit, secs, stage_s, rel = run_lensch(per_frames[opts["frames_from"]], opts, a.rng)
+            label = name if a.ablation else "Lensch (robust frames, samples; 2 lobes)"
+            rows.setdefault(label, {})[obj] = inp.normal_errors(fit.normals)
+            relight.setdefault(label, {})[obj] = rel
+            print(f"  {label}: {fit.n_materials} material(s), normals "
+                  f"{rows[label][obj]:.2f} deg, held-out rel. RMS {rel:.4f}, {secs:.1f} s "
+                  f"(stages: {', '.join(f'{s:.1f}' for s in stage_s)} s; clustering first)", flush=True)
+    print("\n== mean angular error of the normals (deg); published rows: 16-bit, all pixels ==")
+    head = f"{'method':40s}" + "".join(f"{o:>9s}" for o in objects) + f"{'mean':>9s}"
+    print(head)
+    for name, r in {**rows, **{f"published {k}": v for k, v in PUBLISHED.items()}}.items():
+        vals = [r.get(o, np.nan) for o in objects]
+        print(f"{name:40s}" + "".join(f"{v:9.2f}" for v in vals) + f"{np.nanmean(vals):9.2f}")
+    print("\n== held-out lights (every 4th): relative RMS of the predicted reflectance ==")
+    print(head)
+    for name, r in relight.items():
+        vals = [r[o] for o in objects]
+        print(f"{name:40s}" + "".join(f"{v:9.4f}" for v in vals) + f"{np.mean(vals):9.4f}")
+
+
+if __name__ == "__main__":
+    main()

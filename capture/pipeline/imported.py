@@ -1,0 +1,195 @@
+"""``gonio process`` on an imported multi-light set (:mod:`capture.importers`): no rig, no mesh.
+
+An imported DiLiGenT-layout session gives what calibration would otherwise measure: the light
+directions and intensities and an orthographic camera. So the calibration stages are skipped
+(each is listed with the reason), and the object's normals come from the images themselves:
+robust least-squares photometric stereo on the training lights
+(:func:`reconstruct.photometric_stereo.photometric_stereo`, ``robust=True``: the darkest and
+brightest lights per pixel dropped, then the lights the fit shades or far exceeds). Every mask
+pixel (or a random ``max_texels`` of them) becomes a texel
+(:func:`reconstruct.directional_lumitexels.directional_lumitexels`); the held-out lights score
+every method as on a captured session. Ground-truth normals, where the set has them, are used
+only to score: least squares, the robust variant and each method's fitted normals.
+
+Methods: ``lambertian`` (the reference) and ``lensch`` (:data:`LENSCH_OPTIONS`: robust sample
+selection for its normal fitting, two lobes) run; ``sharing`` needs polarization-separated
+diffuse and specular images, and
+``passive`` a room-lit image with a mirror probe, which such a set does not have: both are
+reported skipped with that reason.
+"""
+from __future__ import annotations
+
+import io
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from reconstruct.directional_lumitexels import directional_lumitexels
+from reconstruct.lumitexels import Lumitexels
+from reconstruct.metrics import relative_rms, trimmed_relative_rms
+from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
+
+from ..importers import MultiLightSet, read_imported_session
+from ..store import Store
+
+__all__ = ["ImportedInputs", "imported_inputs", "process_imported_session", "is_imported",
+           "SKIPPED_STAGES", "LENSCH_OPTIONS"]
+
+#: The calibration stages a captured session runs, and why an imported set skips each.
+SKIPPED_STAGES = {
+    "intrinsics": "the camera is given: orthographic, viewing along the optical axis",
+    "turntable": "no turntable: one view of the object",
+    "lights": "the light directions and intensities are given with the set",
+    "gray_card": "no gray card: reflectance is relative (images divided by the given intensities)",
+    "probe": "no mirror probe: no environment map (passive reflectometry cannot run)",
+    "mesh": "no mesh: normals from robust least-squares photometric stereo on the training lights",
+}
+#: Lensch options on real photographs: robust sample selection against cast shadows and
+#: inter-reflections before each normal-fitting round, and two lobes per material (see
+#: benchmarks/diligent.py --ablation for what each buys).
+LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2}
+
+
+def is_imported(store: Store, session: str) -> bool:
+    """The session was written by an importer (its plan holds ``imported``)."""
+    plan = store.session(session).plan
+    return isinstance(plan, dict) and "imported" in plan
+
+
+class ImportedInputs:
+    """Training and held-out lumitexels of an imported set, with the normals they were built on.
+
+    ``train`` / ``held`` :class:`Lumitexels` (texel i = pixel ``pixels[i]``, ``view`` the light
+    index); ``normals_ls`` and ``normals_robust`` (T, 3) least-squares and robust photometric-
+    stereo normals of the texels (OpenCV camera frame; the lumitexels' local frames are built on
+    ``frames_from``: the robust ones by default); ``ls`` / ``robust`` the two full
+    :class:`~reconstruct.photometric_stereo.PhotometricStereoResult`; ``truth`` (T, 3) or None.
+    Observations with a clipped channel get weight 0.
+    """
+
+    def __init__(self, data: MultiLightSet, *, max_texels: int | None = None, rng: int = 0,
+                 frames_from: str = "robust"):
+        train = ~data.held_out
+        radiance = data.radiance()
+        valid = np.all(data.images < data.full_scale, axis=-1)   # clipped channels are unusable
+        ls = photometric_stereo(radiance[train], data.light_directions[train], data.mask)
+        rb = photometric_stereo(radiance[train], data.light_directions[train], data.mask, robust=True)
+        mask = data.mask & rb.mask
+        if max_texels is not None and mask.sum() > max_texels:
+            rows, cols = np.nonzero(mask)
+            pick = np.random.default_rng(rng).choice(len(rows), max_texels, replace=False)
+            mask = np.zeros_like(mask)
+            mask[rows[pick], cols[pick]] = True
+        self.mask = mask
+        self.pixels = np.stack(np.nonzero(mask), axis=1)
+        self.normals_ls = ls.normals[mask].astype(np.float64)
+        self.normals_robust = rb.normals[mask].astype(np.float64)
+        self.truth = None if data.normals_gt is None else data.normals_gt[mask]
+        if frames_from not in ("robust", "least_squares"):
+            raise ValueError(f"frames_from must be 'robust' or 'least_squares', got {frames_from!r}")
+        start = rb.normals if frames_from == "robust" else ls.normals
+        self.ls, self.robust = ls, rb
+        self.train = directional_lumitexels(radiance[train], data.light_directions[train],
+                                            data.view_direction, start, mask, valid=valid[train])
+        held = directional_lumitexels(radiance[~train], data.light_directions[~train],
+                                      data.view_direction, start, mask, valid=valid[~train])
+        held.view = np.flatnonzero(~train)[held.view]
+        self.train.view = np.flatnonzero(train)[self.train.view]
+        self.held = held
+        self.data = data
+
+    def normal_errors(self, normals: np.ndarray) -> float | None:
+        """Mean angular error (deg) of (T, 3) normals against the truth; None without truth."""
+        if self.truth is None:
+            return None
+        return float(angular_error_deg(normals, self.truth).mean())
+
+
+def imported_inputs(store: Store, session: str, **kw) -> ImportedInputs:
+    """:class:`ImportedInputs` of an imported session (``max_texels``, ``rng``)."""
+    return ImportedInputs(read_imported_session(store, session), **kw)
+
+
+def _score(lt: Lumitexels, predicted: np.ndarray) -> dict[str, float]:
+    use = lt.weight > 0
+    return {"held_out_rel_rms": relative_rms(predicted[use], lt.reflectance[use]),
+            "held_out_rel_rms_trimmed": trimmed_relative_rms(predicted[use], lt.reflectance[use])}
+
+
+def process_imported_session(store: Store, session: str, *, methods: Sequence[str],
+                             force: bool = False, rng: int = 0, max_texels: int | None = 5000,
+                             progress: Callable[[str, int, int], None] | None = None,
+                             report_path: str | Path | None = None):
+    """Run ``methods`` on an imported session; returns a :class:`capture.pipeline.run.ProcessReport`
+    whose ``report_path`` is a JSON summary (the HTML report draws captured sessions' views).
+
+    ``max_texels``: texels (mask pixels drawn at random with ``rng``) the methods fit; None: all.
+    """
+    from .methods import MethodSkipped, fit_method
+    from .process import ProcessInputs
+    from .run import MethodOutcome, ProcessReport
+
+    info = store.session(session)
+    rep = ProcessReport(session)
+    rep.calibration = [{"stage": s, "status": "skipped", "reason": why, "figures": {}}
+                       for s, why in SKIPPED_STAGES.items()]
+    rep.calibration += [{"stage": r.kind, "status": "stored", "reason": f"result {r.id} "
+                         "(given with the set)", "figures": {}}
+                        for r in store.results(info.id, "calibration")]
+    t0 = time.perf_counter()
+    inp = imported_inputs(store, session, max_texels=max_texels, rng=rng)
+    rep.timings["inputs"] = round(time.perf_counter() - t0, 3)
+    frames = [f.id for f in store.frames(info.id)]
+    rep.inputs = {"texels": inp.train.n_texels, "training_samples": inp.train.n_samples,
+                  "held_out_samples": inp.held.n_samples,
+                  "training_lights": int((~inp.data.held_out).sum()),
+                  "held_out_lights": int(inp.data.held_out.sum()), "absolute_units": False,
+                  "normals_from": "robust least-squares photometric stereo (training lights)"}
+    if inp.truth is not None:
+        rep.inputs["normal_error_least_squares_deg"] = inp.normal_errors(inp.normals_ls)
+        rep.inputs["normal_error_robust_deg"] = inp.normal_errors(inp.normals_robust)
+    stub = ProcessInputs(calibration=None, views=[], held_out=[], view_steps=[], held_out_steps=[],
+                         view_frames=frames, notes=[
+                             "passive: " + SKIPPED_STAGES["probe"],
+                             "sharing: no polarization-separated images in an imported set"])
+    stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
+    for name in methods:
+        if name in stored and not force:
+            rep.methods.append(MethodOutcome(name, "done", f"stored before (result {stored[name].id});"
+                                             " --force re-runs it",
+                                             figures=stored[name].result.get("figures", {}),
+                                             result_id=stored[name].id))
+            continue
+        started = time.perf_counter()
+        sub = None if progress is None else (lambda d, t, n=name: progress(n, d, t))
+        try:
+            fit = fit_method(name, inp.train, stub, rng=rng, progress=sub,
+                             **(LENSCH_OPTIONS if name == "lensch" else {}))
+        except MethodSkipped as exc:
+            rep.methods.append(MethodOutcome(name, "skipped", str(exc)))
+            continue
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            rep.methods.append(MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}"))
+            continue
+        figures: dict[str, Any] = dict(fit.figures)
+        figures.update(_score(inp.held, fit.predict(inp.held)))
+        if fit.normals is not None and inp.truth is not None:
+            figures["normal_error_deg"] = inp.normal_errors(fit.normals)
+        seconds = round(time.perf_counter() - started, 3)
+        rep.timings[name] = seconds
+        arrays = {**fit.arrays, "pixels": inp.pixels.astype(np.int32)}
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **arrays)
+        rid = store.add_reconstruction(info.id, name, result={
+            "figures": figures, "warnings": fit.warnings, "inputs_summary": rep.inputs},
+            params={**fit.params, **(LENSCH_OPTIONS if name == "lensch" else {}),
+                    "max_texels": max_texels}, input_frames=frames,
+            artifacts={"model.npz": buf.getvalue()})
+        rep.methods.append(MethodOutcome(name, "ok", "", figures, rid, seconds, fit.warnings))
+    path = Path(report_path) if report_path else Path(store.root).resolve().parent / f"{session}-report.json"
+    rep.report_path = path.with_suffix(".json")
+    rep.report_path.write_text(json.dumps(rep.summary(), indent=1, default=str))
+    return rep
