@@ -86,6 +86,7 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
     """Reconstruct a captured session with every method its captures allow and write the report."""
     from ..pipeline.methods import DEFAULT_METHODS, METHODS
     from ..pipeline.run import process_session
+    from ..pipeline.imported import is_imported
     from ..pipeline.mesh_checks import MeshError, load_mesh
     from ..pipeline.process import ProcessError
     names = DEFAULT_METHODS if methods is None else tuple(m.strip() for m in methods.split(",") if m.strip())
@@ -119,7 +120,6 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             info = st.session(session)
         except SessionNotFound as exc:
             raise fail(str(exc)) from None
-        from ..pipeline.imported import is_imported
         if mesh is None and not recorded_in_built_in_lab(st.rig_snapshots(info.id)) and \
                 not is_imported(st, session):
             raise fail("--mesh FILE is needed: the object's mesh (sessions recorded on --rig sim bring "

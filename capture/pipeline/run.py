@@ -34,6 +34,7 @@ from reconstruct.metrics import relative_rms, trimmed_relative_rms
 from ..export.appearance import EXPORTED_METHODS, appearance_npz
 from .calibration_record import stored_calibration
 from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
+from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
@@ -179,10 +180,10 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     if unknown:
         raise ValueError(f"methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
     info = store.session(session)
-    from .imported import is_imported, process_imported_session
     if is_imported(store, session):  # no rig, no mesh: its own path (calibration given)
-        return process_imported_session(store, session, methods=methods, force=force, rng=rng,
-                                        progress=progress, report_path=report_path)
+        with store.writer(session):
+            return process_imported_session(store, session, methods=methods, force=force, rng=rng,
+                                            progress=progress, report_path=report_path)
     given = {"mesh": mesh, "targets": targets, "gray_card": gray_card, "probe_reflectance": probe_reflectance,
              "truth": truth, "method_options": method_options}
     lab = _built_in_lab_options(store, session)
