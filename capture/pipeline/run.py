@@ -177,7 +177,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
     stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
     todo = [m for m in methods if force or m not in stored]
-    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m]['id']}); --force re-runs it",
+    outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m].id}); --force re-runs it",
                                  figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
                                  warnings=stored[m].result.get("warnings", []))
                 for m in methods if m not in todo}
