@@ -125,9 +125,9 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     # rather than return a confident answer (seen: relative residual 54-77 %)
     assert any("residual" in w for w in methods["passive"]["warnings"]), methods["passive"]["warnings"]
     # The floor: the simulation's true model scored on the same held-out captures as the methods
-    # (seen: 0.26, trimmed 0.14;
-    # ratios: lambertian 3.1, lensch 2.5, sharing 1.5, passive 6.2). Every model is fitted to noisy captures through the same calibration, so
-    # none may come out below the truth; each ratio is its held-out error over the floor's
+    # (seen: 0.26, trimmed 0.14; ratios lambertian 3.1, lensch 2.5, sharing 1.5, passive 6.2).
+    # Every model is fitted to noisy captures through the same calibration, so none may come out
+    # below the truth; each ratio is its held-out error over the floor's
     floor = summary["floor"]
     assert 0 < floor["held_out_rel_rms"] < 1 and 0 < floor["held_out_rel_rms_trimmed"] <= floor["held_out_rel_rms"]
     for m in methods.values():
