@@ -297,6 +297,10 @@ def _summary(rep, figures, with_truth: bool) -> str:
                 f"({rep.floor.held_out_rel_rms_trimmed:.3g} without the 1 % worst samples): what sensor noise, "
                 "calibration and resampling leave. No model can be expected to score lower; <b>× floor</b> is each "
                 "method's held-out error over it (1 would be as good as the truth).</p>")
+    elif with_truth:   # results stored before the floor existed, or no held-out light captured
+        note = ("<p><b>No floor</b>: the true model was not scored on held-out captures in this run (none "
+                "captured, or results stored before the floor was; <code>gonio process --force</code> "
+                "recomputes them).</p>")
     else:
         note = ("<p><b>No floor</b>: the true reflectance of this object is unknown (the floor, the true model "
                 "scored on the held-out captures, exists only for sessions captured in the simulated lab), so "
