@@ -42,12 +42,15 @@ def main() -> None:
         print(f"{name:<40} {value:9.3f} {TARGETS[name]:7.2f}  {'met' if value <= TARGETS[name] else 'NOT met'}")
     print(f"{'principal point error (px)':<40} {max(abs(v) for v in t['principal_point_error_px']):9.3f}")
     print(f"{'lamp intensity, worst channel (%)':<40} {max(abs(v) for v in t['intensity_error_pct']):9.3f}")
-    print(f"{'method':<12} {'held out':>9} {'trimmed':>8} {'vs truth':>9} {'s':>6}")
+    print(f"floor (the true model on the held-out captures): {rep.floor.held_out_rel_rms:.3f}, "
+          f"trimmed {rep.floor.held_out_rel_rms_trimmed:.3f}")
+    print(f"{'method':<12} {'held out':>9} {'trimmed':>8} {'x floor':>8} {'vs truth':>9} {'s':>6}")
     for m in rep.methods:
         f = m.figures
         print(f"{m.method:<12} {f.get('held_out_rel_rms', float('nan')):9.3f} "
-              f"{f.get('held_out_rel_rms_trimmed', float('nan')):8.3f} {f.get('truth_rel_rms', float('nan')):9.3f} "
-              f"{m.seconds:6.1f}")
+              f"{f.get('held_out_rel_rms_trimmed', float('nan')):8.3f} "
+              f"{m.floor_ratio if m.floor_ratio is not None else float('nan'):8.2f} "
+              f"{f.get('truth_rel_rms', float('nan')):9.3f} {m.seconds:6.1f}")
     print("stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in rep.timings.items()))
 
 

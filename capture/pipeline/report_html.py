@@ -20,6 +20,7 @@ import numpy as np
 from ..outputs import write_atomically
 from ..store import ResultRecord, Store
 from .pictures import SLICE_THETA_I_DEG
+from .plan_table import plan_rows
 
 __all__ = ["write_html_report", "METHOD_NOTES"]
 
@@ -245,6 +246,8 @@ def _calibration_section(rep, truth, store: Store, session_id: int) -> str:
 def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str, np.ndarray] | None) -> str:
     name = outcome.method
     parts = [f"<h3>{i}. {html.escape(name)}</h3>", f"<p>{html.escape(METHOD_NOTES.get(name, ''))}</p>"]
+    if outcome.outside_assumption:
+        parts.append(f"<p class='outside'><b>Outside its assumption</b>: {html.escape(outcome.outside_assumption)}.</p>")
     if outcome.status in ("skipped", "failed"):
         parts.append(f"<p class='{outcome.status}'><b>{outcome.status}</b>: {html.escape(outcome.reason)}</p>")
         return "\n".join(parts)
@@ -277,9 +280,59 @@ def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str
     return "\n".join(parts)
 
 
+def _summary(rep, figures, with_truth: bool) -> str:
+    """The methods table (held-out score, its ratio to the floor, the error against the truth)
+    and the floor, or why there is none."""
+    def ratio(m) -> Any:
+        return "–" if m.floor_ratio is None else f"{m.floor_ratio:.2f}×"
+
+    rows = [{"method": m.method, "status": m.status,
+             "held-out rel. RMS": figures(m).get("held_out_rel_rms", float("nan")),
+             **({"× floor": ratio(m)} if rep.floor is not None else {}),
+             **({"vs truth rel. RMS": figures(m).get("truth_rel_rms", float("nan"))} if with_truth else {}),
+             "note": f"outside its assumption: {m.outside_assumption}" if m.outside_assumption else ""}
+            for m in rep.methods]
+    if rep.floor is not None:
+        note = (f"<p><b>The floor</b>: the simulation's true reflectance, scored exactly as the methods are "
+                f"on the same held-out captures, is {rep.floor.held_out_rel_rms:.3g} off them "
+                f"({rep.floor.held_out_rel_rms_trimmed:.3g} without the 1 % worst samples): what sensor noise, "
+                "calibration and resampling leave. No model can be expected to score lower; <b>× floor</b> is each "
+                "method's held-out error over it (1 would be as good as the truth).</p>")
+    elif with_truth:   # results stored before the floor existed, or no held-out light captured
+        note = ("<p><b>No floor</b>: the true model was not scored on held-out captures in this run (none "
+                "captured, or results stored before the floor was; <code>gonio process --force</code> "
+                "recomputes them).</p>")
+    else:
+        note = ("<p><b>No floor</b>: the true reflectance of this object is unknown (the floor, the true model "
+                "scored on the held-out captures, exists only for sessions captured in the simulated lab), so "
+                "the held-out errors stand alone.</p>")
+    return _table(rows) + note
+
+
+def _plan_section(store: Store, info, prog) -> str:
+    """The plan as a table of its kinds of step, the stored plan itself folded away."""
+    rows = [{"kind": r.kind, "steps": r.steps, "turntable (°)": r.turntable, "lamp (°)": r.lights,
+             "polarizer (°)": r.polarizer, "exposures": r.exposures,
+             "frames": r.frames_stored if r.frames_stored == r.frames_planned
+             else f"{r.frames_stored} of {r.frames_planned}",
+             "MB": round(r.bytes_stored / 1e6, 2)}
+            for r in plan_rows([d for _, d, _ in store.steps(info.id)], store.frames(info.id))]
+    return ("<h2>1. The plan and the capture</h2>"
+            f"<p>{prog.steps_done} of {prog.steps_total} steps, {prog.frames_stored} frames "
+            f"({prog.bytes_stored / 1e6:.1f} MB). One row per kind of step: the turntable angles, lamp "
+            "positions (azimuth × elevation about the turntable axis) and polarizer angles it visits, in "
+            "degrees (<i>a–b by s (n)</i>: n angles from a to b in steps of s); <i>held out</i> steps are "
+            "captured like the rest but never fitted: they score the models.</p>"
+            + _table(rows)
+            + "<details><summary>the plan as stored (JSON)</summary>"
+            f"<pre>{html.escape(json.dumps(info.plan, indent=1))}</pre></details>"
+            + _timeline(store, info.id))
+
+
 _CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;font-size:90%}
-th{background:#eee}img{max-width:100%}.skipped{color:#866}.failed{color:#b00}.warn{color:#a60}"""
+th{background:#eee}img{max-width:100%}.skipped{color:#866}.failed{color:#b00}.warn{color:#a60}
+.outside{background:#fff3d6;border-left:4px solid #e0a000;padding:4px 8px}"""
 
 
 def write_html_report(store: Store, session: str, rep, *, truth=None, path: str | Path) -> Path:
@@ -302,17 +355,8 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
         r = stored.get(m.method)
         return m.figures if r is None else r.result.get("figures", m.figures)
 
-    headline = [{"method": m.method, "status": m.status,
-                 "held-out rel. RMS": figures(m).get("held_out_rel_rms", float("nan")),
-                 **({"vs truth rel. RMS": figures(m).get("truth_rel_rms", float("nan"))}
-                    if truth is not None else {})}
-                for m in rep.methods]
-    parts.append("<h2>Summary</h2>" + _table(headline))
-    plan = info.plan
-    parts.append("<h2>1. The plan and the capture</h2>"
-                 f"<p>{prog.steps_done} of {prog.steps_total} steps, {prog.frames_stored} frames "
-                 f"({prog.bytes_stored / 1e6:.1f} MB).</p>"
-                 f"<pre>{html.escape(json.dumps(plan, indent=1)[:4000])}</pre>" + _timeline(store, info.id))
+    parts.append("<h2>Summary</h2>" + _summary(rep, figures, truth is not None))
+    parts.append(_plan_section(store, info, prog))
     parts.append(_calibration_section(rep, truth, store, info.id))
     parts.append("<h2>3. Reconstruction inputs</h2><p>Every measurement is resampled onto points of the "
                  "object's surface (\"lumitexels\"): per point, the directions to the lamp and the camera "

@@ -12,7 +12,8 @@ session is skipped unless ``force``.
 With a :class:`capture.demo_lab.DemoTruth` (the simulated lab's ground truth) the figures gain
 truth columns: calibration errors (focal length, lights, lamp intensity), the inputs' own error
 (measured reflectance against the true ``f_r cos``: what calibration and noise leave) and each
-model's error against the truth on the held-out samples.
+model's error against the truth on the held-out samples, and the :class:`Floor`: the true model
+scored on the held-out captures like every method, with each method's ratio to it.
 """
 from __future__ import annotations
 
@@ -49,7 +50,22 @@ from ..rigs import recorded_in_built_in_lab
 from ..store import Store, crash
 from .demo_lab import demo_lab_for
 
-__all__ = ["MethodOutcome", "ProcessReport", "process_session"]
+__all__ = ["Floor", "MethodOutcome", "ProcessReport", "process_session"]
+
+#: why passive reflectometry does not fit a multi-material object (Romeiro et al. 2008 Sec. 3)
+PASSIVE_ASSUMPTION = "Romeiro et al. assume one homogeneous curved surface"
+
+
+@dataclass(frozen=True)
+class Floor:
+    """The floor of the held-out scores: the simulation's true model (true ``f_r cos`` about the
+    true normals) scored exactly as each method is, by :func:`reconstruct.metrics.relative_rms`
+    (and its trimmed variant) of its prediction against the held-out captures. What is left is
+    the captures' own error (sensor noise, calibration, resampling onto the mesh): no model of
+    these captures can be expected to score lower. Unitless."""
+
+    held_out_rel_rms: float
+    held_out_rel_rms_trimmed: float
 
 @dataclass
 class MethodOutcome:
@@ -63,6 +79,11 @@ class MethodOutcome:
     result_id: int | None = None
     seconds: float = 0.0
     warnings: list[str] = field(default_factory=list)
+    #: held-out rel. RMS / the floor's (and the trimmed pair); None without a floor
+    floor_ratio: float | None = None
+    floor_ratio_trimmed: float | None = None
+    #: why the captured object breaks the method's assumption (empty: it does not, or unknown)
+    outside_assumption: str = ""
 
 
 @dataclass
@@ -77,12 +98,14 @@ class ProcessReport:
     methods: list[MethodOutcome] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     calibration_truth: dict[str, Any] = field(default_factory=dict)
+    floor: Floor | None = None
     report_path: Path | None = None
 
     def summary(self) -> dict[str, Any]:
         """Everything but the pictures, JSON-able (written beside the HTML as ``.json``)."""
         return {"session": self.session, "calibration": self.calibration, "inputs": self.inputs,
                 "calibration_truth": self.calibration_truth, "timings": self.timings,
+                "floor": None if self.floor is None else asdict(self.floor),
                 "methods": [asdict(m) for m in self.methods], "report": str(self.report_path)}
 
     def method(self, name: str) -> MethodOutcome:
@@ -215,10 +238,13 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         todo = [m for m in methods if force or m not in stored]
         outcomes = {m: MethodOutcome(m, "done", f"stored before (result {stored[m].id}); --force re-runs it",
                                      figures=stored[m].result.get("figures", {}), result_id=stored[m].id,
-                                     warnings=stored[m].result.get("warnings", []))
+                                     warnings=stored[m].result.get("warnings", []),
+                                     outside_assumption=stored[m].result.get("outside_assumption", ""))
                     for m in methods if m not in todo}
         if outcomes:
-            rep.inputs = stored[next(iter(outcomes))].result.get("inputs_summary", {})
+            first = stored[next(iter(outcomes))].result
+            rep.inputs = first.get("inputs_summary", {})
+            rep.floor = Floor(**first["floor"]) if first.get("floor") else None
         if todo:
             with clock.stage("inputs"):
                 images = session_images(store, session)
@@ -246,18 +272,44 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                 rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
                 rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
                     scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
+                if held.n_samples:
+                    rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
+                                      trimmed_relative_rms(truth_r[1], held.reflectance))
+            assumption = {"passive": _passive_assumption(truth, train)} if truth is not None else {}
             for name in todo:
                 started = time.perf_counter()
                 with clock.stage(name):
                     outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                                 rep.inputs, counter(progress, name), (method_options or {}).get(name, {}))
+                                                 rep.inputs, counter(progress, name), (method_options or {}).get(name, {}),
+                                                 rep.floor, assumption.get(name, ""))
                 outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
+        if rep.floor is not None:
+            for m in rep.methods:
+                m.floor_ratio = _ratio(m.figures.get("held_out_rel_rms"), rep.floor.held_out_rel_rms)
+                m.floor_ratio_trimmed = _ratio(m.figures.get("held_out_rel_rms_trimmed"),
+                                               rep.floor.held_out_rel_rms_trimmed)
         with clock.stage("report"):
             rep.report_path = write_html_report(store, session, rep, truth=truth, path=report_path or session_file(
                 Path(store.root).resolve().parent, session, info.id, "-report.html"))
         write_atomically(rep.report_path.with_suffix(".json"), json.dumps(rep.summary(), indent=1, default=_jsonable))
         return rep
+
+
+def _ratio(score: float | None, floor: float) -> float | None:
+    return None if score is None or not floor > 0 else float(score) / floor
+
+
+def _passive_assumption(truth, train: Lumitexels) -> str:
+    """Why passive reflectometry's one-material assumption fails on the captured object ("" when
+    its texels are one true material)."""
+    try:
+        ids, materials = truth.materials(train.position)
+    except ValueError:
+        return ""
+    n = len(np.unique(ids))
+    return "" if n < 2 else (f"the object has {n} materials; {PASSIVE_ASSUMPTION}, so its one BRDF is "
+                             "their blend and its figures do not measure the method")
 
 
 def _jsonable(obj: Any) -> Any:
@@ -297,13 +349,13 @@ def _calibration(store: Store, session: str, targets, force: bool,
 # -- one method ---------------------------------------------------------------------------------
 def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, held: Lumitexels,
                 inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
-                progress, options: dict[str, Any]) -> MethodOutcome:
+                progress, options: dict[str, Any], floor: Floor | None, assumption: str) -> MethodOutcome:
     try:
         fit = fit_method(name, train, inputs, rng=rng, progress=progress, **options)
     except MethodSkipped as exc:
-        return MethodOutcome(name, "skipped", str(exc))
+        return MethodOutcome(name, "skipped", str(exc), outside_assumption=assumption)
     except (ValueError, np.linalg.LinAlgError) as exc:
-        return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}")
+        return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}", outside_assumption=assumption)
     figures = dict(fit.figures)
     predicted_train = fit.predict(train)
     figures["training_rel_rms"] = relative_rms(predicted_train, train.reflectance)
@@ -325,14 +377,15 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
               "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
                          "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
                          "training_samples": train.n_samples, "held_out_samples": held.n_samples},
-              "inputs_summary": summary}
+              "inputs_summary": summary, "floor": None if floor is None else asdict(floor),
+              "outside_assumption": assumption}
     artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
     if name in EXPORTED_METHODS:   # what `gonio export` writes files from
         artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
                                                       predicted_train, predicted)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
-    return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings)
+    return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
 
 
 def _median_angle_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -204,6 +204,9 @@ def test_process_skips_what_is_stored_unless_forced(processed, captured):
     assert again.method("lambertian").status == "done" and again.method("lambertian").result_id == lam.result_id
     assert again.method("lambertian").figures["held_out_rel_rms"] == lam.figures["held_out_rel_rms"]
     assert "inputs" not in again.timings and again.inputs["texels"] == rep.inputs["texels"]
+    # the floor the stored result was scored against comes back with it, and so does its ratio
+    assert again.floor == rep.floor and rep.floor is not None
+    assert again.method("lambertian").floor_ratio == lam.floor_ratio > 1
     forced = process_session(store, "proc", force=True, methods=["lambertian"], **kw)
     assert forced.method("lambertian").status == "ok" and forced.method("lambertian").result_id > lam.result_id
     assert {c["stage"] for c in forced.calibration} >= {"intrinsics", "lights", "gray_card"}   # re-calibrated
@@ -313,6 +316,9 @@ def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captur
     assert "ground truth" not in text and "vs truth" not in text and "true normals" not in text
     assert not rep.calibration_truth and "measured_vs_truth_rel_rms" not in rep.inputs
     assert "truth_rel_rms" not in rep.method("lambertian").figures
+    # no truth, no floor: the report says there is none rather than showing a ratio
+    assert rep.floor is None and rep.method("lambertian").floor_ratio is None
+    assert "No floor" in text and "× floor" not in text
     assert "held-out rel. RMS" in text
     store.close()
 
