@@ -57,7 +57,8 @@ def test_cross_validated_weight_beats_the_fixed_one(zoo, grace):
     MERL materials: the weight chosen by cross-validation over pixels gives less than half the
     per-sample Eq. 1 error of the fixed ``LAMBDA`` and below 120 % (with the 99-material prior
     of benchmarks/zoo.py: 358 % -> 65 %); the report names the unconstrained part of the
-    domain. One material only, for the suite's time (~130 s on a loaded 2-core machine);
+    domain. One material only, for the suite's time (95-145 s wall on the loaded 2-core
+    machine, ~6 s of CPU by the benchmark's per-material figures);
     pearl-paint, also tried, gains less with this small prior (55 % -> 30 %, not half)."""
     truth = zoo["merl/hematite"]
     prior = learn_prior([zoo[k] for k in LIBRARY], (32, 32), name="merl-10")
