@@ -40,9 +40,14 @@ from .passive_prior import PRIOR_KINDS, SmoothnessPrior, default_prior, learn_pr
 __all__ = ["passive_reflectometry", "PassiveFit", "Adequacy", "PassiveInputError",
            "PassiveWarning", "lighting_matrix", "learn_prior", "bivariate_error"]
 
-#: Regularisation weight of Eq. 6 for the normalised data term (tuned once, on materials and
-#: an environment outside the test and benchmark sets: see docs/architecture.md).
+#: Regularisation weight of Eq. 6 for the normalised data term when ``lam`` is a number: tuned
+#: once with the analytic default priors, on materials and an environment outside the test and
+#: benchmark sets (docs/architecture.md). ``lam="cv"`` chooses it per problem instead (not
+#: the default: see ``passive_reflectometry``).
 LAMBDA = 1e-6
+#: Candidate weights of ``lam="cv"`` (one per decade) and its number of observation folds.
+CV_LAMBDAS = 10.0 ** np.arange(-11, -3)
+CV_FOLDS = 4
 #: Maps with more texels are area-averaged to 2 x 181^2 (~65,000: the paper's 32,000 directions
 #: per visible hemisphere); the lighting matrix costs time linear in the texel count.
 MAX_TEXELS = 65536
@@ -118,13 +123,38 @@ class Adequacy:
     n_observations: int
     warnings: tuple = ()
 
+    @property
+    def constrained(self) -> np.ndarray:
+        """(n_t, n_s) bool: nodes with coverage >= ``POOR_COVERAGE``, the part of the BRDF the
+        environment observed; elsewhere the recovered values are the prior's extrapolation."""
+        with np.errstate(invalid="ignore"):
+            return self.coverage >= POOR_COVERAGE
+
+    def unconstrained_ranges(self) -> str:
+        """Where the environment did not constrain the BRDF, in words: per theta_d band of
+        10 deg, the theta_h ranges (deg) of the nodes outside ``constrained``."""
+        n_t, n_s = self.coverage.shape
+        theta_h = np.linspace(0, 1, n_t) ** 2 * 90
+        theta_d = np.linspace(0, 1, n_s) * 90
+        bad = ~self.constrained
+        parts = []
+        for lo in range(0, 90, 10):
+            cols = (theta_d >= lo) & (theta_d < lo + 10 if lo < 80 else theta_d <= 90)
+            rows = bad[:, cols].any(axis=1)
+            if rows.any():
+                parts.append(f"theta_d {lo}-{lo + 10}: theta_h "
+                             + _ranges(theta_h, rows))
+        return "; ".join(parts) if parts else "none"
+
     def report(self) -> str:
         """The headline figures and warnings, one per line."""
         regions = ", ".join(f"{k}: {v:.0%}" for k, v in self.poorly_observed.items())
         lines = [f"observations {self.n_observations}, rank {self.effective_rank}/"
                  f"{len(self.singular_values)}, condition {self.condition:.3g}, sources "
                  f"carrying 95 % of the light {self.effective_sources}",
-                 f"poorly observed: {regions}"]
+                 f"poorly observed: {regions}",
+                 f"not constrained by the environment ({np.mean(~self.constrained):.0%} of the "
+                 f"nodes, prior only; deg): {self.unconstrained_ranges()}"]
         return "\n".join(lines + [f"warning: {w}" for w in self.warnings])
 
 
@@ -148,7 +178,7 @@ class PassiveFit:
     converged : bool
         Every solve met its tolerance.
     lam : float
-        Regularisation weight used.
+        Regularisation weight used (the cross-validated one for ``lam="cv"``).
     """
 
     brdf: Bivariate
@@ -170,14 +200,21 @@ class PassiveFit:
 
 
 def bivariate_error(estimate: BRDF, truth: BRDF, *, shape=(90, 90, 180),
-                    exclude_grazing_deg: float = 0.0) -> float:
+                    exclude_grazing_deg: float = 0.0, pooled: bool = False,
+                    nodes=None) -> float:
     """Relative RMS BRDF error of ``estimate`` against ``truth`` (Romeiro et al. Eq. 1).
 
-    sqrt(mean over samples of ((f - f_est) / f)^2), over the (theta_h, theta_d, phi_d) nodes of
-    a MERL-layout grid of ``shape`` (theta_h square-root warped, ``TabulatedIsotropic``'s
-    positions) where ``truth`` is defined and > 0, pooling the three channels. The extracted
-    equation is garbled; this reading (squared relative differences, averaged) keeps a
-    grazing-angle singularity (1/cos factors of Ward-like models) from dominating the sum.
+    Over the (theta_h, theta_d, phi_d) nodes of a MERL-layout grid of ``shape`` (theta_h
+    square-root warped, ``TabulatedIsotropic``'s positions) where ``truth`` is defined and > 0,
+    pooling the three channels. The extracted equation is garbled (one sum sign, a fraction
+    whose denominator is f(theta_h, theta_d, phi_d)^2, no 1/N); it admits two readings:
+
+    - ``pooled=False`` (default): sqrt(mean of ((f - f_est) / f)^2), every sample's relative
+      difference counting alike. A few samples where the truth is tiny dominate it (an NBRDF
+      fit near the horizon, where MERL has no data, falls to ~0.005).
+    - ``pooled=True``: sqrt(sum (f - f_est)^2 / sum f^2), the RMS difference relative to the
+      RMS value, "relative RMS" without a sample count; the highlight, where f is large,
+      dominates it.
 
     Parameters
     ----------
@@ -186,6 +223,13 @@ def bivariate_error(estimate: BRDF, truth: BRDF, *, shape=(90, 90, 180),
         Grid (n_theta_h, n_theta_d, n_phi_d); the MERL database's by default.
     exclude_grazing_deg : float
         Leave out samples with either direction within this many degrees of the horizon.
+    pooled : bool
+        Which reading (above).
+    nodes : ndarray (n_t, n_s) bool, optional
+        Keep only samples whose nearest bivariate node is True (e.g. ``Adequacy.constrained``:
+        the error where the environment observed the BRDF, leaving out what only the prior
+        says). The node grid is the passive one: t = sqrt(2 theta_h / pi), s = 2 theta_d / pi,
+        both on [0, 1].
 
     Returns
     -------
@@ -202,12 +246,24 @@ def bivariate_error(estimate: BRDF, truth: BRDF, *, shape=(90, 90, 180),
     wi, wo = from_halfway_difference(th, 0.0, td, pd)
     lo = np.sin(np.radians(exclude_grazing_deg))
     ok = truth.defined(wi, wo) & (wi[:, 2] > lo) & (wo[:, 2] > lo)
+    if nodes is not None:
+        keep = np.asarray(nodes)
+        if keep.ndim != 2 or keep.dtype != bool or min(keep.shape) < 2:
+            raise PassiveInputError(f"nodes must be a 2-D bool array (n_t, n_s), got "
+                                    f"{keep.dtype} {keep.shape}")
+        n_t, n_s = keep.shape
+        i = np.rint(np.sqrt(th.ravel() / (np.pi / 2)) * (n_t - 1)).astype(int)
+        j = np.rint(td.ravel() / (np.pi / 2) * (n_s - 1)).astype(int)
+        ok &= keep[i, j]
     f = truth.evaluate(wi[ok], wo[ok])
     g = estimate.evaluate(wi[ok], wo[ok])
     pos = f > 0
     if not pos.any():
         raise PassiveInputError("truth is 0 or undefined everywhere on the grid")
-    return float(np.sqrt(np.mean(((f[pos] - g[pos]) / f[pos]) ** 2)))
+    f, g = f[pos], g[pos]
+    if pooled:
+        return float(np.sqrt(np.sum((f - g) ** 2) / np.sum(f ** 2)))
+    return float(np.sqrt(np.mean(((f - g) / f) ** 2)))
 
 
 def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, grid=(32, 32),
@@ -249,8 +305,22 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         Trust in each texel / source in [0, 1] (a probe's blind cone: 0). Observations whose
         cosine-weighted hemisphere is more than ``MAX_UNTRUSTED`` (2 %) untrusted are dropped;
         the rest use the weighted radiance.
-    lam : float
-        Regularisation weight of Eq. 6 (for the normalised data term).
+    lam : float or "cv"
+        Regularisation weight of Eq. 6 (for the normalised data term), default ``LAMBDA``.
+        ``"cv"``:
+        chosen from ``CV_LAMBDAS`` by ``CV_FOLDS``-fold cross-validation over the observations
+        (pixels): each candidate is fitted, per prior, to the green channel of all folds but one
+        (without the f >= 0 bound, a Cholesky solve) and scored by its residual on the held-out
+        fold; the weight with the lowest summed held-out residual is used for every prior and
+        channel. The data's own noise (sensor, bivariate approximation, discretisation) thus
+        sets the weight, not a figure tuned on some materials: a prior whose derivative
+        variances are large (MERL's metals) needs a smaller one than the analytic priors
+        (MERL leave-one-out under Grace: 1e-11 to 1e-8; Eq. 1 error of hematite 358 -> 65 %).
+        Not the default because held-out pixels cannot see the nodes that no pixel observes
+        well: on noise-free images it drives the weight down until those nodes are free (an
+        Oren-Nayar sphere with the analytic priors: 1e-11, Eq. 1 error 12 % -> 333 %; the
+        one-standard-error rule picks the same). Costs 4 folds x 8 weights x priors Cholesky
+        solves of the node count.
     rng : int or numpy.random.Generator
         Observation sampling.
     progress : callable, optional
@@ -279,8 +349,9 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
                                 f"{max_view_angle_deg!r}")
     if not (isinstance(n_normals, (int, np.integer)) and n_normals >= 1):
         raise PassiveInputError(f"n_normals must be a positive int, got {n_normals!r}")
-    if not lam >= 0:
-        raise PassiveInputError(f"lam must be >= 0, got {lam!r}")
+    if not (isinstance(lam, str) and lam == "cv") and not (
+            isinstance(lam, (int, float, np.floating)) and lam >= 0):
+        raise PassiveInputError(f"lam must be a number >= 0 or 'cv', got {lam!r}")
     priors = _priors(prior, two_priors, (n_t, n_s))
     gen = np.random.default_rng(rng)
 
@@ -306,10 +377,12 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     G = [a.T @ a for a in A]
     h = [a.T @ bb for a, bb in zip(A, b)]
     lamb = np.array([h[c].sum() / G[c].sum() for c in range(3)])  # best constant f
+    roughness = [D.T @ D for D in (p.difference_operators() for p in priors)]
+    if isinstance(lam, str):
+        lam = _cross_validated_lambda(A[1], b[1], roughness, gen)
     solutions, residuals, converged = {}, {}, True
     for k, p in enumerate(priors):
-        D = p.difference_operators()
-        R = lam * (D.T @ D)
+        R = lam * roughness[k]
         f = np.empty((n_t * n_s, 3))
         free = None  # the channels share most of their active set: each starts from the last
         for c in range(3):
@@ -463,7 +536,29 @@ def _priors(prior, two_priors, grid):
     return ps
 
 
-# -- the solve -----------------------------------------------------------------------------------
+# -- the solve ----------------------------------------------------------------------------------
+
+def _cross_validated_lambda(A, b, roughness, gen) -> float:
+    """The weight of ``CV_LAMBDAS`` with the lowest held-out residual: ``CV_FOLDS`` random
+    folds of the rows of ``A`` (M, n) / ``b`` (M,) (one channel, scaled as in the solve), each
+    candidate solved unconstrained on the other folds (their Gram matrix rescaled to the full
+    count, so that a weight means the same as in the full solve) with each prior's
+    ``roughness`` (n, n) matrix, summed over folds and priors."""
+    fold = gen.permutation(len(b)) % CV_FOLDS
+    score = np.zeros(len(CV_LAMBDAS))
+    for k in range(CV_FOLDS):
+        train, test = fold != k, fold == k
+        G = A[train].T @ A[train] * (CV_FOLDS / (CV_FOLDS - 1))
+        h = A[train].T @ b[train] * (CV_FOLDS / (CV_FOLDS - 1))
+        for R in roughness:
+            for j, lam in enumerate(CV_LAMBDAS):
+                try:
+                    f = cho_solve(cho_factor(G + lam * R), h)
+                except np.linalg.LinAlgError:  # too weak to make the system definite
+                    score[j] = np.inf
+                    continue
+                score[j] += np.sum((A[test] @ f - b[test]) ** 2)
+    return float(CV_LAMBDAS[int(np.argmin(score))])
 
 def _nnls_quadratic(Q, h, free=None, *, max_iter=200):
     """argmin_{x >= 0} x^T Q x / 2 - h^T x for symmetric positive definite ``Q`` (n, n).
@@ -551,6 +646,14 @@ def _adequacy(L, gram_green, n, v, d, E, omega, grid, residual):
                     f"(probe rotated against the object, wrong normals or mask, spatially "
                     f"varying material)")
     return Adequacy(sv, rank, cond, coverage, poor, n_eff, len(n), tuple(msgs))
+
+
+def _ranges(values, mask) -> str:
+    """Runs of True in ``mask`` as "a-b" ranges of ``values`` (rounded; one node: "a"),
+    comma-separated."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
+    return ", ".join(f"{values[a]:.0f}" if b - a == 1 else f"{values[a]:.0f}-{values[b - 1]:.0f}"
+                     for a, b in zip(edges[::2], edges[1::2]))
 
 
 def _fibonacci_sphere(k: int) -> np.ndarray:

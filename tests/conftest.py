@@ -1,11 +1,15 @@
 """Shared fixtures."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+#: ``../shared/data`` beside the repository; ``GONIO_SHARED_DATA`` points elsewhere (a git
+#: worktree that does not sit beside it).
+SHARED_DATA = Path(os.environ.get("GONIO_SHARED_DATA",
+                                  Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
 @pytest.fixture(scope="session")
