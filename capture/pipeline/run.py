@@ -264,7 +264,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                           "training_samples": train.n_samples, "held_out_samples": held.n_samples,
                           "light_source": cal.light_source, "absolute_units": cal.absolute,
                           "passive_capture": inputs.passive is not None, "notes": inputs.notes,
-                          "lumitexel_arrays": {"path": str(arrays.path.relative_to(Path(store.root))),
+                          "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
                                                "digest": arrays.digest, "block_texels": arrays.block_texels,
                                                "reused_views": arrays.reused_views}}
             if truth_r is not None:
