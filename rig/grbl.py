@@ -601,7 +601,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
             if missing:
                 raise ProtocolError(f"$$ did not report settings {missing}", device=self.name)
             check_machine_space(self.settings, self.kinematics, self.machine_map, device=self.name)
-            state = self.status().state
+            state = self._poll(self.status).state
         except BaseException:
             self.transport.close()
             raise
@@ -623,7 +623,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
     def machine_position(self) -> dict[str, float]:
         """Machine coordinates (``MPos``) by axis letter, machine units."""
         self._require()
-        mpos = self.status().machine_position(self._wco)
+        mpos = self._poll(self.status).machine_position(self._wco)
         return dict(zip(AXES, mpos))
 
     def _light(self, machine: dict[str, float]) -> tuple[float, float, float]:
@@ -666,7 +666,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
         if not isinstance(target, LightTarget):
             raise TypeError(f"{self.name}: move_to takes a LightTarget, got {type(target).__name__}")
         end = self.machine_map.to_machine(self.kinematics.inverse(target))
-        st = self.status()
+        st = self._poll(self.status)
         self._check_ready(st)
         start = dict(zip(AXES, st.machine_position(self._wco)))
         self.send(format_move(end).decode("ascii").strip())
@@ -723,7 +723,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
         # per cycle (Z, then X and Y), with a margin
         timeout = self.home_timeout_s or 2.0 * 1.5 * max(travel) / max(seek, 1e-6) + 5.0
         try:
-            self.status()  # reads (and recovers from) any alarm pushed since the last call
+            self._poll(self.status)  # reads (and recovers from) any alarm pushed since the last call
         except GrblAlarm:
             pass
         self.last_alarm = None
@@ -791,6 +791,8 @@ class GrblPositioner(SerialDriver, LightPositioner):
                 st = self.status()
             except (DeviceBusy, GrblAlarm):  # a homing cycle began, or an alarm halted the motion
                 break
+            except (ProtocolError, DeviceTimeout):  # noise must not keep the reset from going out
+                continue
             if st.state in ("Idle", "Alarm") or (st.state == "Hold" and st.substate == 0):
                 break
             time.sleep(self.poll_interval_s)
@@ -799,7 +801,7 @@ class GrblPositioner(SerialDriver, LightPositioner):
     # -- description ------------------------------------------------------------------------------
     def read(self) -> dict[str, dict[str, Any]]:
         self._require()
-        st = self.status()
+        st = self._poll(self.status)
         mpos = dict(zip(AXES, st.machine_position(self._wco)))
         return {
             "light_position": reading(self._light(mpos), "mm"),

@@ -263,6 +263,25 @@ def test_move_survives_one_garbled_status_report():
         p.close()
 
 
+def test_a_garbled_report_before_a_move_or_during_a_stop_is_polled_again():
+    # Seen on the real firmware (CI, 2026-11-25): a status report read back as
+    # b'<Idle|MPos:-1.000,-1.000,-l.000|FS:0,0>' failed move_to() before anything moved. Every
+    # status query the driver makes for itself is idempotent, so one garbled reply is re-asked.
+    with GrblSim(fast=False, settings={22: 0}) as sim:
+        p = make(sim)
+        sim.inject("garble")
+        status = p.move_to(LightTarget(azimuth_deg=60, elevation_deg=0))  # ~0.7 s of motion
+        time.sleep(0.1)
+        sim.inject("garble")
+        p.stop()  # a garbled report while waiting for the hold must not keep the reset back
+        with pytest.raises(DeviceError, match="from the target"):
+            status.wait(3)
+        assert 0.5 < sim.physical_position[0] < 59.5  # stopped part way
+        sim.inject("garble")
+        assert p.machine_position()["X"] == pytest.approx(sim.physical_position[0], abs=0.01)
+        p.close()
+
+
 def test_homed_state_survives_a_new_connection(pos, sim):
     pos.home().wait(2)
     pos.close()
