@@ -63,6 +63,11 @@ _TEXEL_BYTES_FIXED, _TEXEL_BYTES_PER_VIEW = 200, 80
 _PIXEL_BYTES = 160
 
 
+#: texels per block at most: a view's chunk of ``samples`` is then 16 MiB, past which a bigger
+#: block saves no per-call overhead and only delays the first write
+_MAX_BLOCK = 1 << 18
+
+
 def reject_filter_for(width: int) -> int:
     """The depth/shadow-edge rejection box: 5 px at 1200 px wide (the assembly's default), at
     least 3 (at 320 x 240 a 5 px box dropped 40 % more samples for the same accuracy), odd."""
@@ -76,7 +81,8 @@ def default_memory_limit() -> int:
 
 def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: int = 1) -> int:
     """Texels per block so that ``workers`` tasks, each holding one view's images and one
-    block, stay within ``memory_bytes`` (at least 1024: below that the per-chunk overhead rules).
+    block, stay within ``memory_bytes`` (at least 1024: below that the per-chunk overhead rules;
+    at most 2**18).
 
     Raises
     ------
@@ -89,7 +95,8 @@ def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: i
         raise ValueError(f"--memory-limit {memory_bytes / 2**20:.0f} MiB cannot hold one view's images "
                          f"per worker ({workers} x {image / 2**20:.0f} MiB at {pixels} pixels); give at least "
                          f"{1.25 * image * max(workers, 1) / 2**20:.0f} MiB")
-    return int(max(1024, (per_worker - image) // (_TEXEL_BYTES_FIXED + _TEXEL_BYTES_PER_VIEW * n_views)))
+    fit = (per_worker - image) // (_TEXEL_BYTES_FIXED + _TEXEL_BYTES_PER_VIEW * n_views)
+    return int(min(_MAX_BLOCK, max(1024, fit)))
 
 
 @dataclass(frozen=True)
@@ -302,13 +309,17 @@ def stream_lumitexels(images: SessionImages, session: str, cal: SessionCalibrati
 
     executor.map(_hits_task, [(job, k, cams[k], lights[k]) for k in hits_todo], progress=tick)
     T = _write_texels(group, V, [c.width for c in cams], block_texels)
-    group.array("samples", (T, V, _CHANNELS), (block_texels, 1, _CHANNELS), np.float32)
+    # a chunk no longer than the texels: Zarr writes a partial chunk whole, so a (block, 1, 16)
+    # chunk far beyond T cost its full size per view (0.4 s a view on the quick demo)
+    block = min(block_texels, T)
+    job = dataclasses.replace(job, block_texels=block)
+    group.array("samples", (T, V, _CHANNELS), (block, 1, _CHANNELS), np.float32)
     # a view's task needs no probe map: keep it out of what is sent to the workers
     slim = dataclasses.replace(cal, environment=None, environment_weight=None)
     executor.map(_samples_task, [(job, k, poses[k], slim, cams[k], lights[k], T) for k in samples_todo],
                  progress=tick)
     n_train = sum(not p.held_out for p in poses)
-    return LumitexelArrays(group.path, group.digest, T, V, n_train, block_texels, separated,
+    return LumitexelArrays(group.path, group.digest, T, V, n_train, block, separated,
                            reused_views=V - len(samples_todo))
 
 
@@ -322,6 +333,7 @@ def _write_texels(group: ChunkGroup, V: int, widths: list[int], block: int) -> i
         return T
     if T == 0:
         raise LumitexelError("the object is not visible in any view (check poses and the mesh frame)")
+    block = min(block, T)
     out = {"position": group.array("texels/position", (T, 3), (block, 3), np.float64),
            "normal": group.array("texels/normal", (T, 3), (block, 3), np.float64),
            "best_view": group.array("texels/best_view", (T,), (block,), np.int32),

@@ -491,12 +491,17 @@ def test_streamed_lumitexels_equal_the_in_memory_assembly_and_resume(captured, i
 def test_two_local_workers_store_the_same_arrays(captured, inputs):
     *_, train, held = inputs
     shutil.rmtree(Path(captured[0].root) / "arrays", ignore_errors=True)
-    arrays, lt = _stream(captured, inputs, workers=2)
+    arrays, lt = _stream(captured, inputs, workers=2, block=10**6)
     _assert_same(lt, (train, held))
+    # a block beyond the texel count is cut to it: Zarr writes a partial chunk whole, and a chunk
+    # sized by a 12 GiB memory limit made the quick demo's assembly 18x slower
+    assert arrays.block_texels == arrays.n_texels < 10**6
+    assert zarr.open_array(str(arrays.path / "samples"), mode="r").chunks == (arrays.n_texels, 1, 16)
 
 
 def test_memory_limit_too_small_for_one_view_is_a_clear_error():
     assert block_texels_for(2 * 2**30, n_views=36, pixels=320 * 240) > 50_000
+    assert block_texels_for(2**40, n_views=36, pixels=320 * 240) == 2**18   # a 16 MiB chunk per view at most
     with pytest.raises(ValueError, match=r"--memory-limit 64 MiB cannot hold one view's images .* at least"):
         block_texels_for(64 * 2**20, n_views=60, pixels=2048 * 1536)
 
