@@ -160,7 +160,8 @@ def _samples_task(job: _Job, k: int, pose: PoseSpec, cal: SessionCalibration, ca
     """Pass 2 of view ``k``: merge its brackets, sample it block by block, write its column."""
     geom = _geometry(job)
     view = merge_pose(_images(job), pose, cal)
-    reject = _read_hits(job.path, k).reject
+    with np.load(Path(job.path) / "hits" / f"{k}.npz") as z:
+        reject = z["reject"]   # only the rejection map: an npz member is read when asked for
     root = Path(job.path)
     position = zarr.open_array(str(root / "texels" / "position"), mode="r")
     normal = zarr.open_array(str(root / "texels" / "normal"), mode="r")
