@@ -9,6 +9,8 @@ Parts (each prints its figures):
 - ``memory``: peak RSS (a fresh process each) of today's in-memory route (every view merged,
   then :func:`reconstruct.lumitexels.assemble_lumitexels`) against the streamed one under
   ``--memory-limit`` MiB followed by a block-wise Lambertian albedo, with time;
+- ``growth``: the streamed route at 1x, 4x and 16x pixels (:func:`upscale`): time per stage,
+  peak RSS and the growth exponents against the texel count;
 - ``today``: ``gonio process --methods lambertian`` with the base commit's code against this
   branch's, alternated (needs ``git archive 0e5e740 | tar -x -C /tmp/gonio_today``);
 - ``executors``: the streamed lumitexels in-process, on 1 and on 2 local workers: stored
@@ -110,6 +112,7 @@ def one(route: str, store_path: str, limit_mib: float) -> None:
     store, mesh, cal = _setup(store_path)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()
+    stages: dict[str, float] = {}
     if route == "in_memory":
         train, held = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
         texels, samples = train.n_texels, train.n_samples + held.n_samples
@@ -121,22 +124,53 @@ def one(route: str, store_path: str, limit_mib: float) -> None:
                                  pixels=cal.camera.width * cal.camera.height)
         with Executor(ClusterOptions(), store_root=store.root) as ex:
             arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=block)
+        stages["lumitexels"] = time.perf_counter() - t
         texels, samples = len(_albedo_blockwise(arrays)), -1
+        stages["albedo"] = time.perf_counter() - t - stages["lumitexels"]
     dt = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"route": route, "seconds": dt, "peak_rss_mib": peak / 1024,
+    print(json.dumps({"route": route, "seconds": dt, "peak_rss_mib": peak / 1024, "stages": stages,
                       "peak_above_setup_mib": (peak - base) / 1024, "texels": texels, "samples": samples}))
+
+
+def _one(route: str, store_path: str, limit_mib: float) -> dict:
+    """:func:`one` in a fresh process (so its peak RSS is its own)."""
+    out = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", route,
+                          "--memory-limit", str(limit_mib)], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def memory(store_path: str, limit_mib: float) -> None:
     for route in ("in_memory", "streamed"):
-        out = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", route,
-                              "--memory-limit", str(limit_mib)],
-                             capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
-        r = json.loads(out)
+        r = _one(route, store_path, limit_mib)
         print(f"memory  {route:10s} {r['seconds']:6.1f} s  peak RSS {r['peak_rss_mib']:7.0f} MiB "
               f"({r['peak_above_setup_mib']:6.0f} MiB above the set-up: imports, store, calibration)"
               + (f"  limit {limit_mib:.0f} MiB" if route == "streamed" else "") + f"  {r['texels']} texels")
+
+
+def growth(store_path: str, limit_mib: float) -> None:
+    """The streamed route (assembly, then a block-wise albedo) on the session enlarged 1, 2 and
+    4 times a side (1x, 4x and 16x pixels and texels; :func:`upscale`): time per stage and peak
+    RSS in a fresh process each, and the growth exponent b of cost ~ texels^b (least squares in
+    log-log)."""
+    rows = []
+    for f in (1, 2, 4):
+        path = store_path
+        if f > 1:
+            path = str(Path(store_path).resolve().parent / f"scale-growth-{f}")
+            upscale(store_path, f, path)
+        r = _one("streamed", path, limit_mib)
+        rows.append(r)
+        print(f"growth  {f}x{f}  {r['texels']:8d} texels  {r['seconds']:7.1f} s  (lumitexels "
+              f"{r['stages']['lumitexels']:.1f} s, albedo {r['stages']['albedo']:.2f} s)  peak RSS "
+              f"{r['peak_rss_mib']:6.0f} MiB ({r['peak_above_setup_mib']:5.0f} above the set-up)  limit {limit_mib:.0f} MiB")
+        if f > 1:
+            shutil.rmtree(path, ignore_errors=True)
+    x = np.log([r["texels"] for r in rows])
+    for what, ys in (("time", [r["seconds"] for r in rows]),
+                     ("lumitexels time", [r["stages"]["lumitexels"] for r in rows]),
+                     ("peak above the set-up", [max(r["peak_above_setup_mib"], 1.0) for r in rows])):
+        print(f"growth  exponent of {what} against texels: {np.polyfit(x, np.log(ys), 1)[0]:.2f}")
 
 
 def today(store_path: str, limit_mib: float) -> None:
@@ -266,14 +300,15 @@ def upscale(store_path: str, f: int, dest: str) -> None:
             sha = store.put_object(buf.getvalue())
             db.execute("UPDATE result_objects SET sha256 = ?, size = ? WHERE result_id = ? AND name = ?",
                        (sha, len(buf.getvalue()), rid, name))
-        rid, text = db.execute("SELECT id, result_json FROM results WHERE kind = 'intrinsics'").fetchone()
-        r = json.loads(text)
-        K = np.array(r["K"])
-        K[0, 0] *= f
-        K[1, 1] *= f
-        K[:2, 2] = f * (K[:2, 2] + 0.5) - 0.5   # pixel centres: the enlarged pixel grid's
-        r["K"], r["image_size"] = K.tolist(), [f * v for v in r["image_size"]]
-        db.execute("UPDATE results SET result_json = ? WHERE id = ?", (json.dumps(r), rid))
+        # every stored intrinsics (a re-calibrated session holds several; the newest is read)
+        for rid, text in db.execute("SELECT id, result_json FROM results WHERE kind = 'intrinsics'").fetchall():
+            r = json.loads(text)
+            K = np.array(r["K"])
+            K[0, 0] *= f
+            K[1, 1] *= f
+            K[:2, 2] = f * (K[:2, 2] + 0.5) - 0.5   # pixel centres: the enlarged pixel grid's
+            r["K"], r["image_size"] = K.tolist(), [f * v for v in r["image_size"]]
+            db.execute("UPDATE results SET result_json = ? WHERE id = ?", (json.dumps(r), rid))
     store.close()
     print(f"upscale  {dest}: measurement and passive frames and darks enlarged {f} x {f}, "
           f"{r['image_size'][0]} x {r['image_size'][1]}")
@@ -310,10 +345,10 @@ def scheduler(store_path: str) -> None:
             p.wait()
 
 
-PARTS = {"memory": memory, "today": today, "executors": executors, "resume": resume, "kill_worker": kill_worker,
+PARTS = {"memory": memory, "growth": growth, "today": today, "executors": executors, "resume": resume, "kill_worker": kill_worker,
          "scheduler": scheduler}
 #: the parts that take the memory limit
-_LIMITED = {"memory", "today"}
+_LIMITED = {"memory", "growth", "today"}
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
