@@ -227,7 +227,8 @@ class LumitexelArrays:
         mask = block[:, :, _MASK] > 0
         keep = np.flatnonzero(mask[:, :self.n_train].any(axis=1))
         rows, cols = np.nonzero(mask[keep])   # row-major: by texel, then view: the assembly's order
-        picked = block[keep][rows, cols]
+        picked = block[keep[rows], cols]      # no copy of the kept texels' whole rows first
+        del block
         fields = {name: np.ascontiguousarray(picked[:, 3 * c:3 * c + 3])
                   for c, name in enumerate(_SAMPLE_FIELDS[:5 if self.separated else 3])}
         tex = {name: self._open("texels", name)[t0:t1][keep] for name in ("position", "normal", "best_view", "pixel")}
