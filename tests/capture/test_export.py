@@ -5,6 +5,7 @@ reuses that module's demo run).
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -319,3 +320,51 @@ def test_merl_round_trip_and_an_independent_writer(tmp_path):
     model = read_merl(tmp_path / "ct.binary")
     got = model.evaluate(wi[ok][::97], wo[ok][::97])     # at the nodes: the tabulated values
     assert np.allclose(got, values[ok][::97], rtol=1e-6)
+
+
+def _links(page: Path) -> list[str]:
+    import re
+    return re.findall(r'href="([^"]*)"', page.read_text()) + re.findall(r"href='([^']*)'", page.read_text())
+
+
+def test_export_page_links_every_file_and_shows_the_render(synthetic, tmp_path):
+    """``DIR/report.html`` links every written file relative to DIR (the links still resolve after
+    the folder is moved), states model.json's approximation figures, and shows Mitsuba's render
+    of the held-out capture beside the prediction, whose stated difference is the check's (< 0.05,
+    as test_mitsuba_renders_the_synthetic_export_as_the_formula)."""
+    import re
+    root, mesh, app, rep = synthetic
+    moved = tmp_path / "elsewhere" / "export"
+    shutil.copytree(rep.out, moved)
+    page = moved / "report.html"
+    assert rep.page == rep.out / "report.html" and page.is_file()
+    links = _links(page)
+    written = [f for files in rep.files.values() for f in files] + ["model.json"]
+    assert set(written) <= set(links)
+    for href in links:
+        assert not href.startswith(("/", "file:", "http")) and (moved / href).is_file(), href
+    text = page.read_text()
+    approx = json.loads((moved / "model.json").read_text())["approximation"]
+    for key in ("export_vs_method_held_out_rel_rms", "gltf_vs_method_held_out_rel_rms", "export_held_out_rel_rms"):
+        assert f"<td>{approx[key]:.4g}</td><td>{key}</td>" in text, key
+    if importlib.util.find_spec("mitsuba") is None:
+        assert "pip install mitsuba" in text
+        return
+    assert text.count("<img") == 1 and '<img src="data:image/png;base64,' in text
+    stated = re.search(r"render vs gonio&#x27;s prediction</td><td>([0-9.e-]+)</td>", text)
+    assert stated and float(stated.group(1)) < 0.05, stated
+
+
+def test_export_page_without_mitsuba_says_how_to_install_it(synthetic, tmp_path, monkeypatch):
+    """Mitsuba is a test extra: without it the page says so and how to install it, and still
+    links every file."""
+    import sys
+    from capture.export.page import write_export_page
+    root, mesh, app, rep = synthetic
+    monkeypatch.setitem(sys.modules, "mitsuba", None)     # `import mitsuba` raises ImportError
+    out = tmp_path / "copy"
+    shutil.copytree(rep.out, out)
+    page = write_export_page(out, "synthetic", "lensch", rep.files, rep.model, app)
+    text = page.read_text()
+    assert "Mitsuba 3 is not installed" in text and "pip install mitsuba" in text and "<img" not in text
+    assert {f for files in rep.files.values() for f in files} <= set(_links(page))
