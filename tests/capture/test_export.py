@@ -245,7 +245,13 @@ def test_cli_refuses_bad_requests_and_writes_nothing(synthetic, tmp_path):
     mesh_file = tmp_path / "mesh.ply"
     mesh.export(mesh_file)
     out = tmp_path / "x"
+    not_report = tmp_path / "notes.html"
+    not_report.write_text("<html><body>lab notes</body></html>")
     cases = [  # (arguments, what the message must say)
+        (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
+          "--report", str(not_report)], "not a gonio session report"),
+        (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
+          "--report", str(tmp_path / "none.html")], "no such file"),
         (["synthetic", "--method", "sharing", "--out", str(out), "--store", store, "--mesh", str(mesh_file)],
          "was not run"),
         (["synthetic", "--method", "lensch", "--out", str(out), "--store", store], "--mesh"),
@@ -262,6 +268,7 @@ def test_cli_refuses_bad_requests_and_writes_nothing(synthetic, tmp_path):
         assert res.exit_code == 2, (args, res.output)
         assert says in res.output, (args, res.output)
     assert sorted(p.name for p in tmp_path.iterdir()) == before          # nothing written
+    assert not_report.read_text() == "<html><body>lab notes</body></html>"
     assert sorted(p.name for p in root.iterdir()) == ["out", "store"]
     helptext = _cli("--help").output
     for word in ("maps", "gltf", "mitsuba", "merl", "EXR", "MikkTSpace", "MERL"):
