@@ -667,11 +667,11 @@ def _adequacy(L, gram_green, n, v, d, E, omega, grid, residual):
 
 
 def _ranges(values, mask) -> str:
-    """Runs of True in ``mask`` as "a-b" ranges of ``values`` (rounded; one node: "a"),
-    comma-separated."""
+    """Runs of True in ``mask`` as "a-b" ranges of ``values`` (rounded; a run whose ends round
+    alike: "a"), comma-separated."""
     edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
-    return ", ".join(f"{values[a]:.0f}" if b - a == 1 else f"{values[a]:.0f}-{values[b - 1]:.0f}"
-                     for a, b in zip(edges[::2], edges[1::2]))
+    ends = [(f"{values[a]:.0f}", f"{values[b - 1]:.0f}") for a, b in zip(edges[::2], edges[1::2])]
+    return ", ".join(lo if lo == hi else f"{lo}-{hi}" for lo, hi in ends)
 
 
 def _fibonacci_sphere(k: int) -> np.ndarray:
