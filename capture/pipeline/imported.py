@@ -119,8 +119,8 @@ class ImportedFacts:
     counts them); ``images`` the image count, ``image_size_px`` (width, height), ``mask_pixels``;
     ``light_directions`` (K, 3) unit vectors towards the lights, OpenCV camera frame, and
     ``held_out`` (K,) bool; ``normal_errors`` name -> (H, W) angle (deg) between recovered and
-    true normals, NaN where not scored (empty without ground truth); ``texels_note`` which
-    pixels the methods fitted."""
+    true normals, NaN where not scored (empty without ground truth); ``fitted`` (H, W) bool the
+    pixels the methods fitted (the texels) and ``texels_note`` the same in words."""
 
     provenance: dict[str, Any]
     files_hashed: int
@@ -130,6 +130,7 @@ class ImportedFacts:
     light_directions: np.ndarray
     held_out: np.ndarray
     normal_errors: dict[str, np.ndarray]
+    fitted: np.ndarray
     texels_note: str
 
 
@@ -169,7 +170,7 @@ def imported_facts(store: Store, session: str, inp: ImportedInputs, methods) -> 
             maps[f"{m.method} (fitted)"] = _error_map(grid, data.normals_gt, fitted)
     n = int(data.mask.sum())
     return ImportedFacts(prov, hashed, len(data.filenames), tuple(int(v) for v in data.mask.shape[::-1]), n,
-                         data.light_directions, data.held_out, maps,
+                         data.light_directions, data.held_out, maps, inp.mask,
                          f"{inp.train.n_texels} of the {n} mask pixels" if inp.train.n_texels < n
                          else "every mask pixel")
 

@@ -496,17 +496,30 @@ def _lights_figure_imported(directions: np.ndarray, held_out: np.ndarray) -> str
     return img_tag(png_uri(fig), "light directions")
 
 
-def _normal_errors_figure(maps: dict[str, np.ndarray]) -> str:
-    """Angular error maps (deg) side by side on one colour scale, cropped to the scored pixels."""
+def _normal_errors_figure(maps: dict[str, np.ndarray], fitted: np.ndarray) -> str:
+    """Angular error maps (deg) side by side on one colour scale, cropped to the scored pixels.
+    A map scored at few pixels (a method fitted to a random subset) is drawn as dots over the
+    object's silhouette; a dense one also states its mean at the ``fitted`` pixels, the subset's."""
     import matplotlib.pyplot as plt
     on = np.any([np.isfinite(m) for m in maps.values()], axis=0)
     ys, xs = np.nonzero(on)
-    crop = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+    y0, x0 = ys.min(), xs.min()
+    crop = (slice(y0, ys.max() + 1), slice(x0, xs.max() + 1))
     top = max(float(np.nanpercentile(m, 99)) for m in maps.values())
     fig, axes = plt.subplots(1, len(maps), figsize=(3.6 * len(maps), 3.6), squeeze=False)
     for ax, (name, m) in zip(axes[0], maps.items()):
-        im = ax.imshow(m[crop], cmap="viridis", vmin=0, vmax=top)
-        ax.set_title(f"{name}: mean {np.nanmean(m):.2f}°", fontsize=9)
+        scored = np.isfinite(m)
+        title = f"{name}: mean {np.nanmean(m):.2f}°"
+        if scored.sum() < 0.5 * on.sum():
+            ax.imshow(np.where(on, 0.85, 1.0)[crop], cmap="gray", vmin=0, vmax=1)
+            py, px = np.nonzero(scored)
+            im = ax.scatter(px - x0, py - y0, c=m[scored], s=3, cmap="viridis", vmin=0, vmax=top, linewidths=0)
+            title += f"\nat its {scored.sum()} pixels"
+        else:
+            im = ax.imshow(m[crop], cmap="viridis", vmin=0, vmax=top)
+            if (fitted & scored).sum() < scored.sum():
+                title += f"\n({np.nanmean(m[fitted]):.2f}° at the {fitted.sum()} fitted pixels)"
+        ax.set_title(title, fontsize=9)
         ax.axis("off")
     fig.colorbar(im, ax=axes[0].tolist(), fraction=0.03, label="angle to the true normal (°)")
     return img_tag(png_uri(fig), "normal error maps")
@@ -521,7 +534,7 @@ def _normals_section(facts) -> str:
             "squares: Lambertian photometric stereo on the training lights; robust: the same without each "
             "pixel's darkest and brightest lights and those the fit shades or far exceeds (shadows, "
             "highlights); the methods' own normals at the pixels they fitted "
-            f"({html.escape(facts.texels_note)}).</p>" + _normal_errors_figure(facts.normal_errors))
+            f"({html.escape(facts.texels_note)}).</p>" + _normal_errors_figure(facts.normal_errors, facts.fitted))
 
 
 def write_html_report(store: Store, session: str, rep, *, truth=None, path: str | Path,
