@@ -16,6 +16,9 @@ selection for its normal fitting, two lobes) run; ``sharing`` needs polarization
 diffuse and specular images, and
 ``passive`` a room-lit image with a mirror probe, which such a set does not have: both are
 reported skipped with that reason.
+
+The report is the captured sessions' (:func:`capture.pipeline.report_html.write_html_report`),
+given :class:`ImportedFacts`: what was imported and the normals' error maps.
 """
 from __future__ import annotations
 

@@ -4,7 +4,14 @@
 (the plan, the frames' capture times, the stored reconstructions and their ``report.npz``
 pictures) and the run's :class:`capture.pipeline.run.ProcessReport` (calibration stages, timings,
 truth comparisons). Each section says in plain words what its pictures show, for a reader who has
-never heard of the papers. Without ground truth the truth columns are left out.
+never heard of the papers. Without ground truth the truth columns are left out. An imported
+session (:mod:`capture.pipeline.imported`) gets the same report with what was imported in place
+of the plan, and the normals' error maps against the set's ground truth.
+
+The Exports section lists the pages ``gonio export`` wrote (:func:`link_export` adds a row in
+place; the rows live in the report as JSON and survive a rewrite). The page pieces
+(:func:`html_table`, :func:`comparison_figure` ...) also draw the export's own page
+(:mod:`capture.export.page`).
 """
 from __future__ import annotations
 
@@ -25,8 +32,7 @@ from .pictures import SLICE_THETA_I_DEG
 from .plan_table import plan_rows
 
 __all__ = ["write_html_report", "METHOD_NOTES", "ExportLink", "export_links", "link_export",
-           "check_session_report",
-           "comparison_figure", "html_table", "img_tag", "png_uri", "tonemap", "CSS"]
+           "check_session_report", "comparison_figure", "html_table", "img_tag", "png_uri", "tonemap", "CSS"]
 
 #: what each method is, in one paragraph a newcomer can read
 METHOD_NOTES = {
