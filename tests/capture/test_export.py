@@ -19,6 +19,8 @@ from capture.export.appearance import Appearance
 from capture.export.ggx import ALPHA_GRID, GgxMaps, fit_ggx, ggx_reflectance
 from capture.export.images import read_exr
 from capture.export.session import export_session
+from capture.pipeline.report_html import export_links, write_html_report
+from capture.pipeline.run import ProcessReport
 from reconstruct.metrics import relative_rms
 from capture.store import Store
 from reconstruct.frames import tangent_frames, to_local
@@ -81,7 +83,8 @@ def _synthetic_appearance(mesh: trimesh.Trimesh) -> Appearance:
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
     """A store with one session whose ``lensch`` result carries the synthetic appearance (no
-    rig snapshot: the session brings no mesh), the mesh, and an export of it."""
+    rig snapshot: the session brings no mesh), its (empty) session report where gonio process
+    writes it, the mesh, and an export of it."""
     root = tmp_path_factory.mktemp("export")
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
     app = _synthetic_appearance(mesh)
@@ -89,6 +92,7 @@ def synthetic(tmp_path_factory):
         sid = st.create_session("synthetic", plan={}, plan_hash="0", steps=[]).id
         st.add_reconstruction(sid, "lensch", result={"figures": {"held_out_rel_rms": 0.05}}, params={},
                               artifacts={"appearance.npz": app.to_npz()})
+        write_html_report(st, "synthetic", ProcessReport("synthetic"), path=root / "synthetic-report.html")
         rep = export_session(st, "synthetic", method="lensch", formats=["maps", "gltf", "mitsuba"],
                              out=root / "out", mesh=mesh)
     return root, mesh, app, rep
@@ -269,7 +273,7 @@ def test_cli_refuses_bad_requests_and_writes_nothing(synthetic, tmp_path):
         assert says in res.output, (args, res.output)
     assert sorted(p.name for p in tmp_path.iterdir()) == before          # nothing written
     assert not_report.read_text() == "<html><body>lab notes</body></html>"
-    assert sorted(p.name for p in root.iterdir()) == ["out", "store"]
+    assert sorted(p.name for p in root.iterdir()) == ["out", "store", "synthetic-report.html"]
     helptext = _cli("--help").output
     for word in ("maps", "gltf", "mitsuba", "merl", "EXR", "MikkTSpace", "MERL"):
         assert word in helptext, word
@@ -352,6 +356,12 @@ def test_export_page_links_every_file_and_shows_the_render(synthetic, tmp_path):
         assert not href.startswith(("/", "file:", "http")) and (moved / href).is_file(), href
     text = page.read_text()
     approx = json.loads((moved / "model.json").read_text())["approximation"]
+    # the session report beside the store (gonio process's default) lists the page, relative to it
+    assert rep.linked_from == root / "synthetic-report.html"
+    (row,) = export_links(rep.linked_from)
+    assert (row.page, row.method, row.formats) == ("out/report.html", "lensch", ("maps", "gltf", "mitsuba"))
+    assert row.export_vs_method == approx["export_vs_method_held_out_rel_rms"]
+    assert f'<a href="{row.page}">' in rep.linked_from.read_text()
     for key in ("export_vs_method_held_out_rel_rms", "gltf_vs_method_held_out_rel_rms", "export_held_out_rel_rms"):
         assert f"<td>{approx[key]:.4g}</td><td>{key}</td>" in text, key
     if importlib.util.find_spec("mitsuba") is None:
