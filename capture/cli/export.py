@@ -30,7 +30,8 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
                                      "frame, mm); sessions recorded on --rig sim bring their own."),
            report: Path = typer.Option(None, "--report", help="The session report (gonio process's HTML) "
                                        "that links this export's page DIR/report.html; default: "
-                                       "<session>-report.html beside the store, when it is there.")) -> None:
+                                       "<session>-report.html or gonio demo's report.html beside the "
+                                       "store, when it is this session's.")) -> None:
     """Export a method's recovered appearance: texture maps (EXR, 16-bit PNG), glTF 2.0, a Mitsuba 3
     scene per captured light, MERL tables; model.json names every file, its units, the exact BRDF
     formula and the export's approximation error; DIR/report.html links every file and shows Mitsuba's

@@ -93,15 +93,15 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
         recorded in the built-in simulated lab brings its own.
     report : path, optional
         The session report (``gonio process``'s HTML) to link the export from; default
-        ``<session>-report.html`` beside the store, where ``gonio process`` writes it, when it
-        is there.
+        ``<session>-report.html`` (``gonio process``'s) or ``report.html`` (``gonio demo``'s)
+        beside the store, when it is this session's report.
 
     Raises
     ------
     ExportError
         Unknown method or format, ``out`` exists, the method was not run (or not stored with
         the export data), no mesh, MERL asked of a method without a tabulated BRDF, or a
-        ``report`` that is not a gonio session report. Nothing is written.
+        ``report`` that is not this session's report. Nothing is written.
     """
     if method not in EXPORTED_METHODS:
         raise ExportError(f"--method {method!r}: one of {', '.join(EXPORTED_METHODS)}")
@@ -138,7 +138,7 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
         raise
     rep.out, rep.page = out, out / PAGE
     if report is not None:
-        rep.linked_from = link_export(report, ExportLink(
+        rep.linked_from = link_export(report, session, ExportLink(
             os.path.relpath(rep.page.resolve(), report.resolve().parent), method, tuple(formats),
             rep.model.get("approximation", {}).get("export_vs_method_held_out_rel_rms"),
             datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")))
@@ -147,18 +147,20 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
 
 def _session_report(store: Store, session: str, report: str | Path | None) -> Path | None:
     """The session report to link the export from: ``report`` (checked now, before anything is
-    written), else ``gonio process``'s default one when it is a report with an Exports section,
-    else None."""
+    written), else the first of ``gonio process``'s ``<session>-report.html`` and ``gonio demo``'s
+    ``report.html`` beside the store that is this session's report, else None."""
     if report is None:
-        default = session_file(Path(store.root).resolve().parent, session, store.session(session).id,
-                               "-report.html")
-        try:
-            check_session_report(default)
-        except (OSError, ValueError):
-            return None
-        return default
+        folder = Path(store.root).resolve().parent
+        for candidate in (session_file(folder, session, store.session(session).id, "-report.html"),
+                          folder / "report.html"):
+            try:
+                check_session_report(candidate, session)
+            except (OSError, ValueError):
+                continue
+            return candidate
+        return None
     try:
-        check_session_report(report)
+        check_session_report(report, session)
     except FileNotFoundError:
         raise ExportError(f"--report {report}: no such file (the HTML report gonio process wrote)") from None
     except (ValueError, OSError) as exc:

@@ -374,7 +374,8 @@ def _plan_section(store: Store, info, prog) -> str:
 
 # -- exports: `gonio export` links its page here ------------------------------------------------
 _EXPORTS = re.compile(r"<!-- gonio:exports -->.*?<!-- /gonio:exports -->", re.S)
-_EXPORTS_JSON = re.compile(r'<script type="application/json" id="gonio-exports">(.*?)</script>', re.S)
+_EXPORTS_JSON = re.compile(r'<script type="application/json" id="gonio-exports" data-session="([^"]*)">(.*?)</script>',
+                           re.S)
 
 
 @dataclass(frozen=True)
@@ -399,7 +400,7 @@ def export_links(report: str | Path) -> list[ExportLink]:
     if m is None:
         return []
     try:
-        rows = json.loads(m.group(1))   # JSON reads "<\/" (written below) as "</"
+        rows = json.loads(m.group(2))   # JSON reads "<\/" (written below) as "</"
         return [ExportLink(r["page"], r["method"], tuple(r["formats"]), r["export_vs_method"], r["written"])
                 for r in rows]
     except (ValueError, KeyError, TypeError) as exc:
@@ -407,7 +408,7 @@ def export_links(report: str | Path) -> list[ExportLink]:
                          "gonio process") from None
 
 
-def _exports_section(links: list[ExportLink]) -> str:
+def _exports_section(session: str, links: list[ExportLink]) -> str:
     data = json.dumps([asdict(x) for x in links]).replace("</", "<\\/")
     if links:
         body = ("<p>Each export's own page links its files, states how far the exported model is from the "
@@ -422,25 +423,30 @@ def _exports_section(links: list[ExportLink]) -> str:
         body = ("<p>None yet: <code>gonio export SESSION --method M --out DIR</code> writes the recovered "
                 "appearance in formats other software reads and links its page here.</p>")
     return (f'<!-- gonio:exports --><h2>6. Exports</h2>{body}'
-            f'<script type="application/json" id="gonio-exports">{data}</script><!-- /gonio:exports -->')
+            f'<script type="application/json" id="gonio-exports" data-session="{html.escape(session)}">{data}'
+            '</script><!-- /gonio:exports -->')
 
 
-def check_session_report(report: str | Path) -> None:
-    """Raise ``FileNotFoundError`` when ``report`` does not exist, ``ValueError`` when it is not a
-    session report with an Exports section (or that section is damaged)."""
+def check_session_report(report: str | Path, session: str) -> None:
+    """Raise ``FileNotFoundError`` when ``report`` does not exist, ``ValueError`` when it is not
+    ``session``'s report with an Exports section (or that section is damaged)."""
     report = Path(report)
-    if not _EXPORTS.search(report.read_text()):
+    text = report.read_text()
+    m = _EXPORTS_JSON.search(text)
+    if not _EXPORTS.search(text) or m is None:
         raise ValueError(f"{report} is not a gonio session report with an Exports section (written by "
                          "gonio process; re-run it to update an older report)")
+    if html.unescape(m.group(1)) != session:
+        raise ValueError(f"{report} is the report of session {html.unescape(m.group(1))!r}, not {session!r}")
     export_links(report)
 
 
-def link_export(report: str | Path, link: ExportLink) -> Path:
-    """Add ``link`` (replacing one to the same page) to the Exports section of the written session
-    report ``report``, in place and atomically. Raises as :func:`check_session_report`."""
-    check_session_report(report)
+def link_export(report: str | Path, session: str, link: ExportLink) -> Path:
+    """Add ``link`` (replacing one to the same page) to the Exports section of ``session``'s
+    written report ``report``, in place and atomically. Raises as :func:`check_session_report`."""
+    check_session_report(report, session)
     links = [x for x in export_links(report) if x.page != link.page] + [link]
-    section = _exports_section(links)
+    section = _exports_section(session, links)
     return write_atomically(report, _EXPORTS.sub(lambda _: section, Path(report).read_text(), count=1))
 
 
@@ -592,7 +598,7 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
                  + html_table([{"stage": k, "seconds": v} for k, v in rep.timings.items()]))
     path = Path(path)
     if imported is None:   # gonio export writes captured sessions' models only
-        parts.append(_exports_section(export_links(path)))   # kept when the report is written again
+        parts.append(_exports_section(session, export_links(path)))   # kept when the report is written again
     parts.append("</body></html>")
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_atomically(path, "\n".join(parts))   # whole or not at all (a full disk)

@@ -240,11 +240,11 @@ def test_export_of_the_quick_demo_renders_in_mitsuba_as_gonio_predicts(demo, tmp
         bivariate = np.load(io.BytesIO(st.read_object(runs["passive"].artifacts["model.npz"])))["bivariate"]
     report = demo_cwd / "demo" / "report.html"
     res = CliRunner().invoke(cli, ["export", "demo-quick", "--store", str(store), "--method", "lensch",
-                                   "--format", "mitsuba", "--out", str(tmp_path / "lensch"), "--report", str(report)])
+                                   "--format", "mitsuba", "--out", str(tmp_path / "lensch")])
     assert res.exit_code == 0, res.output
     stated = json.loads((tmp_path / "lensch" / "model.json").read_text())["approximation"]
-    # the session report links the export's page (relative to the report's folder), with its
-    # stated error; the page shows Mitsuba's render of the first held-out capture
+    # gonio demo's report beside the store now links the export's page (relative to the report's
+    # folder), with its stated error; the page shows Mitsuba's render of the first held-out capture
     text = report.read_text()
     (href,) = re.findall(r'<a href="([^"]*)">', text.split("<h2>6. Exports</h2>")[1])
     assert (report.parent / href).resolve() == (tmp_path / "lensch" / "report.html").resolve()

@@ -251,11 +251,16 @@ def test_cli_refuses_bad_requests_and_writes_nothing(synthetic, tmp_path):
     out = tmp_path / "x"
     not_report = tmp_path / "notes.html"
     not_report.write_text("<html><body>lab notes</body></html>")
+    other = tmp_path / "another-report.html"     # a session report, of another session
+    other.write_text(rep.linked_from.read_text().replace('data-session="synthetic"', 'data-session="another"'))
+    other_before = other.read_text()
     cases = [  # (arguments, what the message must say)
         (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
           "--report", str(not_report)], "not a gonio session report"),
         (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
           "--report", str(tmp_path / "none.html")], "no such file"),
+        (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
+          "--report", str(other)], "report of session 'another'"),
         (["synthetic", "--method", "sharing", "--out", str(out), "--store", store, "--mesh", str(mesh_file)],
          "was not run"),
         (["synthetic", "--method", "lensch", "--out", str(out), "--store", store], "--mesh"),
@@ -272,7 +277,7 @@ def test_cli_refuses_bad_requests_and_writes_nothing(synthetic, tmp_path):
         assert res.exit_code == 2, (args, res.output)
         assert says in res.output, (args, res.output)
     assert sorted(p.name for p in tmp_path.iterdir()) == before          # nothing written
-    assert not_report.read_text() == "<html><body>lab notes</body></html>"
+    assert not_report.read_text() == "<html><body>lab notes</body></html>" and other.read_text() == other_before
     assert sorted(p.name for p in root.iterdir()) == ["out", "store", "synthetic-report.html"]
     helptext = _cli("--help").output
     for word in ("maps", "gltf", "mitsuba", "merl", "EXR", "MikkTSpace", "MERL"):

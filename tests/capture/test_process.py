@@ -205,7 +205,7 @@ def test_process_skips_what_is_stored_unless_forced(processed, captured, tmp_pat
     linked = tmp_path / "linked.html"
     shutil.copy(rep.report_path, linked)
     row = ExportLink("../exports/lensch/report.html", "lensch", ("maps",), 0.2, "2026-11-26 00:00 UTC")
-    link_export(linked, row)
+    link_export(linked, "proc", row)
     again = process_session(store, "proc", methods=["lambertian"], **{**kw, "report_path": linked})
     assert export_links(linked) == [row] and '<a href="../exports/lensch/report.html">' in linked.read_text()
     assert again.method("lambertian").status == "done" and again.method("lambertian").result_id == lam.result_id
