@@ -37,7 +37,7 @@ from .envmap import LUMINANCE, EnvironmentMap
 from .passive_lighting import check_grid, check_sources, lighting_matrix
 from .passive_prior import PRIOR_KINDS, SmoothnessPrior, default_prior, learn_prior
 
-__all__ = ["passive_reflectometry", "PassiveFit", "Adequacy", "PassiveInputError",
+__all__ = ["passive_reflectometry", "PassiveFit", "Adequacy", "UnconstrainedBand", "PassiveInputError",
            "PassiveWarning", "lighting_matrix", "learn_prior", "bivariate_error"]
 
 #: Regularisation weight of Eq. 6 for the normalised data term when ``lam`` is a number: tuned
@@ -88,6 +88,17 @@ class PassiveWarning(UserWarning):
     """The recovered BRDF may be poorly constrained (see ``Adequacy.warnings``)."""
 
 
+@dataclass(frozen=True)
+class UnconstrainedBand:
+    """Nodes of one theta_d band (deg, ``[lo, hi)``) the environment lit too little to constrain
+    (coverage < ``POOR_COVERAGE`` or never observed): their theta_h ranges (deg, e.g. ``"0-4,
+    61-90"``) and their share of the band's nodes (0-1)."""
+
+    theta_d_deg: tuple[int, int]
+    theta_h_deg: str
+    poorly_lit_share: float
+
+
 @dataclass(frozen=True, eq=False)
 class Adequacy:
     """How well an environment and a shape pose the problem (Sect. 3.1).
@@ -130,20 +141,27 @@ class Adequacy:
         with np.errstate(invalid="ignore"):
             return self.coverage >= POOR_COVERAGE
 
-    def unconstrained_ranges(self) -> str:
-        """Where the environment did not constrain the BRDF, in words: per theta_d band of
-        10 deg, the theta_h ranges (deg) of the nodes outside ``constrained``."""
+    def unconstrained_bands(self) -> list["UnconstrainedBand"]:
+        """Where the environment did not constrain the BRDF: per theta_d band of 10 deg that
+        has nodes outside ``constrained``, their theta_h ranges (deg) and their share of the
+        band's nodes."""
         n_t, n_s = self.coverage.shape
         theta_h = np.linspace(0, 1, n_t) ** 2 * 90
         theta_d = np.linspace(0, 1, n_s) * 90
         bad = ~self.constrained
-        parts = []
+        bands = []
         for lo in range(0, 90, 10):
             cols = (theta_d >= lo) & (theta_d < lo + 10 if lo < 80 else theta_d <= 90)
             rows = bad[:, cols].any(axis=1)
             if rows.any():
-                parts.append(f"theta_d {lo}-{lo + 10}: theta_h "
-                             + _ranges(theta_h, rows))
+                bands.append(UnconstrainedBand((lo, lo + 10), _ranges(theta_h, rows),
+                                               float(bad[:, cols].mean())))
+        return bands
+
+    def unconstrained_ranges(self) -> str:
+        """:meth:`unconstrained_bands` in words."""
+        parts = [f"theta_d {b.theta_d_deg[0]}-{b.theta_d_deg[1]}: theta_h {b.theta_h_deg}"
+                 for b in self.unconstrained_bands()]
         return "; ".join(parts) if parts else "none"
 
     def report(self) -> str:
@@ -649,11 +667,11 @@ def _adequacy(L, gram_green, n, v, d, E, omega, grid, residual):
 
 
 def _ranges(values, mask) -> str:
-    """Runs of True in ``mask`` as "a-b" ranges of ``values`` (rounded; one node: "a"),
-    comma-separated."""
+    """Runs of True in ``mask`` as "a-b" ranges of ``values`` (rounded; a run whose ends round
+    alike: "a"), comma-separated."""
     edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
-    return ", ".join(f"{values[a]:.0f}" if b - a == 1 else f"{values[a]:.0f}-{values[b - 1]:.0f}"
-                     for a, b in zip(edges[::2], edges[1::2]))
+    ends = [(f"{values[a]:.0f}", f"{values[b - 1]:.0f}") for a, b in zip(edges[::2], edges[1::2])]
+    return ", ".join(lo if lo == hi else f"{lo}-{hi}" for lo, hi in ends)
 
 
 def _fibonacci_sphere(k: int) -> np.ndarray:

@@ -27,10 +27,15 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
            out: Path = typer.Option(..., "--out", help="New folder to write (must not exist)."),
            store: str = STORE_OPTION,
            mesh: Path = typer.Option(None, "--mesh", help="The object's mesh gonio process used (object "
-                                     "frame, mm); sessions recorded on --rig sim bring their own.")) -> None:
+                                     "frame, mm); sessions recorded on --rig sim bring their own."),
+           report: Path = typer.Option(None, "--report", help="The session report (gonio process's HTML) "
+                                       "that links this export's page DIR/report.html; default: "
+                                       "<session>-report.html or gonio demo's report.html beside the "
+                                       "store, when it is this session's.")) -> None:
     """Export a method's recovered appearance: texture maps (EXR, 16-bit PNG), glTF 2.0, a Mitsuba 3
     scene per captured light, MERL tables; model.json names every file, its units, the exact BRDF
-    formula and the export's approximation error."""
+    formula and the export's approximation error; DIR/report.html links every file and shows Mitsuba's
+    render of a held-out capture beside gonio's prediction (with Mitsuba installed)."""
     from ..export.session import ExportError, export_session
     from ..pipeline.mesh_checks import load_mesh
     from ..pipeline.process import ProcessError
@@ -42,7 +47,7 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
             raise fail(str(exc)) from None
     with open_store(store, readonly=True) as st:
         try:
-            rep = export_session(st, session, method=method, out=out,
+            rep = export_session(st, session, method=method, out=out, report=report,
                                  formats=[f.strip() for f in formats.split(",") if f.strip()], **kw)
         except ExportError as exc:
             raise fail(str(exc)) from None
@@ -54,3 +59,6 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
                    f"{a['export_vs_method_held_out_rel_rms']:.3f} (glTF {a['gltf_vs_method_held_out_rel_rms']:.3f}); "
                    f"vs the captures {a['export_held_out_rel_rms']:.3f} ({method}: {a['method_held_out_rel_rms']:.3f})")
     typer.echo(f"written: {escape(str(rep.out.resolve()))} (model.json describes every file)")
+    typer.echo(f"page: {escape(str(rep.page.resolve()))}")
+    typer.echo(f"linked from: {escape(str(rep.linked_from.resolve()))}" if rep.linked_from is not None else
+               "linked from no session report (none beside the store; --report FILE names one)")

@@ -18,11 +18,16 @@ __all__ = ["HeldOutRender", "render_held_out"]
 @dataclass(frozen=True)
 class HeldOutRender:
     """Radiance (N, 3) at the held-out samples Mitsuba's render covers (calibration units):
-    ``rendered`` by Mitsuba, ``predicted`` by the method (``f_r cos I / d^2``), ``captured``."""
+    ``rendered`` by Mitsuba, ``predicted`` by the method (``f_r cos I / d^2``), ``captured``;
+    ``pixels`` (N, 2) where the pinhole images them on the capture's film (x right, y down,
+    pixel centres at integers); ``image`` the render itself on the capture's film (H, W, 3),
+    area-averaged from the finer film."""
 
     rendered: np.ndarray
     predicted: np.ndarray
     captured: np.ndarray
+    pixels: np.ndarray
+    image: np.ndarray
 
 
 def render_held_out(xml: str | Path, app: Appearance, view: int, *, spp: int = 4,
@@ -46,4 +51,6 @@ def render_held_out(xml: str | Path, app: Appearance, view: int, *, spp: int = 4
     mx, my = px[ok, 0].astype(np.float32)[None], px[ok, 1].astype(np.float32)[None]
     got = np.stack([cv2.remap(img[..., c], mx, my, cv2.INTER_LINEAR)[0] for c in range(3)], axis=1)
     scale = app.light_intensity / np.sum((light - p[ok]) ** 2, axis=1)[:, None]
-    return HeldOutRender(got, app.held_predicted[s][ok] * scale, app.held_captured[s][ok] * scale)
+    native = cv2.resize(img, (W // supersample, H // supersample), interpolation=cv2.INTER_AREA)
+    centres = (px[ok] + 0.5) / supersample - 0.5
+    return HeldOutRender(got, app.held_predicted[s][ok] * scale, app.held_captured[s][ok] * scale, centres, native)

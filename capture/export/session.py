@@ -21,6 +21,7 @@ import json
 import os
 import shutil
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -30,6 +31,8 @@ import trimesh
 from reconstruct.frames import tangent_frames, to_local
 from reconstruct.metrics import relative_rms
 
+from ..outputs import session_file
+from ..pipeline.report_html import ExportLink, check_session_report, link_export
 from ..store import ResultRecord, SessionNotFound, Store
 from .formats import FORMATS
 from .appearance import EXPORTED_METHODS, HOMOGENEOUS_METHODS, Appearance
@@ -38,6 +41,7 @@ from .ggx import FORMULA, GgxMaps, ggx_reflectance
 from .gltf import gltf_material, gltf_reflectance, write_glb
 from .images import write_exr, write_png16
 from .mitsuba import MitsubaView, object_xml, view_xml, write_ply
+from .page import PAGE, write_export_page
 
 __all__ = ["FORMATS", "ExportError", "ExportReport", "export_session"]
 
@@ -47,12 +51,15 @@ class ExportError(ValueError):
 
 @dataclass
 class ExportReport:
-    """What :func:`export_session` wrote: the folder, the files per format (relative paths) and
-    the figures ``model.json`` states."""
+    """What :func:`export_session` wrote: the folder, the files per format (relative paths),
+    the figures ``model.json`` states, the export's page (``out/report.html``) and the session
+    report that now links it (None: none was found)."""
 
     out: Path
     files: dict[str, list[str]] = field(default_factory=dict)
     model: dict[str, Any] = field(default_factory=dict)
+    page: Path | None = None
+    linked_from: Path | None = None
 
 
 def _stored(store: Store, session: str, method: str) -> tuple[ResultRecord, Appearance]:
@@ -74,21 +81,27 @@ def _stored(store: Store, session: str, method: str) -> tuple[ResultRecord, Appe
 
 
 def export_session(store: Store, session: str, *, method: str, formats: Sequence[str], out: str | Path,
-                   mesh: trimesh.Trimesh | None = None) -> ExportReport:
-    """Write ``method``'s stored reconstruction of ``session`` in ``formats`` into the new folder ``out``.
+                   mesh: trimesh.Trimesh | None = None, report: str | Path | None = None) -> ExportReport:
+    """Write ``method``'s stored reconstruction of ``session`` in ``formats`` into the new folder
+    ``out``, with its page ``out/report.html`` (:mod:`capture.export.page`), and link that page
+    from the session's report.
 
     Parameters
     ----------
     mesh : trimesh.Trimesh, optional
         The object's mesh (object frame, mm: the one ``gonio process`` used); a session
         recorded in the built-in simulated lab brings its own.
+    report : path, optional
+        The session report (``gonio process``'s HTML) to link the export from; default
+        ``<session>-report.html`` (``gonio process``'s) or ``report.html`` (``gonio demo``'s)
+        beside the store, when it is this session's report.
 
     Raises
     ------
     ExportError
         Unknown method or format, ``out`` exists, the method was not run (or not stored with
-        the export data), no mesh, or MERL asked of a method without a tabulated BRDF. Nothing
-        is written.
+        the export data), no mesh, MERL asked of a method without a tabulated BRDF, or a
+        ``report`` that is not this session's report. Nothing is written.
     """
     if method not in EXPORTED_METHODS:
         raise ExportError(f"--method {method!r}: one of {', '.join(EXPORTED_METHODS)}")
@@ -103,6 +116,7 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
         raise ExportError(f"--format merl: {method} recovers a spatially varying parametric BRDF, not a "
                           f"tabulated one; MERL files come from {', '.join(HOMOGENEOUS_METHODS)}")
     run, app = _stored(store, session, method)
+    report = _session_report(store, session, report)
     if mesh is None:
         mesh = _built_in_mesh(store, session)
     if mesh is None:
@@ -116,13 +130,42 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     tmp.mkdir(parents=True)
     try:
-        report = _write(tmp, session, method, formats, run, app, mesh, bivariate)
+        rep = _write(tmp, session, method, formats, run, app, mesh, bivariate)
+        write_export_page(tmp, session, method, rep.files, rep.model, app)
         tmp.rename(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    report.out = out
-    return report
+    rep.out, rep.page = out, out / PAGE
+    if report is not None:
+        rep.linked_from = link_export(report, session, ExportLink(
+            os.path.relpath(rep.page.resolve(), report.resolve().parent), method, tuple(formats),
+            rep.model.get("approximation", {}).get("export_vs_method_held_out_rel_rms"),
+            datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")))
+    return rep
+
+
+def _session_report(store: Store, session: str, report: str | Path | None) -> Path | None:
+    """The session report to link the export from: ``report`` (checked now, before anything is
+    written), else the first of ``gonio process``'s ``<session>-report.html`` and ``gonio demo``'s
+    ``report.html`` beside the store that is this session's report, else None."""
+    if report is None:
+        folder = Path(store.root).resolve().parent
+        for candidate in (session_file(folder, session, store.session(session).id, "-report.html"),
+                          folder / "report.html"):
+            try:
+                check_session_report(candidate, session)
+            except (OSError, ValueError):
+                continue
+            return candidate
+        return None
+    try:
+        check_session_report(report, session)
+    except FileNotFoundError:
+        raise ExportError(f"--report {report}: no such file (the HTML report gonio process wrote)") from None
+    except (ValueError, OSError) as exc:
+        raise ExportError(f"--report {exc}") from None
+    return Path(report)
 
 
 def _built_in_mesh(store: Store, session: str) -> trimesh.Trimesh | None:

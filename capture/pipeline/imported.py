@@ -16,12 +16,16 @@ selection for its normal fitting, two lobes) run; ``sharing`` needs polarization
 diffuse and specular images, and
 ``passive`` a room-lit image with a mirror probe, which such a set does not have: both are
 reported skipped with that reason.
+
+The report is the captured sessions' (:func:`capture.pipeline.report_html.write_html_report`),
+given :class:`ImportedFacts`: what was imported and the normals' error maps.
 """
 from __future__ import annotations
 
 import io
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -33,9 +37,11 @@ from reconstruct.metrics import relative_rms, trimmed_relative_rms
 from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 
 from ..importers import MultiLightSet, read_imported_session
+from ..outputs import session_file, write_atomically
 from ..store import Store
+from .report_html import write_html_report
 
-__all__ = ["ImportedInputs", "imported_inputs", "process_imported_session", "is_imported",
+__all__ = ["ImportedInputs", "ImportedFacts", "imported_facts", "imported_inputs", "process_imported_session", "is_imported",
            "SKIPPED_STAGES", "LENSCH_OPTIONS"]
 
 #: The calibration stages a captured session runs, and why an imported set skips each.
@@ -108,6 +114,70 @@ class ImportedInputs:
         return float(angular_error_deg(normals, self.truth).mean())
 
 
+@dataclass(frozen=True)
+class ImportedFacts:
+    """What the report of an imported session shows beyond :class:`capture.pipeline.run.ProcessReport`.
+
+    ``provenance`` the plan's ``imported`` record without the per-file hashes (``files_hashed``
+    counts them); ``images`` the image count, ``image_size_px`` (width, height), ``mask_pixels``;
+    ``light_directions`` (K, 3) unit vectors towards the lights, OpenCV camera frame, and
+    ``held_out`` (K,) bool; ``normal_errors`` name -> (H, W) angle (deg) between recovered and
+    true normals, NaN where not scored (empty without ground truth); ``fitted`` (H, W) bool the
+    pixels the methods fitted (the texels) and ``texels_note`` the same in words."""
+
+    provenance: dict[str, Any]
+    files_hashed: int
+    images: int
+    image_size_px: tuple[int, int]
+    mask_pixels: int
+    light_directions: np.ndarray
+    held_out: np.ndarray
+    normal_errors: dict[str, np.ndarray]
+    fitted: np.ndarray
+    texels_note: str
+
+
+def _error_map(normals: np.ndarray, truth: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """(H, W) angle (deg) between (H, W, 3) normals and the truth where ``where``, NaN elsewhere."""
+    out = np.full(where.shape, np.nan)
+    out[where] = angular_error_deg(normals[where], truth[where])
+    return out
+
+
+def imported_facts(store: Store, session: str, inp: ImportedInputs, methods) -> ImportedFacts:
+    """:class:`ImportedFacts` of a processed imported session: the normals' error maps of least
+    squares, the robust variant and each stored method that fits normals (read from its
+    ``model.npz``: ``normals`` at ``pixels``)."""
+    data = inp.data
+    prov = dict(store.session(session).plan["imported"])
+    hashed = len(prov.pop("sha256", {}))
+    maps: dict[str, np.ndarray] = {}
+    if data.normals_gt is not None:
+        scored = data.mask & inp.robust.mask   # the pixels texels are drawn from
+        maps["least squares"] = _error_map(inp.ls.normals, data.normals_gt, scored)
+        maps["robust least squares"] = _error_map(inp.robust.normals, data.normals_gt, scored)
+        info = store.session(session)
+        stored = {r.id: r for r in store.results(info.id, "reconstruction")}
+        for m in methods:
+            r = stored.get(m.result_id)
+            if r is None or "model.npz" not in r.artifacts:
+                continue
+            with np.load(io.BytesIO(store.read_object(r.artifacts["model.npz"]))) as z:
+                if "normals" not in z.files or "pixels" not in z.files:
+                    continue
+                normals, px = z["normals"], z["pixels"]
+            grid = np.zeros(data.mask.shape + (3,))
+            grid[px[:, 0], px[:, 1]] = normals
+            fitted = np.zeros(data.mask.shape, bool)
+            fitted[px[:, 0], px[:, 1]] = True
+            maps[f"{m.method} (fitted)"] = _error_map(grid, data.normals_gt, fitted)
+    n = int(data.mask.sum())
+    return ImportedFacts(prov, hashed, len(data.filenames), tuple(int(v) for v in data.mask.shape[::-1]), n,
+                         data.light_directions, data.held_out, maps, inp.mask,
+                         f"{inp.train.n_texels} of the {n} mask pixels" if inp.train.n_texels < n
+                         else "every mask pixel")
+
+
 def imported_inputs(store: Store, session: str, **kw) -> ImportedInputs:
     """:class:`ImportedInputs` of an imported session (``max_texels``, ``rng``)."""
     return ImportedInputs(read_imported_session(store, session), **kw)
@@ -123,8 +193,9 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
                              force: bool = False, rng: int = 0, max_texels: int | None = 5000,
                              progress: Callable[[str, int, int], None] | None = None,
                              report_path: str | Path | None = None):
-    """Run ``methods`` on an imported session; returns a :class:`capture.pipeline.run.ProcessReport`
-    whose ``report_path`` is a JSON summary (the HTML report draws captured sessions' views).
+    """Run ``methods`` on an imported session and write its report (``report_path``, default
+    ``<session>-report.html`` beside the store, with its ``.json`` summary); returns a
+    :class:`capture.pipeline.run.ProcessReport`.
 
     ``max_texels``: texels (mask pixels drawn at random with ``rng``) the methods fit; None: all.
     """
@@ -181,6 +252,8 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
         seconds = round(time.perf_counter() - started, 3)
         rep.timings[name] = seconds
         arrays = {**fit.arrays, "pixels": inp.pixels.astype(np.int32)}
+        if fit.normals is not None:   # full precision: the report's error map restates normal_error_deg
+            arrays["normals"] = np.asarray(fit.normals, np.float64)
         buf = io.BytesIO()
         np.savez_compressed(buf, **arrays)
         rid = store.add_reconstruction(info.id, name, result={
@@ -189,7 +262,11 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
                     "max_texels": max_texels}, input_frames=frames,
             artifacts={"model.npz": buf.getvalue()})
         rep.methods.append(MethodOutcome(name, "ok", "", figures, rid, seconds, fit.warnings))
-    path = Path(report_path) if report_path else Path(store.root).resolve().parent / f"{session}-report.json"
-    rep.report_path = path.with_suffix(".json")
-    rep.report_path.write_text(json.dumps(rep.summary(), indent=1, default=str))
+    started = time.perf_counter()
+    facts = imported_facts(store, session, inp, rep.methods)
+    path = Path(report_path) if report_path else session_file(Path(store.root).resolve().parent, session,
+                                                               info.id, "-report.html")
+    rep.report_path = write_html_report(store, session, rep, path=path, imported=facts)
+    rep.timings["report"] = round(time.perf_counter() - started, 3)   # in the .json, as a captured session's
+    write_atomically(rep.report_path.with_suffix(".json"), json.dumps(rep.summary(), indent=1, default=str))
     return rep

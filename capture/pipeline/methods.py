@@ -152,7 +152,7 @@ def _surface_xy(position: np.ndarray) -> np.ndarray:
 def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
     p = inputs.passive
     if p is None:
-        why = "; ".join(n for n in inputs.notes if "passive" in n) or \
+        why = "; ".join(n.removeprefix("passive: ") for n in inputs.notes if "passive" in n) or \
             "no passive capture (add [[calibration]] kind = \"passive\": lamp off, room lit)"
         raise MethodSkipped(f"passive: {why}")
     fit = passive_reflectometry(p.image, p.normals, p.mask, p.environment, view_dirs=p.view_dirs,
@@ -169,7 +169,11 @@ def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
                   figures={"prior": fit.prior, "residual": np.asarray(fit.residual).tolist(),
                            "effective_rank": int(ad.effective_rank), "condition": float(ad.condition),
                            "observations": int(ad.n_observations),
-                           "poorly_observed": {k: float(v) for k, v in ad.poorly_observed.items()}},
+                           "poorly_observed": {k: float(v) for k, v in ad.poorly_observed.items()},
+                           # the report's table: where the environment could not constrain the BRDF
+                           "unconstrained": [{"theta_d_deg": list(b.theta_d_deg), "theta_h_deg": b.theta_h_deg,
+                                              "poorly_lit_share": b.poorly_lit_share}
+                                             for b in ad.unconstrained_bands()]},
                   warnings=[*dict.fromkeys([*fit.warnings, *ad.warnings]),
                             "passive reflectometry recovers one BRDF for the whole object: on a "
                             "multi-material object it is their average"])

@@ -14,7 +14,7 @@ from reconstruct.lumitexels import Lumitexels, View
 from .methods import Fitted
 from .process import ProcessInputs, select_samples
 
-__all__ = ["SLICE_THETA_I_DEG", "SLICE_TEXELS", "method_pictures"]
+__all__ = ["SLICE_THETA_I_DEG", "SLICE_TEXELS", "method_pictures", "splat"]
 
 #: incidence angle of the BRDF slices the report draws (in the plane of incidence), degrees
 SLICE_THETA_I_DEG = 30.0
@@ -22,27 +22,34 @@ SLICE_THETA_I_DEG = 30.0
 SLICE_TEXELS = 200
 
 
-def _splat(lt: Lumitexels, values: np.ndarray, view: View) -> np.ndarray:
-    """Per-sample values drawn at their texels' pixels in ``view`` (H, W, C), NaN elsewhere;
-    one-pixel holes between texels filled from their neighbours (normalised 3 x 3 box)."""
-    cam = view.camera
-    pw = lt.position[lt.texel] @ view.object_to_world[:3, :3].T + view.object_to_world[:3, 3]
-    px = np.rint(cam.project(pw)).astype(int)
-    inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] < cam.height)
+def splat(px: np.ndarray, values: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Values (N, C) drawn at pixels ``px`` (N, 2; x right, y down, rounded) of a (height, width)
+    image (H, W, C), averaged where several fall on one pixel, NaN elsewhere; one-pixel holes
+    between them filled from their neighbours (normalised 3 x 3 box)."""
+    H, W = size
+    px = np.rint(np.asarray(px, float)).astype(int)
+    inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < W) & (px[:, 1] < H)
     px, values = px[inside], np.asarray(values, np.float64)[inside]
     C = values.shape[1]
-    acc = np.zeros((cam.height, cam.width, C))
-    cnt = np.zeros((cam.height, cam.width))
+    acc = np.zeros((H, W, C))
+    cnt = np.zeros((H, W))
     np.add.at(acc, (px[:, 1], px[:, 0]), values)
     np.add.at(cnt, (px[:, 1], px[:, 0]), 1.0)
     hit = cnt > 0
-    acc_b = cv2.blur(acc.astype(np.float32), (3, 3))
+    acc_b = cv2.blur(acc.astype(np.float32), (3, 3)).reshape(H, W, C)
     cnt_b = cv2.blur(cnt.astype(np.float32), (3, 3))
     fill = (~hit) & (cnt_b > 0.3)
-    out = np.full((cam.height, cam.width, C), np.nan)
+    out = np.full((H, W, C), np.nan)
     out[hit] = acc[hit] / cnt[hit, None]
     out[fill] = acc_b[fill] / cnt_b[fill, None]
     return out.astype(np.float32)
+
+
+def _splat(lt: Lumitexels, values: np.ndarray, view: View) -> np.ndarray:
+    """Per-sample values drawn at their texels' pixels in ``view`` (:func:`splat`)."""
+    cam = view.camera
+    pw = lt.position[lt.texel] @ view.object_to_world[:3, :3].T + view.object_to_world[:3, 3]
+    return splat(cam.project(pw), values, (cam.height, cam.width))
 
 
 def _radiance(lt: Lumitexels, r: np.ndarray, view: View) -> np.ndarray:

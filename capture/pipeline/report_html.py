@@ -4,7 +4,14 @@
 (the plan, the frames' capture times, the stored reconstructions and their ``report.npz``
 pictures) and the run's :class:`capture.pipeline.run.ProcessReport` (calibration stages, timings,
 truth comparisons). Each section says in plain words what its pictures show, for a reader who has
-never heard of the papers. Without ground truth the truth columns are left out.
+never heard of the papers. Without ground truth the truth columns are left out. An imported
+session (:mod:`capture.pipeline.imported`) gets the same report with what was imported in place
+of the plan, and the normals' error maps against the set's ground truth.
+
+The Exports section lists the pages ``gonio export`` wrote (:func:`link_export` adds a row in
+place; the rows live in the report as JSON and survive a rewrite). The page pieces
+(:func:`html_table`, :func:`comparison_figure` ...) also draw the export's own page
+(:mod:`capture.export.page`).
 """
 from __future__ import annotations
 
@@ -12,6 +19,8 @@ import base64
 import html
 import io
 import json
+import re
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +31,8 @@ from ..store import ResultRecord, Store
 from .pictures import SLICE_THETA_I_DEG
 from .plan_table import plan_rows
 
-__all__ = ["write_html_report", "METHOD_NOTES"]
+__all__ = ["write_html_report", "METHOD_NOTES", "ExportLink", "export_links", "link_export",
+           "check_session_report", "comparison_figure", "html_table", "img_tag", "png_uri", "tonemap", "CSS"]
 
 #: what each method is, in one paragraph a newcomer can read
 METHOD_NOTES = {
@@ -44,7 +54,7 @@ METHOD_NOTES = {
 }
 
 
-def _png(fig) -> str:
+def png_uri(fig) -> str:
     import matplotlib.pyplot as plt
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
@@ -52,7 +62,7 @@ def _png(fig) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def _img(uri: str, alt: str) -> str:
+def img_tag(uri: str, alt: str) -> str:
     return f'<img src="{uri}" alt="{html.escape(alt)}">'
 
 
@@ -68,7 +78,7 @@ def _fmt(v: Any) -> str:
     return html.escape(str(v))
 
 
-def _table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> str:
+def html_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> str:
     if not rows:
         return "<p><em>none</em></p>"
     cols = columns or list(dict.fromkeys(k for r in rows for k in r))
@@ -77,7 +87,7 @@ def _table(rows: list[dict[str, Any]], columns: list[str] | None = None) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _tonemap(img: np.ndarray, scale: float) -> np.ndarray:
+def tonemap(img: np.ndarray, scale: float) -> np.ndarray:
     """Linear radiance -> display RGB: exposure ``scale``, sRGB-like gamma; NaN -> white."""
     out = np.clip(np.nan_to_num(img / scale, nan=1.0), 0, 1) ** (1 / 2.2)
     return out
@@ -101,31 +111,40 @@ def _timeline(store: Store, session_id: int) -> str:
     ax.set_yticks(range(len(kinds)), kinds)
     ax.set_xlabel("time since the first frame (s)")
     ax.set_title("capture timeline: every frame, by kind of step")
-    return _img(_png(fig), "capture timeline")
+    return img_tag(png_uri(fig), "capture timeline")
 
 
-def _held_out_figure(pics: dict[str, np.ndarray]) -> str:
+def comparison_figure(panels: list[tuple[str, np.ndarray]], error: tuple[str, np.ndarray, np.ndarray],
+                      alt: str) -> str:
+    """Radiance images (H, W, 3) side by side at one exposure, then ``error = (title, a, b)``:
+    ``|a - b| / mean |b|`` per pixel. Every panel is cropped to the pixels where both ``a`` and
+    ``b`` are known (not NaN), and exposed at ``b``'s 99.5th percentile there."""
     import matplotlib.pyplot as plt
-    cap, pred = pics["heldout_captured"], pics["heldout_predicted"]
-    on = ~np.isnan(pred).any(axis=2)          # pixels of surface points the model predicts
-    scale = float(np.percentile(cap[on], 99.5)) if on.any() else 1.0
-    err = np.linalg.norm(np.nan_to_num(pred - cap), axis=2) / max(float(np.mean(np.linalg.norm(cap[on], axis=1)))
-                                                                  if on.any() else 1.0, 1e-12)
+    title, a, b = error
+    on = ~np.isnan(a).any(axis=2) & ~np.isnan(b).any(axis=2)
+    scale = float(np.percentile(b[on], 99.5)) if on.any() else 1.0
+    mean = float(np.mean(np.linalg.norm(b[on], axis=1))) if on.any() else 1.0
+    err = np.linalg.norm(np.nan_to_num(a - b), axis=2) / max(mean, 1e-12)
     err[~on] = np.nan
     ys, xs = np.nonzero(on)
     crop = (slice(max(ys.min() - 4, 0), ys.max() + 5), slice(max(xs.min() - 4, 0), xs.max() + 5)) if len(ys) else \
         (slice(None), slice(None))
-    fig, axes = plt.subplots(1, 3, figsize=(10, 3.6))
-    axes[0].imshow(_tonemap(cap, scale)[crop])
-    axes[0].set_title("captured under a held-out light")
-    axes[1].imshow(_tonemap(pred, scale)[crop])
-    axes[1].set_title("predicted by the model")
-    im = axes[2].imshow(err[crop], cmap="magma", vmin=0, vmax=1)
-    axes[2].set_title("|error| / mean radiance")
-    fig.colorbar(im, ax=axes[2], fraction=0.046)
-    for a in axes:
-        a.axis("off")
-    return _img(_png(fig), "held-out capture, prediction and error")
+    fig, axes = plt.subplots(1, len(panels) + 1, figsize=(3.4 * (len(panels) + 1), 3.6))
+    for ax, (name, img) in zip(axes, panels):
+        ax.imshow(tonemap(img, scale)[crop])
+        ax.set_title(name, fontsize=9)
+    im = axes[-1].imshow(err[crop], cmap="magma", vmin=0, vmax=1)
+    axes[-1].set_title(title, fontsize=9)
+    fig.colorbar(im, ax=axes[-1], fraction=0.046)
+    for ax in axes:
+        ax.axis("off")
+    return img_tag(png_uri(fig), alt)
+
+
+def _held_out_figure(pics: dict[str, np.ndarray]) -> str:
+    cap, pred = pics["heldout_captured"], pics["heldout_predicted"]
+    return comparison_figure([("captured under a held-out light", cap), ("predicted by the model", pred)],
+                             ("|error| / mean radiance", pred, cap), "held-out capture, prediction and error")
 
 
 def _slices_figure(pics: dict[str, np.ndarray], theta_i: float) -> str:
@@ -147,7 +166,7 @@ def _slices_figure(pics: dict[str, np.ndarray], theta_i: float) -> str:
     axes[0][0].set_ylabel("BRDF f_r (1/sr)")
     fig.suptitle(f"reflectance in the plane of incidence, light at θi = {theta_i:g}° "
                  "(solid: recovered, dashed: true)", fontsize=9)
-    return _img(_png(fig), "BRDF slices")
+    return img_tag(png_uri(fig), "BRDF slices")
 
 
 def _normals_figure(pics: dict[str, np.ndarray]) -> str:
@@ -176,7 +195,7 @@ def _normals_figure(pics: dict[str, np.ndarray]) -> str:
         ax.axis("off")
         if cmap:
             fig.colorbar(im, ax=ax, fraction=0.046)
-    return _img(_png(fig), "normal maps")
+    return img_tag(png_uri(fig), "normal maps")
 
 
 def _lights_figure(rows: list[dict[str, Any]]) -> str:
@@ -195,7 +214,7 @@ def _lights_figure(rows: list[dict[str, Any]]) -> str:
         a.set_xticks(x, labels, rotation=60, fontsize=7)
         a.set_xlabel("light azimuth/elevation (°)")
     fig.suptitle("calibrated lamp positions against the truth (red: the calibration's targets)", fontsize=9)
-    return _img(_png(fig), "light calibration errors")
+    return img_tag(png_uri(fig), "light calibration errors")
 
 
 def _environment_figure(store: Store, session_id: int) -> str:
@@ -206,33 +225,29 @@ def _environment_figure(store: Store, session_id: int) -> str:
     with np.load(io.BytesIO(store.read_object(probe[-1].artifacts["environment.npz"]))) as z:
         env, weight = z["env"], z["weight"]
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    img = _tonemap(env, float(np.percentile(env, 99)) or 1.0) * np.clip(weight, 0, 1)[..., None]
+    img = tonemap(env, float(np.percentile(env, 99)) or 1.0) * np.clip(weight, 0, 1)[..., None]
     ax.imshow(img, extent=(0, 360, -90, 90))  # column 0: azimuth 0 (+x, towards the camera)
     ax.set_xlabel("azimuth (°, lab frame)")
     ax.set_ylabel("elevation (°)")
     ax.set_title("the room's light from the mirror-ball photograph (black: not seen)")
-    return _img(_png(fig), "environment map")
+    return img_tag(png_uri(fig), "environment map")
 
 
-def _calibration_section(rep, truth, store: Store, session_id: int) -> str:
-    parts = ["<h2>2. Calibration</h2>",
-             "<p>Before anything can be measured, the rig measures itself from its own calibration "
-             "captures: the camera's lens (from a printed board), where the turntable's axis is, where "
-             "the lamp was for every capture (from its reflections in mirror balls), the lamp's "
-             "brightness (from an 18 % gray card) and the room's light (from a mirror ball).</p>",
-             _table([{"stage": c["stage"], "status": c["status"], "figures": c.get("figures", {}),
+def _calibration_section(rep, truth, store: Store, session_id: int, intro: str) -> str:
+    parts = ["<h2>2. Calibration</h2>", f"<p>{intro}</p>",
+             html_table([{"stage": c["stage"], "status": c["status"], "figures": c.get("figures", {}),
                       "note": c.get("reason", "")} for c in rep.calibration])]
     ct = rep.calibration_truth
     if ct:
         parts.append("<h3>Against the simulation's ground truth</h3>"
                      "<p>Targets of the calibration: light position within 0.5 % of its distance and "
                      "0.25° in direction, focal length within 0.2 %.</p>")
-        parts.append(_table([{"focal length error (%)": ct["focal_error_pct"],
+        parts.append(html_table([{"focal length error (%)": ct["focal_error_pct"],
                               "principal point error (px)": ct["principal_point_error_px"],
                               "camera centre error (mm)": ct["camera_centre_error_mm"],
                               "lamp intensity error (%)": ct.get("intensity_error_pct", "relative units"),
                               "lights from": ct["light_source"]}]))
-        parts.append(_table(ct.get("lights", []), ["azimuth_deg", "elevation_deg", "error_mm",
+        parts.append(html_table(ct.get("lights", []), ["azimuth_deg", "elevation_deg", "error_mm",
                                                     "distance_error_pct", "direction_error_deg"]))
         if ct.get("lights"):
             parts.append(_lights_figure(ct["lights"]))
@@ -252,15 +267,18 @@ def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str
         parts.append(f"<p class='{outcome.status}'><b>{outcome.status}</b>: {html.escape(outcome.reason)}</p>")
         return "\n".join(parts)
     figures = outcome.figures if stored is None else stored.result.get("figures", outcome.figures)
-    rows = [{"measure": k, "value": v} for k, v in figures.items() if k != "table_ii_rms"]
+    rows = [{"measure": k, "value": v} for k, v in figures.items()
+            if k not in ("table_ii_rms", "poorly_observed", "unconstrained")]
     parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
                  "the captures under lights it never saw (<b>_trimmed</b>: without the 1 % worst samples, which "
                  "carry most of a glossy object's pooled error); <b>truth_rel_rms</b>: the same against the "
-                 "true reflectance (simulation only).</p>" + _table(rows))
+                 "true reflectance (simulation only).</p>" + html_table(rows))
     if figures.get("table_ii_rms"):
         parts.append("<p>Lensch Table II: the RMS fitting error after each stage (single average BRDF, "
                      "per cluster, projection, PFA, normal fitting) — it should fall from left to right.</p>"
-                     + _table([figures["table_ii_rms"]]))
+                     + html_table([figures["table_ii_rms"]]))
+    if "poorly_observed" in figures:
+        parts.append(_adequacy_table(figures))
     warnings = outcome.warnings if stored is None else stored.result.get("warnings", outcome.warnings)
     if warnings:
         parts.append("<ul class='warn'>" + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul>")
@@ -280,9 +298,29 @@ def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str
     return "\n".join(parts)
 
 
-def _summary(rep, figures, with_truth: bool) -> str:
-    """The methods table (held-out score, its ratio to the floor, the error against the truth)
-    and the floor, or why there is none."""
+def _adequacy_table(figures: dict[str, Any]) -> str:
+    """Passive reflectometry's adequacy report (Romeiro et al. Sect. 3.1) as a table: the regions of
+    the BRDF's (theta_h, theta_d) domain and the share of their nodes the room lit too little to
+    constrain (there the recovered BRDF is the prior's extrapolation)."""
+    rows = [{"range of the BRDF": k, "share of poorly lit nodes": f"{v:.0%}"}
+            for k, v in figures["poorly_observed"].items()]
+    rows += [{"range of the BRDF": f"theta_d {b['theta_d_deg'][0]}–{b['theta_d_deg'][1]}°, theta_h "
+                                   f"{b['theta_h_deg']}°",
+              "share of poorly lit nodes": f"{b['poorly_lit_share']:.0%} of the band"}
+             for b in figures.get("unconstrained", [])]
+    return ("<p><b>What the room's light could not constrain.</b> One image under the room's light sees "
+            "each surface orientation from one direction, so parts of the reflectance function are lit "
+            "too little to be measured (less than a tenth of the light a uniform sky would give, or "
+            "never seen); there the recovered function is the prior's guess, learned from other "
+            "materials. θh: angle between the normal and the halfway vector (0: mirror direction); "
+            "θd: angle between the light and the halfway vector (0: retro-reflection, 90: grazing).</p>"
+            + html_table(rows))
+
+
+def _summary(rep, figures, with_truth: bool, imported: bool = False) -> str:
+    """The methods table (held-out score, its ratio to the floor, the error against the truth;
+    for an imported set the normals' error against its ground truth) and the floor, or why there
+    is none."""
     def ratio(m) -> Any:
         return "–" if m.floor_ratio is None else f"{m.floor_ratio:.2f}×"
 
@@ -290,6 +328,7 @@ def _summary(rep, figures, with_truth: bool) -> str:
              "held-out rel. RMS": figures(m).get("held_out_rel_rms", float("nan")),
              **({"× floor": ratio(m)} if rep.floor is not None else {}),
              **({"vs truth rel. RMS": figures(m).get("truth_rel_rms", float("nan"))} if with_truth else {}),
+             **({"normal error (°)": figures(m).get("normal_error_deg", "–")} if imported else {}),
              "note": f"outside its assumption: {m.outside_assumption}" if m.outside_assumption else ""}
             for m in rep.methods]
     if rep.floor is not None:
@@ -302,11 +341,15 @@ def _summary(rep, figures, with_truth: bool) -> str:
         note = ("<p><b>No floor</b>: the true model was not scored on held-out captures in this run (none "
                 "captured, or results stored before the floor was; <code>gonio process --force</code> "
                 "recomputes them).</p>")
+    elif imported:
+        note = ("<p><b>No floor</b>: the true reflectance of an imported object is unknown (only its normals "
+                "may be given), so the held-out errors stand alone: each method must beat the Lambertian "
+                "reference.</p>")
     else:
         note = ("<p><b>No floor</b>: the true reflectance of this object is unknown (the floor, the true model "
                 "scored on the held-out captures, exists only for sessions captured in the simulated lab), so "
                 "the held-out errors stand alone.</p>")
-    return _table(rows) + note
+    return html_table(rows) + note
 
 
 def _plan_section(store: Store, info, prog) -> str:
@@ -323,46 +366,226 @@ def _plan_section(store: Store, info, prog) -> str:
             "positions (azimuth × elevation about the turntable axis) and polarizer angles it visits, in "
             "degrees (<i>a–b by s (n)</i>: n angles from a to b in steps of s); <i>held out</i> steps are "
             "captured like the rest but never fitted: they score the models.</p>"
-            + _table(rows)
+            + html_table(rows)
             + "<details><summary>the plan as stored (JSON)</summary>"
             f"<pre>{html.escape(json.dumps(info.plan, indent=1))}</pre></details>"
             + _timeline(store, info.id))
 
 
-_CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
+# -- exports: `gonio export` links its page here ------------------------------------------------
+_EXPORTS = re.compile(r"<!-- gonio:exports -->.*?<!-- /gonio:exports -->", re.S)
+_EXPORTS_JSON = re.compile(r'<script type="application/json" id="gonio-exports" data-session="([^"]*)">(.*?)</script>',
+                           re.S)
+
+
+@dataclass(frozen=True)
+class ExportLink:
+    """One ``gonio export`` as the session report lists it: ``page`` the export's own page
+    (``DIR/report.html``) relative to the report's folder, the method and formats, and the
+    export's stated error against the method at the held-out samples (None: not computed)."""
+
+    page: str
+    method: str
+    formats: tuple[str, ...]
+    export_vs_method: float | None
+    written: str
+
+
+def export_links(report: str | Path) -> list[ExportLink]:
+    """The exports a written session report lists ([] when it does not exist or lists none)."""
+    try:
+        m = _EXPORTS_JSON.search(Path(report).read_text())
+    except FileNotFoundError:
+        return []
+    if m is None:
+        return []
+    try:
+        rows = json.loads(m.group(2))   # JSON reads "<\/" (written below) as "</"
+        return [ExportLink(r["page"], r["method"], tuple(r["formats"]), r["export_vs_method"], r["written"])
+                for r in rows]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{report}: its list of exports is damaged ({exc}); re-write the report with "
+                         "gonio process") from None
+
+
+def _exports_section(session: str, links: list[ExportLink]) -> str:
+    data = json.dumps([asdict(x) for x in links]).replace("</", "<\\/")
+    if links:
+        body = ("<p>Each export's own page links its files, states how far the exported model is from the "
+                "method's and shows a renderer's image of it beside gonio's prediction.</p>"
+                + "<table><tr><th>export</th><th>method</th><th>formats</th><th>export vs method (rel. RMS, "
+                  "held out)</th><th>written</th></tr>"
+                + "".join(f'<tr><td><a href="{html.escape(x.page)}">{html.escape(x.page)}</a></td>'
+                          f"<td>{html.escape(x.method)}</td><td>{html.escape(', '.join(x.formats))}</td>"
+                          f"<td>{_fmt(x.export_vs_method if x.export_vs_method is not None else '–')}</td>"
+                          f"<td>{html.escape(x.written)}</td></tr>" for x in links) + "</table>")
+    else:
+        body = ("<p>None yet: <code>gonio export SESSION --method M --out DIR</code> writes the recovered "
+                "appearance in formats other software reads and links its page here.</p>")
+    return (f'<!-- gonio:exports --><h2>6. Exports</h2>{body}'
+            f'<script type="application/json" id="gonio-exports" data-session="{html.escape(session)}">{data}'
+            '</script><!-- /gonio:exports -->')
+
+
+def check_session_report(report: str | Path, session: str) -> None:
+    """Raise ``FileNotFoundError`` when ``report`` does not exist, ``ValueError`` when it is not
+    ``session``'s report with an Exports section (or that section is damaged)."""
+    report = Path(report)
+    text = report.read_text()
+    m = _EXPORTS_JSON.search(text)
+    if not _EXPORTS.search(text) or m is None:
+        raise ValueError(f"{report} is not a gonio session report with an Exports section (written by "
+                         "gonio process; re-run it to update an older report)")
+    if html.unescape(m.group(1)) != session:
+        raise ValueError(f"{report} is the report of session {html.unescape(m.group(1))!r}, not {session!r}")
+    export_links(report)
+
+
+def link_export(report: str | Path, session: str, link: ExportLink) -> Path:
+    """Add ``link`` (replacing one to the same page) to the Exports section of ``session``'s
+    written report ``report``, in place and atomically. Raises as :func:`check_session_report`."""
+    check_session_report(report, session)
+    links = [x for x in export_links(report) if x.page != link.page] + [link]
+    section = _exports_section(session, links)
+    return write_atomically(report, _EXPORTS.sub(lambda _: section, Path(report).read_text(), count=1))
+
+
+CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;font-size:90%}
 th{background:#eee}img{max-width:100%}.skipped{color:#866}.failed{color:#b00}.warn{color:#a60}
 .outside{background:#fff3d6;border-left:4px solid #e0a000;padding:4px 8px}"""
 
 
-def write_html_report(store: Store, session: str, rep, *, truth=None, path: str | Path) -> Path:
-    """Write the session's report (HTML with embedded PNGs) to ``path`` and return it."""
+_CAPTURED_INTRO = ("gonio measured how this object reflects light: a turntable turned it, a lamp on an arm lit "
+                  "it from many directions, a camera photographed it through a rotating polarizer at several "
+                  "exposures, and the rig calibrated itself from its own captures. Reconstruction methods then "
+                  "recovered the object's reflectance; each is judged by predicting captures under lights it "
+                  "was never shown.")
+_IMPORTED_INTRO = ("This session was not captured by gonio: it is a multi-light image set recorded elsewhere "
+                   "(photographs of one object under many distant lights, with the lights, a mask and, where "
+                   "given, the true surface normals) and imported as it was. gonio recovered the object's "
+                   "surface orientation and reflectance from the images; each method is judged by predicting "
+                   "the images under lights it was never shown, and the normals against the set's ground truth.")
+_CAPTURED_CALIBRATION = ("Before anything can be measured, the rig measures itself from its own calibration "
+                         "captures: the camera's lens (from a printed board), where the turntable's axis is, where "
+                         "the lamp was for every capture (from its reflections in mirror balls), the lamp's "
+                         "brightness (from an 18 % gray card) and the room's light (from a mirror ball).")
+_IMPORTED_CALIBRATION = ("An imported set brings what calibration would measure (the light directions and "
+                         "intensities, an orthographic camera), so the rig's calibration stages are skipped; each "
+                         "is listed with the reason.")
+
+
+def _imported_section(facts) -> str:
+    """What was imported: provenance, images, lights (training and held out), the mask."""
+    prov = facts.provenance
+    rows = [{"object": prov.get("object"), "format": prov.get("format"), "source": prov.get("source"),
+             "images": facts.images, "image size (px)": "{} × {}".format(*facts.image_size_px),
+             "bit depth": prov.get("bit_depth"), "training lights": int((~facts.held_out).sum()),
+             "held-out lights": int(facts.held_out.sum()), "mask pixels": facts.mask_pixels,
+             "ground-truth normals": "yes (scoring only)" if facts.normal_errors else "no",
+             "files with SHA-256 recorded": facts.files_hashed}]
+    return ("<h2>1. What was imported</h2>"
+            f"<p>{html.escape(str(prov.get('citation', '')))}</p>" + html_table(rows)
+            + "<p>Every file's bytes are stored in the session as they were, with their SHA-256. Light "
+              "directions are in the camera frame (x right, y down, z away from the camera); every "
+              f"{prov.get('held_out_every', '–')}th light is held out: never fitted, it scores the models.</p>"
+            + _lights_figure_imported(facts.light_directions, facts.held_out))
+
+
+def _lights_figure_imported(directions: np.ndarray, held_out: np.ndarray) -> str:
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(3.8, 3.8))
+    ax.add_patch(plt.Circle((0, 0), 1, fill=False, color="gray", lw=0.5))
+    for sel, mark, label in ((~held_out, "o", "training"), (held_out, "x", "held out")):
+        ax.plot(directions[sel, 0], directions[sel, 1], mark, ms=4, label=label)
+    ax.set_xlim(-1.05, 1.05)
+    ax.set_ylim(1.05, -1.05)          # y down, as in the images
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (right)")
+    ax.set_ylabel("y (down)")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("light directions seen from the camera", fontsize=9)
+    return img_tag(png_uri(fig), "light directions")
+
+
+def _normal_errors_figure(maps: dict[str, np.ndarray], fitted: np.ndarray) -> str:
+    """Angular error maps (deg) side by side on one colour scale, cropped to the scored pixels.
+    A map scored at few pixels (a method fitted to a random subset) is drawn as dots over the
+    object's silhouette; a dense one also states its mean at the ``fitted`` pixels, the subset's."""
+    import matplotlib.pyplot as plt
+    on = np.any([np.isfinite(m) for m in maps.values()], axis=0)
+    ys, xs = np.nonzero(on)
+    y0, x0 = ys.min(), xs.min()
+    crop = (slice(y0, ys.max() + 1), slice(x0, xs.max() + 1))
+    top = max(float(np.nanpercentile(m, 99)) for m in maps.values())
+    fig, axes = plt.subplots(1, len(maps), figsize=(3.6 * len(maps), 3.6), squeeze=False)
+    for ax, (name, m) in zip(axes[0], maps.items()):
+        scored = np.isfinite(m)
+        title = f"{name}: mean {np.nanmean(m):.2f}°"
+        if scored.sum() < 0.5 * on.sum():
+            ax.imshow(np.where(on, 0.85, 1.0)[crop], cmap="gray", vmin=0, vmax=1)
+            py, px = np.nonzero(scored)
+            im = ax.scatter(px - x0, py - y0, c=m[scored], s=3, cmap="viridis", vmin=0, vmax=top, linewidths=0)
+            title += f"\nat its {scored.sum()} pixels"
+        else:
+            im = ax.imshow(m[crop], cmap="viridis", vmin=0, vmax=top)
+            if (fitted & scored).sum() < scored.sum():
+                title += f"\n({np.nanmean(m[fitted]):.2f}° at the {fitted.sum()} fitted pixels)"
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    fig.colorbar(im, ax=axes[0].tolist(), fraction=0.03, label="angle to the true normal (°)")
+    return img_tag(png_uri(fig), "normal error maps")
+
+
+def _normals_section(facts) -> str:
+    if not facts.normal_errors:
+        return ("<h2>4. Normals</h2><p>The set has no ground-truth normals, so the recovered normals "
+                "are not scored.</p>")
+    return ("<h2>4. Normals against the ground truth</h2><p>How far each recovered surface normal is "
+            "from the set's true one (degrees; the truth is used only here, never in a fit). Least "
+            "squares: Lambertian photometric stereo on the training lights; robust: the same without each "
+            "pixel's darkest and brightest lights and those the fit shades or far exceeds (shadows, "
+            "highlights); the methods' own normals at the pixels they fitted "
+            f"({html.escape(facts.texels_note)}).</p>" + _normal_errors_figure(facts.normal_errors, facts.fitted))
+
+
+def write_html_report(store: Store, session: str, rep, *, truth=None, path: str | Path,
+                      imported=None) -> Path:
+    """Write the session's report (HTML with embedded PNGs) to ``path`` and return it.
+
+    ``imported``: for a session imported from another lab's image set, its
+    :class:`capture.pipeline.imported.ImportedFacts` (what was imported and the normals' error
+    maps), which replace the plan and the capture."""
     import matplotlib
     matplotlib.use("Agg")
     info = store.session(session)
     stored = {r.kind: r for r in store.results(info.id, "reconstruction")}
-    prog = store.progress(info.id)
+    intro = _IMPORTED_INTRO if imported is not None else _CAPTURED_INTRO + (
+        " This session comes from the simulated lab, so every figure is also compared with the ground truth."
+        if truth is not None else "")
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>gonio: {html.escape(session)}</title>"
-             f"<style>{_CSS}</style></head><body>",
-             f"<h1>gonio report: {html.escape(session)}</h1>",
-             "<p>gonio measured how this object reflects light: a turntable turned it, a lamp on an arm lit "
-             "it from many directions, a camera photographed it through a rotating polarizer at several "
-             "exposures, and the rig calibrated itself from its own captures. Reconstruction methods then "
-             "recovered the object's reflectance; each is judged by predicting captures under lights it "
-             "was never shown." + (" This session comes from the simulated lab, so every figure is also "
-                                   "compared with the ground truth." if truth is not None else "") + "</p>"]
+             f"<style>{CSS}</style></head><body>",
+             f"<h1>gonio report: {html.escape(session)}</h1>", f"<p>{intro}</p>"]
+
     def figures(m) -> dict:
         r = stored.get(m.method)
         return m.figures if r is None else r.result.get("figures", m.figures)
 
-    parts.append("<h2>Summary</h2>" + _summary(rep, figures, truth is not None))
-    parts.append(_plan_section(store, info, prog))
-    parts.append(_calibration_section(rep, truth, store, info.id))
+    parts.append("<h2>Summary</h2>" + _summary(rep, figures, truth is not None, imported is not None))
+    if imported is None:
+        parts.append(_plan_section(store, info, store.progress(info.id)))
+    else:
+        parts.append(_imported_section(imported))
+    parts.append(_calibration_section(rep, truth, store, info.id,
+                                      _IMPORTED_CALIBRATION if imported is not None else _CAPTURED_CALIBRATION))
     parts.append("<h2>3. Reconstruction inputs</h2><p>Every measurement is resampled onto points of the "
                  "object's surface (\"lumitexels\"): per point, the directions to the lamp and the camera "
                  "and how much light came back. Held-out lights are kept aside for scoring.</p>"
-                 + _table([rep.inputs]))
-    parts.append("<h2>4. Methods</h2>")
+                 + html_table([rep.inputs]))
+    if imported is not None:
+        parts.append(_normals_section(imported))
+    n = 5 if imported is not None else 4
+    parts.append(f"<h2>{n}. Methods</h2>")
     for i, m in enumerate(rep.methods, 1):
         pics = None
         r = stored.get(m.method)
@@ -370,8 +593,12 @@ def write_html_report(store: Store, session: str, rep, *, truth=None, path: str 
             with np.load(io.BytesIO(store.read_object(r.artifacts["report.npz"]))) as z:
                 pics = {k: z[k] for k in z.files}
         parts.append(_method_section(i, m, r, pics))
-    parts.append("<h2>5. Timings</h2>" + _table([{"stage": k, "seconds": v} for k, v in rep.timings.items()]))
-    parts.append("</body></html>")
+    parts.append(f"<h2>{n + 1}. Timings</h2><p>Seconds per stage of this run (a method stored before "
+                 "and not re-run takes none).</p>"
+                 + html_table([{"stage": k, "seconds": v} for k, v in rep.timings.items()]))
     path = Path(path)
+    if imported is None:   # gonio export writes captured sessions' models only
+        parts.append(_exports_section(session, export_links(path)))   # kept when the report is written again
+    parts.append("</body></html>")
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_atomically(path, "\n".join(parts))   # whole or not at all (a full disk)

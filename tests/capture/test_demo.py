@@ -8,6 +8,7 @@ targets the calibration and reconstruction tests state for a 320 x 240 camera.
 from __future__ import annotations
 
 import base64
+import html
 import io
 import json
 import os
@@ -143,6 +144,15 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     assert "materials" in methods["passive"]["outside_assumption"], methods["passive"]
     assert not any(m["outside_assumption"] for k, m in methods.items() if k != "passive")
     assert "Outside its assumption" in text
+    # passive's adequacy report is a table in its section, not only warnings: the paper's regions
+    # with the share of their nodes the room lit too little, and the theta_d bands it left to the prior
+    passive = text.split("<h3>4. passive</h3>")[1]
+    poor = methods["passive"]["figures"]["poorly_observed"]
+    assert len(poor) == 3 and "What the room's light could not constrain" in passive
+    for region, share in poor.items():
+        assert f"<td>{html.escape(region)}</td><td>{share:.0%}</td>" in passive, region
+    for band in methods["passive"]["figures"]["unconstrained"]:
+        assert f"theta_d {band['theta_d_deg'][0]}–{band['theta_d_deg'][1]}°, theta_h {band['theta_h_deg']}°" in passive
     # the plan reads as a table (the quick plan's four turntable angles as one run), the stored
     # JSON behind a fold
     assert "0–270 by 90 (4)" in text and "<details><summary>the plan as stored (JSON)" in text
@@ -228,10 +238,19 @@ def test_export_of_the_quick_demo_renders_in_mitsuba_as_gonio_predicts(demo, tmp
         runs = {r.kind: r for r in st.results(sid, "reconstruction")}
         app = Appearance.from_npz(st.read_object(runs["lensch"].artifacts["appearance.npz"]))
         bivariate = np.load(io.BytesIO(st.read_object(runs["passive"].artifacts["model.npz"])))["bivariate"]
+    report = demo_cwd / "demo" / "report.html"
     res = CliRunner().invoke(cli, ["export", "demo-quick", "--store", str(store), "--method", "lensch",
                                    "--format", "mitsuba", "--out", str(tmp_path / "lensch")])
     assert res.exit_code == 0, res.output
     stated = json.loads((tmp_path / "lensch" / "model.json").read_text())["approximation"]
+    # gonio demo's report beside the store now links the export's page (relative to the report's
+    # folder), with its stated error; the page shows Mitsuba's render of the first held-out capture
+    text = report.read_text()
+    (href,) = re.findall(r'<a href="([^"]*)">', text.split("<h2>6. Exports</h2>")[1])
+    assert (report.parent / href).resolve() == (tmp_path / "lensch" / "report.html").resolve()
+    assert f"<td>lensch</td><td>mitsuba</td><td>{stated['export_vs_method_held_out_rel_rms']:.4g}</td>" in text
+    page = (tmp_path / "lensch" / "report.html").read_text()
+    assert page.count('<img src="data:image/png;base64,') == 1 and "mitsuba/heldout-000.xml" in page
     n_train = int(np.sum(~app.view_held_out))
     renders = [render_held_out(tmp_path / "lensch" / "mitsuba" / f"heldout-{k:03d}.xml", app, n_train + k)
                for k in range(int(app.view_held_out.sum()))]

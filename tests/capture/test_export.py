@@ -5,6 +5,7 @@ reuses that module's demo run).
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -18,6 +19,8 @@ from capture.export.appearance import Appearance
 from capture.export.ggx import ALPHA_GRID, GgxMaps, fit_ggx, ggx_reflectance
 from capture.export.images import read_exr
 from capture.export.session import export_session
+from capture.pipeline.report_html import export_links, write_html_report
+from capture.pipeline.run import ProcessReport
 from reconstruct.metrics import relative_rms
 from capture.store import Store
 from reconstruct.frames import tangent_frames, to_local
@@ -80,7 +83,8 @@ def _synthetic_appearance(mesh: trimesh.Trimesh) -> Appearance:
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
     """A store with one session whose ``lensch`` result carries the synthetic appearance (no
-    rig snapshot: the session brings no mesh), the mesh, and an export of it."""
+    rig snapshot: the session brings no mesh), its (empty) session report where gonio process
+    writes it, the mesh, and an export of it."""
     root = tmp_path_factory.mktemp("export")
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
     app = _synthetic_appearance(mesh)
@@ -88,6 +92,7 @@ def synthetic(tmp_path_factory):
         sid = st.create_session("synthetic", plan={}, plan_hash="0", steps=[]).id
         st.add_reconstruction(sid, "lensch", result={"figures": {"held_out_rel_rms": 0.05}}, params={},
                               artifacts={"appearance.npz": app.to_npz()})
+        write_html_report(st, "synthetic", ProcessReport("synthetic"), path=root / "synthetic-report.html")
         rep = export_session(st, "synthetic", method="lensch", formats=["maps", "gltf", "mitsuba"],
                              out=root / "out", mesh=mesh)
     return root, mesh, app, rep
@@ -244,7 +249,18 @@ def test_cli_refuses_bad_requests_and_writes_nothing(synthetic, tmp_path):
     mesh_file = tmp_path / "mesh.ply"
     mesh.export(mesh_file)
     out = tmp_path / "x"
+    not_report = tmp_path / "notes.html"
+    not_report.write_text("<html><body>lab notes</body></html>")
+    other = tmp_path / "another-report.html"     # a session report, of another session
+    other.write_text(rep.linked_from.read_text().replace('data-session="synthetic"', 'data-session="another"'))
+    other_before = other.read_text()
     cases = [  # (arguments, what the message must say)
+        (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
+          "--report", str(not_report)], "not a gonio session report"),
+        (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
+          "--report", str(tmp_path / "none.html")], "no such file"),
+        (["synthetic", "--method", "lensch", "--out", str(out), "--store", store, "--mesh", str(mesh_file),
+          "--report", str(other)], "report of session 'another'"),
         (["synthetic", "--method", "sharing", "--out", str(out), "--store", store, "--mesh", str(mesh_file)],
          "was not run"),
         (["synthetic", "--method", "lensch", "--out", str(out), "--store", store], "--mesh"),
@@ -261,7 +277,8 @@ def test_cli_refuses_bad_requests_and_writes_nothing(synthetic, tmp_path):
         assert res.exit_code == 2, (args, res.output)
         assert says in res.output, (args, res.output)
     assert sorted(p.name for p in tmp_path.iterdir()) == before          # nothing written
-    assert sorted(p.name for p in root.iterdir()) == ["out", "store"]
+    assert not_report.read_text() == "<html><body>lab notes</body></html>" and other.read_text() == other_before
+    assert sorted(p.name for p in root.iterdir()) == ["out", "store", "synthetic-report.html"]
     helptext = _cli("--help").output
     for word in ("maps", "gltf", "mitsuba", "merl", "EXR", "MikkTSpace", "MERL"):
         assert word in helptext, word
@@ -319,3 +336,57 @@ def test_merl_round_trip_and_an_independent_writer(tmp_path):
     model = read_merl(tmp_path / "ct.binary")
     got = model.evaluate(wi[ok][::97], wo[ok][::97])     # at the nodes: the tabulated values
     assert np.allclose(got, values[ok][::97], rtol=1e-6)
+
+
+def _links(page: Path) -> list[str]:
+    import re
+    return re.findall(r'href="([^"]*)"', page.read_text()) + re.findall(r"href='([^']*)'", page.read_text())
+
+
+def test_export_page_links_every_file_and_shows_the_render(synthetic, tmp_path):
+    """``DIR/report.html`` links every written file relative to DIR (the links still resolve after
+    the folder is moved), states model.json's approximation figures, and shows Mitsuba's render
+    of the held-out capture beside the prediction, whose stated difference is the check's (< 0.05,
+    as test_mitsuba_renders_the_synthetic_export_as_the_formula)."""
+    import re
+    root, mesh, app, rep = synthetic
+    moved = tmp_path / "elsewhere" / "export"
+    shutil.copytree(rep.out, moved)
+    page = moved / "report.html"
+    assert rep.page == rep.out / "report.html" and page.is_file()
+    links = _links(page)
+    written = [f for files in rep.files.values() for f in files] + ["model.json"]
+    assert set(written) <= set(links)
+    for href in links:
+        assert not href.startswith(("/", "file:", "http")) and (moved / href).is_file(), href
+    text = page.read_text()
+    approx = json.loads((moved / "model.json").read_text())["approximation"]
+    # the session report beside the store (gonio process's default) lists the page, relative to it
+    assert rep.linked_from == root / "synthetic-report.html"
+    (row,) = export_links(rep.linked_from)
+    assert (row.page, row.method, row.formats) == ("out/report.html", "lensch", ("maps", "gltf", "mitsuba"))
+    assert row.export_vs_method == approx["export_vs_method_held_out_rel_rms"]
+    assert f'<a href="{row.page}">' in rep.linked_from.read_text()
+    for key in ("export_vs_method_held_out_rel_rms", "gltf_vs_method_held_out_rel_rms", "export_held_out_rel_rms"):
+        assert f"<td>{approx[key]:.4g}</td><td>{key}</td>" in text, key
+    if importlib.util.find_spec("mitsuba") is None:
+        assert "pip install mitsuba" in text
+        return
+    assert text.count("<img") == 1 and '<img src="data:image/png;base64,' in text
+    stated = re.search(r"render vs gonio&#x27;s prediction</td><td>([0-9.e-]+)</td>", text)
+    assert stated and float(stated.group(1)) < 0.05, stated
+
+
+def test_export_page_without_mitsuba_says_how_to_install_it(synthetic, tmp_path, monkeypatch):
+    """Mitsuba is a test extra: without it the page says so and how to install it, and still
+    links every file."""
+    import sys
+    from capture.export.page import write_export_page
+    root, mesh, app, rep = synthetic
+    monkeypatch.setitem(sys.modules, "mitsuba", None)     # `import mitsuba` raises ImportError
+    out = tmp_path / "copy"
+    shutil.copytree(rep.out, out)
+    page = write_export_page(out, "synthetic", "lensch", rep.files, rep.model, app)
+    text = page.read_text()
+    assert "Mitsuba 3 is not installed" in text and "pip install mitsuba" in text and "<img" not in text
+    assert {f for files in rep.files.values() for f in files} <= set(_links(page))

@@ -8,6 +8,8 @@ with the README's figure for these 8-bit crops.
 """
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -16,6 +18,7 @@ from typer.testing import CliRunner
 
 from capture.cli import app
 from capture.importers import DiligentFormatError, import_diligent, read_diligent, read_imported_session
+from capture.pipeline.imported import imported_facts, imported_inputs, process_imported_session
 from capture.store import Store
 from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 
@@ -136,8 +139,9 @@ def test_process_runs_on_an_imported_set_and_says_what_it_skips(tmp_path):
     """``gonio process`` on an imported set: no mesh asked for, every calibration stage listed as
     skipped with its reason, sharing and passive skipped (no polarization, no probe), the
     Lambertian reference relights the held-out lights of a Lambertian sphere to within the
-    16-bit quantisation, and results are stored with the frames they came from."""
-    write_set(tmp_path / "ball")
+    16-bit quantisation, and results are stored with the frames they came from; the HTML report
+    says all of it and draws the normals' error against the truth."""
+    _, mask = write_set(tmp_path / "ball")
     import_diligent(tmp_path / "ball", tmp_path / "store")
     r = CliRunner().invoke(app, ["process", "diligent-ball", "--store", str(tmp_path / "store"),
                                  "--methods", "lambertian,sharing,passive", "--json", "-q"])
@@ -160,3 +164,44 @@ def test_process_runs_on_an_imported_set_and_says_what_it_skips(tmp_path):
     info = st.session("diligent-ball")
     (res,) = st.results(info.id, "reconstruction")
     assert len(res.input_frames) == 10 and "model.npz" in res.artifacts
+    # the HTML report (issue 25): what was imported, the skipped stages with their reasons, the
+    # normals' error maps, held-out error per method, time per stage
+    report = tmp_path / "diligent-ball-report.html"
+    assert out["report"] == str(report)
+    text = report.read_text()
+    for words in ("What was imported", "<td>ball</td>", "<td>8</td>", "<td>40 × 40</td>", "<td>1124</td>",
+                  "no turntable: one view of the object", "Normals against the ground truth",
+                  "alt=\"normal error maps\"", "alt=\"light directions\"", "6. Timings"):
+        assert words in text, words
+    held = methods["lambertian"]["figures"]["held_out_rel_rms"]
+    assert f"<td>lambertian</td><td>ok</td><td>{held:.4g}</td>" in text
+    assert "passive: passive" not in text and "sharing</td><td>skipped" in text
+    assert not re.search(r'(href|src)="(?!data:)', text)    # self-contained
+    # the maps are the stated figures, drawn: their means are the inputs' mean errors
+    facts = imported_facts(st, "diligent-ball", imported_inputs(st, "diligent-ball"), [])
+    assert set(facts.normal_errors) == {"least squares", "robust least squares"}
+    assert np.nanmean(facts.normal_errors["least squares"]) == pytest.approx(
+        out["inputs"]["normal_error_least_squares_deg"], rel=1e-9)
+    assert np.nanmean(facts.normal_errors["robust least squares"]) == pytest.approx(
+        out["inputs"]["normal_error_robust_deg"], rel=1e-9)
+    scored = np.isfinite(facts.normal_errors["least squares"])   # the texels' pixels, inside the mask
+    assert np.all(mask[scored]) and scored.sum() == out["inputs"]["texels"]
+
+
+def test_imported_report_draws_lenschs_fitted_normals(tmp_path):
+    """Lensch's fitted normals (60 texels of the ball, for time) become the report's third error
+    map, drawn at exactly the pixels it fitted, whose mean is its stated normal error."""
+    n_true, mask = write_set(tmp_path / "ball")
+    import_diligent(tmp_path / "ball", tmp_path / "store")
+    st = Store.open(tmp_path / "store")
+    rep = process_imported_session(st, "diligent-ball", methods=["lensch"], max_texels=60,
+                                   report_path=tmp_path / "r.html")
+    (lensch,) = rep.methods
+    assert lensch.status == "ok", lensch.reason
+    facts = imported_facts(st, "diligent-ball", imported_inputs(st, "diligent-ball", max_texels=60), rep.methods)
+    drawn = facts.normal_errors["lensch (fitted)"]
+    assert np.isfinite(drawn).sum() == 60 and np.all(mask[np.isfinite(drawn)])
+    assert np.nanmean(drawn) == pytest.approx(lensch.figures["normal_error_deg"], rel=1e-6)
+    text = rep.report_path.read_text()
+    assert "60 of the 1124 mask pixels" in text and "<h3>1. lensch</h3>" in text
+    assert rep.report_path.with_suffix(".json").is_file() and "report" in rep.timings

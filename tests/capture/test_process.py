@@ -22,6 +22,7 @@ from typer.testing import CliRunner
 
 from capture.cli import app
 from capture.pipeline.demo_lab import DemoLab, fitter_mesh
+from capture.pipeline.report_html import ExportLink, export_links, link_export
 from capture.pipeline.run import process_session
 from capture.pipeline.cluster import ClusterOptions, Executor
 from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels
@@ -196,11 +197,17 @@ def test_process_stores_scored_results_with_provenance(processed, captured, inpu
     assert sh["held_out_rel_rms_trimmed"] < 0.95 * lam.figures["held_out_rel_rms_trimmed"], sh
 
 
-def test_process_skips_what_is_stored_unless_forced(processed, captured):
+def test_process_skips_what_is_stored_unless_forced(processed, captured, tmp_path):
     store, _, _ = captured
     rep, kw = processed
     lam = rep.method("lambertian")
-    again = process_session(store, "proc", methods=["lambertian"], **kw)
+    # (on a copy of the report that gonio export linked a page from: the rewritten report keeps the row)
+    linked = tmp_path / "linked.html"
+    shutil.copy(rep.report_path, linked)
+    row = ExportLink("../exports/lensch/report.html", "lensch", ("maps",), 0.2, "2026-11-26 00:00 UTC")
+    link_export(linked, "proc", row)
+    again = process_session(store, "proc", methods=["lambertian"], **{**kw, "report_path": linked})
+    assert export_links(linked) == [row] and '<a href="../exports/lensch/report.html">' in linked.read_text()
     assert again.method("lambertian").status == "done" and again.method("lambertian").result_id == lam.result_id
     assert again.method("lambertian").figures["held_out_rel_rms"] == lam.figures["held_out_rel_rms"]
     assert "inputs" not in again.timings and again.inputs["texels"] == rep.inputs["texels"]

@@ -232,3 +232,22 @@ def test_two_views_combine(grace):
     assert both.adequacy.n_observations > 1.9 * one.adequacy.n_observations
     assert both.residual.max() < 0.06 and wrong.residual.min() > 2 * both.residual.max()
     assert e_both <= e_one * 1.02, (e_both, e_one)
+
+
+def test_unconstrained_bands_name_the_poorly_lit_nodes():
+    """The adequacy table the report shows, on a coverage grid made here: nodes lit below
+    ``POOR_COVERAGE`` or never seen (NaN) are named per 10-deg theta_d band with their theta_h
+    range (nodes at theta_h = (i / n)^2 90 deg, theta_d = j / n 90 deg, n = 31 steps) and their
+    share of the band; a fully lit band is not listed."""
+    n = 32
+    cov = np.ones((n, n))
+    cov[28:, 30:] = 0.01 * passive.POOR_COVERAGE        # theta_h >= 73 deg, theta_d >= 87 deg
+    cov[:2, 0] = np.nan                                   # never seen: theta_h 0-0.1 deg at theta_d 0
+    ad = passive.Adequacy(np.ones(1), 1, 1.0, cov, {}, 1, 1)
+    bands = ad.unconstrained_bands()
+    assert [b.theta_d_deg for b in bands] == [(0, 10), (80, 90)]
+    # theta_d 0-10 holds columns 0-3 (0, 2.9, 5.8, 8.7 deg): 2 of 4 x 32 nodes; 80-90 columns 28-31
+    assert bands[0].theta_h_deg == "0" and bands[0].poorly_lit_share == pytest.approx(2 / (4 * n))
+    th = np.linspace(0, 1, n) ** 2 * 90
+    assert bands[1].theta_h_deg == f"{th[28]:.0f}-90" and bands[1].poorly_lit_share == pytest.approx(8 / (4 * n))
+    assert ad.unconstrained_ranges() == f"theta_d 0-10: theta_h 0; theta_d 80-90: theta_h {th[28]:.0f}-90"
