@@ -11,7 +11,7 @@ from reconstruct.frames import tangent_frames, to_local
 from reconstruct.lensch import SvbrdfError, fit_svbrdf
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.projection import cluster_errors
-from sims.reflectance_samples import paper_phong_materials, synthetic_samples
+from sims.reflectance_samples import fit_true_assignment, paper_phong_materials, synthetic_samples
 
 
 def _oracle_labels(d, materials):
@@ -38,21 +38,42 @@ def paper_fit():
     return materials, d, fit
 
 
-def test_paper_experiment_finds_five_materials_without_the_count(paper_fit):
-    materials, d, fit = paper_fit
-    assert fit.n_materials == 5
+def _five_materials(fit, materials, rtol):
+    """The fit's materials matched to the five true ones, kd and N of each within ``rtol``;
+    returns the match (fitted cluster -> true material)."""
+    assert fit.n_materials == 5, fit.history
     match = _match(fit, materials)
     assert sorted(match) == [0, 1, 2, 3, 4]
     for k, m in enumerate(fit.materials):
         true = materials[match[k]]
-        # the paper: < 0.2 % at 46,000 samples; at this reduced size we allow 0.3 %
-        np.testing.assert_allclose(m.rho_d, true.rho_d, rtol=3e-3)
-        np.testing.assert_allclose(np.asarray(m.n)[0], true.n[0], rtol=3e-3)
+        np.testing.assert_allclose(m.rho_d, true.rho_d, rtol=rtol)
+        np.testing.assert_allclose(np.asarray(m.n)[0], true.n[0], rtol=rtol)
+    return match
+
+
+def test_paper_experiment_finds_five_materials_without_the_count(paper_fit):
+    materials, d, fit = paper_fit
+    # the paper: < 0.2 % at 46,000 samples; at this reduced size (and with PFA) we allow 0.3 %
+    match = _five_materials(fit, materials, 3e-3)
     # labels nearly as good as the true parameters' labels
     acc = np.mean(match[fit.labels] == d.material)
     oracle = np.mean(_oracle_labels(d, materials) == d.material)
     assert oracle > 0.9
     assert acc >= oracle - 0.01
+
+
+@pytest.mark.parametrize("seed", [2])
+def test_paper_experiment_at_its_size_within_the_papers_accuracy(seed):
+    """Sec. 11 at the paper's size (4,200 texels, ~46,000 samples, +-5 % noise): kd and N of all
+    five materials within the paper's 0.2 %, labels within one point of a fit given the true
+    assignment (seeds 0-5: worst kd / N 0.087-0.125 %, labels 0.00-0.12 points below;
+    benchmarks/lensch.py runs five seeds)."""
+    materials = paper_phong_materials()
+    d = synthetic_samples(materials, 4200, rng=seed)
+    fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, noise="relative", rng=seed)
+    match = _five_materials(fit, materials, 2e-3)
+    reference = fit_true_assignment(d)
+    assert np.mean(match[fit.labels] == d.material) >= np.mean(reference.labels == d.material) - 0.01
 
 
 def test_table2_columns_decrease(paper_fit):
