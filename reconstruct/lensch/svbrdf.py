@@ -195,7 +195,9 @@ def _no_highlight(t, z, wi, w, texel, T, labels, mats):
 def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_lobes: int = 1,
                normals=None, fit_normals: bool = False, pfa: bool = False, rng=0, progress=None,
                weight=None, noise: str = "absolute", max_materials: int = 12,
-               cluster_texels: int = 4000, fit_texels: int = 20000, min_samples: int = 3,
+               cluster_texels: int = 4000, cluster_samples: int = 50_000, fit_texels: int = 20000,
+               fit_samples: int = 50_000,
+               min_samples: int = 3,
                normal_rounds: int = 2, weight_prior: float = 1e-3,
                select_projection: bool = True, robust_samples: bool = False,
                chunk_texels: int = 100_000) -> SvbrdfFit:
@@ -233,8 +235,15 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         Cap on clusters when ``n_materials`` is None.
     cluster_texels : int
         Texels used for clustering, chosen favouring likely highlights (Sec. 7.1).
+    cluster_samples : int
+        About the most samples those texels may have together (fewer texels where each has many
+        samples: the paper's lumitexels have ~11, DiLiGenT's 70).
     fit_texels : int
         Most texels per cluster for the final fit of its BRDF.
+    fit_samples : int
+        About the most samples per cluster for that fit (fewer texels drawn where they have many
+        samples each): 7 parameters per channel (2 lobes) are pinned long before 50,000 samples, and
+        DiLiGenT's 5000 texels x 70 samples made each of the three refits ~20 s of CPU.
     min_samples : int
         Texels with fewer samples are flagged ``too_few_samples`` and keep their mesh normal.
     normal_rounds : int
@@ -299,7 +308,8 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     if len(usable) < 2:
         usable = np.flatnonzero(counts > 0)
     score = _highlight_score(t, z, tx, T)[usable]
-    n_pick = min(cluster_texels, len(usable))
+    per_texel = counts[usable].mean()
+    n_pick = min(cluster_texels, len(usable), max(2, int(cluster_samples / per_texel)))
     prob = (0.25 + score) / (0.25 + score).sum()
     chosen = np.sort(rng.choice(usable, n_pick, replace=False, p=prob))
     smp = _subset(chosen, tx, t, z, cos_i, r, w, rng)
@@ -312,7 +322,8 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     # Eq. 10 for every texel, then each cluster's BRDF refit on (up to fit_texels of) its texels
     mats = np.stack([f.channel_params for f in clus.fits])
     labels, errors = _label(t, z, cos_i, r, w, tx, T, mats, offsets, chunk_texels)
-    fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels, rng, max_albedo,
+    fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, (fit_texels, fit_samples), rng,
+                  max_albedo,
                   texels=_confident(errors))
     mats = np.stack([f.channel_params for f in fits])
     labels, errors = _label(t, z, cos_i, r, w, tx, T, mats, offsets, chunk_texels)
@@ -368,7 +379,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
             cos_i = np.where(visible, wi[:, 2], 0.0)
-            fits = _refit(mats, labels, tx, t, z, cos_i, r, w_fit, n_lobes, noise, fit_texels, rng,
+            fits = _refit(mats, labels, tx, t, z, cos_i, r, w_fit, n_lobes, noise, (fit_texels, fit_samples), rng,
                           max_albedo, keep=visible, texels=_confident(errors))
             mats = np.stack([f.channel_params for f in fits])
             basis, size = make_bases(mats, similar)
@@ -468,13 +479,17 @@ def _confident(errors, ratio: float = 1.5, outlier: float = 3.0):
 def _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, limit, rng, max_albedo, keep=None,
            texels=None):
     """Each cluster's BRDF refit on (up to ``limit`` of) its texels (those in the ``texels`` mask
-    when it leaves enough), samples in ``keep``; starts from ``mats`` (K, 3, P)."""
+    when it leaves enough), samples in ``keep``; starts from ``mats`` (K, 3, P). ``limit`` is
+    (texels, samples): the texels drawn are cut further so that their samples number about
+    ``samples``."""
     fits = []
+    n_per = np.bincount(tx)
     for k, m in enumerate(mats):
         members = np.flatnonzero(labels == k)
         if texels is not None and np.count_nonzero(texels[members]) >= max(10, len(members) // 10):
             members = members[texels[members]]
-        idx = _sample_index(_some(members, limit, rng), tx)
+        most = min(limit[0], max(10, int(limit[1] * len(members) / max(n_per[members].sum(), 1))))
+        idx = _sample_index(_some(members, most, rng), tx)
         if keep is not None:
             idx = idx[keep[idx]]
         if np.count_nonzero(w[idx]) < 1 + 3 * n_lobes:
