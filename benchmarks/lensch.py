@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import least_squares, nnls
 
 from reconstruct.frames import tangent_frames, to_local, to_world
-from reconstruct.lensch import fit_svbrdf, fit_svbrdf_lumitexels
+from reconstruct.lensch import SvbrdfOptions, fit_svbrdf, fit_svbrdf_lumitexels
 from reconstruct.lensch.lafortune_fit import lobe_geometry, model_and_jacobian, params_of
 from reconstruct.lensch.normals import _mixture, fit_normals_chunk
 from reconstruct.lensch.projection import basis_values, make_bases, project_chunk
@@ -46,7 +46,7 @@ def paper_experiment(seeds):
     for seed in seeds:
         d = synthetic_samples(materials, 4200, rng=seed)
         t0 = time.process_time()
-        fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, noise="relative", rng=seed)
+        fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, SvbrdfOptions(noise="relative"), rng=seed)
         dt = time.process_time() - t0
         match = np.array([int(np.argmin(np.abs(trueN - np.asarray(m.n)[0].mean()))) for m in fit.materials])
         worst = 0.0
@@ -76,7 +76,7 @@ def bumpy_object(width: int, png: str | None):
     ho = lt.view >= len(views)
     lt.weight = np.where(ho, 0.0, 1.0).astype(np.float32)
     t0 = time.perf_counter()
-    fit = fit_svbrdf_lumitexels(lt, fit_normals=True, pfa=True, rng=0)
+    fit = fit_svbrdf_lumitexels(lt, SvbrdfOptions(fit_normals=True, pfa=True), rng=0)
     dt = time.perf_counter() - t0
     print(f"\n== bumpy object: {len(views)} frames {width} x {width * 3 // 4} (+{len(held)} held out), "
           f"{lt.n_texels} texels, {int((~ho).sum())} samples; render + lumitexels {t_lt:.0f} s, "

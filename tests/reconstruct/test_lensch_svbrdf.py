@@ -8,7 +8,7 @@ import pytest
 
 from reconstruct.brdf import Lafortune
 from reconstruct.frames import tangent_frames, to_local
-from reconstruct.lensch import SvbrdfError, fit_svbrdf
+from reconstruct.lensch import SvbrdfError, SvbrdfOptions, fit_svbrdf
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.projection import cluster_errors
 from sims.reflectance_samples import fit_true_assignment, paper_phong_materials, synthetic_samples
@@ -70,7 +70,7 @@ def test_paper_experiment_at_its_size_within_the_papers_accuracy(seed):
     benchmarks/lensch.py runs five seeds)."""
     materials = paper_phong_materials()
     d = synthetic_samples(materials, 4200, rng=seed)
-    fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, noise="relative", rng=seed)
+    fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, SvbrdfOptions(noise="relative"), rng=seed)
     match = _five_materials(fit, materials, 2e-3)
     reference = fit_true_assignment(d)
     assert np.mean(match[fit.labels] == d.material) >= np.mean(reference.labels == d.material) - 0.01
@@ -243,6 +243,27 @@ def test_bad_input_names_the_argument():
         fit_svbrdf(*args, normals=np.ones((3, 3)))
     with pytest.raises(SvbrdfError, match="n_materials"):
         fit_svbrdf(*args, n_materials=0)
+    with pytest.raises(SvbrdfError, match="n_lobes must be an integer >= 1, got 0"):
+        SvbrdfOptions(n_lobes=0)
+    with pytest.raises(SvbrdfError, match="noise must be 'absolute' or 'relative'"):
+        fit_svbrdf(*args, SvbrdfOptions(), noise="gaussian")
+    with pytest.raises(SvbrdfError, match="unknown fit_svbrdf setting.*n_lobe\\b"):
+        fit_svbrdf(*args, n_lobe=2)
+
+
+def test_options_object_and_keywords_give_the_same_fit():
+    """The settings as a frozen SvbrdfOptions, as keywords (the older call), or both (keywords
+    over the object): one fit, to the bit."""
+    m = Lafortune.phong(rho_d=(0.3, 0.2, 0.1), rho_s=0.6, exponent=25.0)
+    d = synthetic_samples((m,), 120, rng=9)
+    args = (d.texel, d.wi, d.wo, d.reflectance)
+    by_keywords = fit_svbrdf(*args, fit_normals=True, normal_rounds=1, weight_prior=0.01, rng=2)
+    by_object = fit_svbrdf(*args, SvbrdfOptions(fit_normals=True, normal_rounds=1, weight_prior=0.01), rng=2)
+    mixed = fit_svbrdf(*args, SvbrdfOptions(normal_rounds=1, weight_prior=0.01), fit_normals=True, rng=2)
+    for other in (by_object, mixed):
+        np.testing.assert_array_equal(other.weights, by_keywords.weights)
+        np.testing.assert_array_equal(other.normals, by_keywords.normals)
+        assert other.rms == by_keywords.rms
 
 
 def test_a_cluster_that_never_shows_its_highlight_is_flagged_not_invented():
