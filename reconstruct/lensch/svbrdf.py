@@ -252,7 +252,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
     if len(usable) < 2:
         usable = np.flatnonzero(counts > 0)
     score = _highlight_score(t, z, tx, T)[usable]
-    n_pick = min(opt.cluster_texels, len(usable), max(2, int(opt.cluster_samples / counts[usable].mean())))
+    n_pick = min(opt.cluster_texels, len(usable))
     prob = (0.25 + score) / (0.25 + score).sum()
     chosen = np.sort(rng.choice(usable, n_pick, replace=False, p=prob))
     # clustering fits in absolute units (cheaper); the final fits below use ``noise``
