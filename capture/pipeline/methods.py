@@ -21,7 +21,7 @@ import numpy as np
 
 from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.frames import tangent_frames, to_world
-from reconstruct.lensch import fit_svbrdf_lumitexels
+from reconstruct.lensch import SvbrdfOptions, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.passive import passive_reflectometry
 from reconstruct.sharing import fit_spatial
@@ -88,7 +88,7 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
 
 # -- Lensch et al. 2003 -------------------------------------------------------------------------
 def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, **options) -> Fitted:
-    fit = fit_svbrdf_lumitexels(train, fit_normals=True, rng=rng, progress=progress, **options)
+    fit = fit_svbrdf_lumitexels(train, SvbrdfOptions(fit_normals=True, **options), rng=rng, progress=progress)
 
     def predict(lt: Lumitexels) -> np.ndarray:
         return fit.predict(lt.texel, lt.wi, lt.wo)   # fitted normals applied

@@ -5,7 +5,8 @@ into per-cluster bases with optional principal function analysis (Sec. 8), norma
 (Sec. 9), on the lumitexels of :mod:`reconstruct.lumitexels`.
 """
 from .lafortune_fit import LafortuneFit, LafortuneFitError, fit_lafortune
-from .svbrdf import RMS_COLUMNS, SvbrdfError, SvbrdfFit, fit_svbrdf, fit_svbrdf_lumitexels
+from .options import SvbrdfError, SvbrdfOptions
+from .svbrdf import RMS_COLUMNS, SvbrdfFit, fit_svbrdf, fit_svbrdf_lumitexels
 
 __all__ = ["fit_lafortune", "LafortuneFit", "LafortuneFitError", "fit_svbrdf",
-           "fit_svbrdf_lumitexels", "SvbrdfFit", "SvbrdfError", "RMS_COLUMNS"]
+           "fit_svbrdf_lumitexels", "SvbrdfFit", "SvbrdfError", "SvbrdfOptions", "RMS_COLUMNS"]

@@ -9,6 +9,7 @@ through the pure functions of :mod:`~reconstruct.lensch.projection` and
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,15 +17,12 @@ import numpy as np
 from ..brdf import Lafortune
 from ..frames import normalize, tangent_frames, to_local, to_world
 from .clustering import _Samples, deal_halves, split_recluster_fit
-from .lafortune_fit import (MAX_LOBE_ALBEDO, LafortuneFitError, albedo_unit, check_samples,
-                            fit_geometry, lobe_geometry, model_of, params_of)
+from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
+                            model_of, params_of)
 from .normals import fit_normals_chunk
+from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
                          project_chunk)
-
-
-class SvbrdfError(LafortuneFitError):
-    """Inputs :func:`fit_svbrdf` cannot use; the message names the argument."""
 
 
 #: Keys of :attr:`SvbrdfFit.rms`, the columns of the paper's Table II.
@@ -192,13 +190,8 @@ def _no_highlight(t, z, wi, w, texel, T, labels, mats):
     return np.bincount(texel, seen >= 0.1, minlength=T) == 0
 
 
-def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_lobes: int = 1,
-               normals=None, fit_normals: bool = False, pfa: bool = False, rng=0, progress=None,
-               weight=None, noise: str = "absolute", max_materials: int = 12,
-               cluster_texels: int = 4000, fit_texels: int = 20000, min_samples: int = 3,
-               normal_rounds: int = 2, weight_prior: float = 1e-3,
-               select_projection: bool = True, robust_samples: bool = False,
-               chunk_texels: int = 100_000) -> SvbrdfFit:
+def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None, *, normals=None,
+               weight=None, rng=0, progress=None, **settings) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
     Parameters
@@ -210,68 +203,28 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         the surface; :func:`reconstruct.frames.tangent_frames` of the texel's normal).
     reflectance : array_like (S, 3)
         f_r cos(theta_i), RGB, 1/sr.
-    n_materials : int, optional
-        Number of clusters; None: decided from the data (held-out split test, see
-        :mod:`reconstruct.lensch.clustering`), at most ``max_materials``.
-    n_lobes : int
-        Lafortune lobes per material.
+    options : SvbrdfOptions, optional
+        How to fit (default ``SvbrdfOptions()``).
     normals : array_like (T, 3), optional
         The texels' (mesh) normals, any frame; fitted normals are returned in that frame.
-    fit_normals : bool
-        Fit a normal per texel (Sec. 9), then refit the cluster BRDFs and project again.
-    pfa : bool
-        Refine each cluster's basis by principal function analysis (Eq. 13).
+    weight : array_like (S,), optional
+        Sample weights (default 1).
     rng : int or numpy.random.Generator
         Seed for texel selection and the held-out halves.
     progress : callable, optional
-        ``progress(done, total)`` after each stage (clustering splits, projection chunks, ...).
-    weight : array_like (S,), optional
-        Sample weights (default 1).
-    noise : {"absolute", "relative"}
-        Noise model of the BRDF fits (see :func:`~reconstruct.lensch.fit_lafortune`).
-    max_materials : int
-        Cap on clusters when ``n_materials`` is None.
-    cluster_texels : int
-        Texels used for clustering, chosen favouring likely highlights (Sec. 7.1).
-    fit_texels : int
-        Most texels per cluster for the final fit of its BRDF.
-    min_samples : int
-        Texels with fewer samples are flagged ``too_few_samples`` and keep their mesh normal.
-    normal_rounds : int
-        Rounds of normal fitting -> refit of the cluster BRDFs -> projection (Sec. 9: "can be
-        iterated"); the first round's BRDFs were fitted with the mesh normals, whose errors
-        broaden the lobes, so a second round sharpens both.
-    weight_prior : float
-        Ridge on the projection weights towards the cluster's BRDF (see
-        :func:`~reconstruct.lensch.projection.project_chunk`); the default 1e-3 only stops a basis
-        BRDF that is ~0 at a texel's samples from taking a weight of 10^5 (it would blow up under
-        any other light); 0 = the paper's plain projection.
-    select_projection : bool
-        Keep a texel's projected weights only where their leave-one-out error over its own samples
-        beats its cluster's BRDF alone (``select`` of ``project_chunk``); otherwise the texel gets
-        the cluster's BRDF. Without it, texels whose highlight a single sample shows fit that
-        sample exactly with a sharper / brighter basis BRDF and mispredict held-out lights.
-    robust_samples : bool
-        Before each round of normal fitting, leave out the samples the current per-texel BRDF
-        misses by more than 3 robust standard deviations of its texel's residuals (plus 5 % of
-        the prediction): cast shadows (dark where the model is lit) and inter-reflections
-        (bright where it is not), which the paper's synthetic and mesh-shadowed data lack and
-        which pull a normal towards the wrong side on real photographs. The BRDF refit of that
-        round uses the same samples; the RMS columns still count every sample.
-    chunk_texels : int
-        Texels per chunk of the per-texel steps.
+        ``progress(done, total)`` after each stage (clustering, projection, normal rounds, ...).
+    **settings
+        Fields of :class:`SvbrdfOptions` by keyword (``fit_svbrdf(..., fit_normals=True)``),
+        applied over ``options``.
 
     Returns
     -------
     SvbrdfFit
     """
+    opt = (options or SvbrdfOptions()).but(**settings)
     wi, wo, r, w = check_samples(wi, wo, reflectance, weight, error=SvbrdfError)
     tx, T = _check_texel(texel, len(wi), normals)
-    if n_materials is not None and (not isinstance(n_materials, (int, np.integer)) or n_materials < 1):
-        raise SvbrdfError(f"n_materials must be None or an integer >= 1, got {n_materials!r}")
-    if isinstance(n_lobes, bool) or not isinstance(n_lobes, (int, np.integer)) or n_lobes < 1:
-        raise SvbrdfError(f"n_lobes must be an integer >= 1, got {n_lobes!r}")
-    P = 1 + 3 * n_lobes
+    P = 1 + 3 * opt.n_lobes
     if np.count_nonzero(w) < P:
         raise SvbrdfError(f"reflectance has {np.count_nonzero(w)} usable samples, fewer than the {P} "
                           "parameters per channel of one material")
@@ -279,13 +232,13 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     order = np.argsort(tx, kind="stable")  # samples sorted by texel: chunks are contiguous
     tx, wi, wo, r, w = tx[order], wi[order], wo[order], r[order], w[order]
     counts = np.bincount(tx, minlength=T)
-    offsets = np.concatenate([[0], np.cumsum(counts)])
     t, z = lobe_geometry(wi, wo)
-    cos_i = wi[:, 2]
+    data = _Sorted(tx=tx, t=t, z=z, cos_i=wi[:, 2], r=r, w=w,
+                   offsets=np.concatenate([[0], np.cumsum(counts)]), chunk_texels=opt.chunk_texels)
     # energy conservation, in the data's units: no lobe, and no texel's weighted mix of lobes,
     # may reflect more (a lobe unpinned by its samples otherwise explodes at held-out lights)
     max_albedo = MAX_LOBE_ALBEDO * albedo_unit(r, w)
-    stages = 3 + int(pfa) + 2 * normal_rounds * int(fit_normals)
+    stages = 3 + int(opt.pfa) + 2 * opt.normal_rounds * int(opt.fit_normals)
     stage = 0
 
     def tick():
@@ -295,27 +248,25 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
             progress(stage, stages)
 
     # Sec. 7.1: clustering texels, favouring those likely to show a highlight
-    usable = np.flatnonzero(counts >= min_samples)
+    usable = np.flatnonzero(counts >= opt.min_samples)
     if len(usable) < 2:
         usable = np.flatnonzero(counts > 0)
     score = _highlight_score(t, z, tx, T)[usable]
-    n_pick = min(cluster_texels, len(usable))
+    n_pick = min(opt.cluster_texels, len(usable))
     prob = (0.25 + score) / (0.25 + score).sum()
     chosen = np.sort(rng.choice(usable, n_pick, replace=False, p=prob))
-    smp = _subset(chosen, tx, t, z, cos_i, r, w, rng)
     # clustering fits in absolute units (cheaper); the final fits below use ``noise``
-    clus = split_recluster_fit(smp, n_materials=n_materials, n_lobes=n_lobes,
-                               max_materials=max_materials,
+    clus = split_recluster_fit(data.subset(chosen, rng), n_materials=opt.n_materials,
+                               n_lobes=opt.n_lobes, max_materials=opt.max_materials,
                                min_texels=max(3, min(10, len(chosen) // 20)), rng=rng)
     tick()
 
     # Eq. 10 for every texel, then each cluster's BRDF refit on (up to fit_texels of) its texels
     mats = np.stack([f.channel_params for f in clus.fits])
-    labels, errors = _label(t, z, cos_i, r, w, tx, T, mats, offsets, chunk_texels)
-    fits = _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, fit_texels, rng, max_albedo,
-                  texels=_confident(errors))
+    labels, errors = _label(data, mats)
+    fits = _refit(data, mats, labels, opt, rng, max_albedo, texels=_confident(errors))
     mats = np.stack([f.channel_params for f in fits])
-    labels, errors = _label(t, z, cos_i, r, w, tx, T, mats, offsets, chunk_texels)
+    labels, errors = _label(data, mats)
     tick()
 
     sq_total = float(np.sum(w[:, None] * r ** 2))
@@ -323,22 +274,19 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
     rms = dict.fromkeys(RMS_COLUMNS)
 
     def residual(labels_, materials_):  # sum of squares of the texels' cluster BRDFs, by chunks
-        return sum(cluster_residuals(*_chunk(c, offsets, tx, t, z, cos_i, r, w), labels_[c],
-                                     materials_).sum() for c in _chunks(T, chunk_texels))
+        return sum(cluster_residuals(*data.chunk(c), labels_[c], materials_).sum() for c in data.chunks())
     rms["single"] = _rms(residual(np.zeros(T, np.int64), clus.single.channel_params[None]), n_res)
     rms["cluster"] = _rms(residual(labels, mats), n_res)
 
     # Sec. 8: bases and projection
     similar = _most_similar(errors, labels, len(mats))
     basis, size = make_bases(mats, similar)
-    weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
-                                 weight_prior, select_projection, max_albedo)
+    weights, sse = _project(data, basis, size, labels, opt, max_albedo)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
-    if pfa:  # Eq. 13 lowers the plain projection's error; kept if the selected one drops too
-        trial = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
-        w_pfa, sse_pfa = _project(trial, size, labels, offsets, tx, t, z, cos_i, r, w, T,
-                                  chunk_texels, weight_prior, select_projection, max_albedo)
+    if opt.pfa:  # Eq. 13 lowers the plain projection's error; kept if the selected one drops too
+        trial = _pfa(data, basis, size, labels, opt.fit_texels, rng)
+        w_pfa, sse_pfa = _project(data, trial, size, labels, opt, max_albedo)
         if sse_pfa.sum() < sse.sum():
             basis, weights, sse = trial, w_pfa, sse_pfa
         rms["pfa"] = _rms(sse.sum(), n_res)
@@ -346,41 +294,39 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
 
     normals_local = normals_out = None
     undone: list[str] = []
-    if fit_normals:  # Sec. 9, then refit the clusters' BRDFs in the new frames and project again
+    if opt.fit_normals:  # Sec. 9, then refit the clusters' BRDFs in the new frames and project again
         normals_local = np.tile([0.0, 0.0, 1.0], (T, 1))
         wi0, wo0 = wi, wo  # the samples in the mesh normals' frames
-        for round_ in range(normal_rounds):
+        for round_ in range(opt.normal_rounds):
             # a round that raises the total error is undone and ends the fitting (on some
             # clusterings of the demo object a round's refit blew the training error up 10x)
-            before = (normals_local, fits, mats, basis, size, weights, sse, wi, wo, t, z, cos_i)
+            before = (normals_local, fits, mats, basis, size, weights, sse, wi, wo, data)
             tilt = np.tile([0.0, 0.0, 1.0], (T, 1))  # relative to the current normals
-            w_fit = w * _inliers(basis, size, labels, weights, offsets, tx, t, z, cos_i, r, T,
-                                 chunk_texels) if robust_samples else w
-            for c in _chunks(T, chunk_texels):
-                s = slice(offsets[c.start], offsets[c.stop])
+            w_fit = w * _inliers(data, basis, size, labels, weights) if opt.robust_samples else w
+            for c in data.chunks():
+                s = data.samples(c)
                 tilt[c] = fit_normals_chunk(tx[s] - c.start, wi[s], wo[s], r[s], w_fit[s], labels[c],
-                                            weights[c], basis, size, min_samples=min_samples)[0]
+                                            weights[c], basis, size, min_samples=opt.min_samples)[0]
             normals_local = normalize(to_world(tilt, tangent_frames(normals_local)))
             tick()
             frames = tangent_frames(normals_local)[tx]
             wi, wo = normalize(to_local(wi0, frames)), normalize(to_local(wo0, frames))
-            t, z = lobe_geometry(wi, wo)
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-            cos_i = np.where(visible, wi[:, 2], 0.0)
-            fits = _refit(mats, labels, tx, t, z, cos_i, r, w_fit, n_lobes, noise, fit_texels, rng,
-                          max_albedo, keep=visible, texels=_confident(errors))
+            t, z = lobe_geometry(wi, wo)
+            data = dataclasses.replace(data, t=t, z=z, cos_i=np.where(visible, wi[:, 2], 0.0))
+            fits = _refit(dataclasses.replace(data, w=w_fit), mats, labels, opt, rng, max_albedo,
+                          keep=visible, texels=_confident(errors))
             mats = np.stack([f.channel_params for f in fits])
             basis, size = make_bases(mats, similar)
-            if pfa:
-                basis = _pfa(basis, size, labels, tx, t, z, cos_i, r, w, fit_texels, rng)
-            weights, sse = _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk_texels,
-                                 weight_prior, select_projection, max_albedo)
+            if opt.pfa:
+                basis = _pfa(data, basis, size, labels, opt.fit_texels, rng)
+            weights, sse = _project(data, basis, size, labels, opt, max_albedo)
             tick()
             if sse.sum() > 1.05 * before[6].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
                               f"{sse.sum() / before[6].sum():.2f}x: undone")
-                normals_local, fits, mats, basis, size, weights, sse, wi, wo, t, z, cos_i = before
+                normals_local, fits, mats, basis, size, weights, sse, wi, wo, data = before
                 break
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
@@ -394,52 +340,74 @@ def fit_svbrdf(texel, wi, wo, reflectance, *, n_materials: int | None = None, n_
         labels=labels, materials=materials, material_covariance=tuple(f.covariance for f in fits),
         basis=tuple(tuple(model_of(basis[k, b]) for b in range(size[k])) for k in range(len(mats))),
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
-        relative_rms=rel, too_few_samples=counts < min_samples,
-        no_highlight=_no_highlight(t, z, wi, w, tx, T, labels, mats), n_samples=counts,
+        relative_rms=rel, too_few_samples=counts < opt.min_samples,
+        no_highlight=_no_highlight(data.t, data.z, wi, w, tx, T, labels, mats), n_samples=counts,
         history=(*clus.history, *undone))
 
 
-def fit_svbrdf_lumitexels(lt, **kw) -> SvbrdfFit:
+def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
     """:func:`fit_svbrdf` on a :class:`reconstruct.lumitexels.Lumitexels` (its sample weights and
     normals are used; fitted normals come back in the object frame)."""
     kw.setdefault("normals", lt.normal)
     kw.setdefault("weight", lt.weight)
-    return fit_svbrdf(lt.texel, lt.wi, lt.wo, lt.reflectance, **kw)
+    return fit_svbrdf(lt.texel, lt.wi, lt.wo, lt.reflectance, options, **kw)
 
 
 # ----------------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Sorted:
+    """The samples sorted by texel: ``tx`` (S,) texel, lobe geometry ``t``, ``z``, ``cos_i``,
+    reflectance ``r`` (S, 3), weight ``w``; ``offsets`` (T + 1,) where each texel's samples
+    start; per-texel steps run over chunks of ``chunk_texels`` texels."""
+
+    tx: np.ndarray
+    t: np.ndarray
+    z: np.ndarray
+    cos_i: np.ndarray
+    r: np.ndarray
+    w: np.ndarray
+    offsets: np.ndarray
+    chunk_texels: int
+
+    @property
+    def n_texels(self) -> int:
+        return len(self.offsets) - 1
+
+    def chunks(self) -> list[slice]:
+        T, size = self.n_texels, self.chunk_texels
+        return [slice(a, min(a + size, T)) for a in range(0, T, size)]
+
+    def samples(self, c: slice) -> slice:
+        return slice(self.offsets[c.start], self.offsets[c.stop])
+
+    def chunk(self, c: slice):
+        """Samples of texels ``c`` with chunk-local texel indices (texel, t, z, cos_i, r, w)."""
+        s = self.samples(c)
+        return self.tx[s] - c.start, self.t[s], self.z[s], self.cos_i[s], self.r[s], self.w[s]
+
+    def index(self, texels) -> np.ndarray:
+        """Indices of the samples of the (sorted, unique) ``texels``."""
+        return np.flatnonzero(np.isin(self.tx, texels))
+
+    def subset(self, texels, rng) -> _Samples:
+        """The samples of ``texels`` re-indexed 0..n-1, for clustering."""
+        idx = self.index(texels)
+        local = np.searchsorted(texels, self.tx[idx])
+        return _Samples(self.t[idx], self.z[idx], self.cos_i[idx], self.r[idx], self.w[idx], local,
+                        len(texels), deal_halves(local, rng))
+
+
 def _rms(sse, n_res):
     return float(np.sqrt(sse / max(n_res, 1e-300)))
 
 
-def _chunks(T, size):
-    return [slice(a, min(a + size, T)) for a in range(0, T, size)]
-
-
-def _chunk(c: slice, offsets, tx, t, z, cos_i, r, w):
-    """Samples of texels ``c`` with chunk-local texel indices (texel, t, z, cos_i, r, w)."""
-    s = slice(offsets[c.start], offsets[c.stop])
-    return tx[s] - c.start, t[s], z[s], cos_i[s], r[s], w[s]
-
-
-def _sample_index(texels, tx) -> np.ndarray:
-    """Indices of the samples of the (sorted, unique) ``texels``; ``tx`` the sorted sample texels."""
-    return np.flatnonzero(np.isin(tx, texels))
-
-
-def _subset(texels, tx, t, z, cos_i, r, w, rng) -> _Samples:
-    idx = _sample_index(texels, tx)
-    local = np.searchsorted(texels, tx[idx])
-    return _Samples(t[idx], z[idx], cos_i[idx], r[idx], w[idx], local, len(texels), deal_halves(local, rng))
-
-
-def _label(t, z, cos_i, r, w, tx, T, mats, offsets, chunk):
+def _label(data: _Sorted, mats):
     """Eq. 10 labels (T,) and the errors (K, T) of every texel under every cluster."""
-    E = np.zeros((len(mats), T))
-    for c in _chunks(T, chunk):
-        ct, ctt, cz, cc, cr, cw = _chunk(c, offsets, tx, t, z, cos_i, r, w)
+    E = np.zeros((len(mats), data.n_texels))
+    for c in data.chunks():
+        ct, ctt, cz, cc, cr, cw = data.chunk(c)
         E[:, c] = cluster_errors(ctt, cz, cc, cr, cw, ct, c.stop - c.start, mats)
     return np.argmin(E, axis=0), E
 
@@ -465,44 +433,45 @@ def _confident(errors, ratio: float = 1.5, outlier: float = 3.0):
     return ok
 
 
-def _refit(mats, labels, tx, t, z, cos_i, r, w, n_lobes, noise, limit, rng, max_albedo, keep=None,
-           texels=None):
-    """Each cluster's BRDF refit on (up to ``limit`` of) its texels (those in the ``texels`` mask
-    when it leaves enough), samples in ``keep``; starts from ``mats`` (K, 3, P)."""
+def _refit(data: _Sorted, mats, labels, opt: SvbrdfOptions, rng, max_albedo, keep=None, texels=None):
+    """Each cluster's BRDF refit on (up to ``opt.fit_texels`` of) its texels (those in the
+    ``texels`` mask when it leaves enough), cut further so that their samples number about
+    ``opt.fit_samples``; samples in ``keep``; starts from ``mats`` (K, 3, P)."""
     fits = []
+    n_per = np.diff(data.offsets)
     for k, m in enumerate(mats):
         members = np.flatnonzero(labels == k)
         if texels is not None and np.count_nonzero(texels[members]) >= max(10, len(members) // 10):
             members = members[texels[members]]
-        idx = _sample_index(_some(members, limit, rng), tx)
+        most = min(opt.fit_texels,
+                   max(10, int(opt.fit_samples * len(members) / max(n_per[members].sum(), 1))))
+        idx = data.index(_some(members, most, rng))
         if keep is not None:
             idx = idx[keep[idx]]
-        if np.count_nonzero(w[idx]) < 1 + 3 * n_lobes:
-            idx = np.flatnonzero(w > 0) if keep is None else np.flatnonzero((w > 0) & keep)
-        fits.append(fit_geometry(t[idx], z[idx], cos_i[idx], r[idx], w[idx], n_lobes=n_lobes,
-                                 init=m, noise=noise, max_albedo=max_albedo))
+        if np.count_nonzero(data.w[idx]) < 1 + 3 * opt.n_lobes:
+            idx = np.flatnonzero(data.w > 0) if keep is None else np.flatnonzero((data.w > 0) & keep)
+        fits.append(fit_geometry(data.t[idx], data.z[idx], data.cos_i[idx], data.r[idx], data.w[idx],
+                                 n_lobes=opt.n_lobes, init=m, noise=opt.noise, max_albedo=max_albedo))
     return fits
 
 
-def _inliers(basis, size, labels, weights, offsets, tx, t, z, cos_i, r, T, chunk,
-             spread: float = 3.0) -> np.ndarray:
+def _inliers(data: _Sorted, basis, size, labels, weights, spread: float = 3.0) -> np.ndarray:
     """Samples the per-texel BRDFs explain, (S,) bool: |r - f cos| (RGB norm) within ``spread``
     robust standard deviations (1.4826 x median) of its texel's residuals, floored at the median
     texel's, plus 5 % of the prediction."""
-    keep = np.ones(len(t), bool)
-    for c in _chunks(T, chunk):
-        s = slice(offsets[c.start], offsets[c.stop])
-        ct = tx[s] - c.start
+    keep = np.ones(len(data.t), bool)
+    for c in data.chunks():
+        ct, t, z, cos_i, r, _ = data.chunk(c)
         n = c.stop - c.start
-        A = basis_values(t[s], z[s], cos_i[s], ct, labels[c], basis, size)
+        A = basis_values(t, z, cos_i, ct, labels[c], basis, size)
         pred = np.einsum("sbc,sb->sc", A, weights[c][ct])
-        e = np.linalg.norm(r[s] - pred, axis=1)
+        e = np.linalg.norm(r - pred, axis=1)
         order = np.lexsort((e, ct))
         counts = np.bincount(ct, minlength=n)
         start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         med = np.where(counts > 0, e[order][np.minimum(start + (counts - 1) // 2, len(e) - 1)], 0.0)
         sigma = 1.4826 * np.maximum(med, np.median(med[counts > 0]))
-        keep[s] = e <= spread * sigma[ct] + 0.05 * np.linalg.norm(pred, axis=1)
+        keep[data.samples(c)] = e <= spread * sigma[ct] + 0.05 * np.linalg.norm(pred, axis=1)
     return keep
 
 
@@ -518,23 +487,25 @@ def _most_similar(errors, labels, K):
     return similar
 
 
-def _project(basis, size, labels, offsets, tx, t, z, cos_i, r, w, T, chunk, prior, select, max_albedo):
-    weights = np.zeros((T, basis.shape[1]))
-    sse = np.zeros(T)
-    for c in _chunks(T, chunk):
-        ct, ctt, cz, cc, cr, cw = _chunk(c, offsets, tx, t, z, cos_i, r, w)
-        weights[c], sse[c] = project_chunk(ct, ctt, cz, cc, cr, cw, labels[c], basis, size,
-                                           prior=prior, select=select, max_albedo=max_albedo)
+def _project(data: _Sorted, basis, size, labels, opt: SvbrdfOptions, max_albedo):
+    """Sec. 8 projection of every texel, chunk by chunk: weights (T, B) and SSE (T,)."""
+    weights = np.zeros((data.n_texels, basis.shape[1]))
+    sse = np.zeros(data.n_texels)
+    for c in data.chunks():
+        weights[c], sse[c] = project_chunk(*data.chunk(c), labels[c], basis, size,
+                                           prior=opt.weight_prior, select=opt.select_projection,
+                                           max_albedo=max_albedo)
     return weights, sse
 
 
-def _pfa(basis, size, labels, tx, t, z, cos_i, r, w, limit, rng):
+def _pfa(data: _Sorted, basis, size, labels, limit, rng):
     out = basis.copy()
     for k in range(len(basis)):
         members = _some(np.flatnonzero(labels == k), limit // 4, rng)
         if len(members) == 0:
             continue
-        idx = _sample_index(members, tx)
-        local = np.searchsorted(members, tx[idx])
-        out[k, :size[k]] = pfa_refine(basis[k, :size[k]], local, t[idx], z[idx], cos_i[idx], r[idx], w[idx])
+        idx = data.index(members)
+        local = np.searchsorted(members, data.tx[idx])
+        out[k, :size[k]] = pfa_refine(basis[k, :size[k]], local, data.t[idx], data.z[idx],
+                                      data.cos_i[idx], data.r[idx], data.w[idx])
     return out

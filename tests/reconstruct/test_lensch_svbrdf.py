@@ -1,17 +1,17 @@
 """fit_svbrdf (Lensch et al. 2003, Secs. 7-9) on synthetic lumitexels of known materials.
 
-The paper's synthetic experiment (Sec. 11) runs here at 2,000 texels (~22,000 samples); the
-benchmark (benchmarks/lensch.py) runs it at the paper's size (4,200 texels, ~46,000 samples).
+The paper's synthetic experiment (Sec. 11) runs here at its size (4,200 texels, ~46,000 samples)
+on one seed; the benchmark (benchmarks/lensch.py) runs five.
 """
 import numpy as np
 import pytest
 
 from reconstruct.brdf import Lafortune
 from reconstruct.frames import tangent_frames, to_local
-from reconstruct.lensch import SvbrdfError, fit_svbrdf
+from reconstruct.lensch import SvbrdfError, SvbrdfOptions, fit_svbrdf
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.projection import cluster_errors
-from sims.reflectance_samples import paper_phong_materials, synthetic_samples
+from sims.reflectance_samples import fit_true_assignment, paper_phong_materials, synthetic_samples
 
 
 def _oracle_labels(d, materials):
@@ -32,27 +32,37 @@ def _match(fit, materials):
 
 @pytest.fixture(scope="module")
 def paper_fit():
+    """Sec. 11 at the paper's size: 4,200 texels, ~46,000 samples, +-5 % noise, with PFA."""
     materials = paper_phong_materials()
-    d = synthetic_samples(materials, 2000, rng=1)
-    fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, noise="relative", pfa=True, rng=0)
+    d = synthetic_samples(materials, 4200, rng=2)
+    fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, SvbrdfOptions(noise="relative", pfa=True), rng=2)
     return materials, d, fit
 
 
-def test_paper_experiment_finds_five_materials_without_the_count(paper_fit):
-    materials, d, fit = paper_fit
-    assert fit.n_materials == 5
+def _five_materials(fit, materials, rtol):
+    """The fit's materials matched to the five true ones, kd and N of each within ``rtol``;
+    returns the match (fitted cluster -> true material)."""
+    assert fit.n_materials == 5, fit.history
     match = _match(fit, materials)
     assert sorted(match) == [0, 1, 2, 3, 4]
     for k, m in enumerate(fit.materials):
         true = materials[match[k]]
-        # the paper: < 0.2 % at 46,000 samples; at this reduced size we allow 0.3 %
-        np.testing.assert_allclose(m.rho_d, true.rho_d, rtol=3e-3)
-        np.testing.assert_allclose(np.asarray(m.n)[0], true.n[0], rtol=3e-3)
-    # labels nearly as good as the true parameters' labels
+        np.testing.assert_allclose(m.rho_d, true.rho_d, rtol=rtol)
+        np.testing.assert_allclose(np.asarray(m.n)[0], true.n[0], rtol=rtol)
+    return match
+
+
+def test_paper_experiment_within_the_papers_accuracy(paper_fit):
+    """Five materials found without the count; kd and N of each within the paper's 0.2 %, labels
+    within one point of a fit given the true assignment and of the true parameters' labels
+    (seeds 0-5: worst kd / N 0.087-0.125 %, labels 0.00-0.12 points below the true assignment's
+    fit; benchmarks/lensch.py runs five seeds)."""
+    materials, d, fit = paper_fit
+    match = _five_materials(fit, materials, 2e-3)
     acc = np.mean(match[fit.labels] == d.material)
+    assert acc >= np.mean(fit_true_assignment(d).labels == d.material) - 0.01
     oracle = np.mean(_oracle_labels(d, materials) == d.material)
-    assert oracle > 0.9
-    assert acc >= oracle - 0.01
+    assert oracle > 0.9 and acc >= oracle - 0.01
 
 
 def test_table2_columns_decrease(paper_fit):
@@ -110,6 +120,34 @@ def test_noise_alone_does_not_split_one_material():
     assert all("refused" in line or "no split" in line for line in fit.history)
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_materials_differing_only_in_exponent_stay_apart(seed):
+    """The method battery's three materials: one colour, Phong exponents 36/48/60, 300 texels of
+    ~11 samples, 2 % noise. The material count lets each texel scale a model's diffuse and
+    specular parts; fitted to half a texel's 4-5 samples those scales were noise and the split
+    test found 1 material here (held-out error 0.10-0.13 instead of 0.02-0.05)."""
+    materials = paper_phong_materials(exponents=(36.2, 48.2, 60.2))
+    d = synthetic_samples(materials, 300, noise=0.02, rng=seed)
+    fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, rng=seed)
+    assert fit.n_materials == 3, fit.history
+    got = np.sort([np.ravel(m.n).mean() for m in fit.materials])
+    np.testing.assert_allclose(got, [36.2, 48.2, 60.2], rtol=0.02)
+
+
+def test_texture_and_gloss_strength_do_not_split_one_material():
+    """One Phong material whose diffuse and specular parts each texel scales by its own factor in
+    [0.5, 1.5] (albedo texture, varying gloss), 2 % noise: still one material."""
+    m = Lafortune.phong(rho_d=(0.3, 0.2, 0.1), rho_s=0.8, exponent=40.0)
+    d = synthetic_samples((m,), 600, noise=0.0, rng=6)
+    rng = np.random.default_rng(6)
+    diffuse = np.asarray(m.rho_d) / np.pi * d.wi[:, 2:3]
+    scale_d, scale_s = rng.uniform(0.5, 1.5, (2, 600))
+    r = scale_d[d.texel, None] * diffuse + scale_s[d.texel, None] * (d.clean - diffuse)
+    r *= 1 + rng.uniform(-0.02, 0.02, r.shape)
+    fit = fit_svbrdf(d.texel, d.wi, d.wo, r, rng=0)
+    assert fit.n_materials == 1, fit.history
+
+
 def test_normal_fitting_recovers_tilted_normals():
     """The fitter is handed normals tilted 4 deg from the truth on 40 % of the texels (bumps the
     mesh lacks); normal fitting (Sec. 9) must find the true ones and lower the residual."""
@@ -146,7 +184,7 @@ def test_normal_fitting_recovers_tilted_normals():
 
 def test_per_texel_brdf_is_the_weighted_basis(paper_fit):
     _, d, fit = paper_fit
-    texels = np.arange(0, 2000, 97)
+    texels = np.arange(0, 4200, 97)
     rng = np.random.default_rng(0)
     wi = rng.normal(size=(len(texels), 3))
     wi[:, 2] = np.abs(wi[:, 2]) + 0.2
@@ -194,6 +232,27 @@ def test_bad_input_names_the_argument():
         fit_svbrdf(*args, normals=np.ones((3, 3)))
     with pytest.raises(SvbrdfError, match="n_materials"):
         fit_svbrdf(*args, n_materials=0)
+    with pytest.raises(SvbrdfError, match="n_lobes must be an integer >= 1, got 0"):
+        SvbrdfOptions(n_lobes=0)
+    with pytest.raises(SvbrdfError, match="noise must be 'absolute' or 'relative'"):
+        fit_svbrdf(*args, SvbrdfOptions(), noise="gaussian")
+    with pytest.raises(SvbrdfError, match="unknown fit_svbrdf setting.*n_lobe\\b"):
+        fit_svbrdf(*args, n_lobe=2)
+
+
+def test_options_object_and_keywords_give_the_same_fit():
+    """The settings as a frozen SvbrdfOptions, as keywords (the older call), or both (keywords
+    over the object): one fit, to the bit."""
+    m = Lafortune.phong(rho_d=(0.3, 0.2, 0.1), rho_s=0.6, exponent=25.0)
+    d = synthetic_samples((m,), 120, rng=9)
+    args = (d.texel, d.wi, d.wo, d.reflectance)
+    by_keywords = fit_svbrdf(*args, fit_normals=True, normal_rounds=1, weight_prior=0.01, rng=2)
+    by_object = fit_svbrdf(*args, SvbrdfOptions(fit_normals=True, normal_rounds=1, weight_prior=0.01), rng=2)
+    mixed = fit_svbrdf(*args, SvbrdfOptions(normal_rounds=1, weight_prior=0.01), fit_normals=True, rng=2)
+    for other in (by_object, mixed):
+        np.testing.assert_array_equal(other.weights, by_keywords.weights)
+        np.testing.assert_array_equal(other.normals, by_keywords.normals)
+        assert other.rms == by_keywords.rms
 
 
 def test_a_cluster_that_never_shows_its_highlight_is_flagged_not_invented():

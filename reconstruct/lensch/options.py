@@ -1,0 +1,114 @@
+"""Settings of :func:`~reconstruct.lensch.fit_svbrdf`, one frozen object (as ``scipy.optimize``
+takes a solver's settings), checked when made so that a bad value is named before any fitting."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .lafortune_fit import LafortuneFitError
+
+
+class SvbrdfError(LafortuneFitError):
+    """Inputs :func:`~reconstruct.lensch.fit_svbrdf` cannot use; the message names the argument."""
+
+
+@dataclass(frozen=True)
+class SvbrdfOptions:
+    """How :func:`~reconstruct.lensch.fit_svbrdf` fits (Lensch et al. 2003, Secs. 7-9).
+
+    Attributes
+    ----------
+    n_materials : int, optional
+        Number of clusters; None: decided from the data (held-out split test, see
+        :mod:`reconstruct.lensch.clustering`), at most ``max_materials``.
+    n_lobes : int
+        Lafortune lobes per material.
+    fit_normals : bool
+        Fit a normal per texel (Sec. 9), then refit the cluster BRDFs and project again.
+    pfa : bool
+        Refine each cluster's basis by principal function analysis (Eq. 13).
+    noise : {"absolute", "relative"}
+        Noise model of the BRDF fits (see :func:`~reconstruct.lensch.fit_lafortune`).
+    max_materials : int
+        Cap on clusters when ``n_materials`` is None.
+    cluster_texels : int
+        Texels used for clustering, chosen favouring likely highlights (Sec. 7.1). Not fewer
+        where each has many samples: on DiLiGenT pot1 clustering ~720 texels (50,000 samples)
+        instead of 4000 started the final fit elsewhere (normals 8.8 deg instead of 7.6).
+    fit_texels : int
+        Most texels per cluster for the final fit of its BRDF.
+    fit_samples : int
+        About the most samples per cluster for that fit (fewer texels drawn where they have many
+        samples each): 7 parameters per channel (2 lobes) are pinned long before 50,000
+        samples, and DiLiGenT's 5000 texels x 70 samples made each of the three refits ~20 s
+        of CPU.
+    min_samples : int
+        Texels with fewer samples are flagged ``too_few_samples`` and keep their mesh normal.
+    normal_rounds : int
+        Rounds of normal fitting -> refit of the cluster BRDFs -> projection (Sec. 9: "can be
+        iterated"); the first round's BRDFs were fitted with the mesh normals, whose errors
+        broaden the lobes, so a second round sharpens both.
+    weight_prior : float
+        Ridge on the projection weights towards the cluster's BRDF (see
+        :func:`~reconstruct.lensch.projection.project_chunk`); the default 1e-3 only stops a basis
+        BRDF that is ~0 at a texel's samples from taking a weight of 10^5 (it would blow up under
+        any other light); 0 = the paper's plain projection.
+    select_projection : bool
+        Keep a texel's projected weights only where their leave-one-out error over its own samples
+        beats its cluster's BRDF alone (``select`` of ``project_chunk``); otherwise the texel gets
+        the cluster's BRDF. Without it, texels whose highlight a single sample shows fit that
+        sample exactly with a sharper / brighter basis BRDF and mispredict held-out lights.
+    robust_samples : bool
+        Before each round of normal fitting, leave out the samples the current per-texel BRDF
+        misses by more than 3 robust standard deviations of its texel's residuals (plus 5 % of
+        the prediction): cast shadows (dark where the model is lit) and inter-reflections
+        (bright where it is not), which the paper's synthetic and mesh-shadowed data lack and
+        which pull a normal towards the wrong side on real photographs. The BRDF refit of that
+        round uses the same samples; the RMS columns still count every sample.
+    chunk_texels : int
+        Texels per chunk of the per-texel steps.
+    """
+
+    n_materials: int | None = None
+    n_lobes: int = 1
+    fit_normals: bool = False
+    pfa: bool = False
+    noise: str = "absolute"
+    max_materials: int = 12
+    cluster_texels: int = 4000
+    fit_texels: int = 20_000
+    fit_samples: int = 50_000
+    min_samples: int = 3
+    normal_rounds: int = 2
+    weight_prior: float = 1e-3
+    select_projection: bool = True
+    robust_samples: bool = False
+    chunk_texels: int = 100_000
+
+    def __post_init__(self):
+        def whole(name, least):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+                raise SvbrdfError(f"{name} must be an integer >= {least}, got {v!r}")
+        if self.n_materials is not None:
+            whole("n_materials", 1)
+        for name in ("n_lobes", "max_materials", "cluster_texels", "fit_texels",
+                     "fit_samples", "chunk_texels"):
+            whole(name, 1)
+        whole("min_samples", 0)
+        whole("normal_rounds", 0)
+        if self.noise not in ("absolute", "relative"):
+            raise SvbrdfError(f"noise must be 'absolute' or 'relative', got {self.noise!r}")
+        if not np.isfinite(self.weight_prior) or self.weight_prior < 0:
+            raise SvbrdfError(f"weight_prior must be finite and >= 0, got {self.weight_prior!r}")
+
+    def but(self, **settings) -> SvbrdfOptions:
+        """A copy with ``settings`` changed; an unknown name is an :class:`SvbrdfError` naming it."""
+        known = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(settings) - known)
+        if unknown:
+            raise SvbrdfError(f"unknown fit_svbrdf setting(s) {', '.join(unknown)}; "
+                              f"SvbrdfOptions has {', '.join(sorted(known))}")
+        return dataclasses.replace(self, **settings) if settings else self
