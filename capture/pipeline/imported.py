@@ -34,6 +34,9 @@ from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 
 from ..importers import MultiLightSet, read_imported_session
 from ..store import Store
+from .methods import MethodSkipped, fit_method
+from .process import ProcessInputs
+from .process_report import MethodOutcome, ProcessReport
 
 __all__ = ["ImportedInputs", "imported_inputs", "process_imported_session", "is_imported",
            "SKIPPED_STAGES", "LENSCH_OPTIONS"]
@@ -123,15 +126,11 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
                              force: bool = False, rng: int = 0, max_texels: int | None = 5000,
                              progress: Callable[[str, int, int], None] | None = None,
                              report_path: str | Path | None = None):
-    """Run ``methods`` on an imported session; returns a :class:`capture.pipeline.run.ProcessReport`
+    """Run ``methods`` on an imported session; returns a :class:`capture.pipeline.process_report.ProcessReport`
     whose ``report_path`` is a JSON summary (the HTML report draws captured sessions' views).
 
     ``max_texels``: texels (mask pixels drawn at random with ``rng``) the methods fit; None: all.
     """
-    from .methods import MethodSkipped, fit_method
-    from .process import ProcessInputs
-    from .run import MethodOutcome, ProcessReport
-
     info = store.session(session)
     rep = ProcessReport(session)
     rep.calibration = [{"stage": s, "status": "skipped", "reason": why, "figures": {}}
