@@ -147,7 +147,8 @@ def _read(result: ResultRecord):
     try:
         return read_record(result)
     except RecordFormatError as exc:
-        raise ProcessError(f"{exc}; run `gonio calibrate --force` on the session") from None
+        raise ProcessError(f"{exc}; calibrate the session again (gonio calibrate, or gonio process "
+                           "--force)") from None
 
 
 def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | None = None,
@@ -162,6 +163,8 @@ def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | No
     ------
     MissingCalibration
         The intrinsics, turntable or light calibration is not stored (names the stage).
+    ProcessError
+        A stored result does not read as its stage's record (names the result and the key).
     """
     info = store.session(session)
     res, reasons = _latest(store, info.id)

@@ -26,23 +26,21 @@ from capture.store import SessionNotFound, Store
 from reconstruct.brdf import Lambertian
 from reconstruct.raycast import Plane
 from reconstruct.render import SceneObject
-from sims.targets import CHROME_REFLECTANCE, CharucoTarget
-from sims.world import (SimWorld, Target, board_on_turntable, capture_targets, default_camera, light_position,
+from sims.targets import CHROME_REFLECTANCE
+from sims.world import (CAPTURE_CHARUCO, SimWorld, Target, board_on_turntable, capture_targets, default_camera, light_position,
                         spheres_target)
 
 W, H = 320, 240
 SPHERE_RADIUS_MM = 25.0
-#: a board that fills much of the frame (a turntable sweep only ever shows the board near the centre)
-BOARD = CharucoTarget(squares=(10, 7), square_mm=28.0, marker_mm=21.0)
+#: the simulated lab's board: it fills much of the frame (a turntable sweep only ever shows the
+#: board near the centre)
+BOARD = CAPTURE_CHARUCO
 #: three chrome balls on a bar in front of a lit backdrop (fixed in the lab)
 SPHERES = spheres_target("chrome", count=3, radius_mm=SPHERE_RADIUS_MM, spacing_mm=90.0,
                          start_mm=(-120.0, -90.0, 110.0))
 #: the board stands on the platter with its corner grid's centre this high (sims.world)
 BOARD_CENTRE_HEIGHT_MM = float(board_on_turntable(BOARD).points_world(0.0).mean(axis=0)[2])
-TARGETS = LabTargets(charuco_squares=BOARD.squares, charuco_square_mm=BOARD.square_mm,
-                     charuco_marker_mm=BOARD.marker_mm, sphere_radius_mm=SPHERE_RADIUS_MM,
-                     sphere_reflectance=CHROME_REFLECTANCE, charuco_centre_height_mm=BOARD_CENTRE_HEIGHT_MM,
-                     sphere_centres_mm=tuple(map(tuple, SPHERES.points_world(0.0))))
+TARGETS = LabTargets(**capture_targets(SPHERES))
 PLAN = {
     "name": "cal", "turntable": {"angles_deg": [0]},
     "light": {"azimuth_deg": [-40, 0, 40], "elevation_deg": [20, 50]},

@@ -12,7 +12,10 @@ import pytest
 
 from capture.pipeline.stage_records import (FORMAT, RECORDS, RESULT_KIND, GrayCardRecord, IntrinsicsRecord,
                                             PositionerRecord, RecordFormatError, TurntableRecord, read_record)
-from capture.store import ResultRecord
+from capture.pipeline.process import ProcessError, read_calibration
+from capture.plan import Step
+from capture.store import ResultRecord, Store
+from rig import LightTarget
 
 OLD = json.loads((Path(__file__).parent / "data" / "calibration_format1.json").read_text())
 
@@ -82,3 +85,13 @@ def test_a_result_that_does_not_fit_names_the_key():
         GrayCardRecord.from_json(bad)
     with pytest.raises(KeyError, match="metering"):
         read_record(_stored("metering", {"exposure_s": 0.1}))
+
+
+def test_processing_a_session_whose_stored_result_does_not_read_says_which(tmp_path):
+    store = Store(tmp_path / "st", durable=False)
+    step = Step(0, "measure", "object", 0.0, LightTarget(0.0, 30.0), None, (0.01,))
+    sid = store.create_session("s", plan={}, plan_hash="h", steps=[step.to_dict()]).id
+    store.add_calibration(sid, "intrinsics", result={k: v for k, v in OLD["intrinsics"].items() if k != "K"})
+    with pytest.raises(ProcessError, match=r"\(intrinsics\) lacks 'K'.*calibrate the session again"):
+        read_calibration(store, "s")
+    store.close()
