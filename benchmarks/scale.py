@@ -53,7 +53,7 @@ from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
 from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels  # noqa: E402
 from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
                                       session_inputs, view_plan)
-from capture.pipeline.run import _built_in_lab_options  # noqa: E402
+from capture.lab_resolver import resolve_lab  # noqa: E402
 from capture.store import Store  # noqa: E402
 from sims.dng import write_dng  # noqa: E402
 
@@ -65,9 +65,9 @@ BLOCK = 4096
 
 def _setup(store_path: str):
     store = Store(store_path, durable=False)
-    opts = _built_in_lab_options(store, SESSION)
-    cal = read_calibration(store, SESSION, gray_card=opts["gray_card"], probe_reflectance=opts["probe_reflectance"])
-    return store, opts["mesh"], cal
+    lab = resolve_lab(store, SESSION)
+    cal = read_calibration(store, SESSION, gray_card=lab.gray_card, probe_reflectance=lab.probe_reflectance)
+    return store, lab.mesh, cal
 
 
 def _same(a, b) -> bool:
@@ -281,7 +281,7 @@ def upscale(store_path: str, f: int, dest: str) -> None:
     shutil.copytree(store_path, dest, ignore=shutil.ignore_patterns("arrays"))
     store = Store(dest, durable=False)
     sid = store.session(SESSION).id
-    kinds = {i: d["kind"] for i, d, _ in store.steps(sid)}
+    kinds = {s.index: s.step.kind for s in store.steps(sid)}
     with sqlite3.connect(Path(dest) / "gonio.sqlite") as db:
         for fr in store.frames(sid):
             if kinds.get(fr.step) not in ("measure", "passive"):

@@ -56,9 +56,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from rig.device import LightTarget
+from rig.errors import LimitError
+from rig.kinematics import kinematics_from_config
 from rig.motion import move_time_s
-from sims.handheld import handheld_view
 from rig.tomlfile import read_toml
+from sims.handheld import handheld_view
 
 #: The scene targets: what stands in front of the camera for a step, and what the operator does
 #: to set it up. One vocabulary: a calibration kind is named after its target, and the simulated
@@ -150,22 +153,40 @@ class LightGrid:
             return len(self.xyz_mm)
         return len(self.azimuth_deg) * len(self.elevation_deg)
 
-    def targets(self) -> list[dict[str, Any]]:
-        """Every light position as a step's ``light`` dict (grid order: elevation, azimuth)."""
+    def targets(self) -> list[LightTarget]:
+        """Every light position as a step's ``light`` (grid order: elevation, azimuth)."""
         if self.xyz_mm is not None:
-            return [{"xyz_mm": list(p)} for p in self.xyz_mm]
-        return [_light_dir(az, el, self.distance_mm) for el in self.elevation_deg for az in self.azimuth_deg]
+            return [LightTarget(xyz_mm=tuple(p)) for p in self.xyz_mm]
+        return [LightTarget(az, el, self.distance_mm) for el in self.elevation_deg for az in self.azimuth_deg]
 
-    def held_out_targets(self) -> list[dict[str, Any]]:
-        """The held-out light positions as steps' ``light`` dicts."""
-        return [_light_dir(az, el, self.distance_mm) for az, el in self.held_out_deg]
+    def held_out_targets(self) -> list[LightTarget]:
+        """The held-out light positions as steps' ``light``."""
+        return [LightTarget(az, el, self.distance_mm) for az, el in self.held_out_deg]
 
 
-def _light_dir(az: float, el: float, dist: float | None) -> dict[str, Any]:
-    d: dict[str, Any] = {"azimuth_deg": az, "elevation_deg": el}
-    if dist is not None:
-        d["distance_mm"] = dist
+def light_to_dict(light: LightTarget | None) -> dict[str, Any] | None:
+    """A step's light as the store and the journal keep it: ``{azimuth_deg, elevation_deg[,
+    distance_mm]}`` or ``{xyz_mm: [x, y, z]}`` (None: the step leaves the light alone)."""
+    if light is None:
+        return None
+    if light.xyz_mm is not None:
+        return {"xyz_mm": list(light.xyz_mm)}
+    d: dict[str, Any] = {"azimuth_deg": light.azimuth_deg, "elevation_deg": light.elevation_deg}
+    if light.distance_mm is not None:
+        d["distance_mm"] = light.distance_mm
     return d
+
+
+def light_from_dict(d: dict[str, Any] | None) -> LightTarget | None:
+    """The inverse of :func:`light_to_dict` (``ValueError`` naming what is wrong)."""
+    if d is None:
+        return None
+    if not isinstance(d, dict) or set(d) - {"azimuth_deg", "elevation_deg", "distance_mm", "xyz_mm"}:
+        raise ValueError(f"a step's light must be {{azimuth_deg, elevation_deg[, distance_mm]}} or "
+                         f"{{xyz_mm}}, got {d!r}")
+    xyz = d.get("xyz_mm")
+    return LightTarget(d.get("azimuth_deg"), d.get("elevation_deg"), d.get("distance_mm"),
+                       None if xyz is None else tuple(xyz))
 
 
 @dataclass(frozen=True)
@@ -385,11 +406,11 @@ class Plan:
                     exposures_s=self.exposure.exposures_s, repeats=self.repeats,
                     iso=self.exposure.iso, auto_exposure=self.exposure.auto)
 
-    def _light_of(self, v: dict[str, Any]) -> dict[str, Any] | None:
+    def _light_of(self, v: dict[str, Any]) -> LightTarget | None:
         if "light_xyz" in v:
-            return {"xyz_mm": list(v["light_xyz"])}
+            return LightTarget(xyz_mm=tuple(v["light_xyz"]))
         if "light_az" in v:
-            return _light_dir(v["light_az"], v["light_el"], self.light.distance_mm)
+            return LightTarget(v["light_az"], v["light_el"], self.light.distance_mm)
         return None
 
     def _calibration_steps(self, c: Calibration) -> list["Step"]:
@@ -415,7 +436,7 @@ class Plan:
             angles = [self.turntable_deg[0] if self.turntable_deg else None]
         # held-out lights are calibrated like the grid's (a ``grid`` calibration covers them)
         all_lights = [*self.light.targets(), *self.light.held_out_targets()] if self.light is not None else []
-        light_list: list[dict | None] = {"grid": all_lights, "first": all_lights[:1]}.get(lights, [])
+        light_list: list[LightTarget | None] = {"grid": all_lights, "first": all_lights[:1]}.get(lights, [])
         light_list = light_list or [None]
         # dark frames: lens cap on, nothing needs to move
         out = []
@@ -448,9 +469,9 @@ class Step:
         What must be in front of the camera: a key of :data:`SCENE_TARGETS`.
     turntable_deg, polarizer_deg : float or None
         Axis targets, degrees (None: leave where it is).
-    light : dict or None
-        ``{"azimuth_deg", "elevation_deg"[, "distance_mm"]}`` or ``{"xyz_mm": [x, y, z]}``,
-        world (turntable) frame; None: leave the light where it is.
+    light : rig.LightTarget or None
+        Where the light goes, world (turntable) frame (stored as :func:`light_to_dict`); None:
+        leave the light where it is.
     exposures_s : tuple of float
         The bracket, seconds, captured in this order (with ``auto_exposure``: nominal values,
         scaled at run time by metered / ``base_s``).
@@ -470,7 +491,7 @@ class Step:
     kind: str
     target: str
     turntable_deg: float | None
-    light: dict[str, Any] | None
+    light: LightTarget | None
     polarizer_deg: float | None
     exposures_s: tuple[float, ...]
     repeats: int = 1
@@ -486,7 +507,7 @@ class Step:
 
     def to_dict(self) -> dict[str, Any]:
         return {"index": self.index, "kind": self.kind, "target": self.target,
-                "turntable_deg": self.turntable_deg, "light": self.light,
+                "turntable_deg": self.turntable_deg, "light": light_to_dict(self.light),
                 "polarizer_deg": self.polarizer_deg, "exposures_s": list(self.exposures_s),
                 "repeats": self.repeats, "iso": self.iso, "frames": self.frames,
                 "auto_exposure": self.auto_exposure, **({"held_out": True} if self.held_out else {}),
@@ -495,7 +516,7 @@ class Step:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Step":
         return cls(index=d["index"], kind=d["kind"], target=d["target"],
-                   turntable_deg=d["turntable_deg"], light=d["light"],
+                   turntable_deg=d["turntable_deg"], light=light_from_dict(d["light"]),
                    polarizer_deg=d["polarizer_deg"], exposures_s=tuple(d["exposures_s"]),
                    repeats=d["repeats"], iso=d.get("iso"), auto_exposure=d.get("auto_exposure", False),
                    held_out=d.get("held_out", False), view=d.get("view"), views=d.get("views"))
@@ -592,16 +613,16 @@ class MotionModel:
             t.append(self.move_s("turntable", step.turntable_deg - prev.turntable_deg))
         if step.polarizer_deg is not None and prev.polarizer_deg is not None:
             t.append(self.move_s("polarizer", step.polarizer_deg - prev.polarizer_deg))
-        if step.light and prev.light:
+        if step.light is not None and prev.light is not None:
             t.append(self._light_move_s(prev.light, step.light))
         return max(t)
 
-    def _light_move_s(self, a: dict[str, Any], b: dict[str, Any]) -> float:
-        if "xyz_mm" in a and "xyz_mm" in b:
-            return self.move_s("positioner", math.dist(a["xyz_mm"], b["xyz_mm"]))
-        if "azimuth_deg" in a and "azimuth_deg" in b:
-            return max(self.move_s("positioner", b["azimuth_deg"] - a["azimuth_deg"]),
-                       self.move_s("positioner", b["elevation_deg"] - a["elevation_deg"]))
+    def _light_move_s(self, a: LightTarget, b: LightTarget) -> float:
+        if a.xyz_mm is not None and b.xyz_mm is not None:
+            return self.move_s("positioner", math.dist(a.xyz_mm, b.xyz_mm))
+        if a.xyz_mm is None and b.xyz_mm is None:
+            return max(self.move_s("positioner", b.azimuth_deg - a.azimuth_deg),
+                       self.move_s("positioner", b.elevation_deg - a.elevation_deg))
         return self.move_s("positioner", 90.0)  # mixed forms: assume a long move
 
     def estimate(self, steps: Sequence[Step]) -> Estimate:
@@ -1059,10 +1080,6 @@ def _axis_limits(device: Any) -> tuple[float, float] | None:
 
 def _check_reach(light: LightGrid, desc: dict[str, Any]) -> None:
     """Check every light position against the positioner's kinematics (from its describe())."""
-    from rig.errors import LimitError
-    from rig.kinematics import kinematics_from_config
-    from rig.device import LightTarget
-
     config = desc.get("kinematics")
     if not isinstance(config, dict):
         return  # the driver does not tell its reach: the move itself will say

@@ -21,7 +21,9 @@ from typing import Any, Callable
 
 from rig import Axis, Rig, load_config, wait_all
 from rig.rig import ROLES, ConfigError
-from sims.lab import LAB_NAME, SimLab
+from sims.lab import KINEMATICS, LAB_NAME, SimLab
+
+from .pipeline.demo_lab import FAST_RESOLUTION, FULL_RESOLUTION, DemoLab
 
 
 #: the driver that speaks each simulated device's protocol (what ``port = "sim"`` serves)
@@ -157,7 +159,6 @@ def _sim_scene(fast: bool, lab_options: dict[str, Any], prepare_target):
             raise ValueError("resolution: sets the built-in lab's camera; a given frame_source renders "
                              "at its own")
         return prepare_target, None
-    from .pipeline.demo_lab import FAST_RESOLUTION, FULL_RESOLUTION, DemoLab  # loads the renderer
     if resolution is None:
         resolution = FAST_RESOLUTION if fast else FULL_RESOLUTION
     if not isinstance(resolution, (tuple, list)) or len(resolution) != 2:
@@ -180,7 +181,6 @@ def recorded_in_built_in_lab(snapshots: list[dict[str, Any]]) -> bool:
 
 
 def _kinematics_table(value: Any) -> Any:
-    from sims.lab import KINEMATICS
     return KINEMATICS[value] if isinstance(value, str) and value in KINEMATICS else value
 
 

@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from rig import LightTarget, RigError, wait_all
+from rig import RigError, wait_all
 from rig.errors import Disconnected
 
 from .events import Event, EventBus, EventKind
@@ -117,7 +117,7 @@ def estimate_remaining(store: Store, session: str | SessionInfo, rig: Any = None
     progress = store.progress(info.id)
     if progress.frames_stored:
         model = model.with_frame_bytes(progress.bytes_stored / progress.frames_stored)
-    return model.estimate([Step.from_dict(d) for _, d, done in store.steps(info.id) if not done])
+    return model.estimate([s.step for s in store.steps(info.id) if not s.done])
 
 
 def check_plan_unchanged(session: SessionInfo, plan: Plan, source: str = "the plan") -> None:
@@ -296,8 +296,8 @@ class Runner:
         sid = self._session.id
         self._prepare_rig()
         all_steps = self.store.steps(sid)
-        pending = [Step.from_dict(d) for _, d, done in all_steps if not done]
-        done_steps = [Step.from_dict(d) for _, d, done in all_steps if done]
+        pending = [s.step for s in all_steps if not s.done]
+        done_steps = [s.step for s in all_steps if s.done]
         progress = self.store.progress(sid)
         self._model, self._remeasured = MotionModel.from_rig(self.rig), False
         if progress.frames_stored:  # frames of this session tell the size best
@@ -315,7 +315,7 @@ class Runner:
         self._set_state("running")
         target = None if resumed or not done_steps else done_steps[-1].target
         if any(s.auto_exposure for s in pending):
-            target = self._meter([Step.from_dict(d) for _, d, _ in all_steps], target)
+            target = self._meter([s.step for s in all_steps], target)
         started = time.monotonic()
         for n, step in enumerate(pending):
             self._check_requests()
@@ -495,10 +495,7 @@ class Runner:
             if step.turntable_deg is not None:
                 statuses.append(rig.turntable.move_to(step.turntable_deg))
             if step.light is not None:
-                light = dict(step.light)
-                if "xyz_mm" in light:
-                    light["xyz_mm"] = tuple(light["xyz_mm"])
-                statuses.append(rig.positioner.move_to(LightTarget(**light)))
+                statuses.append(rig.positioner.move_to(step.light))
             if step.polarizer_deg is not None:
                 statuses.append(rig.polarizer.move_to(step.polarizer_deg))
         except RigError:

@@ -24,6 +24,8 @@ import tty
 from pathlib import Path
 from typing import Sequence
 
+import serial
+
 from .serial_sim import SerialSim
 
 #: a small, fast machine for tests and benchmarks (the firmware runs in real time): homing on,
@@ -51,8 +53,6 @@ def write_eeprom(exe: str | os.PathLike, folder: str | os.PathLike, settings: di
                  timeout_s: float = 20.0) -> Path:
     """Boot the firmware once in ``folder`` and store ``settings`` (``$n=value``) in its EEPROM;
     return the ``EEPROM.DAT`` to copy into a firmware's working directory."""
-    import serial  # pyserial: the driver's own dependency
-
     def read_until(port: serial.Serial, marker: bytes) -> bytes:
         out, deadline = b"", time.monotonic() + timeout_s
         while marker not in out:

@@ -14,9 +14,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from reconstruct.brdf import BRDF, Lafortune
+from reconstruct.camera import CameraModel
 from reconstruct.frames import normalize, tangent_frames, to_local
 from reconstruct.lensch.lafortune_fit import fit_geometry, lobe_geometry
 from reconstruct.lensch.projection import cluster_errors
+from reconstruct.lumitexels import View
+from reconstruct.render import PointLight, Scene, render
+
+from .objects import turntable_pose
+from .sensor import SensorModel
 
 
 def paper_phong_materials(kd=(0.15, 0.3, 0.1), exponents=(36.2, 42.2, 48.2, 54.2, 60.2)):
@@ -136,12 +142,6 @@ def noisy_views(obj, poses: list[tuple[float, np.ndarray]], camera, *, light_int
     list of reconstruct.lumitexels.View
         Radiance in the renderer's units, object pose = the turntable pose.
     """
-    from reconstruct.lumitexels import View
-    from reconstruct.render import PointLight, Scene, render
-
-    from .objects import turntable_pose
-    from .sensor import SensorModel
-
     sensor = SensorModel() if sensor is None else sensor
     rng = np.random.default_rng(rng)
     views = []
@@ -172,8 +172,6 @@ def turntable_capture(obj, *, width: int = 160, n_angles: int = 6, light_distanc
     Returns (fitting views, held-out views), each a list of ``reconstruct.lumitexels.View``.
     The camera is ``width`` x 3/4 ``width`` pixels framing the object (11 deg field of view).
     """
-    from reconstruct.camera import CameraModel
-
     centre = np.array([0.0, 0.0, obj.height_mm / 2])
     camera = CameraModel.look_at(centre + [500.0, 0.0, 210.0], centre, width=width,
                                  height=width * 3 // 4, fov_deg=11.0)

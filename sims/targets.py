@@ -13,6 +13,7 @@ turntable frame, +z up).
 from __future__ import annotations
 
 import functools
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -401,7 +402,6 @@ def environment(name: str = "grace", *, data_dir: str | Path | None = None) -> E
     base = Path(data_dir) if data_dir is not None else shared_data_dir()
     path = None if base is None else base / "probes" / f"{name}.hdr"
     if path is None or not path.is_file():
-        import warnings
         warnings.warn(f"light probe {name!r} not found (looked for {path}); using the procedural sky",
                       RuntimeWarning, stacklevel=2)
         return procedural_sky()

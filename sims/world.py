@@ -32,7 +32,7 @@ from reconstruct.brdf import Lambertian
 from .handheld import handheld_board_pose, handheld_view
 from .objects import GroundTruthObject, make_object, turntable_pose
 from .sensor import ExpectedRaw, SensorModel
-from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, PrintedBoard,
+from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, PrintedBoard, environment,
                       SphereRow)
 
 #: Radiant intensity of the rig's lamp (renderer units per sr), RGB (a slightly warm white).
@@ -453,7 +453,6 @@ class SimWorld:
             return cls(None, targets=[gray_card_target()], **kwargs)
         if kind in ("mirror_probe", "passive"):
             if "environment" not in kwargs:
-                from .targets import environment
                 kwargs["environment"] = environment("grace")
             kwargs.setdefault("light_intensity", 0.0)
             kwargs.setdefault("platter", False)
@@ -565,14 +564,16 @@ CAPTURE_CHARUCO = CharucoTarget(squares=(10, 7), square_mm=28.0, marker_mm=21.0)
 CAPTURE_CHESSBOARD = Checkerboard(square_mm=15.0, margin_mm=10.0)
 
 
-def capture_targets() -> dict[str, Any]:
-    """What the calibration targets of :meth:`SimWorld.for_capture` are, for a calibration to look
-    for (mm, world frame = the lab frame: origin on the axis at the platter, +z up): the boards'
-    geometry and the height of their corner grids' centres, the steel-ball row's radius, mirror
-    reflectance and centres, the gray card's albedo. Keys are plain names a calibration's target
-    description can take as they are."""
+def capture_targets(spheres: Target | None = None) -> dict[str, Any]:
+    """What the simulated lab's calibration targets are, for a calibration to look for (mm, world
+    frame = the lab frame: origin on the axis at the platter, +z up): :data:`CAPTURE_CHARUCO`'s
+    geometry and the height of its corner grid's centre as it stands on the turntable, the
+    light-calibration spheres' radius, mirror reflectance and centres at turntable reading 0
+    (``spheres``: default the steel-ball row of :meth:`SimWorld.for_capture`'s ``spheres``
+    scene), the gray card's albedo. Keys are the field names of a calibration's target
+    description (``capture.lab.LabTargets``)."""
     charuco = board_on_turntable(CAPTURE_CHARUCO)
-    balls = spheres_target("steel")
+    balls = spheres_target("steel") if spheres is None else spheres
     return {"charuco_squares": CAPTURE_CHARUCO.squares, "charuco_square_mm": CAPTURE_CHARUCO.square_mm,
             "charuco_marker_mm": CAPTURE_CHARUCO.marker_mm, "charuco_dictionary": CAPTURE_CHARUCO.dictionary,
             "charuco_centre_height_mm": float(charuco.points_world(0.0).mean(axis=0)[2]),

@@ -27,7 +27,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from rig import RigError
+from rig import LightTarget, RigError
 
 from .session import (STORE_OPTION, check_store_option, display_state, fail, human_bytes, human_time, open_store,
                           unwrap)
@@ -100,12 +100,12 @@ def _open_rig(spec: str, fast: bool, sim_camera: str | None = None) -> OpenedRig
         raise fail(f"cannot open rig {spec!r}: {exc}") from None
 
 
-def _light_text(light: dict[str, Any] | None) -> str:
+def _light_text(light: LightTarget | None) -> str:
     if light is None:
         return "-"
-    if "xyz_mm" in light:
-        return "({:g}, {:g}, {:g}) mm".format(*light["xyz_mm"])
-    return f"az {light['azimuth_deg']:g}° el {light['elevation_deg']:g}°"
+    if light.xyz_mm is not None:
+        return "({:g}, {:g}, {:g}) mm".format(*light.xyz_mm)
+    return f"az {light.azimuth_deg:g}° el {light.elevation_deg:g}°"
 
 
 @_command
@@ -338,7 +338,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
                 raise fail(f"{plan_file}: {exc}") from None
             except (RunnerError, StoreError) as exc:
                 raise fail(str(exc)) from None
-            todo = [Step.from_dict(d) for _, d, _ in st.steps(info.id)]
+            todo = [s.step for s in st.steps(info.id)]
             est = MotionModel.from_rig(opened.rig).estimate(todo)
             typer.echo(f"session {info.name}: {est.steps} steps, {est.frames} frames, about "
                        f"{human_bytes(est.bytes)} and {human_time(est.seconds)} -> store {store}")

@@ -100,7 +100,7 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
     unknown = [m for m in names if m not in METHODS]
     if unknown:
         raise fail(f"--methods: unknown {', '.join(unknown)}; known: {', '.join(METHODS)}")
-    from ..rigs import recorded_in_built_in_lab
+    from ..lab_resolver import resolve_lab
     if out is not None:
         try:   # before any work: a folder, /dev/full or a missing folder would fail at the end
             check_out_file(out)
@@ -125,10 +125,13 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             info = st.session(session)
         except SessionNotFound as exc:
             raise fail(str(exc)) from None
-        if mesh is None and not recorded_in_built_in_lab(st.rig_snapshots(info.id)) and \
-                not is_imported(st, session):
-            raise fail("--mesh FILE is needed: the object's mesh (sessions recorded on --rig sim bring "
-                       "their own)")
+        imported = is_imported(st, session)
+        if not imported:   # an imported set has no rig and no mesh: its own path
+            lab = resolve_lab(st, session, mesh=kw.pop("mesh", None), targets=kw.pop("targets", None))
+            if lab.mesh is None:
+                raise fail("--mesh FILE is needed: the object's mesh (sessions recorded on --rig sim bring "
+                           "their own)")
+            kw["lab"] = lab
         # a stored name is not trusted as a file name (``../../x``): see capture.outputs
         report_path = out if out is not None else session_file(Path(st.root).resolve().parent, session,
                                                                info.id, "-report.html")

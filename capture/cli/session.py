@@ -196,7 +196,7 @@ def show(name: str = typer.Argument(..., help="Session name."), store: str = STO
             raise fail(str(exc)) from None
         p = st.progress(info.id)
         state = display_state(st, info)
-        kinds = Counter(str(d.get("kind", "?")) for _, d, _ in st.steps(info.id))
+        kinds = Counter(str(s.spec.get("kind", "?")) for s in st.steps(info.id))
         snaps = st.rig_snapshots(info.id)
         faults = st.events(info.id, kinds=["fault", "low_disk"])
         recent = st.events(info.id)[-events:] if events > 0 else []

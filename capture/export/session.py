@@ -28,11 +28,16 @@ from typing import Any, Sequence
 import numpy as np
 import trimesh
 
+from scipy.spatial import cKDTree
+
+from reconstruct.brdf import Bivariate, TabulatedIsotropic
 from reconstruct.frames import tangent_frames, to_local
+from reconstruct.merl import write_merl
 from reconstruct.metrics import relative_rms
 
 from ..outputs import session_file
 from ..pipeline.report_html import ExportLink, check_session_report, link_export
+from ..lab_resolver import resolve_lab
 from ..store import ResultRecord, SessionNotFound, Store
 from .formats import FORMATS
 from .appearance import EXPORTED_METHODS, HOMOGENEOUS_METHODS, Appearance
@@ -117,8 +122,8 @@ def export_session(store: Store, session: str, *, method: str, formats: Sequence
                           f"tabulated one; MERL files come from {', '.join(HOMOGENEOUS_METHODS)}")
     run, app = _stored(store, session, method)
     report = _session_report(store, session, report)
-    if mesh is None:
-        mesh = _built_in_mesh(store, session)
+    if mesh is None:   # a session recorded in the built-in simulated lab has its own
+        mesh = resolve_lab(store, session).mesh
     if mesh is None:
         raise ExportError(f"session {session!r} has no mesh gonio knows: pass --mesh FILE (the mesh "
                           "gonio process was given)")
@@ -168,17 +173,8 @@ def _session_report(store: Store, session: str, report: str | Path | None) -> Pa
     return Path(report)
 
 
-def _built_in_mesh(store: Store, session: str) -> trimesh.Trimesh | None:
-    from ..rigs import recorded_in_built_in_lab
-    if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
-        return None
-    from ..pipeline.demo_lab import demo_lab_for
-    return demo_lab_for(store, session).process_options()["mesh"]
-
-
 def texel_spacing_mm(position: np.ndarray) -> float:
     """Median distance from a texel to its nearest neighbour (mm): the reconstruction's sampling."""
-    from scipy.spatial import cKDTree
     d, _ = cKDTree(position).query(position, k=2)
     return float(np.median(d[:, 1]))
 
@@ -298,8 +294,6 @@ def _write(out: Path, session: str, method: str, formats: list[str], run: Result
     if "mitsuba" in formats:
         rep.files["mitsuba"] = _write_mitsuba(out, app, b, model["files"])
     if "merl" in formats:
-        from reconstruct.brdf import Bivariate, TabulatedIsotropic
-        from reconstruct.merl import write_merl
         write_merl(out / "brdf.binary", TabulatedIsotropic.from_brdf(Bivariate(bivariate)))
         rep.files["merl"] = ["brdf.binary"]
         model["files"]["brdf.binary"] = {

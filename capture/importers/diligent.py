@@ -312,7 +312,7 @@ def read_imported_session(store: Store, session: str) -> MultiLightSet:
     meta = info.plan.get("imported") if isinstance(info.plan, dict) else None
     if not meta or meta.get("format") != FORMAT:
         raise ValueError(f"session {session!r} was not imported from a {FORMAT} set")
-    steps = {i: s for i, s, _ in store.steps(info.id)}
+    steps = {s.index: s.spec for s in store.steps(info.id)}
     frames = {f.step: f for f in store.frames(info.id)}
     missing = [i for i in steps if i not in frames]
     if missing:

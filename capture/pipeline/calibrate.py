@@ -33,7 +33,7 @@ Frames: pixels x right, y down; camera frame OpenCV, mm. The *lab frame* is the 
 DESIGN.md, fixed in the room: origin on the turntable axis at the platter surface, +z up the
 axis, +x horizontal from the axis towards the camera (azimuth 0 = the camera's side), +y = z x x.
 It comes from the turntable fit (axis, a point on it) plus two facts the images cannot give: the
-height of the board's corner-grid centre above the platter (:class:`LabTargets`) and the
+height of the board's corner-grid centre above the platter (:class:`capture.lab.LabTargets`) and the
 convention that azimuth 0 faces the camera. Fixed things (lights, sphere centres, the probe's
 room) are reported in the lab and camera frames; the object frame at turntable reading r is
 the lab frame turned about +z by the platter angle (``TurntableFit.platter_angle_deg``) plus
@@ -50,9 +50,8 @@ Expose the spheres short enough that the lamp's image does not clip.
 from __future__ import annotations
 
 import io
-import json
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import cv2
@@ -70,17 +69,23 @@ from calibration.spheres import (find_mirror_sphere, lamp_spots, pick_lamp_highl
                                  sphere_silhouettes)
 from calibration.targets import TargetDetection, detect_charuco, detect_chessboard, make_charuco_board, to_gray_u8
 from calibration.turntable import TurntableFit, consistent_corner_order, fit_turntable, lab_frame
+from rig import LightTarget
 
 from ..plan import CALIBRATION_KINDS
-from ..rigs import recorded_in_built_in_lab
+from ..lab import LabTargets, TargetsNeeded
+from ..lab_resolver import resolve_lab
 from ..store import FrameRecord, SessionNotFound, Store, StoreError, crash
 from .calibration_record import frames_digest, record_run
 from .images import FrameDataError, SessionImages, dark_artifact_name, exposure_s
 from .process import object_pose
 from .progress import Progress, ProgressSink
+from .stage_records import (CalibrationRun, CardReading, DarkExposure, DarkRecord, EnvironmentRecord, GrayCardRecord,
+                            HdrRecord, HdrStep, IntrinsicsRecord, LightsRecord, LocatedLight, PolarizationPose,
+                            PolarizationRecord, Pose, PositionerRecord, ProbeView, StageRecord, StageRun, StepLight,
+                            TurntableRecord, UnseenLight)
 
 __all__ = ["STAGES", "CALIBRATION_STEP_KINDS", "LabTargets", "StageResult", "CalibrationReport",
-           "NothingToCalibrate", "calibrate_session", "SessionNotFound"]
+           "NothingToCalibrate", "TargetsNeeded", "calibrate_session", "SessionNotFound"]
 
 #: stage names, in the order they run
 STAGES = ("dark", "hdr", "intrinsics", "turntable", "lights", "positioner", "polarization",
@@ -100,94 +105,6 @@ POLARIZATION_POSES = 4
 MIN_PROBE_HEIGHT = 128
 _CONSTRAINED_FLAGS = (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2
                       | cv2.CALIB_FIX_K3)
-
-
-_BOARD_FIELDS = {"chessboard": ("chessboard_inner", "chessboard_square_mm", "chessboard_centre_height_mm"),
-                 "charuco": ("charuco_squares", "charuco_square_mm", "charuco_marker_mm",
-                             "charuco_centre_height_mm")}
-
-
-@dataclass(frozen=True)
-class LabTargets:
-    """The lab's physical calibration targets (what the pipeline looks for), millimetres.
-
-    A real lab states its own (``gonio calibrate --targets FILE``, a TOML file of these field
-    names): the board's square size sets the metric scale of the turntable frame. The built-in
-    simulated lab states its own (:meth:`capture.pipeline.demo_lab.DemoLab.targets`). A board is
-    given by all of its fields or none; at least one board is needed.
-    """
-
-    chessboard_inner: tuple[int, int] | None = None
-    chessboard_square_mm: float | None = None
-    #: height above the platter of the centre of the board's corner grid, mm (puts the lab
-    #: origin on the platter; a 180-degree ambiguous chessboard has the same centre either way)
-    chessboard_centre_height_mm: float | None = None
-    charuco_squares: tuple[int, int] | None = None
-    charuco_square_mm: float | None = None
-    charuco_marker_mm: float | None = None
-    charuco_centre_height_mm: float | None = None
-    charuco_dictionary: str = "DICT_5X5_100"
-    #: radius of the light-calibration spheres, mm (None: no lights stage)
-    sphere_radius_mm: float | None = None
-    #: mirror reflectance of the spheres (chrome ~0.65, bearing steel ~0.55): their limb shows
-    #: the backdrop times this, which places the silhouette threshold
-    sphere_reflectance: float = 0.55
-    #: centres of the light-calibration spheres in the lab frame (module docstring), mm; empty
-    #: or None: find them from their silhouettes (needs a lit backdrop behind the spheres)
-    sphere_centres_mm: tuple[tuple[float, float, float], ...] | None = None
-    #: the sphere fixture stands on the platter: ``sphere_centres_mm`` are at turntable reading
-    #: 0 and turn with it (spheres captures at several angles spread the spheres around the
-    #: axis, a wider baseline for the lamp's depth); False: fixed in the lab
-    spheres_on_turntable: bool = False
-    gray_card_albedo: float = 0.18
-    #: cv2.CALIB_* flags for the intrinsics fit; with k3 free the fit fixes it at 0 when the
-    #: views do not determine it (a turntable-only board sweep covers only the image centre)
-    intrinsics_flags: int = 0
-
-    def has_board(self, kind: str) -> bool:
-        """Whether the ``'chessboard'`` or ``'charuco'`` board is described."""
-        return getattr(self, _BOARD_FIELDS[kind][0]) is not None
-
-    def __post_init__(self) -> None:
-        for kind, names in _BOARD_FIELDS.items():
-            given = [getattr(self, n) is not None for n in names]
-            if any(given) and not all(given):
-                raise ValueError(f"LabTargets: the {kind} needs all of {', '.join(names)}; missing "
-                                 f"{', '.join(n for n, g in zip(names, given) if not g)}")
-        if not any(self.has_board(k) for k in _BOARD_FIELDS):
-            raise ValueError("LabTargets: describe at least one board (chessboard_* or charuco_* fields)")
-        for name in ("chessboard_square_mm", "charuco_square_mm", "charuco_marker_mm", "sphere_radius_mm"):
-            value = getattr(self, name)
-            if value is not None and not value > 0:
-                raise ValueError(f"LabTargets.{name} must be > 0 mm, got {value!r}")
-        if not 0 < self.sphere_reflectance < 1:
-            raise ValueError(f"LabTargets.sphere_reflectance must be in (0, 1), "
-                             f"got {self.sphere_reflectance!r}")
-        if not 0 < self.gray_card_albedo <= 1:
-            raise ValueError(f"LabTargets.gray_card_albedo must be in (0, 1], got {self.gray_card_albedo!r}")
-        for name in ("chessboard_centre_height_mm", "charuco_centre_height_mm"):
-            value = getattr(self, name)
-            if value is not None and not np.isfinite(value):
-                raise ValueError(f"LabTargets.{name} must be a finite number of mm, got {value!r}")
-        centres = self.sphere_centres_mm
-        if centres is not None and len(centres):
-            if self.sphere_radius_mm is None:
-                raise ValueError("LabTargets.sphere_centres_mm needs sphere_radius_mm")
-            try:
-                arr = np.asarray(centres, dtype=float)
-            except (TypeError, ValueError):
-                raise ValueError(f"LabTargets.sphere_centres_mm must be a list of [x, y, z] mm, "
-                                 f"got {centres!r}") from None
-            if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 2 or not np.all(np.isfinite(arr)):
-                raise ValueError(f"LabTargets.sphere_centres_mm must hold >= 2 finite [x, y, z] (mm), "
-                                 f"got shape {arr.shape}")
-            gaps = np.linalg.norm(arr[:, None] - arr[None], axis=2)[np.triu_indices(len(arr), 1)]
-            if gaps.min() < 2 * self.sphere_radius_mm:
-                raise ValueError(f"LabTargets.sphere_centres_mm: two centres are {gaps.min():.1f} mm apart, "
-                                 f"less than a sphere's diameter ({2 * self.sphere_radius_mm} mm)")
-            centres = tuple(tuple(float(v) for v in row) for row in arr)
-        # frozen: normalise TOML lists (and an empty list: no positions) in place
-        object.__setattr__(self, "sphere_centres_mm", centres if centres else None)
 
 
 @dataclass
@@ -223,8 +140,8 @@ class StageOutput:
 
     Attributes
     ----------
-    result : dict
-        The stored result (JSON-able, arrays allowed).
+    result : StageRecord
+        The stored result (:mod:`capture.pipeline.stage_records`).
     figures : dict
         Key numbers for the summary table.
     input_frames : list of int
@@ -238,7 +155,7 @@ class StageOutput:
         stage reports ``failed``.
     """
 
-    result: dict[str, Any]
+    result: StageRecord
     figures: dict[str, Any]
     input_frames: list[int]
     artifacts: dict[str, bytes] = field(default_factory=dict)
@@ -278,7 +195,7 @@ class MeasuredLight:
     step: int
     position_camera_mm: np.ndarray
     position_lab_mm: np.ndarray | None
-    commanded: dict[str, Any] | None
+    commanded: LightTarget | None
     rays: tuple[np.ndarray, np.ndarray] | None = None
     steps: tuple[int, ...] = ()
 
@@ -323,11 +240,6 @@ class NothingToCalibrate(ValueError):
     """The session has no stored calibration captures (the message says what to add)."""
 
 
-class TargetsNeeded(ValueError):
-    """No targets were given for a session not recorded on the simulated lab: its target sizes
-    are the lab's own, which only the user knows (the message names the fields)."""
-
-
 class _Skip(Exception):
     """Internal: the stage lacks its inputs (the message says which)."""
 
@@ -360,7 +272,7 @@ class _Context:
 
     def steps_of(self, kind: str) -> list[int]:
         """Indices of steps of ``kind`` that have frames, in order."""
-        return [i for i, d in sorted(self.steps.items()) if d["kind"] == kind and self.frames.get(i)]
+        return [i for i, d in sorted(self.steps.items()) if d.kind == kind and self.frames.get(i)]
 
     def frame_ids(self, steps) -> list[int]:
         return [f.id for s in steps for f in self.frames[s]]
@@ -379,7 +291,7 @@ class _Context:
         vals = [f.positions.get(key) for f in self.frames[step]]
         vals = [v for v in vals if v is not None]
         if not vals:
-            planned = self.steps[step].get(key)
+            planned = getattr(self.steps[step], key)
             if planned is None:
                 raise StageDataError(f"step {step}: frames have no {key!r} read-back and the plan names none")
             return float(planned)
@@ -407,20 +319,18 @@ def _stage_dark(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         buf = io.BytesIO()
         np.save(buf, master)
         artifacts[dark_artifact_name(t)] = buf.getvalue()
-        out.append({"exposure_s": t, "frames": len(frames), "mean_above_black_dn": float(above.mean()),
-                    "std_dn": float(above.std()), "hot_pixels": int(np.count_nonzero(
-                        above > above.mean() + 8 * max(float(above.std()), 1e-6)))})
+        out.append(DarkExposure(t, len(frames), float(above.mean()), float(above.std()), int(np.count_nonzero(
+            above > above.mean() + 8 * max(float(above.std()), 1e-6)))))
     noise = ctx.images.read_noise_dn = float(np.median(scatter)) if scatter else None
     figures = {"exposures": len(out),
-               "mean_above_black_dn": round(float(np.mean([o["mean_above_black_dn"] for o in out])), 3),
+               "mean_above_black_dn": round(float(np.mean([o.mean_above_black_dn for o in out])), 3),
                "read_noise_dn": None if noise is None else round(noise, 2)}
-    return StageOutput({"darks": out, "read_noise_dn": noise, "artifacts": "master dark per exposure "
-                        "(DN, black level included), .npy"}, figures, ctx.frame_ids(steps), artifacts)
+    return StageOutput(DarkRecord(tuple(out), noise), figures, ctx.frame_ids(steps), artifacts)
 
 
 def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
-    steps = [s for s in sorted(ctx.frames) if ctx.steps[s]["kind"] != "dark"
-             and (ctx.measure_hdr or ctx.steps[s]["kind"] != "measure")]
+    steps = [s for s in sorted(ctx.frames) if ctx.steps[s].kind != "dark"
+             and (ctx.measure_hdr or ctx.steps[s].kind != "measure")]
     if not steps:
         raise _Skip("no frames besides dark frames in this session")
     per_step, example, errors = [], None, []
@@ -434,12 +344,10 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
             continue
         # calibration images stay in memory for the later stages; measurement steps (a session
         # can hold thousands, hundreds of MB each) are merged again where a stage needs them
-        if ctx.steps[s]["kind"] != "measure":
+        if ctx.steps[s].kind != "measure":
             ctx.hdr[s] = im.radiance
-        per_step.append({"step": s, "kind": im.spec["kind"], "frames": len(im.frame_ids),
-                         "exposures_s": im.exposures_s, "dark_subtracted": im.dark_subtracted,
-                         "saturated_fraction": im.saturated_fraction,
-                         "dynamic_range_stops": im.dynamic_range_stops})
+        per_step.append(HdrStep(s, im.spec.kind, len(im.frame_ids), tuple(im.exposures_s), im.dark_subtracted,
+                                im.saturated_fraction, im.dynamic_range_stops))
         if example is None or len(im.exposures_s) > len(example.exposures_s):
             example = im
     if example is None:
@@ -447,11 +355,10 @@ def _stage_hdr(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     rep.plots["hdr_example"] = {"step": example.step, "image": example.radiance,
                                 "exposures_s": example.exposures_s}
     figures = {"steps": len(per_step), "failed_steps": len(errors),
-               "max_saturated_pct": round(100 * max(m["saturated_fraction"] for m in per_step), 3),
-               "dark_subtracted_frames": sum(m["dark_subtracted"] for m in per_step)}
-    return StageOutput({"unit": "DN per second (camera RGB, bilinear demosaic)", "read_noise_dn": ctx.images.read_noise_dn or 1.0,
-                        "steps": per_step, "errors": errors}, figures, ctx.frame_ids([m["step"] for m in per_step]),
-                       errors=errors)
+               "max_saturated_pct": round(100 * max(m.saturated_fraction for m in per_step), 3),
+               "dark_subtracted_frames": sum(m.dark_subtracted for m in per_step)}
+    return StageOutput(HdrRecord(tuple(per_step), ctx.images.read_noise_dn or 1.0, tuple(errors)), figures,
+                       ctx.frame_ids([m.step for m in per_step]), errors=errors)
 
 
 def _detector(ctx: _Context):
@@ -525,20 +432,20 @@ def _stage_intrinsics(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         res = calibrate_intrinsics(dets, flags=flags)
     ctx.intrinsics = res
     # the turntable stage reads the sweep's views alone: the hand-held ones did not turn with it
-    ctx.detections = {s: d for s, d in zip(det_steps, dets) if ctx.steps[s]["kind"] == "checkerboard"}
+    ctx.detections = {s: d for s, d in zip(det_steps, dets) if ctx.steps[s].kind == "checkerboard"}
     kept = {d.frame for d in dets} - {r.frame for r in res.rejected}
-    views = {kind: sum(ctx.steps[s]["kind"] == kind and d.frame in kept for s, d in zip(det_steps, dets))
+    views = {kind: sum(ctx.steps[s].kind == kind and d.frame in kept for s, d in zip(det_steps, dets))
              for kind in INTRINSICS_KINDS}
     ctx.detector = kinds[0]
     rep.plots["intrinsics"] = {"frames": res.frames, "per_view_rms_px": res.per_view_rms_px,
                                "coverage": res.coverage, "image_size": res.image_size,
                                "points": [d.image_points for d in dets if d.frame in kept]}
-    result = {"K": res.K, "dist": res.dist, "image_size": res.image_size, "rms_px": res.rms_px,
-              "K_std": res.K_std, "dist_std": res.dist_std, "per_view_rms_px": res.per_view_rms_px,
-              "views": res.frames, "views_by_kind": views, "rejected": [asdict(r) for r in res.rejected],
-              "not_found": missing, "target": kinds[0], "coverage": res.coverage,
-              "coverage_fraction": res.coverage_fraction, "model": model, "flags": flags,
-              "distortion_note": res.model_note}
+    result = IntrinsicsRecord(K=res.K, dist=res.dist, image_size=tuple(res.image_size), rms_px=res.rms_px,
+                              K_std=res.K_std, dist_std=res.dist_std, per_view_rms_px=res.per_view_rms_px,
+                              views=tuple(res.frames), views_by_kind=views, rejected=tuple(res.rejected),
+                              not_found=tuple(missing), target=kinds[0], coverage=res.coverage,
+                              coverage_fraction=res.coverage_fraction, model=model, flags=flags,
+                              distortion_note=res.model_note)
     figures = {"rms_px": round(res.rms_px, 3), "fx_px": round(float(res.K[0, 0]), 2),
                "fy_px": round(float(res.K[1, 1]), 2), "cx_px": round(float(res.K[0, 2]), 2),
                "cy_px": round(float(res.K[1, 2]), 2), "views": len(res.frames),
@@ -585,17 +492,13 @@ def _stage_turntable(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                               "view_angles_deg": fit.view_angles_deg}
     tilt = float(np.degrees(np.arccos(abs(fit.axis_camera[1]))))
     camera_lab = -R_lab.T @ t_lab
-    result = {"axis_camera": fit.axis_camera, "origin_camera_mm": fit.origin_camera, "R_ref": fit.R_ref,
-              "angle_scale": fit.angle_scale, "angle_offset_deg": fit.angle_offset_deg,
-              "fit_status": fit.fit_status, "fit_message": fit.fit_message,
-              "readings_deg": readings, "view_angles_deg": fit.view_angles_deg,
-              "per_view_rms_px": fit.per_view_rms_px, "rms_px": fit.rms_px,
-              "axis_std_deg": fit.axis_std_deg,
-              "target_in_world": {"R": fit.target_in_world[0], "t_mm": fit.target_in_world[1]},
-              "lab_to_camera": {"R": R_lab, "t_mm": t_lab}, "camera_centre_lab_mm": camera_lab,
-              "frames": "R_ref/origin_camera_mm: the fit's frame (origin on the axis at the board origin's "
-                        "height, +x along the board's first view); lab_to_camera: the lab frame "
-                        "(origin on the axis at the platter, +x towards the camera)"}
+    result = TurntableRecord(lab_to_camera=Pose(R_lab, t_lab), angle_scale=fit.angle_scale,
+                             axis_camera=fit.axis_camera, origin_camera_mm=fit.origin_camera, R_ref=fit.R_ref,
+                             angle_offset_deg=fit.angle_offset_deg, fit_status=fit.fit_status,
+                             fit_message=fit.fit_message, readings_deg=np.array(readings),
+                             view_angles_deg=fit.view_angles_deg, per_view_rms_px=fit.per_view_rms_px,
+                             rms_px=fit.rms_px, axis_std_deg=fit.axis_std_deg,
+                             target_in_world=Pose(*fit.target_in_world), camera_centre_lab_mm=camera_lab)
     figures = {"rms_px": round(fit.rms_px, 3), "axis": [round(float(v), 4) for v in fit.axis_camera],
                "axis_std_deg": round(fit.axis_std_deg, 3), "axis_from_image_y_deg": round(tilt, 2),
                "views": len(steps), "camera_lab_mm": [round(float(v), 1) for v in camera_lab]}
@@ -672,9 +575,9 @@ def _sphere_views(ctx: _Context, steps: list[int], K, dist, radius: float) -> tu
     return views, "silhouettes", []
 
 
-def _light_key(light: dict[str, Any] | None, step: int) -> str:
+def _light_key(light: LightTarget | None, step: int) -> LightTarget | str:
     """Steps that commanded the same light see the same lamp (a step without one: its own)."""
-    return json.dumps(light, sort_keys=True) if light else f"step {step}"
+    return f"step {step}" if light is None else light
 
 
 def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
@@ -686,7 +589,7 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     views, source, errors = _sphere_views(ctx, steps, K, dist, radius)
     h, w = ctx.hdr[steps[0]].shape[:2]
     yy, xx = np.indices((h, w))
-    seen: dict[str, dict[str, list]] = {}   # light -> its steps' highlights, centres, sphere ids
+    seen: dict[LightTarget | str, dict[str, list]] = {}   # light -> its steps' highlights, centres, sphere ids
     unseen = []
     for s in views:
         name = f"frame {ctx.frames[s][0].id} (step {s})"
@@ -705,10 +608,9 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
             errors.append(f"{name}: {exc}" if name not in str(exc) else str(exc))
             continue
         if len(use) < 2:  # not a fault: from here the lamp cannot be seen in two spheres
-            unseen.append({"step": s, "frame": ctx.frames[s][0].id,
-                           "commanded": ctx.steps[s].get("light"), "spheres_showing_lamp": len(use)})
+            unseen.append(UnseenLight(s, ctx.frames[s][0].id, ctx.steps[s].light, len(use)))
             continue
-        got = seen.setdefault(_light_key(ctx.steps[s].get("light"), s),
+        got = seen.setdefault(_light_key(ctx.steps[s].light, s),
                               {"steps": [], "highlights": [], "centres": [], "spheres": []})
         got["steps"].append(s)
         got["highlights"].append(hl)
@@ -724,15 +626,13 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
             errors.append(f"frame {ctx.frames[s][0].id} (step {s}) and the other steps of its light: {exc}")
             continue
         p_lab = None if ctx.lab is None else ctx.lab.to_lab(pl.position_mm)
-        row = {"step": s, "steps": got["steps"], "frame": ctx.frames[s][0].id,
-               "position_camera_mm": pl.position_mm, "std_mm": pl.std_mm, "residuals_mm": pl.residuals_mm,
-               "highlights_px": hl, "spheres_used": np.concatenate(got["spheres"]).tolist(),
-               "commanded": ctx.steps[s].get("light"), "readback_mm": _readback_light(ctx, s)}
-        if p_lab is not None:
-            row["position_lab_mm"] = p_lab
-        rows.append(row)
+        rows.append(LocatedLight(step=s, position_camera_mm=pl.position_mm, commanded=ctx.steps[s].light,
+                                 position_lab_mm=p_lab, steps=tuple(got["steps"]), frame=ctx.frames[s][0].id,
+                                 std_mm=pl.std_mm, residuals_mm=pl.residuals_mm, highlights_px=hl,
+                                 spheres_used=tuple(np.concatenate(got["spheres"]).tolist()),
+                                 readback_mm=_readback_light(ctx, s)))
         lights.append(pl)
-        measured.append(MeasuredLight(s, pl.position_mm, p_lab, ctx.steps[s].get("light"),
+        measured.append(MeasuredLight(s, pl.position_mm, p_lab, ctx.steps[s].light,
                                       (pl.surface_points_mm, pl.directions), tuple(got["steps"])))
     if not rows:
         raise CalibrationError(f"no light could be located: {len(unseen)} of {len(steps)} spheres steps show "
@@ -740,14 +640,11 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     ctx.lights = measured
     res = np.concatenate([pl.residuals_mm for pl in lights])
     first = views[min(views)]
-    result = {"sphere_radius_mm": radius, "sphere_centres_camera_mm": first[0], "sphere_centres_from": source,
-              "spheres_on_turntable": ctx.targets.spheres_on_turntable,
-              "sphere_radii_px": [sp.radius_px for sp in first[1]], "lights": rows, "errors": errors,
-              "unseen": unseen,
-              "frame": "camera (OpenCV, mm); position_lab_mm: lab frame (axis at the platter, +x to the "
-                       "camera); sphere_centres_*: the first spheres step's"}
-    if ctx.lab is not None:
-        result["sphere_centres_lab_mm"] = ctx.lab.to_lab(first[0])
+    result = LightsRecord(lights=tuple(rows), sphere_radius_mm=radius, sphere_centres_camera_mm=first[0],
+                          sphere_centres_lab_mm=None if ctx.lab is None else ctx.lab.to_lab(first[0]),
+                          sphere_centres_from=source, spheres_on_turntable=ctx.targets.spheres_on_turntable,
+                          sphere_radii_px=tuple(sp.radius_px for sp in first[1]), errors=tuple(errors),
+                          unseen=tuple(unseen))
     figures = {"lights": len(rows), "steps": len(steps), "failed": len(errors), "unseen": len(unseen),
                "spheres": len(first[1]), "rays": len(res),
                "centres": "known" if source.startswith("known") else "silhouettes",
@@ -757,20 +654,20 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                        params={"sphere_radius_mm": radius, "sphere_centres_from": source}, errors=errors)
 
 
-def _readback_light(ctx: _Context, step: int) -> list[float] | None:
+def _readback_light(ctx: _Context, step: int) -> np.ndarray | None:
     vals = [f.positions.get("light_mm") for f in ctx.frames[step] if f.positions.get("light_mm")]
-    return np.mean(np.array(vals, float), axis=0).tolist() if vals else None
+    return np.mean(np.array(vals, float), axis=0) if vals else None
 
 
 def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     measured = _need(ctx.lights, "lights", "measured light positions")
     lab = _need(ctx.lab, "turntable", "the lab frame: azimuth and elevation are about the turntable axis")
-    use = [m for m in measured if m.commanded and "azimuth_deg" in m.commanded]
+    use = [m for m in measured if m.commanded is not None and m.commanded.xyz_mm is None]
     if len(use) < 3:
         raise _Skip(f"{len(use)} spheres steps with commanded azimuth/elevation (need 3; "
                     "xyz_mm light targets have no arm model)")
-    az = np.array([m.commanded["azimuth_deg"] for m in use])
-    el = np.array([m.commanded["elevation_deg"] for m in use])
+    az = np.array([m.commanded.azimuth_deg for m in use])
+    el = np.array([m.commanded.elevation_deg for m in use])
     X = np.array([m.position_lab_mm for m in use])
     # the rays in the lab frame, each tagged with its light's pose
     P = np.concatenate([lab.to_lab(m.rays[0]) for m in use])
@@ -792,19 +689,17 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                            "residuals_mm": model.residuals_mm}
     per_step = []
     for idx, st in sorted(ctx.steps.items()):
-        light = st.get("light")
-        if not light or "azimuth_deg" not in light:
+        light = st.light
+        if light is None or light.xyz_mm is not None:
             continue
-        p_lab = model.position(light["azimuth_deg"], light["elevation_deg"])
-        per_step.append({"step": idx, "position_lab_mm": p_lab,
-                         "position_camera_mm": lab.R @ p_lab + lab.t_mm})
+        p_lab = model.position(light.azimuth_deg, light.elevation_deg)
+        per_step.append(StepLight(idx, p_lab, lab.R @ p_lab + lab.t_mm))
     ctx.positioner = model
-    result = {"centre_lab_mm": model.centre_mm, "radius_mm": model.radius_mm,
-              "azimuth_offset_deg": model.azimuth_offset_deg,
-              "elevation_offset_deg": model.elevation_offset_deg, "param_std": model.param_std,
-              "fit_status": model.fit_status, "fit_message": model.fit_message,
-              "residuals_mm": model.residuals_mm, "rms_mm": model.rms_mm, "ray_rms_deg": model.ray_rms_deg,
-              "step_lights": per_step}
+    result = PositionerRecord(step_lights=tuple(per_step), centre_lab_mm=model.centre_mm, radius_mm=model.radius_mm,
+                              azimuth_offset_deg=model.azimuth_offset_deg,
+                              elevation_offset_deg=model.elevation_offset_deg, param_std=model.param_std,
+                              fit_status=model.fit_status, fit_message=model.fit_message,
+                              residuals_mm=model.residuals_mm, rms_mm=model.rms_mm, ray_rms_deg=model.ray_rms_deg)
     figures = {"rms_mm": round(model.rms_mm, 2), "ray_rms_deg": round(model.ray_rms_deg, 3),
                "radius_mm": round(model.radius_mm, 1),
                "el_offset_deg": round(model.elevation_offset_deg, 2), "steps_with_light": len(per_step)}
@@ -816,9 +711,9 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     groups: dict[tuple, list[int]] = {}
     for s in sorted(ctx.frames):
         st = ctx.steps[s]
-        if st.get("polarizer_deg") is None or st["kind"] == "dark" or s in ctx.bad_steps:
+        if st.polarizer_deg is None or st.kind == "dark" or s in ctx.bad_steps:
             continue
-        groups.setdefault((st["kind"], st.get("turntable_deg"), repr(st.get("light"))), []).append(s)
+        groups.setdefault((st.kind, st.turntable_deg, st.light), []).append(s)
     if not groups:
         raise _Skip("no captures with a polarizer (analyser) angle in this session")
     groups = {k: v for k, v in groups.items()
@@ -852,19 +747,17 @@ def _stage_polarization(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         # light's polarizer) is not where the read-backs say
         ratio = float(stack[par].mean() / max(float(stack[cro].mean()), 1e-12)) \
             if method == "parallel/crossed" else float("nan")
-        out.append({"steps": steps, "angles_deg": angles, "method": method,
-                    "specular_fraction": float(specular.sum() / max(2 * total, 1e-12)),
-                    "diffuse_mean": diffuse.mean(axis=(0, 1)), "specular_mean": specular.mean(axis=(0, 1)),
-                    "parallel_over_crossed": ratio, "relative_fit_residual": misfit})
+        out.append(PolarizationPose(tuple(steps), angles, method, float(specular.sum() / max(2 * total, 1e-12)),
+                                    diffuse.mean(axis=(0, 1)), specular.mean(axis=(0, 1)), ratio, misfit))
         used += steps
         if example is None:
             example = {"diffuse": diffuse, "specular": specular, "steps": steps, "method": method}
     if not out:
         raise _Skip("no pose captured at analyser angles that separate (0/90 deg, or 3+ angles)")
     rep.plots["polarization"] = example
-    figures = {"poses": len(out), "method": out[0]["method"],
-               "specular_pct": round(100 * float(np.mean([r["specular_fraction"] for r in out])), 2)}
-    return StageOutput({"poses": out}, figures, ctx.frame_ids(used), params={"light_polarizer_deg": 0.0})
+    figures = {"poses": len(out), "method": out[0].method,
+               "specular_pct": round(100 * float(np.mean([r.specular_fraction for r in out])), 2)}
+    return StageOutput(PolarizationRecord(tuple(out)), figures, ctx.frame_ids(used), params={"light_polarizer_deg": 0.0})
 
 
 def _stage_gray_card(ctx: _Context, rep: CalibrationReport) -> StageOutput:
@@ -877,25 +770,21 @@ def _stage_gray_card(ctx: _Context, rep: CalibrationReport) -> StageOutput:
         img = ctx.hdr[s]
         card = find_gray_card(img, frame=name)
         rgb = np.median(img[card], axis=0)
-        row = {"step": s, "pixels": int(card.sum()), "value_rgb": rgb,
-               "relative_scale_rgb": albedo / rgb,
-               "relative_spread": float(np.std(img[card].mean(axis=1)) / max(float(rgb.mean()), 1e-12))}
-        light = ctx.steps[s].get("light")
-        if model is not None and light and "azimuth_deg" in light:
+        light = ctx.steps[s].light
+        d, brdf_scale = None, None
+        if model is not None and light is not None and light.xyz_mm is None:
             # absolute scale: the card stands at the lab origin facing the light (assumed)
-            d = float(np.linalg.norm(model.position(light["azimuth_deg"], light["elevation_deg"])))
-            row["light_distance_mm"] = d
-            row["brdf_scale_rgb"] = [gray_card_scale(img[card][:, c], reflectance=albedo,
-                                                     light_distance_mm=d).scale for c in range(3)]
-        rows.append(row)
-    scale = np.median(np.array([r["relative_scale_rgb"] for r in rows]), axis=0)
-    result = {"albedo": albedo, "relative_scale_rgb": scale, "cards": rows,
-              "meaning": "relative_scale_rgb: albedo per HDR unit (DN/s) for the card's lighting; "
-                         "brdf_scale_rgb: f_r = value * scale * d^2 / cos_i (calibration.radiometry), "
-                         "assuming the card at the lab origin facing the light"}
+            d = float(np.linalg.norm(model.position(light.azimuth_deg, light.elevation_deg)))
+            brdf_scale = np.array([gray_card_scale(img[card][:, c], reflectance=albedo,
+                                                   light_distance_mm=d).scale for c in range(3)])
+        rows.append(CardReading(s, rgb, int(card.sum()), albedo / rgb,
+                                float(np.std(img[card].mean(axis=1)) / max(float(rgb.mean()), 1e-12)),
+                                d, brdf_scale))
+    scale = np.median(np.array([r.relative_scale_rgb for r in rows]), axis=0)
+    result = GrayCardRecord(albedo, tuple(rows), scale)
     figures = {"cards": len(rows), "relative_scale_rgb": [float(f"{v:.4g}") for v in scale],
-               "spread_pct": round(100 * max(r["relative_spread"] for r in rows), 2),
-               "absolute": all("brdf_scale_rgb" in r for r in rows)}
+               "spread_pct": round(100 * max(r.relative_spread for r in rows), 2),
+               "absolute": all(r.brdf_scale_rgb is not None for r in rows)}
     return StageOutput(result, figures, ctx.frame_ids(steps), params={"albedo": albedo})
 
 
@@ -907,17 +796,15 @@ def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     height = max(MIN_PROBE_HEIGHT, int(np.ceil(max(sp.radius_px for sp in spheres.values()))))
     probes = [mirror_sphere_to_latlong(ctx.hdr[s], sp.center_px, sp.radius_px, R, height=height)
               for s, sp in spheres.items()]
-    rows = [{"step": s, "centre_px": sp.center_px, "radius_px": sp.radius_px} for s, sp in spheres.items()]
+    rows = [ProbeView(s, sp.center_px, sp.radius_px) for s, sp in spheres.items()]
     probe = merge_probes(probes)
     buf = io.BytesIO()
     np.savez_compressed(buf, env=probe.env, weight=probe.weight, mask=probe.valid)
     rep.plots["probe"] = {"env": probe.env, "weight": probe.weight}
-    result = {"frame": frame, "height": height, "views": rows,
-              "valid_fraction": float(probe.valid.mean()), "mean_rgb": probe.env[probe.valid].mean(axis=0),
-              "artifacts": "environment.npz: env (H, 2H, 3) DN/s lat-long, weight (H, 2H) in [0, 1] "
-                           "(0 in the blind cone behind the sphere), mask (H, 2H) bool: weight > 0"}
+    result = EnvironmentRecord(frame, height, tuple(rows), float(probe.valid.mean()),
+                               probe.env[probe.valid].mean(axis=0))
     figures = {"views": len(rows), "frame": frame, "valid_pct": round(100 * float(probe.valid.mean()), 1),
-               "sphere_radius_px": round(rows[0]["radius_px"], 1)}
+               "sphere_radius_px": round(rows[0].radius_px, 1)}
     artifacts = {"environment.npz": buf.getvalue()}
     return StageOutput(result, figures, ctx.frame_ids(steps), artifacts, {"height": height})
 
@@ -928,12 +815,6 @@ _RUNNERS: dict[str, Callable[[_Context, CalibrationReport], StageOutput]] = {
     "polarization": _stage_polarization, "gray_card": _stage_gray_card,
     "mirror_probe": _stage_mirror_probe,
 }
-#: what each stored calibration is called in ``Store.results`` (``kind``)
-RESULT_KIND = {"dark": "dark", "hdr": "hdr", "intrinsics": "intrinsics", "turntable": "turntable",
-               "lights": "light_positions", "positioner": "positioner_model",
-               "polarization": "polarization_check", "gray_card": "gray_card",
-               "mirror_probe": "environment_map"}
-
 
 def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -> StageResult:
     if not wanted:
@@ -945,26 +826,10 @@ def _run_stage(ctx: _Context, rep: CalibrationReport, name: str, wanted: bool) -
         return StageResult(name, "skipped", str(skip))
     except (CalibrationError, StageDataError, FrameDataError, StoreError) as exc:
         return StageResult(name, "failed", f"{type(exc).__name__}: {exc}")
-    cid = ctx.store.add_calibration(ctx.info.id, RESULT_KIND[name], result=out.result, params=out.params,
+    cid = ctx.store.add_calibration(ctx.info.id, out.result.KIND, result=out.result.to_json(), params=out.params,
                                     input_frames=out.input_frames, artifacts=out.artifacts)
     # a stage that lost some inputs is stored for the rest but reported failed
     return StageResult(name, "failed" if out.errors else "ok", "; ".join(out.errors), out.figures, cid)
-
-
-def _session_targets(store: Store, info) -> LabTargets:
-    """The built-in simulated lab's targets for a session recorded in it; else TargetsNeeded."""
-    snapshots = store.rig_snapshots(info.id)
-    if recorded_in_built_in_lab(snapshots):
-        from .demo_lab import DemoLab  # demo_lab imports LabTargets from here: a circle until it moves out
-        return DemoLab().targets()
-    rigs = {str(t.get("name", "a rig file")) if isinstance(t := s["config"].get("rig", {}), dict) else repr(t)
-            for s in snapshots}
-    fields_ = ", ".join(f.name for f in fields(LabTargets))
-    raise TargetsNeeded(
-        f"session {info.name!r} was recorded on {', '.join(sorted(rigs)) or 'an unrecorded rig'}, "
-        f"not in the built-in simulated lab (gonio capture run --rig sim), so its targets' sizes are "
-        f"unknown: state them with --targets FILE (gonio calibrate; targets= in Python), a TOML "
-        f"file of LabTargets fields: {fields_}")
 
 
 def calibrate_session(store: Store, session_name: str, *,
@@ -983,10 +848,9 @@ def calibrate_session(store: Store, session_name: str, *,
         0-based of ``total`` stages), with ``part_done`` / ``part_total`` steps merged during the
         long hdr stage, and ``Progress("calibration", total, total)`` at the end.
     targets : LabTargets, optional
-        Physical targets (board geometry, sphere radius, card albedo); default: the built-in
-        simulated lab's (:meth:`capture.pipeline.demo_lab.DemoLab.targets`) when every rig
-        snapshot of the session says it was recorded in it
-        (:func:`capture.rigs.recorded_in_built_in_lab`), else :class:`TargetsNeeded`.
+        Physical targets (board geometry, sphere radius, card albedo), usually
+        ``SessionLab.targets`` (:func:`capture.lab_resolver.resolve_lab`); None: resolved here
+        (the built-in simulated lab's for a session recorded in it, else :class:`TargetsNeeded`).
     stages : tuple of str
         Subset of :data:`STAGES` to run (later stages skip when an earlier one they need is
         left out).
@@ -1020,13 +884,13 @@ def calibrate_session(store: Store, session_name: str, *,
         raise NothingToCalibrate(f"session {session_name!r} has no stored frames yet; capture it first "
                                  f"(gonio capture run / resume)")
     if not any(ctx.steps_of(kind) for kind in CALIBRATION_STEP_KINDS):
-        kinds = sorted({d["kind"] for i, d in ctx.steps.items() if ctx.frames.get(i)})
+        kinds = sorted({d.kind for i, d in ctx.steps.items() if ctx.frames.get(i)})
         raise NothingToCalibrate(
             f"session {session_name!r} has no calibration captures (its stored steps are "
             f"{', '.join(kinds)}); add [[calibration]] captures of kind "
             f"{', '.join(CALIBRATION_STEP_KINDS)} to the plan")
     if ctx.targets is None:
-        ctx.targets = _session_targets(store, ctx.info)
+        ctx.targets = resolve_lab(store, session_name).require_targets()
     digest = frames_digest(store, ctx.info.id)   # of the frames this run reads
     rep = CalibrationReport(session=session_name)
     total = len(STAGES)
@@ -1048,8 +912,8 @@ def calibrate_session(store: Store, session_name: str, *,
     finally:
         cv2.setNumThreads(threads)
     if set(stages) == set(STAGES):   # a whole calibration: gonio process may reuse it as it is
-        record_run(store, ctx.info.id, [{"stage": st.stage, "status": st.status, "reason": st.reason,
-                                         "calibration_id": st.calibration_id} for st in rep.stages], digest)
+        record_run(store, ctx.info.id, CalibrationRun(tuple(StageRun(st.stage, st.status, st.reason, st.calibration_id)
+                                                           for st in rep.stages), digest))
     if progress is not None:
         progress(Progress("calibration", total, total))
     return rep

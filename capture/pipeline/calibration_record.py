@@ -13,25 +13,25 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field
-from typing import Any
 
 from ..store import ResultRecord, Store
+from .stage_records import RECORDS, CalibrationRun, StageRun, read_record
 
 __all__ = ["RUN_KIND", "StoredCalibration", "frames_digest", "record_run", "stored_calibration"]
 
 #: result kind of the record that closes a run of every calibration stage
-RUN_KIND = "calibration_run"
+RUN_KIND = CalibrationRun.KIND
 
 
 @dataclass(frozen=True)
 class StoredCalibration:
     """What a session holds: ``complete`` (reusable as it is) or ``why`` not; ``stages`` the
-    record's rows (stage, status, reason, calibration_id) and ``results`` the stored results it
-    lists, by kind (both empty without a complete record)."""
+    closing record's rows and ``results`` the stored results it lists, by kind (both empty
+    without a complete record)."""
 
     complete: bool
     why: str = ""
-    stages: tuple[dict[str, Any], ...] = ()
+    stages: tuple[StageRun, ...] = ()
     results: dict[str, ResultRecord] = field(default_factory=dict)
 
 
@@ -44,18 +44,17 @@ def frames_digest(store: Store, session_id: int) -> str:
     return h.hexdigest()
 
 
-def record_run(store: Store, session_id: int, stages: list[dict[str, Any]], digest: str) -> int:
-    """Store the record closing a run of every stage (``digest``: :func:`frames_digest` of the
-    frames the run read); returns its result id."""
-    return store.add_calibration(session_id, RUN_KIND, result={"stages": stages, "frames_digest": digest})
+def record_run(store: Store, session_id: int, run: CalibrationRun) -> int:
+    """Store the record closing a run of every stage (``run.frames_digest``: :func:`frames_digest`
+    of the frames the run read); returns its result id."""
+    return store.add_calibration(session_id, RUN_KIND, result=run.to_json())
 
 
 def stored_calibration(store: Store, session_id: int) -> StoredCalibration:
     """The session's calibration as stored: complete, or why not (none, a run cut short, frames
     captured or replaced since)."""
-    from .calibrate import RESULT_KIND   # (calibrate imports this module)
-    ours = {RUN_KIND, *RESULT_KIND.values()}   # not the runner's metering, stored with the capture
-    results = [r for r in store.results(session_id, "calibration") if r.kind in ours]
+    # the stages' kinds, not the runner's metering (stored with the capture) or an import's
+    results = [r for r in store.results(session_id, "calibration") if r.kind in RECORDS]
     if not results:
         return StoredCalibration(False, "no calibration is stored")
     last = results[-1]
@@ -63,11 +62,11 @@ def stored_calibration(store: Store, session_id: int) -> StoredCalibration:
         stages = sorted({r.kind for r in results if r.kind != RUN_KIND})
         return StoredCalibration(False, f"the stored calibration is incomplete (a run stopped after storing "
                                         f"{', '.join(stages)}): it is run again")
-    if last.result.get("frames_digest") != frames_digest(store, session_id):
+    run: CalibrationRun = read_record(last)
+    if run.frames_digest != frames_digest(store, session_id):
         return StoredCalibration(False, "frames were captured or replaced since the session was calibrated: "
                                         "the calibration is run again")
     by_id = {r.id: r for r in results}
-    stages = tuple(last.result.get("stages", ()))
-    listed = {by_id[s["calibration_id"]].kind: by_id[s["calibration_id"]] for s in stages
-              if s.get("calibration_id") in by_id}
-    return StoredCalibration(True, "", stages, listed)
+    listed = {by_id[s.calibration_id].kind: by_id[s.calibration_id] for s in run.stages
+              if s.calibration_id in by_id}
+    return StoredCalibration(True, "", run.stages, listed)

@@ -8,6 +8,7 @@ Panels whose stage did not run say why.
 """
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -40,7 +41,6 @@ def _missing(ax, report: CalibrationReport, stage: str, title: str) -> None:
 
 
 def _wrap(text: str, width: int) -> list[str]:
-    import textwrap
     return [w for line in text.splitlines() for w in textwrap.wrap(line, width) or [""]]
 
 

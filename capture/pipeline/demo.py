@@ -6,8 +6,9 @@ rendering :class:`capture.pipeline.demo_lab.DemoLab`), creates a store, captures
 (``examples/demo-quick.toml`` or ``examples/demo.toml``: dark frames, board views at many
 turntable angles, mirror balls at every light, gray card, mirror probe, the object over
 turntable angles x lights x polarizer states x exposures, the passive capture and a held-out
-light), then runs :func:`capture.pipeline.run.process_session`, which takes the lab's mesh,
-targets and ground truth from the session's rig snapshots, and writes ``report.html``. The same
+light), then runs :func:`capture.pipeline.run.process_session` with the lab
+:func:`capture.lab_resolver.resolve_lab` finds from the session's rig snapshots (mesh, targets,
+ground truth), and writes ``report.html``. The same
 plan captured by ``gonio capture run`` gives the same frames, byte for byte.
 """
 from __future__ import annotations
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from ..lab_resolver import resolve_lab
 from ..plan import Plan
 from ..rigs import open_rig
 from ..runner import Runner, create_session
@@ -86,6 +88,7 @@ def run_demo(out_dir: str | Path | None = None, *, quick: bool = False,
                 raise RuntimeError(f"the demo capture ended {state}; see `gonio session show {name} "
                                    f"--store {store.root}`")
         say("processing: calibration, reconstruction inputs, methods, report")
-        return process_session(store, name, progress=progress, report_path=out / "report.html")
+        return process_session(store, name, progress=progress, report_path=out / "report.html",
+                               lab=resolve_lab(store, name))
     finally:
         store.close()

@@ -22,7 +22,7 @@ runner asked the operator to set up (``prepare_target``), all through one camera
 ==============  ==============================================================================
 
 :meth:`DemoLab.targets` states these targets as the calibration reads them
-(:class:`capture.calibrate.LabTargets`), :meth:`DemoLab.gray_card_pose` the card's pose, and
+(:class:`capture.lab.LabTargets`), :meth:`DemoLab.gray_card_pose` the card's pose, and
 :meth:`DemoLab.truth` the ground truth the report compares against. Frames: the sims' world
 frame, which is the calibration's lab frame (origin on the turntable axis at the platter, +z up,
 +x towards the camera), mm.
@@ -35,17 +35,19 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from calibration.raw import read_raw
 from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.camera import CameraModel
 from reconstruct.raycast import Mesh, Plane
 from reconstruct.render import SceneObject
-from sims.objects import OBJECTS, GroundTruthObject, make_object
+from rig import LightTarget
+from sims.lab import LAB_NAME
+from sims.objects import MULTI_MATERIALS, OBJECTS, GroundTruthObject, make_object, region_ids
 from sims.targets import CHROME_REFLECTANCE, GrayCard
-from sims.world import (CAPTURE_CHARUCO, LIGHT_INTENSITY, SimWorld, Target, board_on_turntable,
-                        default_camera, light_position, spheres_target, standing_pose)
+from sims.world import (CAPTURE_CHARUCO, LIGHT_INTENSITY, SimWorld, Target, capture_targets, default_camera,
+                        light_position, spheres_target, standing_pose)
 
-from .calibrate import LabTargets
-from .process import GrayCardPose
+from ..lab import GrayCardPose, LabTargets, SessionLab
 
 #: the simulated camera's resolution (width, height) with instant motion (tests, ``gonio demo
 #: --quick``) and with modelled motion (``--no-fast``, ``gonio demo``): the sizes the lab's targets
@@ -54,8 +56,6 @@ from .process import GrayCardPose
 #: 240: ~1 s), an hour for examples/demo.toml.
 FAST_RESOLUTION = (320, 240)
 FULL_RESOLUTION = (640, 480)
-#: the demo's calibration board (fills much of the 320 x 240 frame): the simulated lab's one board
-BOARD = CAPTURE_CHARUCO
 SPHERE_RADIUS_MM = 25.0
 #: the lamp's diffuser radius as the spheres see it: its highlight spans a few pixels
 SPHERES_LAMP_RADIUS_MM = 60.0
@@ -85,15 +85,15 @@ class DemoTruth:
     sensor_dn_per_radiance: np.ndarray
 
     @staticmethod
-    def light_position(light: dict[str, Any]) -> np.ndarray:
-        """True lab position (mm) of a step's commanded light ``{azimuth_deg, elevation_deg}``."""
-        return light_position(light["azimuth_deg"], light["elevation_deg"])
+    def light_position(light: LightTarget) -> np.ndarray:
+        """True lab position (mm) of a step's commanded light (azimuth and elevation: the
+        positioner's own distance)."""
+        return light_position(light.azimuth_deg, light.elevation_deg)
 
     def materials(self, points: np.ndarray) -> tuple[np.ndarray, tuple[BRDF, ...]]:
         """True material id per object-frame point (N, 3) mm and the materials by id."""
         if hasattr(self.object, "material_at"):   # the bumpy object states its own truth
             return self.object.material_at(points), tuple(self.object.materials)
-        from sims.objects import MULTI_MATERIALS, region_ids
         if self.object.name != "multi":
             raise ValueError(f"no per-point material truth for object {self.object.name!r}")
         return region_ids(points, self.object.height_mm), MULTI_MATERIALS
@@ -131,8 +131,7 @@ class DemoLab:
         self.worlds = {
             "object": SimWorld(self.object, camera=cam, seed=seed + 1),
             "dark": SimWorld.for_capture("dark", camera=cam, seed=seed + 2),
-            "checkerboard": SimWorld(None, camera=cam, targets=[board_on_turntable(BOARD)], supersample=2,
-                                     seed=seed + 3),
+            "checkerboard": SimWorld.for_capture("checkerboard", camera=cam, seed=seed + 3),
             "handheld_board": SimWorld.for_capture("handheld_board", camera=cam, seed=seed + 8),
             "spheres": SimWorld(None, camera=cam, targets=[self._spheres(), _backdrop()],
                                 light_radius_mm=SPHERES_LAMP_RADIUS_MM, supersample=2, seed=seed + 4),
@@ -156,18 +155,15 @@ class DemoLab:
         if target not in self.worlds:
             raise ValueError(f"the demo lab has no scene for target {target!r}; it has {', '.join(self.worlds)}")
         if target == "handheld_board":
-            self.worlds[target].hold_board(BOARD, step)
+            self.worlds[target].hold_board(CAPTURE_CHARUCO, step)
         self.current = self.worlds[target]
 
     # -- what the lab states about itself ---------------------------------------------------------
     def targets(self) -> LabTargets:
-        """The lab's calibration targets as :func:`capture.calibrate.calibrate_session` reads them."""
-        height = float(board_on_turntable(BOARD).points_world(0.0).mean(axis=0)[2])
-        return LabTargets(charuco_squares=BOARD.squares, charuco_square_mm=BOARD.square_mm,
-                          charuco_marker_mm=BOARD.marker_mm, sphere_radius_mm=SPHERE_RADIUS_MM,
-                          sphere_reflectance=CHROME_REFLECTANCE, charuco_centre_height_mm=height,
-                          sphere_centres_mm=tuple(map(tuple, self._spheres().points_world(0.0))),
-                          spheres_on_turntable=True)
+        """The lab's calibration targets as :func:`capture.pipeline.calibrate.calibrate_session`
+        reads them: those of :func:`sims.world.capture_targets` with this lab's chrome balls,
+        which stand on the turntable."""
+        return LabTargets(**capture_targets(self._spheres()), spheres_on_turntable=True)
 
     @staticmethod
     def gray_card_pose() -> GrayCardPose:
@@ -176,13 +172,12 @@ class DemoLab:
         pose = standing_pose(h / 2 + 10.0)
         return GrayCardPose(tuple(pose[:3, 3]), tuple(-pose[:3, 2]))
 
-    def process_options(self) -> dict[str, Any]:
-        """What :func:`capture.pipeline.run.process_session` takes from this lab: the fitter's
-        ``mesh``, the ``targets``, the ``gray_card`` pose, the probe ball's mirror reflectance,
-        the ``truth`` and the :meth:`method_options`."""
-        return {"mesh": fitter_mesh(self.object), "targets": self.targets(),
-                "gray_card": self.gray_card_pose(), "probe_reflectance": CHROME_REFLECTANCE,
-                "truth": self.truth(), "method_options": self.method_options()}
+    def session_lab(self, session: str) -> SessionLab:
+        """This lab as a session recorded in it is processed: the fitter's mesh, the targets, the
+        gray card's pose, the probe ball's mirror reflectance, the truth and the
+        :meth:`method_options`."""
+        return SessionLab(session, True, self.targets(), fitter_mesh(self.object), self.gray_card_pose(),
+                          CHROME_REFLECTANCE, self.truth(), self.method_options(), (LAB_NAME,))
 
     def method_options(self) -> dict[str, dict[str, Any]]:
         """Methods' options for this lab's sessions: reflectance sharing's RBF centres, 300 at
@@ -204,7 +199,6 @@ class DemoLab:
 
 def demo_lab_for(store, session: str) -> DemoLab:
     """The demo lab a stored session was captured in, at the resolution of its frames."""
-    from calibration.raw import read_raw
     frames = store.frames(store.session(session).id)
     if not frames:
         raise ValueError(f"session {session!r} has no frames")

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
@@ -22,6 +21,7 @@ import numpy as np
 from calibration.hdr import merge_raw_brackets
 from calibration.raw import RawMosaic, demosaic_bilinear, read_raw
 
+from ..plan import Step
 from ..store import FrameRecord, Store
 
 #: a master dark serves frames whose exposure is within this fraction of its own
@@ -55,7 +55,7 @@ class StepImage:
     ``dark_subtracted`` frames that had a master dark of their exposure."""
 
     step: int
-    spec: dict[str, Any]
+    spec: Step
     radiance: np.ndarray
     valid: np.ndarray
     frame_ids: list[int]
@@ -75,7 +75,7 @@ class SessionImages:
     def __init__(self, store: Store, session: str) -> None:
         self.store = store
         self.info = store.session(session)
-        self.steps: dict[int, dict[str, Any]] = {i: d for i, d, _ in store.steps(self.info.id)}
+        self.steps: dict[int, Step] = {s.index: s.step for s in store.steps(self.info.id)}
         self.by_step: dict[int, list[FrameRecord]] = {}
         for f in store.frames(self.info.id):
             if f.step in self.steps:

@@ -39,6 +39,9 @@ from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 from ..importers import MultiLightSet, read_imported_session
 from ..outputs import session_file, write_atomically
 from ..store import Store
+from .methods import MethodSkipped, fit_method
+from .process import ProcessInputs
+from .process_report import MethodOutcome, ProcessReport
 from .report_html import write_html_report
 
 __all__ = ["ImportedInputs", "ImportedFacts", "imported_facts", "imported_inputs", "process_imported_session", "is_imported",
@@ -116,7 +119,7 @@ class ImportedInputs:
 
 @dataclass(frozen=True)
 class ImportedFacts:
-    """What the report of an imported session shows beyond :class:`capture.pipeline.run.ProcessReport`.
+    """What the report of an imported session shows beyond :class:`capture.pipeline.process_report.ProcessReport`.
 
     ``provenance`` the plan's ``imported`` record without the per-file hashes (``files_hashed``
     counts them); ``images`` the image count, ``image_size_px`` (width, height), ``mask_pixels``;
@@ -195,14 +198,10 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
                              report_path: str | Path | None = None):
     """Run ``methods`` on an imported session and write its report (``report_path``, default
     ``<session>-report.html`` beside the store, with its ``.json`` summary); returns a
-    :class:`capture.pipeline.run.ProcessReport`.
+    :class:`capture.pipeline.process_report.ProcessReport`.
 
     ``max_texels``: texels (mask pixels drawn at random with ``rng``) the methods fit; None: all.
     """
-    from .methods import MethodSkipped, fit_method
-    from .process import ProcessInputs
-    from .run import MethodOutcome, ProcessReport
-
     info = store.session(session)
     rep = ProcessReport(session)
     rep.calibration = [{"stage": s, "status": "skipped", "reason": why, "figures": {}}

@@ -10,10 +10,13 @@ angles as runs (``0–270 by 90 (4)``), unwrapping the turntable's circle so tha
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
+from rig import LightTarget
+
+from ..plan import Step
 from ..store import FrameRecord
 
 __all__ = ["PlanRow", "compact_angles", "plan_rows"]
@@ -67,19 +70,18 @@ def compact_angles(values: Sequence[float], *, period: float | None = None) -> s
     return ", ".join(parts)
 
 
-def _lights(lights: list[dict[str, Any]]) -> str:
+def _lights(lights: list[LightTarget]) -> str:
     """Lamp positions: ``az A × el E`` when they are the full grid of their azimuths and
     elevations, else their count and both lists; ``–`` when the steps leave the lamp alone."""
     if not lights:
         return "–"
-    polar = [lt for lt in lights if "azimuth_deg" in lt]
-    pairs = {(round(lt["azimuth_deg"], 6), round(lt["elevation_deg"], 6)) for lt in polar}
+    pairs = {(round(lt.azimuth_deg, 6), round(lt.elevation_deg, 6)) for lt in lights if lt.xyz_mm is None}
     text = ""
     if pairs:
         az, el = sorted({a for a, _ in pairs}), sorted({e for _, e in pairs})
         text = (f"az {compact_angles(az)} × el {compact_angles(el)}" if len(pairs) == len(az) * len(el)
                 else f"{len(pairs)} positions (az {compact_angles(az)}; el {compact_angles(el)})")
-    xyz = len({tuple(lt["xyz_mm"]) for lt in lights if "xyz_mm" in lt})
+    xyz = len({lt.xyz_mm for lt in lights if lt.xyz_mm is not None})
     return ", ".join(filter(None, (text, f"{xyz} at x, y, z (mm)" if xyz else "")))
 
 
@@ -92,37 +94,37 @@ def _exposures_ms(exposures: list[float]) -> str:
     return ", ".join(f"{x:g}" for x in ms) + " ms"
 
 
-def plan_rows(steps: Sequence[dict[str, Any]], frames: Sequence[FrameRecord]) -> list[PlanRow]:
+def plan_rows(steps: Sequence[Step], frames: Sequence[FrameRecord]) -> list[PlanRow]:
     """The session's steps grouped by kind (held-out measurements a kind of their own), in the
     order the session first reaches each kind.
 
     Parameters
     ----------
-    steps : sequence of dict
-        Expanded steps (:meth:`capture.plan.Step.to_dict`), each with ``index``.
+    steps : sequence of Step
+        The session's steps (:attr:`capture.store.StoredStep.step`).
     frames : sequence of FrameRecord
         The session's stored frames (their ``step`` and ``size``).
     """
     if not steps:
         return []
-    index = np.array([s["index"] for s in steps])
+    index = np.array([s.index for s in steps])
     n = int(index.max()) + 1
     f_step = np.array([f.step for f in frames], dtype=int)
     count = np.bincount(f_step, minlength=n)
     size = np.bincount(f_step, weights=np.array([f.size for f in frames], float), minlength=n)
-    groups: dict[str, list[dict[str, Any]]] = {}
-    for s in sorted(steps, key=lambda s: s["index"]):
-        groups.setdefault(s["kind"] + (" (held out)" if s.get("held_out") else ""), []).append(s)
+    groups: dict[str, list[Step]] = {}
+    for s in sorted(steps, key=lambda s: s.index):
+        groups.setdefault(s.kind + (" (held out)" if s.held_out else ""), []).append(s)
     rows = []
     for kind, group in groups.items():
-        ids = np.array([s["index"] for s in group])
+        ids = np.array([s.index for s in group])
         rows.append(PlanRow(
             kind=kind, steps=len(group),
-            turntable=compact_angles([s["turntable_deg"] for s in group if s["turntable_deg"] is not None],
+            turntable=compact_angles([s.turntable_deg for s in group if s.turntable_deg is not None],
                                      period=360.0),
-            lights=_lights([s["light"] for s in group if s["light"]]),
-            polarizer=compact_angles([s["polarizer_deg"] for s in group if s["polarizer_deg"] is not None]),
-            exposures=_exposures_ms([e for s in group for e in s["exposures_s"]]),
-            frames_planned=int(sum(s["frames"] for s in group)),
+            lights=_lights([s.light for s in group if s.light is not None]),
+            polarizer=compact_angles([s.polarizer_deg for s in group if s.polarizer_deg is not None]),
+            exposures=_exposures_ms([e for s in group for e in s.exposures_s]),
+            frames_planned=int(sum(s.frames for s in group)),
             frames_stored=int(count[ids].sum()), bytes_stored=int(size[ids].sum())))
     return rows

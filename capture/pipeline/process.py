@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable, Sequence, TypeVar
 
 import numpy as np
 import trimesh
@@ -43,14 +43,23 @@ from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
 from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
 from reconstruct.raycast import Mesh, Surface, first_hits
+from rig import LightTarget
 
+from ..lab import GrayCardPose
+from ..plan import Step
 from ..store import ResultRecord, Store
+from .calibration_record import stored_calibration
 from .images import FrameDataError, SessionImages, StepImage
+from .stage_records import (DarkRecord, EnvironmentRecord, GrayCardRecord, IntrinsicsRecord, LightsRecord,
+                            PositionerRecord, RecordFormatError, StageRecord, TurntableRecord, read_record)
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
            "PassiveInput", "ProcessInputs", "read_calibration", "session_images", "session_inputs",
            "PoseSpec", "ViewPlan", "view_plan", "pose_view", "merge_pose", "plan_inputs",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose"]
+
+R = TypeVar("R", bound=StageRecord)
+
 
 class ProcessError(ValueError):
     """The session cannot give reconstruction inputs; the message says what is missing."""
@@ -58,17 +67,6 @@ class ProcessError(ValueError):
 
 class MissingCalibration(ProcessError):
     """A calibration stage the inputs need has no stored result (run ``gonio calibrate``)."""
-
-
-@dataclass(frozen=True)
-class GrayCardPose:
-    """Where the gray card stands at turntable reading 0, lab frame, mm (it turns with the
-    platter): its centre and unit normal (printed side). With it the lamp's intensity follows from
-    the card's exact distance and incidence angle; without it the calibration's own assumption
-    (card at the lab origin facing the light) is used."""
-
-    centre_mm: tuple[float, float, float]
-    normal: tuple[float, float, float]
 
 
 @dataclass(frozen=True)
@@ -127,23 +125,30 @@ def _latest(store: Store, session_id: int) -> tuple[dict[str, ResultRecord], dic
     """The stored calibration results by kind, and why each stage without one has none: those a
     complete calibration lists (:mod:`capture.pipeline.calibration_record`), else the newest of
     each kind (a session calibrated stage by stage)."""
-    from .calibration_record import stored_calibration
     state = stored_calibration(store, session_id)
     if state.complete:
-        return state.results, {s["stage"]: f"{s['status']}: {s['reason']}" for s in state.stages
-                               if not s.get("calibration_id")}
+        return state.results, {s.stage: f"{s.status}: {s.reason}" for s in state.stages if not s.calibration_id}
     return {r.kind: r for r in store.results(session_id, "calibration")}, {}
 
 
-def _need(stored: dict[str, ResultRecord], reasons: dict[str, str], kind: str, stage: str,
-          why: str) -> ResultRecord:
-    if kind not in stored:
+def _need(stored: dict[str, ResultRecord], reasons: dict[str, str], record: type[R], why: str) -> R:
+    """The stored result of ``record``'s stage, read; :class:`MissingCalibration` saying why not."""
+    if record.KIND not in stored:
+        stage = record.STAGE
         if stage in reasons:   # the calibration ran whole: say why that stage stored nothing
             raise MissingCalibration(f"no {stage} calibration ({why}): the session's calibration "
                                      f"{reasons[stage]}")
         raise MissingCalibration(f"no stored {stage} calibration ({why}); run `gonio calibrate` on the "
                                  "session and check that stage")
-    return stored[kind]
+    return _read(stored[record.KIND])
+
+
+def _read(result: ResultRecord):
+    try:
+        return read_record(result)
+    except RecordFormatError as exc:
+        raise ProcessError(f"{exc}; calibrate the session again (gonio calibrate, or gonio process "
+                           "--force)") from None
 
 
 def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | None = None,
@@ -158,74 +163,75 @@ def read_calibration(store: Store, session: str, *, gray_card: GrayCardPose | No
     ------
     MissingCalibration
         The intrinsics, turntable or light calibration is not stored (names the stage).
+    ProcessError
+        A stored result does not read as its stage's record (names the result and the key).
     """
     info = store.session(session)
     res, reasons = _latest(store, info.id)
-    intr = _need(res, reasons, "intrinsics", "intrinsics", "the camera matrix").result
-    tt = _need(res, reasons, "turntable", "turntable", "the lab frame and the object's pose per turntable angle").result
-    w, h = intr["image_size"]
-    lab = tt["lab_to_camera"]
-    camera = CameraModel(K=np.array(intr["K"]), width=int(w), height=int(h), dist=np.array(intr["dist"]),
-                         R=np.array(lab["R"]), t=np.array(lab["t_mm"]))
-    steps = {i: d for i, d, _ in store.steps(info.id)}
+    intr = _need(res, reasons, IntrinsicsRecord, "the camera matrix")
+    tt = _need(res, reasons, TurntableRecord, "the lab frame and the object's pose per turntable angle")
+    w, h = intr.image_size
+    camera = CameraModel(K=intr.K, width=int(w), height=int(h), dist=intr.dist,
+                         R=tt.lab_to_camera.R, t=tt.lab_to_camera.t_mm)
+    steps = {s.index: s.step for s in store.steps(info.id)}
     lights, source = _step_lights(res, reasons, steps)
     ids = {k: r.id for k, r in res.items()}
-    intensity, absolute = _light_intensity(res, steps, lights, tt, gray_card)
+    gray = _read(res[GrayCardRecord.KIND]) if GrayCardRecord.KIND in res else None
+    intensity, absolute = _light_intensity(gray, steps, lights, tt.angle_scale, gray_card)
     env, weight = None, None
-    if "environment_map" in res and "environment.npz" in res["environment_map"].artifacts:
-        with np.load(io.BytesIO(store.read_object(res["environment_map"].artifacts["environment.npz"]))) as z:
+    probe = res.get(EnvironmentRecord.KIND)
+    if probe is not None and "environment.npz" in probe.artifacts:
+        with np.load(io.BytesIO(store.read_object(probe.artifacts["environment.npz"]))) as z:
             if not 0 < probe_reflectance <= 1:
                 raise ValueError(f"probe_reflectance must be in (0, 1], got {probe_reflectance!r}")
             env = EnvironmentMap(np.maximum(z["env"], 0.0) / probe_reflectance)
             weight = np.asarray(z["weight"])
-    return SessionCalibration(camera=camera, angle_scale=float(tt.get("angle_scale", 1.0)), lights_mm=lights,
+    return SessionCalibration(camera=camera, angle_scale=tt.angle_scale, lights_mm=lights,
                               light_source=source, light_intensity=intensity, absolute=absolute,
                               environment=env, environment_weight=weight, ids=ids)
 
 
-def _light_key(light: dict | None) -> tuple | None:
-    if not light:
+def _light_key(light: LightTarget | None) -> tuple | None:
+    """Commanded lights equal to 1/1000 of a degree or mm are one light."""
+    if light is None:
         return None
-    if "xyz_mm" in light:
-        return ("xyz", *(round(float(v), 3) for v in light["xyz_mm"]))
-    return (round(float(light["azimuth_deg"]), 3), round(float(light["elevation_deg"]), 3),
-            light.get("distance_mm"))
+    if light.xyz_mm is not None:
+        return ("xyz", *(round(float(v), 3) for v in light.xyz_mm))
+    return round(float(light.azimuth_deg), 3), round(float(light.elevation_deg), 3), light.distance_mm
 
 
-def _step_lights(res: dict, reasons: dict[str, str], steps: dict[int, dict]) -> tuple[dict[int, np.ndarray], str]:
+def _step_lights(res: dict, reasons: dict[str, str], steps: dict[int, Step]) -> tuple[dict[int, np.ndarray], str]:
     """A light position (lab, mm) for every step with a light: from the positioner model when it
     was fitted, else from the lights stage's measurement at the same commanded light."""
-    if "positioner_model" in res:
-        rows = res["positioner_model"].result["step_lights"]
-        return {int(r["step"]): np.asarray(r["position_lab_mm"], float) for r in rows}, "positioner"
-    rows = _need(res, reasons, "light_positions", "lights", "where the lamp was for each capture").result["lights"]
+    if PositionerRecord.KIND in res:
+        model: PositionerRecord = _read(res[PositionerRecord.KIND])
+        return {r.step: r.position_lab_mm for r in model.step_lights}, "positioner"
+    located = _need(res, reasons, LightsRecord, "where the lamp was for each capture")
     by_key = {}
-    for r in rows:
-        if "position_lab_mm" in r and _light_key(r.get("commanded")) is not None:
-            by_key.setdefault(_light_key(r["commanded"]), []).append(np.asarray(r["position_lab_mm"], float))
-    out = {i: np.mean(by_key[_light_key(d["light"])], axis=0) for i, d in steps.items()
-           if _light_key(d.get("light")) in by_key}
+    for r in located.lights:
+        if r.position_lab_mm is not None and _light_key(r.commanded) is not None:
+            by_key.setdefault(_light_key(r.commanded), []).append(r.position_lab_mm)
+    out = {i: np.mean(by_key[_light_key(d.light)], axis=0) for i, d in steps.items()
+           if _light_key(d.light) in by_key}
     return out, "lights"
 
 
-def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
+def _light_intensity(gray: GrayCardRecord | None, steps: dict, lights: dict, angle_scale: float,
                      card: GrayCardPose | None) -> tuple[np.ndarray, bool]:
     """Lamp intensity per channel (DN/s mm^2 per unit f_r cos) from the gray card: a card of albedo
     rho reads ``M = (rho / pi) I cos_i / d^2``, halved when an analyser was in front of the lens
     (the card depolarises: any analyser passes half its light)."""
-    gc = res.get("gray_card")
-    if gc is None:
+    if gray is None:
         return np.ones(3), False
-    r = gc.result
-    albedo = float(r["albedo"])
+    albedo = gray.albedo
     estimates = []
-    for row in r["cards"]:
-        s = int(row["step"])
-        analyser = 2.0 if steps[s].get("polarizer_deg") is not None else 1.0
-        M = np.asarray(row["value_rgb"], float) * analyser
+    for row in gray.cards:
+        s = row.step
+        analyser = 2.0 if steps[s].polarizer_deg is not None else 1.0
+        M = row.value_rgb * analyser
         if card is not None and s in lights:
-            reading = steps[s].get("turntable_deg") or 0.0
-            T = object_pose(float(tt.get("angle_scale", 1.0)) * reading)
+            reading = steps[s].turntable_deg or 0.0
+            T = object_pose(angle_scale * reading)
             c = T[:3, :3] @ np.asarray(card.centre_mm, float)
             n = T[:3, :3] @ np.asarray(card.normal, float)
             to_l = lights[s] - c
@@ -233,8 +239,8 @@ def _light_intensity(res: dict, steps: dict, lights: dict, tt: dict,
             cos = float(n @ to_l) / d
             if cos > 0.05:
                 estimates.append(M * np.pi * d ** 2 / (albedo * cos))
-        elif "brdf_scale_rgb" in row:
-            estimates.append(analyser / np.asarray(row["brdf_scale_rgb"], float))
+        elif row.brdf_scale_rgb is not None:
+            estimates.append(analyser / row.brdf_scale_rgb)
     if not estimates:
         return np.ones(3), False
     return np.median(np.array(estimates), axis=0), True
@@ -353,30 +359,30 @@ def view_plan(images: SessionImages, session: str, cal: SessionCalibration, *,
         held out.
     """
     frames = images
-    measure = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "measure" and frames.by_step.get(i)]
-    passive = [i for i, d in sorted(frames.steps.items()) if d["kind"] == "passive" and frames.by_step.get(i)]
+    measure = [i for i, d in sorted(frames.steps.items()) if d.kind == "measure" and frames.by_step.get(i)]
+    passive = [i for i, d in sorted(frames.steps.items()) if d.kind == "passive" and frames.by_step.get(i)]
     if not measure:
         raise ProcessError(f"session {session!r} has no stored measurement steps")
     missing = [i for i in measure if i not in cal.lights_mm]
     if missing:
         raise ProcessError(f"no calibrated light for measurement step(s) {missing[:5]} (commanded "
-                           f"{frames.steps[missing[0]].get('light')}): the {cal.light_source} calibration "
+                           f"{frames.steps[missing[0]].light}): the {cal.light_source} calibration "
                            "does not cover them; add spheres captures at those lights")
     # poses: (turntable, light) -> the steps at each analyser angle
     grouped: dict[tuple, list[int]] = {}
     for i in measure:
         d = frames.steps[i]
-        grouped.setdefault((d.get("turntable_deg"), repr(_light_key(d["light"]))), []).append(i)
+        grouped.setdefault((d.turntable_deg, _light_key(d.light)), []).append(i)
     poses = []
     for (reading, _), steps in grouped.items():
-        by = {_analyser(frames.steps[s].get("polarizer_deg")): k for k, s in enumerate(steps)}
+        by = {_analyser(frames.steps[s].polarizer_deg): k for k, s in enumerate(steps)}
         if "parallel" in by and "crossed" in by:
             used = (by["parallel"], by["crossed"])
         else:  # one analyser state (or none): a plain view
             used = (next((by[a] for a in (None, "parallel") if a in by), 0),)
         first = steps[used[0]]
         poses.append(PoseSpec(reading or 0.0, tuple(steps), used, cal.lights_mm[first],
-                              bool(frames.steps[first].get("held_out")),
+                              frames.steps[first].held_out,
                               tuple(f.id for i in used for f in frames.by_step[steps[i]])))
     if all(p.held_out for p in poses):
         raise ProcessError(f"session {session!r}: every measurement light is held out; nothing to fit")
@@ -472,10 +478,10 @@ def session_images(store: Store, session: str) -> SessionImages:
     """The session's images with the master darks and read noise its dark calibration stored
     (none stored: black level only, 1 DN read noise)."""
     images = SessionImages(store, session)
-    dark = _latest(store, images.info.id)[0].get("dark")
-    if dark is not None:
-        images.use_stored_darks([row["exposure_s"] for row in dark.result["darks"]],
-                                dark.artifacts, dark.result.get("read_noise_dn"))
+    stored = _latest(store, images.info.id)[0].get(DarkRecord.KIND)
+    if stored is not None:
+        dark: DarkRecord = _read(stored)
+        images.use_stored_darks([row.exposure_s for row in dark.darks], stored.artifacts, dark.read_noise_dn)
     return images
 
 
@@ -489,7 +495,7 @@ def _merge(images: SessionImages, step: int) -> StepImage:
 def _passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh) -> PassiveInput:
     """Per-pixel lab-frame normals and view directions of the object in the passive image."""
     cam = cal.camera
-    pose = cal.object_pose(im.spec.get("turntable_deg") or 0.0)
+    pose = cal.object_pose(im.spec.turntable_deg or 0.0)
     surface = Mesh(mesh, transform=pose)
     o, d = cam.pixel_rays()
     hits = first_hits([surface], o, d)

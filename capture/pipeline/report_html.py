@@ -101,7 +101,7 @@ def _timeline(store: Store, session_id: int) -> str:
     frames = store.frames(session_id)
     if not frames:
         return ""
-    steps = {i: d for i, d, _ in store.steps(session_id)}
+    steps = {s.index: s.spec for s in store.steps(session_id)}
     t0 = min(f.captured_at for f in frames)
     fig, ax = plt.subplots(figsize=(8, 2.6))
     kinds = sorted({steps[f.step]["kind"] for f in frames})
@@ -359,7 +359,7 @@ def _plan_section(store: Store, info, prog) -> str:
              "frames": r.frames_stored if r.frames_stored == r.frames_planned
              else f"{r.frames_stored} of {r.frames_planned}",
              "MB": round(r.bytes_stored / 1e6, 2)}
-            for r in plan_rows([d for _, d, _ in store.steps(info.id)], store.frames(info.id))]
+            for r in plan_rows([s.step for s in store.steps(info.id)], store.frames(info.id))]
     return ("<h2>1. The plan and the capture</h2>"
             f"<p>{prog.steps_done} of {prog.steps_total} steps, {prog.frames_stored} frames "
             f"({prog.bytes_stored / 1e6:.1f} MB). One row per kind of step: the turntable angles, lamp "

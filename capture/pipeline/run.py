@@ -21,7 +21,7 @@ import contextlib
 import io
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
@@ -31,10 +31,13 @@ import trimesh
 from reconstruct.frames import tangent_frames, to_local, to_world
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.metrics import relative_rms, trimmed_relative_rms
+from rig import LightTarget
 
 from ..export.appearance import EXPORTED_METHODS, appearance_npz
+from ..lab import GrayCardPose, LabTargets, SessionLab
+from ..lab_resolver import resolve_lab
 from .calibration_record import stored_calibration
-from .calibrate import LabTargets, NothingToCalibrate, calibrate_session
+from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
@@ -42,77 +45,17 @@ from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
 from .lumitexel_arrays import block_texels_for, default_memory_limit, stream_lumitexels
 from .progress import Progress, ProgressSink, counter
-from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCalibration, plan_inputs,
+from .process import (MissingCalibration, ProcessInputs, SessionCalibration, plan_inputs,
                       read_calibration, session_images, view_plan)
+from .process_report import Floor, MethodOutcome, ProcessReport
 from .report_html import write_html_report
 from ..outputs import session_file, write_atomically
-from ..rigs import recorded_in_built_in_lab
 from ..store import Store, crash
-from .demo_lab import demo_lab_for
 
 __all__ = ["Floor", "MethodOutcome", "ProcessReport", "process_session"]
 
 #: why passive reflectometry does not fit a multi-material object (Romeiro et al. 2008 Sec. 3)
 PASSIVE_ASSUMPTION = "Romeiro et al. assume one homogeneous curved surface"
-
-
-@dataclass(frozen=True)
-class Floor:
-    """The floor of the held-out scores: the simulation's true model (true ``f_r cos`` about the
-    true normals) scored exactly as each method is, by :func:`reconstruct.metrics.relative_rms`
-    (and its trimmed variant) of its prediction against the held-out captures. What is left is
-    the captures' own error (sensor noise, calibration, resampling onto the mesh): no model of
-    these captures can be expected to score lower. Unitless."""
-
-    held_out_rel_rms: float
-    held_out_rel_rms_trimmed: float
-
-@dataclass
-class MethodOutcome:
-    """One method's run: ``status`` ``ok`` (fitted and stored now), ``done`` (stored before),
-    ``skipped`` (reason) or ``failed`` (error)."""
-
-    method: str
-    status: str
-    reason: str = ""
-    figures: dict[str, Any] = field(default_factory=dict)
-    result_id: int | None = None
-    seconds: float = 0.0
-    warnings: list[str] = field(default_factory=list)
-    #: held-out rel. RMS / the floor's (and the trimmed pair); None without a floor
-    floor_ratio: float | None = None
-    floor_ratio_trimmed: float | None = None
-    #: why the captured object breaks the method's assumption (empty: it does not, or unknown)
-    outside_assumption: str = ""
-
-
-@dataclass
-class ProcessReport:
-    """What :func:`process_session` did: calibration stages (stage, status, reason, figures),
-    the inputs' counts, each method's outcome, stage timings (s) and, with truth, the
-    calibration's errors against it."""
-
-    session: str
-    calibration: list[dict[str, Any]] = field(default_factory=list)
-    inputs: dict[str, Any] = field(default_factory=dict)
-    methods: list[MethodOutcome] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    calibration_truth: dict[str, Any] = field(default_factory=dict)
-    floor: Floor | None = None
-    report_path: Path | None = None
-
-    def summary(self) -> dict[str, Any]:
-        """Everything but the pictures, JSON-able (written beside the HTML as ``.json``)."""
-        return {"session": self.session, "calibration": self.calibration, "inputs": self.inputs,
-                "calibration_truth": self.calibration_truth, "timings": self.timings,
-                "floor": None if self.floor is None else asdict(self.floor),
-                "methods": [asdict(m) for m in self.methods], "report": str(self.report_path)}
-
-    def method(self, name: str) -> MethodOutcome:
-        for m in self.methods:
-            if m.method == name:
-                return m
-        raise KeyError(f"no method {name!r} in this run")
 
 
 class _Clock:
@@ -137,7 +80,7 @@ class _Clock:
 def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFAULT_METHODS,
                     mesh: trimesh.Trimesh | None = None, targets: LabTargets | None = None,
                     gray_card: GrayCardPose | None = None, probe_reflectance: float | None = None, truth=None,
-                    force: bool = False, rng: int = 0,
+                    force: bool = False, rng: int = 0, lab: SessionLab | None = None,
                     method_options: dict[str, dict[str, Any]] | None = None,
                     progress: ProgressSink | None = None,
                     report_path: str | Path | None = None, cluster: ClusterOptions = ClusterOptions(),
@@ -145,10 +88,10 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                     say: Callable[[str], None] = lambda text: None) -> ProcessReport:
     """Calibrate (if needed), build the inputs, run and store each method, write the report.
 
-    A session recorded in the built-in simulated lab (``gonio capture run --rig sim``, ``gonio
-    demo``; :func:`capture.rigs.recorded_in_built_in_lab`) takes every option not given here from
-    the lab itself (:meth:`capture.pipeline.demo_lab.DemoLab.process_options`: mesh, targets,
-    gray-card pose, probe reflectance, truth, method options).
+    ``lab`` is the session's :class:`capture.lab.SessionLab` (:func:`capture.lab_resolver.resolve_lab`:
+    mesh, targets, gray-card pose, probe reflectance, truth, method options); without it the lab
+    is resolved here from the parts given (``mesh`` ... ``method_options``), a session recorded
+    in the built-in simulated lab taking every part not given from the lab itself.
 
     Parameters
     ----------
@@ -185,11 +128,13 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         (:func:`capture.pipeline.lumitexel_arrays.block_texels_for`; default: half the machine's memory).
     say : callable(str), optional
         One-line news (the Dask dashboard's address when a cluster is used).
+    lab : SessionLab, optional
+        The resolved lab (then none of its parts may be given).
 
     Raises
     ------
     ValueError
-        An unknown method name, or no mesh.
+        An unknown method name, no mesh, or both ``lab`` and its parts.
     capture.process.ProcessError
         The session cannot give inputs (no measurement steps, lights not calibrated ...).
     capture.store.SessionBusy
@@ -207,29 +152,24 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         with store.writer(session):
             return process_imported_session(store, session, methods=methods, force=force, rng=rng,
                                             progress=progress, report_path=report_path)
-    given = {"mesh": mesh, "targets": targets, "gray_card": gray_card, "probe_reflectance": probe_reflectance,
-             "truth": truth, "method_options": method_options}
-    lab = _built_in_lab_options(store, session)
-    if lab is not None:
-        given = {k: lab[k] if v is None else v for k, v in given.items()}
-        given["method_options"] = {**lab["method_options"], **(method_options or {})}
-    mesh, targets, gray_card, truth, method_options = (given[k] for k in ("mesh", "targets", "gray_card",
-                                                                          "truth", "method_options"))
-    probe_reflectance = 1.0 if given["probe_reflectance"] is None else given["probe_reflectance"]
-    if mesh is None:
-        raise ValueError("mesh: the object's mesh is needed (gonio process --mesh FILE)")
+    if lab is None:
+        lab = resolve_lab(store, session, mesh=mesh, targets=targets, gray_card=gray_card,
+                          probe_reflectance=probe_reflectance, truth=truth, method_options=method_options)
+    elif any(v is not None for v in (mesh, targets, gray_card, probe_reflectance, truth, method_options)):
+        raise ValueError("give the session's lab (lab=) or its parts (mesh=, targets= ...), not both")
+    mesh, truth, method_options = lab.require_mesh(), lab.truth, lab.method_options
     # one process per session: a second `gonio process` (or a capture) gets SessionBusy instead
     # of failing mid-way or storing every method twice
     with store.writer(session):
         rep = ProcessReport(session)
         clock = _Clock(rep, progress)
         with clock.stage("calibration"):
-            rep.calibration = _calibration(store, session, targets, force, progress)
+            rep.calibration = _calibration(store, session, lab.targets, force, progress)
         if rep.calibration and rep.calibration[-1]["status"] == "skipped" and rep.calibration[-1]["stage"] == "calibration":
             # nothing to calibrate: say what the session lacks, not "run gonio calibrate"
             raise MissingCalibration(f"the session cannot be calibrated: {rep.calibration[-1]['reason']}")
-        cal = read_calibration(store, session, gray_card=gray_card, probe_reflectance=probe_reflectance)
-        check_mesh_placement(mesh, cal.camera, "the mesh" if lab is None else "the simulated lab's mesh")
+        cal = read_calibration(store, session, gray_card=lab.gray_card, probe_reflectance=lab.probe_reflectance)
+        check_mesh_placement(mesh, cal.camera, "the simulated lab's mesh" if lab.built_in else "the mesh")
         if truth is not None:
             rep.calibration_truth = calibration_against_truth(store, session, cal, truth)
         # a method stored from another calibration (one since redone) is stale: fitted again
@@ -318,14 +258,6 @@ def _jsonable(obj: Any) -> Any:
     return str(obj)
 
 
-def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
-    """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
-    (at its frames' resolution), None for any other rig."""
-    if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
-        return None
-    return demo_lab_for(store, session).process_options()
-
-
 def _calibration(store: Store, session: str, targets, force: bool,
                  progress: ProgressSink | None) -> list[dict[str, Any]]:
     """Reuse the stored calibration when it is complete and matches the session's frames
@@ -333,8 +265,8 @@ def _calibration(store: Store, session: str, targets, force: bool,
     info = store.session(session)
     state = stored_calibration(store, info.id)
     if state.complete and not force:
-        return [{"stage": s["stage"], "status": "stored" if s.get("calibration_id") else s["status"],
-                 "reason": f"result {s['calibration_id']}" if s.get("calibration_id") else s.get("reason", ""),
+        return [{"stage": s.stage, "status": "stored" if s.calibration_id else s.status,
+                 "reason": f"result {s.calibration_id}" if s.calibration_id else s.reason,
                  "figures": {}} for s in state.stages]
     redone = [] if force or state.why == "no calibration is stored" else [
         {"stage": "calibration", "status": "redone", "reason": state.why, "figures": {}}]
@@ -436,17 +368,17 @@ def calibration_against_truth(store: Store, session: str, cal: SessionCalibratio
         "principal_point_error_px": [float(K[0, 2] - Kt[0, 2]), float(K[1, 2] - Kt[1, 2])],
         "camera_centre_error_mm": float(np.linalg.norm(cal.camera.center - truth.camera.center)),
         "light_source": cal.light_source}
-    steps = {i: d for i, d, _ in store.steps(store.session(session).id)}
+    steps = {s.index: s.step for s in store.steps(store.session(session).id)}
     rows, seen = [], set()
     for s, p in sorted(cal.lights_mm.items()):
-        light = steps[s].get("light")
-        if not light or "azimuth_deg" not in light or _key(light) in seen:
+        light = steps[s].light
+        if light is None or light.xyz_mm is not None or _key(light) in seen:
             continue
         seen.add(_key(light))
         t = truth.light_position(light)
         d = float(np.linalg.norm(t))
         cosang = float(p @ t / (np.linalg.norm(p) * d))
-        rows.append({"azimuth_deg": light["azimuth_deg"], "elevation_deg": light["elevation_deg"],
+        rows.append({"azimuth_deg": light.azimuth_deg, "elevation_deg": light.elevation_deg,
                      "error_mm": float(np.linalg.norm(p - t)), "distance_error_pct": 100 * float(np.linalg.norm(p) / d - 1),
                      "direction_error_deg": float(np.degrees(np.arccos(np.clip(cosang, -1, 1))))})
     out["lights"] = rows
@@ -454,12 +386,12 @@ def calibration_against_truth(store: Store, session: str, cal: SessionCalibratio
         out["max_light_distance_error_pct"] = max(abs(r["distance_error_pct"]) for r in rows)
         out["max_light_direction_error_deg"] = max(r["direction_error_deg"] for r in rows)
         out["max_light_error_pct_of_distance"] = max(100 * r["error_mm"] / float(np.linalg.norm(
-            truth.light_position(r))) for r in rows)
+            truth.light_position(LightTarget(r["azimuth_deg"], r["elevation_deg"])))) for r in rows)
     if cal.absolute:
         expected = truth.light_intensity * truth.sensor_dn_per_radiance
         out["intensity_error_pct"] = (100 * (cal.light_intensity / expected - 1)).tolist()
     return out
 
 
-def _key(light: dict) -> tuple:
-    return round(light["azimuth_deg"], 3), round(light["elevation_deg"], 3)
+def _key(light: LightTarget) -> tuple:
+    return round(light.azimuth_deg, 3), round(light.elevation_deg, 3)

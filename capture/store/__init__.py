@@ -13,7 +13,7 @@ from .migrations import MIGRATIONS, SCHEMA_VERSION
 from .names import NAME_MAX, check_session_name, inside, safe_name_from
 from .objects import sha256_file
 from .rebuild import RebuildReport
-from .records import FrameRecord, Progress, ResultRecord, SessionInfo, VerifyReport
+from .records import FrameRecord, Progress, ResultRecord, SessionInfo, StoredStep, VerifyReport
 from .version import code_version
 
 __all__ = [
@@ -21,6 +21,6 @@ __all__ = [
     "SCHEMA_VERSION", "STATES", "ForeignDatabase", "FrameRecord", "InvalidName", "ObjectDamaged", "Progress",
     "RebuildReport", "ResultRecord",
     "SchemaError", "SessionBusy", "SessionExists", "SessionInfo", "SessionNotFound", "Store",
-    "StoreDamaged", "StoreError", "StoreFull", "VerifyReport", "check_session_name",
+    "StoreDamaged", "StoreError", "StoreFull", "StoredStep", "VerifyReport", "check_session_name",
     "code_version", "inside", "safe_name_from", "sha256_file",
 ]

@@ -42,7 +42,9 @@ from .migrations import MIGRATIONS, SCHEMA_VERSION, foreign_tables
 from .journal import Journals
 from .names import check_session_name, inside
 from .objects import TMP_PREFIX, ObjectFiles, copy_hashed, sha256_file
-from .records import FrameRecord, Progress, ResultRecord, SessionInfo, VerifyReport
+from .rebuild import RebuildReport, rebuild_index
+from .records import FrameRecord, Progress, ResultRecord, SessionInfo, StoredStep, VerifyReport
+from .rows import dumps, try_lock
 
 DB_NAME = "gonio.sqlite"
 STATES = ("planned", "running", "paused", "done", "aborted")
@@ -60,30 +62,9 @@ QUARANTINE_MIN_AGE_S = 7 * 24 * 3600.0
 _BAD_SHA_SQL = "(typeof({0}) != 'text' OR length({0}) != 64 OR {0} GLOB '*[^0-9a-f]*')"
 
 
-def _dumps(obj: Any) -> str:
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
-
-
-def _json_default(obj: Any) -> Any:
-    # numpy scalars / arrays and tuples from device read-backs
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    if isinstance(obj, (set, frozenset)):
-        return sorted(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
-
-
 def _is_full(exc: sqlite3.Error) -> bool:
     return getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
 
-
-def _try_lock(fd: int) -> bool:
-    """Take ``fd``'s exclusive flock without waiting; False when another holder has it."""
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return False
-    return True
 
 
 
@@ -379,7 +360,7 @@ class Store:
         db.executemany(
             "INSERT INTO events (session_id, time, kind, step, device, message, data_json) "
             "VALUES (?, ?, ?, ?, ?, ?, ?)",
-            [(session_id, e.time, e.kind.value, e.step, e.device, e.message, _dumps(e.data))
+            [(session_id, e.time, e.kind.value, e.step, e.device, e.message, dumps(e.data))
              for e in events])
 
     # -- locks --------------------------------------------------------------------------------
@@ -400,12 +381,12 @@ class Store:
         info = self.session(session)
         sfd = self._lock_file(f"session-{info.id}.lock")
         try:
-            if not _try_lock(sfd):
+            if not try_lock(sfd):
                 raise SessionBusy(f"session {session!r} is being written by another process; "
                                   "wait for it to finish or pause it there")
             wfd = self._lock_file("writers.lock")
             try:
-                removed = self.collect_garbage() if _try_lock(wfd) else None
+                removed = self.collect_garbage() if try_lock(wfd) else None
                 fcntl.flock(wfd, fcntl.LOCK_SH)  # converts the exclusive lock if we held it
                 self._keep_reserve()
                 yield removed
@@ -461,12 +442,12 @@ class Store:
                 cur = db.execute(
                     "INSERT INTO sessions (name, operator, object, notes, state, plan_json, "
                     "plan_hash, plan_path, created, updated) VALUES (?,?,?,?,?,?,?,?,?,?)",
-                    (name, operator, object, notes, "planned", _dumps(plan), plan_hash,
+                    (name, operator, object, notes, "planned", dumps(plan), plan_hash,
                      plan_path, now, now))
                 sid = cur.lastrowid
                 db.executemany("INSERT INTO steps (session_id, idx, step_json, frames) "
                                "VALUES (?,?,?,?)",
-                               [(sid, i, _dumps(s), s["frames"]) for i, s in enumerate(steps)])
+                               [(sid, i, dumps(s), s["frames"]) for i, s in enumerate(steps)])
         except BaseException as exc:
             journal.unlink(missing_ok=True)
             if not isinstance(exc, sqlite3.IntegrityError):
@@ -512,7 +493,7 @@ class Store:
                               {"taken": taken, "config": config, "describe": describe})
         with self._write() as db:
             db.execute("INSERT INTO rig_snapshots (session_id, taken, config_json, describe_json) "
-                       "VALUES (?,?,?,?)", (session_id, taken, _dumps(config), _dumps(describe)))
+                       "VALUES (?,?,?,?)", (session_id, taken, dumps(config), dumps(describe)))
 
     def _journal_of(self, session_id: int) -> Path | None:
         """The session's journal file (see :mod:`.journal`), looked up once."""
@@ -549,12 +530,12 @@ class Store:
                 for r in self._query(sql, args)]
 
     # -- steps --------------------------------------------------------------------------------
-    def steps(self, session_id: int, *, pending_only: bool = False) -> list[tuple[int, dict, bool]]:
-        """``(index, step dict, done)`` in execution order."""
+    def steps(self, session_id: int, *, pending_only: bool = False) -> list[StoredStep]:
+        """The session's steps in execution order."""
         sql = "SELECT idx, step_json, done FROM steps WHERE session_id = ?"
         if pending_only:
             sql += " AND done = 0"
-        return [(r[0], json.loads(r[1]), bool(r[2]))
+        return [StoredStep(r[0], json.loads(r[1]), bool(r[2]))
                 for r in self._query(sql + " ORDER BY idx", (session_id,))]
 
     def progress(self, session_id: int) -> Progress:
@@ -687,8 +668,8 @@ class Store:
                     "stored_at = excluded.stored_at, metadata_json = excluded.metadata_json "
                     "RETURNING id",
                     (session_id, step, bracket_index, repeat, sha, len(data), filename, format,
-                     exposure_requested_s, exposure_s, iso, fnumber, _dumps(positions or {}),
-                     now if captured_at is None else captured_at, now, _dumps(metadata or {})))
+                     exposure_requested_s, exposure_s, iso, fnumber, dumps(positions or {}),
+                     now if captured_at is None else captured_at, now, dumps(metadata or {})))
                 frame_id = cur.fetchone()[0]
                 self._insert_events(db, session_id, events)
                 if completes_step:
@@ -772,8 +753,8 @@ class Store:
                                          "frames of this session")
                 cur = db.execute("INSERT INTO results (session_id, category, kind, created, params_json, "
                                  "result_json, input_frames_json, code_version) VALUES (?,?,?,?,?,?,?,?)",
-                                 (session_id, category, kind, time.time(), _dumps(params or {}),
-                                  _dumps(result), _dumps(frame_ids), code))
+                                 (session_id, category, kind, time.time(), dumps(params or {}),
+                                  dumps(result), dumps(frame_ids), code))
                 rid = cur.lastrowid
                 db.executemany("INSERT INTO result_objects (result_id, name, sha256, size) VALUES (?,?,?,?)",
                                [(rid, n, sha, size) for n, (sha, size) in stored.items()])
@@ -833,7 +814,7 @@ class Store:
         except FileNotFoundError:
             return False
         try:
-            return not _try_lock(fd)
+            return not try_lock(fd)
         finally:
             os.close(fd)  # closing releases the probe's lock
 
@@ -879,7 +860,7 @@ class Store:
         session is written (:class:`SessionBusy`), like :meth:`remove_orphans`."""
         fd = self._lock_file("writers.lock")
         try:
-            if not _try_lock(fd):
+            if not try_lock(fd):
                 raise SessionBusy(f"a session in {self.root} is being written; try again once it ends")
             cutoff, removed = time.time() - min_age_s, []
             for p in self.quarantined():
@@ -894,7 +875,6 @@ class Store:
     def rebuild_index(self) -> "RebuildReport":
         """Put back the sessions and frames the database lacks, from the session journals and
         the frame files (:mod:`capture.store.rebuild`)."""
-        from .rebuild import rebuild_index
         return rebuild_index(self)
 
     def remove_orphans(self) -> list[str]:
@@ -909,7 +889,7 @@ class Store:
         """
         fd = self._lock_file("writers.lock")
         try:
-            if not _try_lock(fd):
+            if not try_lock(fd):
                 raise SessionBusy(f"a session in {self.root} is being written; orphans are removed "
                                   "when the next runner starts, or try again once it ends")
             return self.collect_garbage()

@@ -17,7 +17,9 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from .errors import SessionBusy
 from .objects import sha256_file
+from .rows import dumps, try_lock
 
 if TYPE_CHECKING:
     from .database import Store
@@ -43,11 +45,9 @@ def rebuild_index(store: "Store") -> RebuildReport:
     SessionBusy
         A session of the store is being written (its rows are in flight).
     """
-    from .database import _dumps, _try_lock
-    from .errors import SessionBusy
     fd = store._lock_file("writers.lock")
     try:
-        if not _try_lock(fd):
+        if not try_lock(fd):
             raise SessionBusy(f"a session in {store.root} is being written; rebuild the index once it ends")
         report = RebuildReport()
         for path, records in store._journals.read():
@@ -74,10 +74,10 @@ def rebuild_index(store: "Store") -> RebuildReport:
                     sid = db.execute(
                         "INSERT INTO sessions (name, operator, object, notes, state, plan_json, plan_hash, "
                         "plan_path, created, updated) VALUES (?,?,?,?,?,?,?,?,?,?)",
-                        (name, head["operator"], head["object"], head["notes"], "paused", _dumps(head["plan"]),
+                        (name, head["operator"], head["object"], head["notes"], "paused", dumps(head["plan"]),
                          head["plan_hash"], head["plan_path"], head["created"], time.time())).lastrowid
                     db.executemany("INSERT INTO steps (session_id, idx, step_json, frames) VALUES (?,?,?,?)",
-                                   [(sid, i, _dumps(s), s["frames"]) for i, s in enumerate(head["steps"])])
+                                   [(sid, i, dumps(s), s["frames"]) for i, s in enumerate(head["steps"])])
                     report.sessions_added.append(name)
                     new = True
                 taken = {r[0] for r in db.execute("SELECT taken FROM rig_snapshots WHERE session_id = ?", (sid,))}
@@ -85,8 +85,8 @@ def rebuild_index(store: "Store") -> RebuildReport:
                     snap = r.get("rig_snapshot")
                     if isinstance(snap, dict) and snap["taken"] not in taken:
                         db.execute("INSERT INTO rig_snapshots (session_id, taken, config_json, describe_json) "
-                                   "VALUES (?,?,?,?)", (sid, snap["taken"], _dumps(snap["config"]),
-                                                        _dumps(snap["describe"])))
+                                   "VALUES (?,?,?,?)", (sid, snap["taken"], dumps(snap["config"]),
+                                                        dumps(snap["describe"])))
                 have = {(r[0], r[1], r[2]): r[3] for r in db.execute(
                     "SELECT step, bracket_index, repeat, sha256 FROM frames WHERE session_id = ?", (sid,))}
                 for key, f in sorted(frames.items()):

@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
+
+from ..plan import Step
 
 
 @dataclass(frozen=True)
@@ -20,6 +23,26 @@ class SessionInfo:
     plan_path: str | None
     created: float
     updated: float
+
+
+@dataclass(frozen=True)
+class StoredStep:
+    """One stored step: its ``index`` in execution order, ``spec`` the JSON it was stored as and
+    whether it is ``done``. :attr:`step` is the capture plan's :class:`capture.plan.Step` (a
+    session imported from elsewhere stores steps of its own, read through ``spec``)."""
+
+    index: int
+    spec: dict[str, Any]
+    done: bool
+
+    @cached_property
+    def step(self) -> Step:
+        """The plan step (``ValueError`` naming the step when ``spec`` is not one)."""
+        try:
+            return Step.from_dict(self.spec)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"stored step {self.index} is not a capture plan's step ({type(exc).__name__}: "
+                             f"{exc}); its kind is {self.spec.get('kind')!r}") from None
 
 
 @dataclass(frozen=True)

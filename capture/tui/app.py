@@ -31,7 +31,7 @@ from ..events import Event, EventKind
 from ..plan import Step, step_prompt
 from ..preview import PreviewError, make_preview
 from ..runner import RunnerError
-from ..store import StoreError
+from ..store import StoredStep, StoreError
 from . import backend
 from .devices import ROWS, DeviceRequest, DevicesPane, DeviceState, light_direction, snapshot
 from .help import HelpScreen
@@ -105,7 +105,7 @@ class SessionLoaded(Message):
     """A plan or a session was read: its steps (None: unchanged) and a summary line, and the
     sessions of the store."""
 
-    def __init__(self, steps: list[tuple[int, dict, bool]] | None, summary: str,
+    def __init__(self, steps: list[StoredStep] | None, summary: str,
                  sessions: list[tuple[str, str, str]]) -> None:
         super().__init__()
         self.steps, self.summary, self.sessions = steps, summary, sessions

@@ -7,12 +7,14 @@ from typing import Any, Callable
 
 from rig.rig import Rig
 
+from ..lab_resolver import resolve_lab
 from ..pipeline.progress import Progress as ProgressEvent
+from ..pipeline.run import process_session
 from ..plan import MotionModel, Plan, Step
 from ..rigs import OpenedRig, home_all
 from ..rigs import open_rig as _open_rig
 from ..runner import Runner, create_session
-from ..store import Store
+from ..store import Store, StoredStep
 from .session import RESUMABLE, fmt_bytes, fmt_duration
 
 
@@ -52,8 +54,9 @@ def load_plan(path: str | Path) -> Plan:
     return Plan.from_toml(path)
 
 
-def plan_steps(plan: Plan, rig: Rig | None = None) -> list[tuple[int, dict, bool]]:
-    return [(s.index, s.to_dict(), False) for s in plan.steps(rig)]
+def plan_steps(plan: Plan, rig: Rig | None = None) -> list[StoredStep]:
+    """The plan's steps as the store would hold them, none done."""
+    return [StoredStep(s.index, s.to_dict(), False) for s in plan.steps(rig)]
 
 
 def plan_summary(plan: Plan, rig: Rig | None = None) -> str:
@@ -115,7 +118,7 @@ def make_runner(rig: Rig, store: Store, *, plan: Plan | None = None, plan_path: 
             raise ValueError(f"session {name!r} is {info.state}; only paused or interrupted "
                              "sessions can be resumed")
     steps = store.steps(info.id)
-    todo = [Step.from_dict(d) for _, d, done in steps if not done]
+    todo = [s.step for s in steps if not s.done]
     summary = _summary(MotionModel.from_rig(rig).estimate(todo), f"{info.name} (to do)")
     return Runner(rig, store, info, **runner_options), steps, summary
 
@@ -125,12 +128,11 @@ def process(store: Store, session: str, *, progress: Callable[[ProgressEvent], N
     """``gonio process`` on ``session``: ``mesh`` the object's (trimesh; a session recorded in the
     built-in simulated lab brings its own, with targets and truth); ``options`` go to
     :func:`capture.pipeline.run.process_session` (``methods`` ...). Returns its ``ProcessReport``."""
-    from ..pipeline.run import process_session
-    from ..rigs import recorded_in_built_in_lab
-    if mesh is None and not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
+    lab = resolve_lab(store, session, mesh=mesh)
+    if lab.mesh is None:
         raise ValueError("processing needs the object's mesh: start the console with --mesh FILE "
                          "(sessions recorded on --rig sim bring their own)")
-    return process_session(store, session, progress=progress, mesh=mesh, **options)
+    return process_session(store, session, progress=progress, lab=lab, **options)
 
 
 def headline(report: Any) -> list[tuple[str, str, str]]:

@@ -19,7 +19,8 @@ from textual.screen import ModalScreen
 from textual.widgets import DataTable, Input, Label, ProgressBar, Static
 
 from ..events import Event, EventKind
-from ..plan import SCENE_TARGETS
+from ..plan import SCENE_TARGETS, Step
+from ..store import StoredStep
 from .devices import light_direction
 
 #: store states a session can be resumed from ("running" in the store but not here: a crash)
@@ -53,25 +54,22 @@ def fmt_exposures(exposures: Any) -> str:
     return ", ".join(f"1/{1 / t:.0f}" if 0 < t < 0.5 else f"{t:g}" for t in vals) + " s"
 
 
-def describe_step(step: dict[str, Any]) -> dict[str, str]:
+def describe_step(step: Step) -> dict[str, str]:
     """Display columns of one plan step: turntable (deg), light (az/el deg or xyz mm),
     polarizer (deg), exposures (s)."""
     def deg(v: Any) -> str:
         return "-" if v is None else f"{v:g}°"
 
-    light = step.get("light")
-    if isinstance(light, dict):
-        if light.get("xyz_mm") is not None:
-            light_s = "({:g}, {:g}, {:g})".format(*light["xyz_mm"])
-        else:
-            light_s = f"{light.get('azimuth_deg', 0):g}/{light.get('elevation_deg', 0):g}°"
+    light = step.light
+    if light is None:
+        light_s = "-"
+    elif light.xyz_mm is not None:
+        light_s = "({:g}, {:g}, {:g})".format(*light.xyz_mm)
     else:
-        light_s = "-" if light is None else str(light)
-    kind = step.get("kind") or step.get("target") or ""
-    return {"turntable": deg(step.get("turntable_deg")), "light": light_s,
-            "polarizer": deg(step.get("polarizer_deg")),
-            "exposures": fmt_exposures(step.get("exposures_s")),
-            "kind": "" if kind in ("object", "measure") else str(kind)}
+        light_s = f"{light.azimuth_deg:g}/{light.elevation_deg:g}°"
+    kind = step.kind or step.target or ""
+    return {"turntable": deg(step.turntable_deg), "light": light_s, "polarizer": deg(step.polarizer_deg),
+            "exposures": fmt_exposures(step.exposures_s), "kind": "" if kind in ("object", "measure") else str(kind)}
 
 
 class SessionRequest(Message):
@@ -140,21 +138,19 @@ class SessionPane(Vertical):
         self.query_one("#processing").display = False
 
     # -- state in -----------------------------------------------------------------------------
-    def show_plan(self, steps: list[tuple[int, dict, bool]], summary: str,
-                  path: str | None = None) -> None:
-        """Fill the steps table; ``steps`` as ``(index, step dict, done)``; ``path`` is the
-        plan file, if any."""
+    def show_plan(self, steps: list[StoredStep], summary: str, path: str | None = None) -> None:
+        """Fill the steps table; ``path`` is the plan file, if any."""
         self.query_one("#plan-summary", Static).update(Text(summary))  # user text: no markup
         if path:
             self.query_one("#plan-path", Input).value = path
         table = self.query_one("#steps", DataTable)
         table.clear()
-        for idx, step, done in steps:
-            cols = describe_step(step)
-            table.add_row(str(idx), cols["turntable"], cols["light"], cols["polarizer"],
-                          cols["exposures"], cols["kind"], "done" if done else "", key=str(idx))
+        for s in steps:
+            cols = describe_step(s.step)
+            table.add_row(str(s.index), cols["turntable"], cols["light"], cols["polarizer"],
+                          cols["exposures"], cols["kind"], "done" if s.done else "", key=str(s.index))
         bar = self.query_one(ProgressBar)
-        bar.update(total=max(len(steps), 1), progress=sum(done for _, _, done in steps))
+        bar.update(total=max(len(steps), 1), progress=sum(s.done for s in steps))
 
     def show_sessions(self, rows: list[tuple[str, str, str]]) -> None:
         """``(name, state, "done/total")`` per session in the store, newest first."""

@@ -122,9 +122,11 @@ def test_a_full_disk_during_process_exits_4_keeping_what_was_stored(tmp_path, mo
 
 def test_process_without_calibration_captures_says_what_the_session_lacks(tmp_path):
     import trimesh
+    from capture.plan import Step
     from capture.store import Store
     with Store(tmp_path / "store", durable=False) as st:
-        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"kind": "measure", "frames": 1}]).id
+        step = Step(0, "measure", "object", None, None, None, (0.01,))
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[step.to_dict()]).id
         st.add_frame(sid, 0, 0, 0, data=b"raw" * 50, filename="a.dng", format="dng",
                      exposure_requested_s=0.01, exposure_s=0.01, completes_step=True)
         before = st.results(sid)

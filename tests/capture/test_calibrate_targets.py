@@ -26,12 +26,13 @@ def _dark_session(root, config: dict) -> Store:
     create_session(store, plan, None, name="s", reserve_bytes=0)
     sid = store.session("s").id
     store.add_rig_snapshot(sid, config, {})
-    for idx, step, _ in store.steps(sid):
-        for rep in range(step["repeats"]):
+    for stored in store.steps(sid):
+        idx, step = stored.index, stored.step
+        for rep in range(step.repeats):
             store.add_frame(sid, idx, 0, rep, data=placeholder_frame(
                 {"exposure_s": 0.01, "iso": 100.0, "fnumber": 8.0}, size=(64, 48), seed=rep),
                 filename="f.dng", format="dng", exposure_requested_s=0.01, exposure_s=0.01,
-                completes_step=rep == step["repeats"] - 1)
+                completes_step=rep == step.repeats - 1)
     return store
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from capture.pipeline.images import FrameDataError, SessionImages, dark_artifact_name
+from capture.plan import Step
 from capture.store import Store
 from sims.dng import write_dng
 
@@ -22,8 +23,8 @@ def _session(tmp_path, exposures, *, recorded=None):
     radiance = rng.uniform(2_000, 20_000, (H, W))
     pattern = rng.uniform(10, 40, (H, W))  # >= 10 DN: a missed dark shows
     store = Store(tmp_path / "st", durable=False)
-    sid = store.create_session("s", plan={}, plan_hash="h",
-                               steps=[{"kind": "measure", "frames": len(exposures)}]).id
+    step = Step(0, "measure", "object", None, None, None, tuple(exposures))
+    sid = store.create_session("s", plan={}, plan_hash="h", steps=[step.to_dict()]).id
     for k, t in enumerate(exposures):
         raw = np.round(BLACK + pattern + radiance * t).astype(np.uint16)
         t_rec = t if recorded is None else recorded[k]

@@ -11,6 +11,7 @@ import pytest
 from capture.plan import (DEFAULT_FRAME_BYTES, MotionModel, Plan, PlanError, Step, _serpentine,
                           frame_bytes_from_describe, plan_diff)
 from capture_fakes import SMALL_PLAN, make_rig
+from rig import LightTarget
 from sims.dng import write_dng
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "plan.toml"
@@ -64,7 +65,7 @@ def test_full_plan_parses_with_ranges_and_defaults(tmp_path):
     assert cb == [0.0, 45.0, 90.0]
     assert [s.index for s in steps] == list(range(len(steps)))
     # every (turntable, light, polarizer) pose exactly once
-    poses = {(s.turntable_deg, s.light["azimuth_deg"], s.light["elevation_deg"], s.polarizer_deg)
+    poses = {(s.turntable_deg, s.light.azimuth_deg, s.light.elevation_deg, s.polarizer_deg)
              for s in measure}
     assert len(poses) == len(measure)
 
@@ -178,8 +179,8 @@ def test_serpentine_moves_one_axis_one_grid_step_at_a_time(tmp_path):
         if a.turntable_deg != b.turntable_deg:
             assert abs(a.turntable_deg - b.turntable_deg) == 30
         if a.light != b.light:
-            assert (abs(a.light["azimuth_deg"] - b.light["azimuth_deg"]) == 60) != \
-                   (abs(a.light["elevation_deg"] - b.light["elevation_deg"]) == 30)
+            assert (abs(a.light.azimuth_deg - b.light.azimuth_deg) == 60) != \
+                   (abs(a.light.elevation_deg - b.light.elevation_deg) == 30)
 
 
 def test_fastest_axis_is_innermost_and_nesting_is_optimal():
@@ -198,7 +199,7 @@ def test_fastest_axis_is_innermost_and_nesting_is_optimal():
     for names in itertools.permutations(axes):
         grid = [dict(zip(names, combo)) for combo in _serpentine([axes[n] for n in names])]
         other = [Step(0, "measure", "object", v["turntable"],
-                      {"azimuth_deg": v["light_az"], "elevation_deg": v["light_el"]}, v["polarizer"],
+                      LightTarget(v["light_az"], v["light_el"]), v["polarizer"],
                       (0.01,)) for v in grid]
         costs.append(model.estimate(other).motion_s)
     assert chosen == pytest.approx(min(costs)) and max(costs) > 1.5 * chosen

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from capture.pipeline.plan_table import compact_angles, plan_rows
-from capture.plan import Plan
+from capture.plan import Plan, Step
 from capture.store import FrameRecord
 
 SMALL_PLAN = {
@@ -33,8 +33,8 @@ def test_compact_angles_writes_runs(angles, period, text):
     assert compact_angles(angles, period=period) == text
 
 
-def _kind(step: dict) -> str:
-    return step["kind"] + (" (held out)" if step.get("held_out") else "")
+def _kind(step: Step) -> str:
+    return step.kind + (" (held out)" if step.held_out else "")
 
 
 def _frame(step: int, size: int) -> FrameRecord:
@@ -44,9 +44,9 @@ def _frame(step: int, size: int) -> FrameRecord:
 
 
 def test_plan_rows_group_a_small_plan_by_kind_with_compact_angles_and_stored_bytes():
-    steps = [s.to_dict() for s in Plan.from_dict(SMALL_PLAN).steps()]
+    steps = Plan.from_dict(SMALL_PLAN).steps()
     # every planned frame stored except the last step's, at 1000 + step bytes each
-    stored = [_frame(s["index"], 1000 + s["index"]) for s in steps[:-1] for _ in range(s["frames"])]
+    stored = [_frame(s.index, 1000 + s.index) for s in steps[:-1] for _ in range(s.frames)]
     rows = {r.kind: r for r in plan_rows(steps, stored)}
     assert list(rows) == list(dict.fromkeys(map(_kind, steps)))
     m = rows["measure"]
@@ -63,4 +63,4 @@ def test_plan_rows_group_a_small_plan_by_kind_with_compact_angles_and_stored_byt
     assert sum(r.frames_stored for r in rows.values()) == len(stored)
     assert sum(r.bytes_stored for r in rows.values()) == sum(f.size for f in stored)
     last = rows[_kind(steps[-1])]
-    assert last.frames_stored == last.frames_planned - steps[-1]["frames"]
+    assert last.frames_stored == last.frames_planned - steps[-1].frames

@@ -12,7 +12,7 @@ import base64
 import json
 import re
 import shutil
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -83,15 +83,15 @@ def test_lamp_intensity_from_the_gray_card_matches_the_camera_equation(inputs, c
     # the card's photometry given the calibrated light: I ~ d^2 / cos at the card, so with the
     # true light's d and cos the estimate must match the camera equation (seen: -1 %; the card's
     # 10 % spread of fall-off and vignetting about its median)
-    steps = {i: d for i, d, _ in store.steps(store.session("proc").id)}
-    card = next(i for i, d in steps.items() if d["kind"] == "gray_card")
+    steps = {s.index: s.step for s in store.steps(store.session("proc").id)}
+    card = next(i for i, d in steps.items() if d.kind == "gray_card")
     c, n = np.array(lab.gray_card_pose().centre_mm), np.array(lab.gray_card_pose().normal)
 
     def d2_over_cos(light):
         v = light - c
         return float(v @ v) / float(n @ v / np.linalg.norm(v))
 
-    conditional = cal.light_intensity * d2_over_cos(truth.light_position(steps[card]["light"])) \
+    conditional = cal.light_intensity * d2_over_cos(truth.light_position(steps[card].light)) \
         / d2_over_cos(cal.lights_mm[card])
     np.testing.assert_allclose(conditional, expected, rtol=0.04)
     # end to end it carries the light's calibration error (seen: -11.7 %: the arm model fitted to
@@ -102,19 +102,19 @@ def test_lamp_intensity_from_the_gray_card_matches_the_camera_equation(inputs, c
 def test_views_carry_the_calibrated_pose_light_and_camera(inputs, captured):
     cal, inp, *_ = inputs
     store, lab, _ = captured
-    steps = {i: d for i, d, _ in store.steps(store.session("proc").id)}
+    steps = {s.index: s.step for s in store.steps(store.session("proc").id)}
     truth = lab.truth()
     assert len(inp.views) == 2 * 6 and len(inp.held_out) == 2 and inp.separated
     for view, ids in zip([*inp.views, *inp.held_out], [*inp.view_steps, *inp.held_out_steps]):
         spec = steps[ids[0]]
-        assert {steps[i]["polarizer_deg"] for i in ids} == {0.0, 90.0}   # parallel + crossed -> one view
-        a = np.radians(spec["turntable_deg"])
+        assert {steps[i].polarizer_deg for i in ids} == {0.0, 90.0}   # parallel + crossed -> one view
+        a = np.radians(spec.turntable_deg)
         angle = np.degrees(np.arctan2(view.object_to_world[1, 0], view.object_to_world[0, 0]))
-        assert abs((angle - spec["turntable_deg"] + 180) % 360 - 180) < 0.5, (angle, a)
-        true_light = truth.light_position(spec["light"])
+        assert abs((angle - spec.turntable_deg + 180) % 360 - 180) < 0.5, (angle, a)
+        true_light = truth.light_position(spec.light)
         # seen: up to 5.0 % of the distance: three 25 mm balls at 320 x 240 (~40 px wide) and an
         # arm model over seven lights
-        assert np.linalg.norm(view.light_position - true_light) < 0.07 * np.linalg.norm(true_light), spec["light"]
+        assert np.linalg.norm(view.light_position - true_light) < 0.07 * np.linalg.norm(true_light), spec.light
     # seen: 0.9 % focal length, 10 px principal point at 320 x 240
     assert cal.camera.K[0, 0] == pytest.approx(truth.camera.K[0, 0], rel=0.015)
 
@@ -142,8 +142,8 @@ def test_measured_reflectance_matches_the_true_materials(inputs, captured):
 def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
     _, inp, train, held = inputs
     store = captured[0]
-    steps = {i: d for i, d, _ in store.steps(store.session("proc").id)}
-    flagged = {i for i, d in steps.items() if d.get("held_out")}
+    steps = {s.index: s.step for s in store.steps(store.session("proc").id)}
+    flagged = {i for i, d in steps.items() if d.held_out}
     assert {i for ids in inp.held_out_steps for i in ids} == flagged and len(flagged) == 4
     assert not flagged & {i for ids in inp.view_steps for i in ids}
     n = len(inp.views)
@@ -157,8 +157,8 @@ def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
 def processed(captured, tmp_path_factory):
     store, lab, _ = captured
     # (Lensch runs in the demo test; here the reference and a small sharing fit keep it quick)
-    kw = {**lab.process_options(), "report_path": tmp_path_factory.mktemp("report") / "r.html",
-          "method_options": {"sharing": {"max_centers": 200}}}
+    session_lab = replace(lab.session_lab("proc"), method_options={"sharing": {"max_centers": 200}})
+    kw = {"lab": session_lab, "report_path": tmp_path_factory.mktemp("report") / "r.html"}
     return process_session(store, "proc", methods=["lambertian", "sharing"], **kw), kw
 
 
@@ -316,9 +316,8 @@ def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captur
     shutil.copytree(root / "store", tmp_path / "store")
     store = Store(tmp_path / "store", durable=False)
     store.add_rig_snapshot(store.session("proc").id, {"rig": {"name": "bench"}}, {})
-    opts = {k: v for k, v in lab.process_options().items() if k != "truth"}
     rep = process_session(store, "proc", methods=["lambertian"], force=True, report_path=tmp_path / "real.html",
-                          **opts)
+                          lab=replace(lab.session_lab("proc"), truth=None, built_in=False))
     text = rep.report_path.read_text()
     assert "ground truth" not in text and "vs truth" not in text and "true normals" not in text
     assert not rep.calibration_truth and "measured_vs_truth_rel_rms" not in rep.inputs
@@ -396,7 +395,7 @@ def test_process_and_verify_name_the_same_damaged_frame(captured, tmp_path, dama
     shutil.rmtree(store_dir / "arrays", ignore_errors=True)
     with Store(store_dir, durable=False) as st:
         sid = st.session("proc").id
-        measure = [i for i, d, _ in st.steps(sid) if d["kind"] == "measure"]
+        measure = [s.index for s in st.steps(sid) if s.step.kind == "measure"]
         f = st.frames(sid, step=measure[1])[0]
         path = st.object_path(f.sha256)
         before = len(st.results(sid))

@@ -18,16 +18,16 @@ def test_held_out_lights_are_captured_at_every_pose_and_marked():
     # 2 turntable angles x 2 held-out lights x 2 analyser angles, after the 2 x 2 x 2 grid
     assert len(measure) == 16 and len(held) == 8
     assert all(not s.held_out for s in measure[:8]) and all(s.held_out for s in measure[8:])
-    assert {(s.light["azimuth_deg"], s.light["elevation_deg"]) for s in held} == {(20.0, 50.0), (-30.0, 60.0)}
+    assert {(s.light.azimuth_deg, s.light.elevation_deg) for s in held} == {(20.0, 50.0), (-30.0, 60.0)}
     assert {(s.turntable_deg, s.polarizer_deg) for s in held} == {(a, p) for a in (0.0, 90.0) for p in (0.0, 90.0)}
     # the held_out flag survives the store's JSON round trip; a light dict stays a move target
-    assert Step.from_dict(held[0].to_dict()).held_out and "held_out" not in held[0].light
+    assert Step.from_dict(held[0].to_dict()) == held[0] and "held_out" not in held[0].to_dict()["light"]
     assert "held_out" not in measure[0].to_dict()
 
 
 def test_grid_calibrations_cover_held_out_lights_and_passive_is_one_lamp_off_step():
     steps = Plan.from_dict(BASE).steps()
-    spheres = [(s.light["azimuth_deg"], s.light["elevation_deg"]) for s in steps if s.kind == "spheres"]
+    spheres = [(s.light.azimuth_deg, s.light.elevation_deg) for s in steps if s.kind == "spheres"]
     assert set(spheres) == {(0.0, 30.0), (40.0, 30.0), (20.0, 50.0), (-30.0, 60.0)}
     passive = [s for s in steps if s.kind == "passive"]
     assert len(passive) == 1 and passive[0].target == "passive" and passive[0].light is None

@@ -65,12 +65,12 @@ def test_runs_every_step_with_readbacks_and_events(setup):
     last = [e for e in events if e.kind == EventKind.FRAME_STORED][-1]
     assert last.data["frames_done"] == PLANNED_FRAMES and last.data["steps_done"] == PLANNED_STEPS
     # read-backs per frame equal the planned pose (fake devices land exactly)
-    steps = {i: d for i, d, _ in store.steps(info.id)}
+    steps = {s.index: s.step for s in store.steps(info.id)}
     for f in store.frames(info.id):
         st = steps[f.step]
-        assert f.positions["turntable_deg"] == st["turntable_deg"]
-        assert f.positions["polarizer_deg"] == st["polarizer_deg"]
-        assert f.exposure_requested_s == pytest.approx(st["exposures_s"][f.bracket_index])
+        assert f.positions["turntable_deg"] == st.turntable_deg
+        assert f.positions["polarizer_deg"] == st.polarizer_deg
+        assert f.exposure_requested_s == pytest.approx(st.exposures_s[f.bracket_index])
         assert f.exposure_s == pytest.approx(f.exposure_requested_s)
     # moves of different devices were issued per step, only where the plan says
     assert len(rig.turntable.moves) == PLANNED_STEPS

@@ -66,12 +66,12 @@ def test_session_on_simulated_lab_records_readbacks(lab):
     assert Runner(opened.rig, store, "s", reserve_bytes=0).run() == "done"
     _complete(store)
     info = store.session("s")
-    steps = {i: d for i, d, _ in store.steps(info.id)}
+    steps = {s.index: s.step for s in store.steps(info.id)}
     for f in store.frames(info.id):
         st = steps[f.step]
         # read-backs from the drivers agree with the plan within the devices' resolution
-        assert f.positions["turntable_deg"] == pytest.approx(st["turntable_deg"], abs=0.01)
-        assert f.positions["polarizer_deg"] == pytest.approx(st["polarizer_deg"], abs=0.01)
+        assert f.positions["turntable_deg"] == pytest.approx(st.turntable_deg, abs=0.01)
+        assert f.positions["polarizer_deg"] == pytest.approx(st.polarizer_deg, abs=0.01)
         x, y, z = f.positions["light_mm"]
         assert z == pytest.approx(500 * 0.5, abs=0.1)  # elevation 30 deg on the 500 mm arm
         assert f.format == "dng" and store.read_object(f.sha256)[:2] in (b"II", b"MM")

@@ -219,7 +219,7 @@ def test_last_frame_completes_step_in_same_transaction(tmp_path):
         _frame(st, sid, 0, 1, b"b" * 10, completes_step=True)
         p = st.progress(sid)
         assert (p.steps_done, p.frames_stored, p.frames_total, p.bytes_stored) == (1, 2, 4, 20)
-        assert [(i, d) for i, _, d in st.steps(sid)] == [(0, True), (1, False)]
+        assert [(s.index, s.done) for s in st.steps(sid)] == [(0, True), (1, False)]
         assert st.events(sid)[0]["message"] == "hello"
 
 

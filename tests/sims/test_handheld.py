@@ -8,7 +8,7 @@ import pytest
 
 from calibration.raw import demosaic_bilinear, read_raw
 from calibration.targets import detect_charuco, make_charuco_board, to_gray_u8
-from capture.pipeline.demo_lab import BOARD, DemoLab
+from capture.pipeline.demo_lab import DemoLab
 from capture.plan import Plan
 from sims.handheld import HANDHELD_PLACES, handheld_board_pose, handheld_view
 from sims.world import CAPTURE_CHARUCO, SimWorld, default_camera
@@ -18,7 +18,7 @@ VIEWS = 12
 
 def _sheet_px(camera, T, *, distort: bool) -> np.ndarray:
     """The printed sheet's four corners in the image, (4, 2) px."""
-    x0, y0, x1, y1 = BOARD.extent_mm
+    x0, y0, x1, y1 = CAPTURE_CHARUCO.extent_mm
     pts = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], float) @ T[:3, :3].T + T[:3, 3]
     if distort:
         return camera.project(pts)
@@ -34,7 +34,7 @@ def test_views_tilt_as_stated_stay_in_frame_and_reach_every_corner(size):
     reached = set()
     for k in range(VIEWS):
         v = handheld_view(k, VIEWS)
-        T = handheld_board_pose(BOARD, cam, **v.pose_options())
+        T = handheld_board_pose(CAPTURE_CHARUCO, cam, **v.pose_options())
         normal_cam = cam.R @ T[:3, 2]  # the sheet's z (into it) in the camera frame
         assert np.degrees(np.arccos(normal_cam[2])) == pytest.approx(v.tilt_deg, abs=1e-6)
         # the tilt axis lies in the image plane at tilt_axis_deg from x: the normal leans across it
@@ -75,9 +75,9 @@ def test_view_sequence_and_bad_arguments():
         handheld_view(0, 0)
     cam = default_camera(320, 240)
     with pytest.raises(ValueError, match="anchor"):
-        handheld_board_pose(BOARD, cam, anchor=(2, 0))
+        handheld_board_pose(CAPTURE_CHARUCO, cam, anchor=(2, 0))
     with pytest.raises(ValueError, match="width_fraction"):
-        handheld_board_pose(BOARD, cam, width_fraction=0.95)
+        handheld_board_pose(CAPTURE_CHARUCO, cam, width_fraction=0.95)
 
 
 def test_demo_lab_renders_a_detectable_board_at_every_view():
@@ -85,7 +85,7 @@ def test_demo_lab_renders_a_detectable_board_at_every_view():
     (rms) of the true camera's projection of the board's corners."""
     lab = DemoLab(320, 240, seed=3)
     cam = lab.camera
-    board = make_charuco_board(BOARD.squares, BOARD.square_mm, BOARD.marker_mm, BOARD.dictionary)
+    board = make_charuco_board(CAPTURE_CHARUCO.squares, CAPTURE_CHARUCO.square_mm, CAPTURE_CHARUCO.marker_mm, CAPTURE_CHARUCO.dictionary)
     plan = Plan.from_dict({"calibration": [{"kind": "handheld_board", "views": 24, "exposure_s": 0.15}]})
     counts = []
     for step in plan.steps()[:len(HANDHELD_PLACES)]:  # every place in the frame (all 24 in the e2e test)
@@ -93,12 +93,12 @@ def test_demo_lab_renders_a_detectable_board_at_every_view():
         raw = read_raw(lab({"exposure_s": 0.15}))
         img = demosaic_bilinear(raw.data - raw.black_level, raw.channels)
         det = detect_charuco(to_gray_u8(img.mean(axis=2), white_percentile=99.5), board, frame=f"view {step.view}")
-        T = handheld_board_pose(BOARD, cam, **handheld_view(step.view, step.views).pose_options())
-        truth = cam.project(BOARD.corners_world(T))[det.ids]
+        T = handheld_board_pose(CAPTURE_CHARUCO, cam, **handheld_view(step.view, step.views).pose_options())
+        truth = cam.project(CAPTURE_CHARUCO.corners_world(T))[det.ids]
         assert np.sqrt(np.mean(np.sum((det.image_points - truth) ** 2, axis=1))) < 0.5, step.view
         counts.append(len(det.ids))
     assert np.median(counts) >= 20, counts  # of the board's 54
-    assert lab.targets().charuco_squares == BOARD.squares  # the lab still states its board
+    assert lab.targets().charuco_squares == CAPTURE_CHARUCO.squares  # the lab still states its board
     with pytest.raises(ValueError, match="which view"):
         lab.prepare_target("handheld_board", None)
 
