@@ -41,5 +41,7 @@ _register()
 
 
 def main() -> None:  # console script entry point
+    from .interrupts import install
+    install()   # before any command: a second Ctrl-C never ends gonio by SIGINT
     app()
 

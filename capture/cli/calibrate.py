@@ -7,7 +7,8 @@ the session (``gonio session show`` lists them) and writes the PNG report
 
 Exit status: 0 every stage that ran succeeded; 1 a stage failed (the table names the frame);
 2 usage or store errors (unknown session, unreadable store, bad --targets file);
-3 nothing to calibrate (no stored frames, or no calibration captures in the session).
+3 nothing to calibrate (no stored frames, or no calibration captures in the session), or
+interrupted (Ctrl-C; the same command calibrates again).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from rig.tomlfile import read_toml
 
 from ..pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
 from ..pipeline.progress import Progress as PipelineProgress
+from .interrupts import command_line, interruptible_command
 from .session import STORE_OPTION, fail, open_store
 from ..outputs import OutputError, check_out_folder, session_file
 from ..store import ObjectDamaged, SessionBusy, SessionNotFound
@@ -52,6 +54,9 @@ def _targets(path: Path | None) -> LabTargets | None:
         raise fail(f"--targets {path}: {exc}") from None
 
 
+@interruptible_command(lambda session, store, targets, out, **_: (
+    "the session's frames are kept and a calibration cut short is never reused; calibrate again with: "
+    + command_line("gonio", "calibrate", session, store=store, targets=targets, out=out)))
 def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
               store: str = STORE_OPTION,
               out: Path = typer.Option(None, "--out", help="Folder for the PNG report "

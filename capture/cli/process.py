@@ -8,7 +8,8 @@ Exit status: 0 every method that ran succeeded; 1 a method failed; 2 usage or st
 (unknown session, unreadable mesh or targets file, a bad --out, the session being written by
 another process, a damaged frame: the message names its step); 3 the session cannot give
 reconstruction inputs (no measurement steps, a stage of the calibration missing: the message says
-which); 4 the disk filled up: what was stored is kept, and the same command resumes.
+which), or it was interrupted (Ctrl-C, SIGTERM: what was stored is kept, and the same command
+resumes); 4 the disk filled up: what was stored is kept, and the same command resumes.
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ from ..outputs import OutputError, check_out_file, session_file
 from ..pipeline.progress import Progress as PipelineProgress
 from ..store import ObjectDamaged, SessionBusy, SessionNotFound, StoreFull
 from .calibrate import _targets
+from .interrupts import command_line, interruptible_command
 from .session import STORE_OPTION, fail, open_store
 
 EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS, EXIT_DISK_FULL = 0, 1, 3, 4
@@ -65,6 +67,15 @@ def print_outcome(rep, console: Console) -> None:
     console.print(f"report: {escape(str(rep.report_path))}", highlight=False, soft_wrap=True)
 
 
+def process_command(session: str, store: str, methods: str | None = None, mesh: Path | None = None,
+                    targets: Path | None = None, out: Path | None = None, **_) -> str:
+    """The ``gonio process`` command line that continues an interrupted one."""
+    return command_line("gonio", "process", session, store=store, methods=methods, mesh=mesh,
+                        targets=targets, out=out)
+
+
+@interruptible_command(lambda **kw: "every calibration stage and method stored so far is kept; resume "
+                       "with: " + process_command(**kw))
 def process(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
             store: str = STORE_OPTION,
             methods: str = typer.Option(None, "--methods", help="Comma-separated methods to run "

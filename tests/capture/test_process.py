@@ -153,7 +153,16 @@ def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
 
 
 @pytest.fixture(scope="module")
-def processed(captured, tmp_path_factory):
+def calibrated(captured, tmp_path_factory):
+    """A copy of the store as captured and calibrated, before any method ran (``processed`` asks
+    for it, so it is always taken first)."""
+    copy = tmp_path_factory.mktemp("calibrated") / "store"
+    shutil.copytree(captured[2] / "store", copy)
+    return copy
+
+
+@pytest.fixture(scope="module")
+def processed(captured, calibrated, tmp_path_factory):
     store, lab, _ = captured
     # (Lensch runs in the demo test; here the reference and a small sharing fit keep it quick)
     kw = {**lab.process_options(), "report_path": tmp_path_factory.mktemp("report") / "r.html",
@@ -369,6 +378,60 @@ def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_sa
         assert stored_calibration(st, sid).complete
         assert len(st.results(sid, "reconstruction")) == before + 1
         assert st.verify("proc").ok
+
+
+def _holds_writer_lock(store_dir, session_id: int) -> bool:
+    """True while some process holds the session's writer lock (:meth:`Store.writer`)."""
+    import fcntl
+    import os
+    path = store_dir / "locks" / f"session-{session_id}.lock"
+    if not path.exists():
+        return False
+    fd = os.open(path, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+
+
+def test_ctrl_c_twice_during_process_exits_3_keeping_what_was_stored(calibrated, tmp_path):
+    """A real ``gonio process`` sent SIGINT as soon as it works on the session, then again 0.1 s
+    later (while it unwinds): exit status 3, no traceback, the resume command, and the store as it
+    was plus whatever was completed (issue 19 #12)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from capture.pipeline.calibration_record import stored_calibration
+    store_dir = tmp_path / "store"
+    shutil.copytree(calibrated, store_dir)
+    with Store(store_dir, readonly=True) as st:
+        sid = st.session("proc").id
+        before = {r.id: r.result for r in st.results(sid)}
+        frames = st.frames(sid)
+    p = subprocess.Popen([sys.executable, "-m", "capture.cli", "process", "proc", "--store", str(store_dir),
+                          "--methods", "lambertian", "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not _holds_writer_lock(store_dir, sid) and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    p.send_signal(signal.SIGINT)
+    time.sleep(0.1)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=60)
+    said = " ".join((out + err).split())
+    assert p.returncode == 3, out + err
+    assert "Traceback" not in said and said.count("interrupted;") == 1
+    assert (f"interrupted; every calibration stage and method stored so far is kept; resume with: gonio process "
+            f"proc --store {store_dir} --methods lambertian") in said
+    with Store(store_dir, readonly=True) as st:
+        after = {r.id: r.result for r in st.results(sid)}
+        assert {k: after[k] for k in before} == before and st.frames(sid) == frames
+        assert stored_calibration(st, sid).complete
+        damage = st.verify("proc")   # an object written before its row is an orphan the next writer keeps
+        assert not (damage.missing or damage.corrupt or damage.incomplete_steps)
 
 
 def test_a_second_process_on_a_session_being_processed_is_refused(captured, tmp_path):
