@@ -34,21 +34,25 @@ from ..store import ObjectDamaged, SessionBusy, SessionNotFound
 EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
 
 
+class TargetsFileError(ValueError):
+    """The ``--targets`` file is missing, unreadable or not TOML (the message names it)."""
+
+
 def _targets(path: Path | None) -> LabTargets | None:
     """LabTargets from a TOML file of its field names (``sphere_radius_mm = 25.0`` ...); None
     without a file (the simulator's, for a session recorded on the simulated lab only)."""
     if path is None:
         return None
     try:
-        data = read_toml(path, what="--targets file")
-    except ValueError as exc:
+        data = read_toml(path, error=TargetsFileError, what="--targets file")
+    except TargetsFileError as exc:
         raise fail(str(exc)) from None
     known = {f.name for f in fields(LabTargets)}
     unknown = sorted(set(data) - known)
     if unknown:
         raise fail(f"--targets {path}: unknown key(s) {', '.join(unknown)}; "
                    f"known: {', '.join(sorted(known))}")
-    try:
+    try:   # the constructor is the check of the file's values: its errors are about them
         return LabTargets(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
     except (TypeError, ValueError) as exc:
         raise fail(f"--targets {path}: {exc}") from None

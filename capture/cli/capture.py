@@ -30,6 +30,7 @@ from rig import RigError
 
 from .session import (STORE_OPTION, check_store_option, display_state, fail, human_bytes, human_time, open_store,
                           unwrap)
+from .sim import MAX_SIDE_PX
 from .interrupts import command_line, counted, interruptible, interruptible_command
 from ..events import Event, EventKind
 from ..plan import Estimate, MotionModel, Plan, PlanError, Step, step_prompt
@@ -87,16 +88,18 @@ def _sim_camera(text: str | None, rig: str | None) -> dict[str, Any]:
     if rig != "sim":
         raise fail(f"--sim-camera sets the simulated lab's camera; it needs --rig sim, got --rig {rig!r}")
     width, _, height = text.lower().partition("x")
-    if not (width.isdigit() and height.isdigit()):
-        raise fail(f"--sim-camera must be WIDTHxHEIGHT in pixels (e.g. 640x480), got {text!r}")
-    return {"resolution": (int(width), int(height))}
+    size = (int(width), int(height)) if width.isdigit() and height.isdigit() else None
+    if size is None or min(size) < 16 or max(size) > MAX_SIDE_PX or size[0] % 2 or size[1] % 2:
+        raise fail(f"--sim-camera must be WIDTHxHEIGHT in pixels, each even and in 16..{MAX_SIDE_PX} (a "
+                   f"Bayer mosaic; e.g. 640x480), got {text!r}")
+    return {"resolution": size}
 
 
 def _open_rig(spec: str, fast: bool, sim_camera: str | None = None) -> OpenedRig:
     options = _sim_camera(sim_camera, spec)
     try:
         return open_rig(spec, fast=fast, **options)
-    except (RigError, ValueError, OSError) as exc:
+    except (RigError, OSError) as exc:   # a bad rig file is a ConfigError (a RigError)
         raise fail(f"cannot open rig {spec!r}: {exc}") from None
 
 

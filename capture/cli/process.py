@@ -117,10 +117,12 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             check_out_file(out)
         except OutputError as exc:
             raise fail(str(exc)) from None
-    from ..pipeline.cluster import ClusterError, ClusterOptions
+    from ..pipeline.cluster import ClusterError, ClusterOptionError, ClusterOptions
+    from ..pipeline.images import FrameDataError
+    from ..pipeline.lumitexel_arrays import MemoryLimitError
     try:
         cluster = ClusterOptions(workers=workers, scheduler=scheduler)
-    except ValueError as exc:
+    except ClusterOptionError as exc:
         raise fail(str(exc)) from None
     kw = {"cluster": cluster, "memory_limit": None if memory_limit is None else int(memory_limit * 2**20)}
     if mesh is not None:
@@ -155,11 +157,8 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
                 bar.stop()
                 typer.secho(f"cannot process: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NO_INPUTS) from None
-            except (ClusterError, ValueError) as exc:   # a cluster unusable, a memory limit too small
-                bar.stop()
-                raise fail(str(exc)) from None
-            except (SessionBusy, ObjectDamaged, OutputError) as exc:
-                bar.stop()
+            except (ClusterError, MemoryLimitError, FrameDataError, SessionBusy, ObjectDamaged, OutputError) as exc:
+                bar.stop()   # any other error is a bug: its traceback is kept
                 raise fail(str(exc)) from None
             except (StoreFull, OSError) as exc:
                 if isinstance(exc, OSError) and exc.errno not in (errno.ENOSPC, errno.EDQUOT):

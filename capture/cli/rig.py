@@ -36,7 +36,7 @@ def _fail(message: str, code: int = 2) -> typer.Exit:
 def _open(rig: str, fast: bool, connect: bool):
     try:
         return open_rig(rig, fast=fast, connect=connect)
-    except (RigError, ValueError, OSError) as exc:
+    except (RigError, OSError) as exc:   # a bad rig file is a ConfigError (a RigError)
         raise _fail(f"cannot open rig {rig!r}: {exc}") from None
 
 
@@ -111,12 +111,11 @@ def sim(fast: bool = typer.Option(False, help="Complete moves instantly (default
         duration: Optional[float] = typer.Option(None, help="Stop after this many seconds (scripts)."),
         ) -> None:
     """Run the simulated serial devices for another process; print their ports and a rig TOML."""
-    from sims.lab import SimLab
+    from sims.lab import KINEMATICS, SimLab
 
-    try:
-        lab = SimLab(fast=fast, kinematics=kinematics, roles=("turntable", "positioner", "polarizer")).start()
-    except ValueError as exc:
-        raise _fail(str(exc)) from None
+    if kinematics not in KINEMATICS:
+        raise _fail(f"--kinematics must be one of {', '.join(KINEMATICS)}, got {kinematics!r}")
+    lab = SimLab(fast=fast, kinematics=kinematics, roles=("turntable", "positioner", "polarizer")).start()
     try:
         cfg = lab.rig_config()
         toml = ("# gonio simulated lab: serial devices on pseudo-terminals.\n"

@@ -20,6 +20,8 @@ from ..outputs import OutputError, check_out_folder, safe_stem
 
 #: largest rendered side, pixels (64 MP frames; beyond that a typo runs out of memory)
 MAX_SIDE_PX = 8192
+#: rays per pixel side at most (64 rays a pixel)
+MAX_SUPERSAMPLE = 8
 
 app = typer.Typer(name="sim", help="Render the simulated lab: scenes, targets and the camera's raw frames.",
                   no_args_is_help=True)
@@ -96,6 +98,8 @@ def render(
     import numpy as np
 
     from sims.objects import OBJECTS
+    from sims.ptp_sim import FNUMBER_VALUES, ISO_VALUES
+    from ..plan import MAX_EXPOSURE_S, MIN_EXPOSURE_S
     from sims.world import SimWorld, default_camera, light_position
 
     if scene not in SCENES:
@@ -116,24 +120,29 @@ def render(
         check_out_folder(out)
     except OutputError as exc:
         raise _fail(str(exc)) from None
-    for option, value in (("--exposure", exposure), ("--iso", iso), ("--fnumber", fnumber),
-                          ("--light-radius", light_radius)):
-        if not 0 < value < math.inf:  # also catches NaN
-            raise _fail(f"{option} must be > 0, got {value!r}")
-    if supersample is not None and supersample < 1:
-        raise _fail(f"--supersample must be >= 1, got {supersample}")
-    try:
-        extra = {} if supersample is None else {"supersample": supersample}
-        world = SimWorld.for_capture(scene, None if obj == "none" else obj,
-                                     camera=default_camera(width, height), seed=seed, **extra)
-        state = {"turntable_angle_deg": turntable, "exposure_s": exposure, "iso": iso, "fnumber": fnumber,
-                 "light_position_mm": tuple(light_position(light_az, light_el, radius_mm=light_radius)),
-                 "polarizer_angle_deg": polarizer}
-        t0 = time.perf_counter()
-        dng = world.frame_source(state)
-        seconds = time.perf_counter() - t0
-    except (ValueError, TypeError) as exc:
-        raise _fail(str(exc)) from None
+    if not 0 < light_radius < math.inf:  # also catches NaN
+        raise _fail(f"--light-radius must be > 0, got {light_radius!r}")
+    for option, value, (low, high) in (("--exposure", exposure, (MIN_EXPOSURE_S, MAX_EXPOSURE_S)),
+                                       ("--iso", iso, (min(ISO_VALUES), max(ISO_VALUES))),
+                                       ("--fnumber", fnumber, (min(FNUMBER_VALUES) / 100, max(FNUMBER_VALUES) / 100))):
+        if not low <= value <= high:  # the simulated camera's range (and plans' exposures); false for NaN
+            raise _fail(f"{option} must be in {low:g}..{high:g}, got {value!r}")
+    if not -90 <= light_el <= 90:
+        raise _fail(f"--light-el must be in -90..90 degrees, got {light_el!r}")
+    if supersample is not None and not 1 <= supersample <= MAX_SUPERSAMPLE:
+        raise _fail(f"--supersample must be in 1..{MAX_SUPERSAMPLE} rays per pixel side, got {supersample}")
+    if seed < 0:
+        raise _fail(f"--seed must be >= 0, got {seed}")
+    # every option is checked above: an error from here on is a bug, and keeps its traceback
+    extra = {} if supersample is None else {"supersample": supersample}
+    world = SimWorld.for_capture(scene, None if obj == "none" else obj,
+                                 camera=default_camera(width, height), seed=seed, **extra)
+    state = {"turntable_angle_deg": turntable, "exposure_s": exposure, "iso": iso, "fnumber": fnumber,
+             "light_position_mm": tuple(light_position(light_az, light_el, radius_mm=light_radius)),
+             "polarizer_angle_deg": polarizer}
+    t0 = time.perf_counter()
+    dng = world.frame_source(state)
+    seconds = time.perf_counter() - t0
     stem = name or (f"{obj if scene == 'object' else scene}_tt{turntable:g}_az{light_az:g}_el{light_el:g}"
                     f"_pol{'none' if polarizer is None else f'{polarizer:g}'}_e{exposure:g}")
     out.mkdir(parents=True, exist_ok=True)

@@ -42,7 +42,7 @@ from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
 from .lumitexel_arrays import block_texels_for, default_memory_limit, stream_lumitexels
 from .progress import Progress, ProgressSink, counter
-from .process import (GrayCardPose, MissingCalibration, ProcessInputs, SessionCalibration, plan_inputs,
+from .process import (GrayCardPose, MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
                       read_calibration, session_images, view_plan)
 from .report_html import write_html_report
 from ..outputs import session_file, write_atomically
@@ -321,8 +321,12 @@ def _jsonable(obj: Any) -> Any:
 def _built_in_lab_options(store: Store, session: str) -> dict[str, Any] | None:
     """:meth:`DemoLab.process_options` of the built-in simulated lab a session was recorded in
     (at its frames' resolution), None for any other rig."""
-    if not recorded_in_built_in_lab(store.rig_snapshots(store.session(session).id)):
+    info = store.session(session)
+    if not recorded_in_built_in_lab(store.rig_snapshots(info.id)):
         return None
+    if not store.progress(info.id).frames_stored:   # a capture stopped before its first frame
+        raise ProcessError(f"session {session!r} has no frames yet; capture them first: gonio capture "
+                           f"resume {session}")
     return demo_lab_for(store, session).process_options()
 
 

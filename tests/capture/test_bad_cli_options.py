@@ -43,7 +43,12 @@ def test_demo_refuses_an_out_that_already_holds_a_demo_or_is_a_file(tmp_path):
     (["--name", "-rf"], "--name '-rf'"),
     (["--turntable", "nan"], "--turntable must be a finite number"),
     (["--light-el", "inf"], "--light-el must be a finite number"),
-    (["--exposure", "inf"], "--exposure must be > 0"),
+    (["--exposure", "inf"], "--exposure must be in 1e-06..3600"),
+    (["--exposure", "1e308"], "--exposure must be in 1e-06..3600"),   # was a traceback
+    (["--iso", "1e300"], "--iso must be in 100..6400"),
+    (["--fnumber", "1e-300"], "--fnumber must be in 2.8..22"),       # was ZeroDivisionError
+    (["--seed", "-1"], "--seed must be >= 0"),                        # was numpy's ValueError
+    (["--supersample", "100000"], "--supersample must be in 1..8"),
     (["--width", "100000", "--height", "64"], "in 16..8192"),
 ])
 def test_sim_render_refuses_hostile_names_and_numbers(tmp_path, args, words):
@@ -137,3 +142,40 @@ def test_process_without_calibration_captures_says_what_the_session_lacks(tmp_pa
     assert r.exit_code == 3 and "has no calibration captures" in said and "gonio calibrate" not in said, said
     with Store(tmp_path / "store", readonly=True) as st:
         assert st.results(st.session("s1").id) == before
+
+
+@pytest.mark.parametrize("error, code, words", [
+    ("MemoryLimitError", 2, "--memory-limit 64 MiB cannot hold one view's images"),
+    ("ClusterError", 2, "cannot reach the Dask scheduler"),
+    ("ProcessError", 3, "cannot process: the session has no measurement steps"),
+    ("ValueError", 1, None),      # a programming error: its traceback, never a user message
+    ("ZeroDivisionError", 1, None),
+])
+def test_process_turns_only_its_typed_errors_into_messages(tmp_path, monkeypatch, error, code, words):
+    import trimesh
+    from capture.pipeline import cluster, lumitexel_arrays, process, run
+    from capture.store import Store
+    with Store(tmp_path / "store", durable=False) as st:
+        st.create_session("s1", plan={}, plan_hash="h", steps=[{"frames": 0}])
+    trimesh.creation.box((50.0, 50.0, 50.0)).export(tmp_path / "box.ply")
+    raised = {"MemoryLimitError": lumitexel_arrays.MemoryLimitError, "ClusterError": cluster.ClusterError,
+              "ProcessError": process.ProcessError, "ValueError": ValueError,
+              "ZeroDivisionError": ZeroDivisionError}[error](words or "a bug")
+
+    def fails(*args, **kw):
+        raise raised
+    monkeypatch.setattr(run, "process_session", fails)
+    r = cli.invoke(app, ["process", "s1", "--store", str(tmp_path / "store"), "--mesh", str(tmp_path / "box.ply"), "-q"])
+    assert r.exit_code == code, r.output
+    if words is None:
+        assert r.exception is raised and "error:" not in r.output
+    else:
+        assert words in " ".join(r.output.split())
+
+
+@pytest.mark.parametrize("size", ["15x16", "16x15", "0x0", "9000x480", "640x"])
+def test_a_simulated_camera_size_the_lab_cannot_render_is_refused(tmp_path, size):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[turntable]\nangles_deg = [0]\n[exposure]\nbase_s = 0.01\n')
+    r = cli.invoke(app, ["capture", "plan", str(plan), "--rig", "sim", "--sim-camera", size])
+    assert r.exit_code == 2 and f"got {size!r}" in r.output and "even and in 16..8192" in " ".join(r.output.split())
