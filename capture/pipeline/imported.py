@@ -33,6 +33,7 @@ from reconstruct.metrics import relative_rms, trimmed_relative_rms
 from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 
 from ..importers import MultiLightSet, read_imported_session
+from ..outputs import write_atomically
 from ..store import Store
 
 __all__ = ["ImportedInputs", "imported_inputs", "process_imported_session", "is_imported",
@@ -191,5 +192,5 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
         rep.methods.append(MethodOutcome(name, "ok", "", figures, rid, seconds, fit.warnings))
     path = Path(report_path) if report_path else Path(store.root).resolve().parent / f"{session}-report.json"
     rep.report_path = path.with_suffix(".json")
-    rep.report_path.write_text(json.dumps(rep.summary(), indent=1, default=str))
+    write_atomically(rep.report_path, json.dumps(rep.summary(), indent=1, default=str))   # never a partial file
     return rep
