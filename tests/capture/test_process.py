@@ -338,23 +338,31 @@ def _copy(root, tmp_path):
     return tmp_path / "store"
 
 
-def _killed_at(store_dir, hook: str, report) -> int:
-    """Run a forced ``process_session`` in a forked child that SIGKILLs itself at the calibration
-    stage boundary ``hook``; returns the child's exit code."""
+def _killed_at(store_dir, hook, report, *, force: bool = True) -> str | None:
+    """Run ``process_session`` (lambertian) in a forked child that SIGKILLs itself at the hook
+    point ``hook`` (a name, or a callable(name) -> True where to die); returns the name of the
+    hook it died at (None: it was not killed)."""
     import multiprocessing
     import os
     import signal
     from capture.store import crash
+    died = Path(report).with_suffix(".killed")
 
     def child():
-        crash.point = lambda name: os.kill(os.getpid(), signal.SIGKILL) if name == hook else None
+        kill = hook if callable(hook) else (lambda name: name == hook)
+
+        def point(name):
+            if kill(name):
+                died.write_text(name)
+                os.kill(os.getpid(), signal.SIGKILL)
+        crash.point = point
         with Store(store_dir, durable=False) as st:
-            process_session(st, "proc", methods=["lambertian"], force=True, report_path=report)
+            process_session(st, "proc", methods=["lambertian"], force=force, report_path=report)
         os._exit(0)
     p = multiprocessing.get_context("fork").Process(target=child)
     p.start()
     p.join()
-    return p.exitcode
+    return died.read_text() if p.exitcode == -9 and died.is_file() else None
 
 
 def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_same_figures(
@@ -365,7 +373,7 @@ def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_sa
     rep, _ = processed
     reference = rep.method("lambertian").figures["held_out_rel_rms"]
     store_dir = _copy(captured[2], tmp_path)
-    assert _killed_at(store_dir, "calibration lights", tmp_path / "k.html") == -9
+    assert _killed_at(store_dir, "calibration lights", tmp_path / "k.html") == "calibration lights"
     with Store(store_dir, durable=False) as st:
         sid = st.session("proc").id
         state = stored_calibration(st, sid)
@@ -432,6 +440,51 @@ def test_ctrl_c_twice_during_process_exits_3_keeping_what_was_stored(calibrated,
         assert stored_calibration(st, sid).complete
         damage = st.verify("proc")   # an object written before its row is an orphan the next writer keeps
         assert not (damage.missing or damage.corrupt or damage.incomplete_steps)
+
+
+def _random_hook_after(start: str, seed: int, last: str = "stage report"):
+    """A kill rule: at each hook point after ``start`` die with probability 1/3 (seeded), at
+    ``last`` at the latest: a random point among the writes that store a method's result."""
+    import random
+    rng, armed = random.Random(seed), []
+
+    def kill(name: str) -> bool:
+        if name == start:
+            armed.append(name)
+            return False
+        return bool(armed) and (name == last or rng.random() < 1 / 3)
+    return kill
+
+
+def test_process_killed_at_two_stage_boundaries_and_a_random_point_then_rerun_gives_the_same_figures(
+        processed, calibrated, tmp_path):
+    """The crash run in little (benchmarks/process_crash.py walks every hook): on the calibrated
+    session, ``process`` is SIGKILLed at the lumitexels boundary, its re-run at the method's
+    boundary, the next at a random write while the method's result is stored; a plain re-run then
+    gives the uninterrupted run's figure, with the calibration reused, the lumitexel arrays
+    resumed, one stored result and no damaged file."""
+    from capture.pipeline.calibration_record import stored_calibration
+    reference = processed[0].method("lambertian").figures["held_out_rel_rms"]
+    store_dir = tmp_path / "store"
+    shutil.copytree(calibrated, store_dir)
+    kills = [("stage lumitexels", "stage lumitexels"), ("stage lambertian", "stage lambertian"),
+             (_random_hook_after("stage lambertian", seed=19), None)]
+    for k, (rule, name) in enumerate(kills):
+        died = _killed_at(store_dir, rule, tmp_path / f"k{k}.html", force=False)
+        assert died is not None and died == (name or died), died
+        with Store(store_dir, readonly=True) as st:
+            damage = st.verify("proc")
+            assert not (damage.missing or damage.corrupt or damage.incomplete_steps), (died, damage)
+    with Store(store_dir, durable=False) as st:
+        again = process_session(st, "proc", methods=["lambertian"], report_path=tmp_path / "r.html")
+        sid = st.session("proc").id
+        lam = again.method("lambertian")
+        assert lam.figures["held_out_rel_rms"] == pytest.approx(reference, rel=1e-9), died
+        assert [c["status"] for c in again.calibration if c["status"] in ("redone", "ok")] == []   # reused
+        assert again.inputs["lumitexel_arrays"]["reused_views"] > 0 or lam.status == "done"
+        assert stored_calibration(st, sid).complete
+        assert len([r for r in st.results(sid, "reconstruction") if r.kind == "lambertian"]) == 1
+        assert st.verify("proc").ok   # the next writer quarantined any file a kill left unlisted
 
 
 def test_a_second_process_on_a_session_being_processed_is_refused(captured, tmp_path):
