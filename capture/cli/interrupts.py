@@ -2,13 +2,15 @@
 
 ``gonio`` installs :func:`install` before any command runs. The first interrupt raises
 KeyboardInterrupt in the main thread, which stops the work where it is (a store transaction
-rolls back, an object file is left as a ``.tmp-`` the next writer deletes). Every later interrupt
-is only counted: what runs after the first (rolling back, closing the rig and its simulators,
-shutting a Dask cluster down, removing a partial export) is never cut short, which Python's own
-handler would do, ending gonio by SIGINT. :func:`interruptible` wraps a command's body and turns
-the KeyboardInterrupt into one line, ``interrupted; ...`` with the command that resumes, and exit
-status 3. While the capture runner works, :func:`counted` only counts them (the first pauses
-after the step, the second stops motion).
+rolls back, an object file is left as a ``.tmp-`` the next writer deletes), and from then on the
+process ignores SIGINT and SIGTERM: what runs after the first (rolling back, closing the rig and
+its simulators, shutting a Dask cluster down, removing a partial export, Python's own exit) is
+never cut short. Python's handler would raise again there, and Python puts back the default
+action while it finalises (a second Ctrl-C then ended gonio by SIGINT, status -2); an ignored
+signal it leaves ignored. :func:`interruptible` wraps a command's body and turns the
+KeyboardInterrupt into one line, ``interrupted; ...`` with the command that resumes, and exit
+status 3. While the capture runner works, :func:`counted` only counts interrupts (the first
+pauses after the step, the second stops motion).
 """
 from __future__ import annotations
 
@@ -24,22 +26,27 @@ import typer
 
 EXIT_INTERRUPTED = 3
 
-_received = 0
+_installed = False
+
+
+def _ignore_interrupts() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _on_interrupt(signum: int, frame) -> None:
-    global _received
-    _received += 1
-    if _received == 1:
-        raise KeyboardInterrupt
+    _ignore_interrupts()
+    raise KeyboardInterrupt
 
 
 def install() -> None:
     """Route SIGINT and SIGTERM of this process through :func:`_on_interrupt` (the ``gonio``
     entry point calls it once, before any command runs)."""
+    global _installed
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _on_interrupt)
         signal.signal(signal.SIGTERM, _on_interrupt)
+        _installed = True
 
 
 @contextlib.contextmanager
@@ -47,24 +54,22 @@ def counted() -> Iterator[list[int]]:
     """While a capture session runs and until the rig is closed, an interrupt only appends to the
     yielded list (a handler that never raises): a second one landing anywhere, even while the
     first is being handled or the rig closes, stops motion instead of killing gonio. SIGTERM (a
-    system shutdown, ``kill``) counts as two: stop now, pause (resumable). Interrupts counted here
-    count for :func:`install`'s handler too, so one arriving after is never raised either."""
+    system shutdown, ``kill``) counts as two: stop now, pause (resumable). Once one was counted,
+    the process ignores later ones (under :func:`install`), as after its first."""
     interrupts: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield interrupts
         return
-
-    def count(n: int) -> None:
-        global _received
-        interrupts.extend([1] * n)
-        _received += n
-    restore = signal.signal(signal.SIGINT, lambda *_: count(1))
-    restore_term = signal.signal(signal.SIGTERM, lambda *_: count(2))
+    restore = signal.signal(signal.SIGINT, lambda *_: interrupts.append(1))
+    restore_term = signal.signal(signal.SIGTERM, lambda *_: interrupts.extend((1, 1)))
     try:
         yield interrupts
     finally:
-        signal.signal(signal.SIGINT, restore)
-        signal.signal(signal.SIGTERM, restore_term)
+        if interrupts and _installed:
+            _ignore_interrupts()
+        else:
+            signal.signal(signal.SIGINT, restore)
+            signal.signal(signal.SIGTERM, restore_term)
 
 
 @contextlib.contextmanager
