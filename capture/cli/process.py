@@ -39,6 +39,8 @@ if TYPE_CHECKING:
 EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS = 0, 1, 3
 #: how often a process paused on a full disk looks at the free space again, s
 SPACE_POLL_S = 5.0
+#: the largest --memory-limit, MiB (beyond any machine: a typo, or inf)
+MAX_MEMORY_LIMIT_MIB = float(2**30)
 #: the least free space a paused process waits for, bytes
 MIN_FREE_TO_RESUME = 64 << 20
 
@@ -177,6 +179,8 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         cluster = ClusterOptions(workers=workers, scheduler=scheduler)
     except ClusterOptionError as exc:
         raise fail(str(exc)) from None
+    if memory_limit is not None and not memory_limit <= MAX_MEMORY_LIMIT_MIB:   # also true for NaN
+        raise fail(f"--memory-limit must be at most {MAX_MEMORY_LIMIT_MIB:g} MiB (1 PiB), got {memory_limit!r}")
     kw = {"cluster": cluster, "memory_limit": None if memory_limit is None else int(memory_limit * 2**20)}
     if mesh is not None:
         try:

@@ -241,3 +241,31 @@ def test_a_simulated_camera_size_the_lab_cannot_render_is_refused(tmp_path, size
     plan.write_text('[turntable]\nangles_deg = [0]\n[exposure]\nbase_s = 0.01\n')
     r = cli.invoke(app, ["capture", "plan", str(plan), "--rig", "sim", "--sim-camera", size])
     assert r.exit_code == 2 and f"got {size!r}" in r.output and "even and in 16..8192" in " ".join(r.output.split())
+
+
+HOSTILE = [   # (arguments, what the message must say): each was a traceback before (issue 19 "go beyond")
+    (["rig", "sim", "--fast", "--duration", "nan"], "--duration must be more than 0 and at most 86400 s"),
+    (["rig", "sim", "--fast", "--duration", "-1"], "--duration must be more than 0"),
+    (["rig", "sim", "--fast", "--duration", "1e308"], "--duration must be more than 0 and at most 86400 s"),
+    (["rig", "sim", "--fast", "--write", "{tmp}"], "--write {tmp} is a folder"),
+    (["rig", "sim", "--fast", "--write", ""], "--write . is a folder"),
+    (["rig", "sim", "--fast", "--write", "/dev/full"], "--write /dev/full"),
+    (["rig", "home", "--rig", "sim", "--timeout", "inf"], "--timeout must be more than 0 and at most 86400 s"),
+    (["rig", "home", "--rig", "sim", "--timeout", "99999999999999999999"], "--timeout must be more than 0"),
+    (["process", "s1", "--store", "{tmp}/store", "--memory-limit", "inf"], "--memory-limit must be at most"),
+    (["process", "s1", "--store", "{tmp}/store", "--memory-limit", "1e308"], "--memory-limit must be at most"),
+    (["process", "s1", "--store", "{tmp}/store", "--memory-limit", "nan"], "--memory-limit"),   # typer's range check
+    (["tui", "--poll", "nan"], "--poll"),          # was accepted: the console started refreshing every NaN s
+    (["tui", "--poll", "inf"], "--poll"),
+    (["tui", "--store", ""], "--store is empty"),  # was the current folder
+]
+
+
+@pytest.mark.parametrize("args, words", HOSTILE)
+def test_hostile_numbers_and_paths_get_a_message_naming_the_option(tmp_path, monkeypatch, args, words):
+    monkeypatch.chdir(tmp_path)
+    before = _files(tmp_path)
+    r = cli.invoke(app, [a.format(tmp=tmp_path) for a in args])
+    assert r.exit_code == 2 and (r.exception is None or isinstance(r.exception, SystemExit)), r.output
+    assert words.format(tmp=tmp_path) in " ".join(r.output.split()), r.output
+    assert _files(tmp_path) == before   # nothing written, no simulator started
