@@ -94,21 +94,22 @@ def free_bytes(folder: Path) -> int:
     return shutil.disk_usage(folder).free
 
 
-def _pausing_on_a_full_disk(run: Callable[[], ProcessReport], store_root: Path, frame_bytes: int,
+def _pausing_on_a_full_disk(run: Callable[[bool], ProcessReport], store_root: Path, frame_bytes: int,
                             console: Console) -> ProcessReport:
-    """``run()`` (:func:`process_session`), paused while the disk is full, as a capture pauses:
-    what was stored is kept; the message says where and how much space is wanted; the free space
-    is looked at every :data:`SPACE_POLL_S` until there is that much, then ``run()`` again
-    resumes (stored calibration, lumitexel arrays and methods are reused). Ctrl-C ends the wait
-    (exit 3); the same command resumes later.
+    """``run(first)`` (:func:`process_session`; ``first`` False once resuming, so ``--force``
+    redoes the work once only), paused while the disk is full, as a capture pauses: what was
+    stored is kept; the message says where and how much space is wanted; the free space is looked
+    at every :data:`SPACE_POLL_S` until there is that much, then ``run(False)`` resumes (stored
+    calibration, lumitexel arrays and methods are reused). Ctrl-C ends the wait (exit 3); the same
+    command resumes later.
 
     The space wanted is the session's frames' bytes ``frame_bytes`` (processing writes less:
     6.4 MB of lumitexel arrays, 0.3 MB of report and results for the 11.6 MB of frames of the
     suite's session), at least :data:`MIN_FREE_TO_RESUME`."""
-    need = max(MIN_FREE_TO_RESUME, frame_bytes)
+    need, first = max(MIN_FREE_TO_RESUME, frame_bytes), True
     while True:
         try:
-            return run()
+            return run(first)
         except (StoreFull, OSError) as exc:
             folder = _full_disk_folder(exc, store_root)
             if folder is None:
@@ -120,6 +121,7 @@ def _pausing_on_a_full_disk(run: Callable[[], ProcessReport], store_root: Path, 
             while free_bytes(folder) < need:
                 time.sleep(SPACE_POLL_S)
             console.print(f"resuming: {human_bytes(free_bytes(folder))} free", highlight=False)
+            first = False
 
 
 def process_command(session: str, store: str, methods: str | None = None, mesh: Path | None = None,
@@ -206,7 +208,7 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         with bar:
             try:
                 rep = _pausing_on_a_full_disk(
-                    lambda: process_session(st, session, methods=names, force=force, progress=update,
+                    lambda first: process_session(st, session, methods=names, force=force and first, progress=update,
                                             report_path=report_path, say=lambda text: console.print(escape(text)),
                                             **kw),
                     Path(st.root), st.progress(info.id).bytes_stored, bar.console)
