@@ -373,7 +373,7 @@ def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_sa
     rep, _ = processed
     reference = rep.method("lambertian").figures["held_out_rel_rms"]
     store_dir = _copy(captured[2], tmp_path)
-    assert _killed_at(store_dir, "calibration lights", tmp_path / "k.html") == "calibration lights"
+    assert _killed_at(store_dir, "calibration intrinsics", tmp_path / "k.html") == "calibration intrinsics"
     with Store(store_dir, durable=False) as st:
         sid = st.session("proc").id
         state = stored_calibration(st, sid)
