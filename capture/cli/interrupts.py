@@ -22,8 +22,6 @@ import threading
 from pathlib import Path
 from typing import Callable, Iterator
 
-import typer
-
 EXIT_INTERRUPTED = 3
 
 _installed = False
@@ -80,6 +78,7 @@ def interruptible(resume: Callable[[], str]) -> Iterator[None]:
     try:
         yield
     except KeyboardInterrupt:
+        import typer   # here, not at the top: install() runs before anything heavy loads
         typer.secho(f"interrupted; {resume()}", err=True, fg=typer.colors.YELLOW)
         raise typer.Exit(EXIT_INTERRUPTED) from None
 

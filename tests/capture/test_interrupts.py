@@ -104,3 +104,15 @@ def test_an_interrupted_demo_names_the_commands_that_finish_it(tmp_path, monkeyp
     r = cli.invoke(app, ["demo", "--out", str(out), "-q"])
     assert r.exit_code == 3, r.output
     assert "interrupted; " + then.format(store=out / "store", out=out) in _said(r)
+
+
+def test_gonio_installs_its_ctrl_c_handling_before_loading_the_commands():
+    """``capture.cli`` (what the ``gonio`` script and ``python -m capture.cli`` import first) loads
+    only the interrupt handling: the commands and the pipeline (about 2 s) load after
+    :func:`capture.cli.interrupts.install`, so a Ctrl-C while gonio starts exits 3 too."""
+    import subprocess
+    import sys
+    code = ("import sys, capture.cli; print(sorted(m for m in sys.modules if m.startswith("
+            "('capture.cli.', 'capture.pipeline', 'capture.store', 'typer', 'numpy'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "['capture.cli.interrupts']"
