@@ -12,6 +12,7 @@ interrupted (Ctrl-C; the same command calibrates again).
 """
 from __future__ import annotations
 
+import errno
 import json
 from dataclasses import fields
 from pathlib import Path
@@ -113,6 +114,12 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             png = write_report(report, session_file(folder, session, st.session(session).id, "-calibration.png"))
         except OutputError as exc:
             raise fail(str(exc)) from None
+        except OSError as exc:
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            raise fail(f"the disk holding {Path(exc.filename or folder).parent} is full: the calibration is "
+                       "stored (gonio session show lists it) but its PNG report could not be written (no partial "
+                       "file is left); free space, then run the same command to calibrate and draw it again") from None
         if as_json:
             stages = [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
                        "calibration_id": s.calibration_id, "seconds": s.seconds} for s in report.stages]

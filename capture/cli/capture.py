@@ -339,7 +339,7 @@ def _resume_hint(store: str, name: str | None, rig: str) -> str:
     command that continues it."""
     if name is None:
         return "nothing was captured"
-    with contextlib.suppress(StoreError), Store(store, readonly=True) as st:
+    with contextlib.suppress(StoreError), Store(store, create=False, readonly=True) as st:
         if st.session(name).state == "done":
             return f"session {name} is done"
     return f"every frame stored is kept; resume with: {command_line('gonio', 'capture', 'resume', name, rig=rig, store=store)}"

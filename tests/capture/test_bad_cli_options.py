@@ -269,3 +269,35 @@ def test_hostile_numbers_and_paths_get_a_message_naming_the_option(tmp_path, mon
     assert r.exit_code == 2 and (r.exception is None or isinstance(r.exception, SystemExit)), r.output
     assert words.format(tmp=tmp_path) in " ".join(r.output.split()), r.output
     assert _files(tmp_path) == before   # nothing written, no simulator started
+
+
+def test_a_full_disk_while_the_calibration_report_is_drawn_leaves_no_partial_png(tmp_path, monkeypatch):
+    """The calibration PNG met ENOSPC: it was written in place (a partial file) and the command
+    ended in a traceback; now no file is left, the message names the folder, exit 2, the stored
+    calibration is kept."""
+    import errno
+    import os
+    import capture.cli.calibrate as cli_calibrate
+    from capture.pipeline.calibrate import STAGES, CalibrationReport, StageResult
+    from capture.store import Store
+    store = tmp_path / "store"
+    with Store(store, durable=False) as st:
+        sid = st.create_session("s1", plan={}, plan_hash="h", steps=[{"frames": 0}]).id
+
+    def calibrated(st, session, **kw):
+        st.add_calibration(sid, "dark", result={"kept": True})
+        return CalibrationReport(session, [StageResult(s, "skipped", "no captures for it") for s in STAGES])
+    monkeypatch.setattr(cli_calibrate, "calibrate_session", calibrated)
+    monkeypatch.setenv("GONIO_STORE_DURABLE", "0")   # the first fsync is the PNG's
+
+    def fsync(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(os, "fsync", fsync)
+    out = tmp_path / "out"
+    r = cli.invoke(app, ["calibrate", "s1", "--store", str(store), "--out", str(out), "-q"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and (r.exception is None or isinstance(r.exception, SystemExit)), r.output
+    assert f"the disk holding {out} is full: the calibration is stored" in said and "no partial file" in said
+    assert list(out.iterdir()) == []
+    with Store(store, readonly=True) as st:
+        assert [x.result for x in st.results(sid)] == [{"kept": True}]
