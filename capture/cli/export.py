@@ -7,6 +7,7 @@ is written; 3 interrupted (Ctrl-C, SIGTERM): nothing is written, the same comman
 """
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import typer
@@ -50,6 +51,11 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
                                  formats=[f.strip() for f in formats.split(",") if f.strip()], **kw)
         except ExportError as exc:
             raise fail(str(exc)) from None
+        except OSError as exc:   # the partial folder is removed: nothing is left
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            raise fail(f"the disk holding {out.resolve().parent} is full ({exc.strerror}); nothing was written: "
+                       "free space and run the same command again") from None
     for fmt, files in rep.files.items():
         typer.echo(f"{fmt}: {len(files)} file(s)")
     a = rep.model.get("approximation", {})

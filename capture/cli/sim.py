@@ -16,7 +16,7 @@ from typing import Optional
 
 import typer
 
-from ..outputs import OutputError, check_out_folder, safe_stem
+from ..outputs import OutputError, check_out_folder, safe_stem, write_atomically
 
 #: largest rendered side, pixels (64 MP frames; beyond that a typo runs out of memory)
 MAX_SIDE_PX = 8192
@@ -147,25 +147,36 @@ def render(
                     f"_pol{'none' if polarizer is None else f'{polarizer:g}'}_e{exposure:g}")
     out.mkdir(parents=True, exist_ok=True)
     dng_path, png_path = out / f"{stem}.dng", out / f"{stem}.png"
-    dng_path.write_bytes(dng)
     rgb = preview_png(dng)
-    if not cv2.imwrite(str(png_path), rgb[..., ::-1]):
-        raise _fail(f"cannot write {png_path}")
+    files = {dng_path: dng, png_path: cv2.imencode(".png", rgb[..., ::-1])[1].tobytes()}
+    if truth:
+        files.update(_truth_files(world, state, out, stem))
+    try:   # each whole or not at all (a full disk, a read-only folder)
+        for path, data in files.items():
+            write_atomically(path, data)
+    except OSError as exc:
+        raise _fail(f"cannot write {exc.filename}: {exc.strerror or exc}") from None
     saturated = float(np.mean(rgb.max(axis=2) == 255))
     typer.echo(f"{dng_path}\n{png_path}\n{width} x {height}, rendered and exposed in {seconds:.2f} s, "
                f"{100 * saturated:.1f} % of pixels at sensor white")
     if truth:
-        gt = world.ground_truth(state)
-        b = gt.buffers
-        np.savez_compressed(out / f"{stem}_truth.npz", radiance=gt.radiance, diffuse=gt.diffuse,
-                            specular=gt.specular, mask=b.mask, normal=b.normal,
-                            position=b.position, depth=b.depth, uv=b.uv, surface_index=b.surface_index,
-                            face_index=b.face_index, expected_dn=gt.expected.mean_dn,
-                            sigma_dn=gt.expected.sigma_dn, saturated=gt.expected.saturated)
-        meta = {"state": {k: v for k, v in vars(gt.state).items()},
-                "camera": {"K": gt.camera.K.tolist(), "dist": gt.camera.dist.tolist(), "R": gt.camera.R.tolist(),
-                           "t": gt.camera.t.tolist(), "width": gt.camera.width, "height": gt.camera.height},
-                "light_position_mm": gt.light_position_mm.tolist(), "object_pose": gt.object_pose.tolist(),
-                "objects": [o.name for o in gt.scene.objects]}
-        (out / f"{stem}.json").write_text(json.dumps(meta, indent=2))
         typer.echo(f"{out / f'{stem}_truth.npz'}\n{out / f'{stem}.json'}")
+
+
+def _truth_files(world, state: dict, out: Path, stem: str) -> dict[Path, bytes]:
+    """``NAME_truth.npz`` (radiance, buffers) and ``NAME.json`` (state, camera, light, pose), as bytes."""
+    import numpy as np
+    gt = world.ground_truth(state)
+    b = gt.buffers
+    npz = io.BytesIO()
+    np.savez_compressed(npz, radiance=gt.radiance, diffuse=gt.diffuse,
+                        specular=gt.specular, mask=b.mask, normal=b.normal,
+                        position=b.position, depth=b.depth, uv=b.uv, surface_index=b.surface_index,
+                        face_index=b.face_index, expected_dn=gt.expected.mean_dn,
+                        sigma_dn=gt.expected.sigma_dn, saturated=gt.expected.saturated)
+    meta = {"state": {k: v for k, v in vars(gt.state).items()},
+            "camera": {"K": gt.camera.K.tolist(), "dist": gt.camera.dist.tolist(), "R": gt.camera.R.tolist(),
+                       "t": gt.camera.t.tolist(), "width": gt.camera.width, "height": gt.camera.height},
+            "light_position_mm": gt.light_position_mm.tolist(), "object_pose": gt.object_pose.tolist(),
+            "objects": [o.name for o in gt.scene.objects]}
+    return {out / f"{stem}_truth.npz": npz.getvalue(), out / f"{stem}.json": json.dumps(meta, indent=2)}

@@ -301,3 +301,25 @@ def test_a_full_disk_while_the_calibration_report_is_drawn_leaves_no_partial_png
     assert list(out.iterdir()) == []
     with Store(store, readonly=True) as st:
         assert [x.result for x in st.results(sid)] == [{"kept": True}]
+
+
+def test_sim_render_and_export_on_a_full_disk_say_so_and_leave_no_partial_file(tmp_path, monkeypatch):
+    """Both wrote in place or ended in a traceback on ENOSPC."""
+    import errno
+    import os
+    import capture.export.session
+    from capture.store import Store
+
+    def full(*args, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(os, "fsync", full)
+    out = tmp_path / "render"
+    r = cli.invoke(app, ["sim", "render", "--out", str(out), "--width", "32", "--height", "32", "--name", "f"])
+    assert r.exit_code == 2 and f"cannot write {out / 'f.dng'}: No space left on device" in " ".join(r.output.split())
+    assert list(out.iterdir()) == []
+    with Store(tmp_path / "store", durable=False) as st:
+        st.create_session("s1", plan={}, plan_hash="h", steps=[])
+    monkeypatch.setattr(capture.export.session, "export_session", full)
+    r = cli.invoke(app, ["export", "s1", "--method", "lensch", "--out", str(tmp_path / "x"), "--store", str(tmp_path / "store")])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and f"the disk holding {tmp_path} is full (No space left on device); nothing was written" in said
