@@ -468,10 +468,10 @@ def test_process_killed_at_two_stage_boundaries_and_a_random_point_then_rerun_gi
     store_dir = tmp_path / "store"
     shutil.copytree(calibrated, store_dir)
     kills = [("stage lumitexels", "stage lumitexels"), ("stage lambertian", "stage lambertian"),
-             (_random_hook_after("stage lambertian", seed=19), None)]
+             (_random_hook_after("stage lambertian", seed=1), None)]
     for k, (rule, name) in enumerate(kills):
         died = _killed_at(store_dir, rule, tmp_path / f"k{k}.html", force=False)
-        assert died is not None and died == (name or died), died
+        assert died == name if name else died is not None and not died.startswith("stage "), died   # a write
         with Store(store_dir, readonly=True) as st:
             damage = st.verify("proc")
             assert not (damage.missing or damage.corrupt or damage.incomplete_steps), (died, damage)
