@@ -66,7 +66,10 @@ def check_out_file(path: str | Path, option: str = "--out") -> Path:
 
 
 def check_out_folder(path: str | Path, option: str = "--out") -> Path:
-    """An ``--out FOLDER``: a folder or nothing yet (it is created), never a file or a device."""
+    """An ``--out FOLDER``: a folder or nothing yet (it is created), never a file or a device; an
+    empty string (it would be the current folder) is refused. Returns the path."""
+    if not str(path).strip():
+        raise OutputError(f"{option} is empty; give a folder ('.' for the current one)")
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{option} {path} is a file, not a folder")

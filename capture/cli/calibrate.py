@@ -64,7 +64,7 @@ def _targets(path: Path | None) -> LabTargets | None:
     + command_line("gonio", "calibrate", session, store=store, targets=targets, out=out)))
 def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
               store: str = STORE_OPTION,
-              out: Path = typer.Option(None, "--out", help="Folder for the PNG report "
+              out: str = typer.Option(None, "--out", help="Folder for the PNG report "
                                        "(default: the folder holding the store)."),
               targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
                                            "targets (board size and height, sphere radius and lab "
@@ -80,7 +80,7 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
     lab_targets = _targets(targets)
     if out is not None:
         try:   # before the work: a file given as the folder would fail at the end
-            check_out_folder(out)
+            out = check_out_folder(out)
         except OutputError as exc:
             raise fail(str(exc)) from None
     console = Console()

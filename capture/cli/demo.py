@@ -23,14 +23,14 @@ from .session import fail
 
 def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 x 240 (under 3 minutes "
                                     "on 2 cores) instead of the full demo."),
-         out: Path = typer.Option(None, "--out", help="Folder for the store and report.html (default: a "
+         out: str = typer.Option(None, "--out", help="Folder for the store and report.html (default: a "
                                   "new temporary folder)."),
          quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Capture, calibrate and reconstruct on the simulated lab, then write report.html."""
     from ..pipeline.demo import run_demo
     if out is not None:
         try:
-            check_out_folder(out)
+            out = check_out_folder(out)
         except OutputError as exc:
             raise fail(str(exc)) from None
         if (out / "store").exists():   # the demo's session name is fixed: a second run cannot add it

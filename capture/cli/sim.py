@@ -74,7 +74,7 @@ _RENDER_HELP = "\n\n".join([
 
 @app.command(help=_RENDER_HELP)
 def render(
-    out: Path = typer.Option(..., "--out", help="Folder for the DNG and PNG (created if needed)."),
+    out: str = typer.Option(..., "--out", help="Folder for the DNG and PNG (created if needed)."),
     obj: str = typer.Option("sphere", "--object", help="On the turntable: sphere, hemisphere, multi, bunny or none."),
     scene: str = typer.Option("object", "--scene", help=f"Capture kind: {', '.join(SCENES)}."),
     turntable: float = typer.Option(0.0, "--turntable", help="Turntable angle, degrees."),
@@ -117,7 +117,7 @@ def render(
         raise _fail(f"--name {name!r}: use 1-100 ASCII letters, digits, '_', '.' or '-', starting with a "
                     "letter, digit or '_' (a file stem, not a path)")
     try:
-        check_out_folder(out)
+        folder = check_out_folder(out)
     except OutputError as exc:
         raise _fail(str(exc)) from None
     if not 0 < light_radius < math.inf:  # also catches NaN
@@ -145,12 +145,12 @@ def render(
     seconds = time.perf_counter() - t0
     stem = name or (f"{obj if scene == 'object' else scene}_tt{turntable:g}_az{light_az:g}_el{light_el:g}"
                     f"_pol{'none' if polarizer is None else f'{polarizer:g}'}_e{exposure:g}")
-    out.mkdir(parents=True, exist_ok=True)
-    dng_path, png_path = out / f"{stem}.dng", out / f"{stem}.png"
+    folder.mkdir(parents=True, exist_ok=True)
+    dng_path, png_path = folder / f"{stem}.dng", folder / f"{stem}.png"
     rgb = preview_png(dng)
     files = {dng_path: dng, png_path: cv2.imencode(".png", rgb[..., ::-1])[1].tobytes()}
     if truth:
-        files.update(_truth_files(world, state, out, stem))
+        files.update(_truth_files(world, state, folder, stem))
     try:   # each whole or not at all (a full disk, a read-only folder)
         for path, data in files.items():
             write_atomically(path, data)
@@ -160,7 +160,7 @@ def render(
     typer.echo(f"{dng_path}\n{png_path}\n{width} x {height}, rendered and exposed in {seconds:.2f} s, "
                f"{100 * saturated:.1f} % of pixels at sensor white")
     if truth:
-        typer.echo(f"{out / f'{stem}_truth.npz'}\n{out / f'{stem}.json'}")
+        typer.echo(f"{folder / f'{stem}_truth.npz'}\n{folder / f'{stem}.json'}")
 
 
 def _truth_files(world, state: dict, out: Path, stem: str) -> dict[Path, bytes]:

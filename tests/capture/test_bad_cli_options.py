@@ -258,6 +258,9 @@ HOSTILE = [   # (arguments, what the message must say): each was a traceback bef
     (["tui", "--poll", "nan"], "--poll"),          # was accepted: the console started refreshing every NaN s
     (["tui", "--poll", "inf"], "--poll"),
     (["tui", "--store", ""], "--store is empty"),  # was the current folder
+    (["demo", "--out", ""], "--out is empty"),       # ran a demo in the current folder
+    (["sim", "render", "--out", ""], "--out is empty"),
+    (["calibrate", "s1", "--store", "{tmp}/store", "--out", ""], "--out is empty"),
 ]
 
 
