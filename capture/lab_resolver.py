@@ -11,6 +11,7 @@ from typing import Any, Mapping
 
 from .lab import GrayCardPose, LabTargets, SessionLab
 from .pipeline.demo_lab import demo_lab_for
+from .pipeline.process import ProcessError
 from .rigs import recorded_in_built_in_lab
 from .store import Store
 
@@ -29,6 +30,8 @@ def resolve_lab(store: Store, session: str, *, mesh: Any = None, targets: LabTar
     ------
     capture.store.SessionNotFound
         No such session.
+    capture.pipeline.process.ProcessError
+        A session of the simulated lab without frames yet (its camera is not known).
     ValueError
         ``probe_reflectance`` outside (0, 1].
     """
@@ -40,6 +43,9 @@ def resolve_lab(store: Store, session: str, *, mesh: Any = None, targets: LabTar
         return SessionLab(session, False, targets, mesh, gray_card,
                           1.0 if probe_reflectance is None else probe_reflectance, truth,
                           dict(method_options or {}), tuple(sorted(rigs)))
+    if not store.progress(store.session(session).id).frames_stored:   # a capture stopped before its first frame
+        raise ProcessError(f"session {session!r} has no frames yet; capture them first: gonio capture "
+                           f"resume {session}")
     own = demo_lab_for(store, session).session_lab(session)
     parts = {k: getattr(own, k) if v is None else v for k, v in given.items()}
     return SessionLab(session, True, method_options={**own.method_options, **(method_options or {})},

@@ -66,7 +66,10 @@ def check_out_file(path: str | Path, option: str = "--out") -> Path:
 
 
 def check_out_folder(path: str | Path, option: str = "--out") -> Path:
-    """An ``--out FOLDER``: a folder or nothing yet (it is created), never a file or a device."""
+    """An ``--out FOLDER``: a folder or nothing yet (it is created), never a file or a device; an
+    empty string (it would be the current folder) is refused. Returns the path."""
+    if not str(path).strip():
+        raise OutputError(f"{option} is empty; give a folder ('.' for the current one)")
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{option} {path} is a file, not a folder")
@@ -76,7 +79,7 @@ def check_out_folder(path: str | Path, option: str = "--out") -> Path:
 def write_atomically(path: str | Path, data: bytes | str) -> Path:
     """Write ``data`` to ``path`` whole or not at all: a temporary file in the same folder,
     fsynced, renamed over ``path``. On any error (``ENOSPC`` ...) the temporary file is removed,
-    ``path`` keeps what it held, and the ``OSError`` propagates."""
+    ``path`` keeps what it held, and the ``OSError`` propagates (``filename``: ``path``)."""
     path = Path(path)
     raw = data.encode("utf-8") if isinstance(data, str) else data
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -86,9 +89,11 @@ def write_atomically(path: str | Path, data: bytes | str) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename is None:   # say which file met the full disk
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
     return path
 

@@ -1,45 +1,30 @@
-"""The ``gonio`` command line. Each command group lives in its own module of this package."""
+"""The ``gonio`` command line. Each command group lives in its own module of this package; the Typer
+application is built in :mod:`capture.cli.commands` and reached as ``capture.cli.app``.
+
+This module stays light: :func:`main` installs gonio's Ctrl-C handling (:mod:`capture.cli.interrupts`)
+before the commands and the pipeline load (about 2 s), so that no Ctrl-C, not even one while gonio
+starts, ends it by SIGINT.
+"""
 from __future__ import annotations
 
-import typer
+import sys
 
-app = typer.Typer(
-    name="gonio",
-    help="Image-based reflectometry: drive the rig, record sessions, calibrate, reconstruct.\n\n"
-         "Every command that needs hardware takes --rig: 'sim' for the built-in simulated lab, "
-         "or a rig TOML file naming each device's driver and port.",
-    no_args_is_help=True,
-    pretty_exceptions_show_locals=False,
-)
-
-
-@app.callback()
-def _root(version: bool = typer.Option(False, "--version", help="Print gonio's version and exit.",
-                                       is_eager=True)) -> None:
-    if version:
-        from importlib.metadata import version as _v
-        typer.echo(f"gonio {_v('gonio')}")
-        raise typer.Exit()
-
-
-def _register() -> None:
-    # one line per command group; each module defines `app`, a typer.Typer
-    from .rig import app as rig_app; app.add_typer(rig_app, name="rig")  # noqa: E702
-    from .tui import app as tui_app; app.add_typer(tui_app, name="tui")  # noqa: E702
-    from .session import app as session_app; app.add_typer(session_app, name="session")  # noqa: E702
-    from .capture import app as capture_app; app.add_typer(capture_app, name="capture")  # noqa: E702
-    from .sim import app as sim_app; app.add_typer(sim_app, name="sim")  # noqa: E702
-    from .calibrate import calibrate; app.command("calibrate")(calibrate)  # noqa: E702
-    from .process import process; app.command("process")(process)  # noqa: E702
-    from .demo import demo; app.command("demo")(demo)  # noqa: E702
-    from .export import export; app.command("export")(export)  # noqa: E702
-    from .importers import app as import_app; app.add_typer(import_app, name="import")  # noqa: E702
-    pass
-
-
-_register()
+from .interrupts import EXIT_INTERRUPTED, install
 
 
 def main() -> None:  # console script entry point
+    install()
+    try:
+        from .commands import app
+    except KeyboardInterrupt:
+        print("interrupted while gonio was starting; nothing was done", file=sys.stderr)
+        raise SystemExit(EXIT_INTERRUPTED) from None
     app()
 
+
+def __getattr__(name: str):
+    """``capture.cli.app``: the Typer application, built on first use."""
+    if name == "app":
+        from .commands import app
+        return app
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

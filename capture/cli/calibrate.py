@@ -7,10 +7,12 @@ the session (``gonio session show`` lists them) and writes the PNG report
 
 Exit status: 0 every stage that ran succeeded; 1 a stage failed (the table names the frame);
 2 usage or store errors (unknown session, unreadable store, bad --targets file);
-3 nothing to calibrate (no stored frames, or no calibration captures in the session).
+3 nothing to calibrate (no stored frames, or no calibration captures in the session), or
+interrupted (Ctrl-C; the same command calibrates again).
 """
 from __future__ import annotations
 
+import errno
 import json
 from dataclasses import fields
 from pathlib import Path
@@ -25,11 +27,16 @@ from rig.tomlfile import read_toml
 
 from ..pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
 from ..pipeline.progress import Progress as PipelineProgress
+from .interrupts import command_line, interruptible_command
 from .session import STORE_OPTION, fail, open_store
 from ..outputs import OutputError, check_out_folder, session_file
 from ..store import ObjectDamaged, SessionBusy, SessionNotFound
 
 EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
+
+
+class TargetsFileError(ValueError):
+    """The ``--targets`` file is missing, unreadable or not TOML (the message names it)."""
 
 
 def _targets(path: Path | None) -> LabTargets | None:
@@ -38,23 +45,26 @@ def _targets(path: Path | None) -> LabTargets | None:
     if path is None:
         return None
     try:
-        data = read_toml(path, what="--targets file")
-    except ValueError as exc:
+        data = read_toml(path, error=TargetsFileError, what="--targets file")
+    except TargetsFileError as exc:
         raise fail(str(exc)) from None
     known = {f.name for f in fields(LabTargets)}
     unknown = sorted(set(data) - known)
     if unknown:
         raise fail(f"--targets {path}: unknown key(s) {', '.join(unknown)}; "
                    f"known: {', '.join(sorted(known))}")
-    try:
+    try:   # the constructor is the check of the file's values: its errors are about them
         return LabTargets(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
     except (TypeError, ValueError) as exc:
         raise fail(f"--targets {path}: {exc}") from None
 
 
+@interruptible_command(lambda session, store, targets, out, **_: (
+    "the session's frames are kept and a calibration cut short is never reused; calibrate again with: "
+    + command_line("gonio", "calibrate", session, store=store, targets=targets, out=out)))
 def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
               store: str = STORE_OPTION,
-              out: Path = typer.Option(None, "--out", help="Folder for the PNG report "
+              out: str = typer.Option(None, "--out", help="Folder for the PNG report "
                                        "(default: the folder holding the store)."),
               targets: Path = typer.Option(None, "--targets", help="TOML file describing the lab's "
                                            "targets (board size and height, sphere radius and lab "
@@ -70,7 +80,7 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
     lab_targets = _targets(targets)
     if out is not None:
         try:   # before the work: a file given as the folder would fail at the end
-            check_out_folder(out)
+            out = check_out_folder(out)
         except OutputError as exc:
             raise fail(str(exc)) from None
     console = Console()
@@ -104,6 +114,12 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
             png = write_report(report, session_file(folder, session, st.session(session).id, "-calibration.png"))
         except OutputError as exc:
             raise fail(str(exc)) from None
+        except OSError as exc:
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            raise fail(f"the disk holding {Path(exc.filename or folder).parent} is full: the calibration is "
+                       "stored (gonio session show lists it) but its PNG report could not be written (no partial "
+                       "file is left); free space, then run the same command to calibrate and draw it again") from None
         if as_json:
             stages = [{"stage": s.stage, "status": s.status, "reason": s.reason, "figures": s.figures,
                        "calibration_id": s.calibration_id, "seconds": s.seconds} for s in report.stages]

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import contextlib
 import shlex
-import signal
 import sys
 import threading
 from collections import Counter
 from pathlib import Path
-from typing import Any, Iterator, Optional
+from typing import Any, Optional
 
 import typer
 from rich.console import Console
@@ -31,11 +30,13 @@ from rig import LightTarget, RigError
 
 from .session import (STORE_OPTION, check_store_option, display_state, fail, human_bytes, human_time, open_store,
                           unwrap)
+from .sim import MAX_SIDE_PX
+from .interrupts import command_line, counted, interruptible, interruptible_command
 from ..events import Event, EventKind
 from ..plan import Estimate, MotionModel, Plan, PlanError, Step, step_prompt
 from ..rigs import OpenedRig, open_rig
 from ..runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
-from ..store import StoreError, check_session_name
+from ..store import Store, StoreError, check_session_name
 
 HELP = """Plan, run and resume capture sessions.
 
@@ -87,16 +88,18 @@ def _sim_camera(text: str | None, rig: str | None) -> dict[str, Any]:
     if rig != "sim":
         raise fail(f"--sim-camera sets the simulated lab's camera; it needs --rig sim, got --rig {rig!r}")
     width, _, height = text.lower().partition("x")
-    if not (width.isdigit() and height.isdigit()):
-        raise fail(f"--sim-camera must be WIDTHxHEIGHT in pixels (e.g. 640x480), got {text!r}")
-    return {"resolution": (int(width), int(height))}
+    size = (int(width), int(height)) if width.isdigit() and height.isdigit() else None
+    if size is None or min(size) < 16 or max(size) > MAX_SIDE_PX or size[0] % 2 or size[1] % 2:
+        raise fail(f"--sim-camera must be WIDTHxHEIGHT in pixels, each even and in 16..{MAX_SIDE_PX} (a "
+                   f"Bayer mosaic; e.g. 640x480), got {text!r}")
+    return {"resolution": size}
 
 
 def _open_rig(spec: str, fast: bool, sim_camera: str | None = None) -> OpenedRig:
     options = _sim_camera(sim_camera, spec)
     try:
         return open_rig(spec, fast=fast, **options)
-    except (RigError, ValueError, OSError) as exc:
+    except (RigError, OSError) as exc:   # a bad rig file is a ConfigError (a RigError)
         raise fail(f"cannot open rig {spec!r}: {exc}") from None
 
 
@@ -213,30 +216,10 @@ def _target_handler(opened: OpenedRig, yes: bool):
     return ask
 
 
-@contextlib.contextmanager
-def _ctrl_c_counted() -> Iterator[list[int]]:
-    """While a session runs and until the rig is closed, Ctrl-C only appends to the yielded list
-    (a handler that never raises): a second one landing anywhere, even while the first is being
-    handled or the rig closes, stops motion instead of killing gonio with SIGINT. SIGTERM (a
-    system shutdown, ``kill``) counts as two: stop now, pause (resumable), close the rig and the
-    simulators (which remove their folders), then exit 3."""
-    interrupts: list[int] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield interrupts
-        return
-    restore = signal.signal(signal.SIGINT, lambda *_: interrupts.append(1))
-    restore_term = signal.signal(signal.SIGTERM, lambda *_: interrupts.extend((1, 1)))
-    try:
-        yield interrupts
-    finally:
-        signal.signal(signal.SIGINT, restore)
-        signal.signal(signal.SIGTERM, restore_term)
-
-
 def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int],
              rig_spec: str) -> None:
     """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly;
-    ``interrupts`` is :func:`_ctrl_c_counted`'s list; ``rig_spec`` the --rig given (for the
+    ``interrupts`` is :func:`capture.cli.interrupts.counted`'s list; ``rig_spec`` the --rig given (for the
     resume hint)."""
     columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("steps"), TextColumn("{task.fields[frames]}"), TimeElapsedColumn(),
@@ -324,31 +307,46 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
             raise fail(str(exc)) from None
     p = _load_plan(plan_file)
     check_store_option(store, readonly=False)   # an archive or "": refused before the rig opens
-    opened = _open_rig(rig, fast, sim_camera)
-    with _ctrl_c_counted() as interrupts, opened:
-        try:  # before the store is created: a plan the rig cannot run leaves no empty store
-            p.check_rig(opened.rig)
-        except PlanError as exc:
-            raise fail(f"{plan_file}: {exc}") from None
-        with open_store(store, create=True) as st:
-            try:
-                info = create_session(st, p, opened.rig, name=session, operator=operator,
-                                      plan_path=str(plan_file.resolve()))
+    created: list[str] = []   # the session's name once recorded (for the resume hint)
+    with interruptible(lambda: _resume_hint(store, created[0] if created else None, rig)):
+        opened = _open_rig(rig, fast, sim_camera)
+        with counted() as interrupts, opened:
+            try:  # before the store is created: a plan the rig cannot run leaves no empty store
+                p.check_rig(opened.rig)
             except PlanError as exc:
                 raise fail(f"{plan_file}: {exc}") from None
-            except (RunnerError, StoreError) as exc:
-                raise fail(str(exc)) from None
-            todo = [s.step for s in st.steps(info.id)]
-            est = MotionModel.from_rig(opened.rig).estimate(todo)
-            typer.echo(f"session {info.name}: {est.steps} steps, {est.frames} frames, about "
-                       f"{human_bytes(est.bytes)} and {human_time(est.seconds)} -> store {store}")
-            typer.echo(_frame_size_text(est, True, running=True))
-            runner = Runner(opened.rig, st, info, home=home,
-                            prepare_target=_target_handler(opened, yes))
-            _execute(runner, store, quiet, interrupts, rig)
+            with open_store(store, create=True) as st:
+                try:
+                    info = create_session(st, p, opened.rig, name=session, operator=operator,
+                                          plan_path=str(plan_file.resolve()))
+                except PlanError as exc:
+                    raise fail(f"{plan_file}: {exc}") from None
+                except (RunnerError, StoreError) as exc:
+                    raise fail(str(exc)) from None
+                created.append(info.name)
+                todo = [s.step for s in st.steps(info.id)]
+                est = MotionModel.from_rig(opened.rig).estimate(todo)
+                typer.echo(f"session {info.name}: {est.steps} steps, {est.frames} frames, about "
+                           f"{human_bytes(est.bytes)} and {human_time(est.seconds)} -> store {store}")
+                typer.echo(_frame_size_text(est, True, running=True))
+                runner = Runner(opened.rig, st, info, home=home,
+                                prepare_target=_target_handler(opened, yes))
+                _execute(runner, store, quiet, interrupts, rig)
+
+
+def _resume_hint(store: str, name: str | None, rig: str) -> str:
+    """What an interrupted ``capture run|resume`` leaves: nothing, a finished session, or the
+    command that continues it."""
+    if name is None:
+        return "nothing was captured"
+    with contextlib.suppress(StoreError), Store(store, create=False, readonly=True) as st:
+        if st.session(name).state == "done":
+            return f"session {name} is done"
+    return f"every frame stored is kept; resume with: {command_line('gonio', 'capture', 'resume', name, rig=rig, store=store)}"
 
 
 @_command
+@interruptible_command(lambda name, rig, store, **_: _resume_hint(store, name, rig))
 def resume(name: str = typer.Argument(..., help="Session name."),
            rig: str = typer.Option(..., "--rig", help=RIG_HELP),
            store: str = STORE_OPTION,
@@ -392,7 +390,7 @@ def resume(name: str = typer.Argument(..., help="Session name."),
             recorded = [s["config"].get("rig", {}).get("camera_resolution") for s in st.rig_snapshots(info.id)]
             sim_camera = next(("{}x{}".format(*r) for r in reversed(recorded) if r), None)
         opened = _open_rig(rig, fast, sim_camera)
-        with _ctrl_c_counted() as interrupts, opened:
+        with counted() as interrupts, opened:
             try:
                 Plan.from_dict(info.plan).check_rig(opened.rig)
             except PlanError as exc:

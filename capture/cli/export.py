@@ -3,15 +3,17 @@ appearance written in formats other software reads (:mod:`capture.export.session
 
 Exit status: 0 written; 2 a request it cannot carry out (unknown session, method not run,
 no mesh, ``DIR`` exists, a format the method cannot give): the message says which, and nothing
-is written.
+is written; 3 interrupted (Ctrl-C, SIGTERM): nothing is written, the same command starts again.
 """
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import typer
 from rich.markup import escape
 
+from .interrupts import command_line, interruptible_command
 from .session import STORE_OPTION, fail, open_store
 
 
@@ -20,6 +22,9 @@ def _format_help() -> str:
     return "Comma-separated formats: " + "; ".join(f"'{k}': {v}" for k, v in FORMATS.items()) + "."
 
 
+@interruptible_command(lambda session, method, formats, out, store, mesh, **_: (
+    f"nothing was written to {out}; export again with: " + command_line(
+        "gonio", "export", session, method=method, format=formats, out=out, store=store, mesh=mesh)))
 def export(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
            method: str = typer.Option(..., "--method", help="Whose reconstruction: lensch, sharing or "
                                       "passive (as stored by 'gonio process')."),
@@ -51,6 +56,11 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
                                  formats=[f.strip() for f in formats.split(",") if f.strip()], **kw)
         except ExportError as exc:
             raise fail(str(exc)) from None
+        except OSError as exc:   # the partial folder is removed: nothing is left
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            raise fail(f"the disk holding {out.resolve().parent} is full ({exc.strerror}); nothing was written: "
+                       "free space and run the same command again") from None
     for fmt, files in rep.files.items():
         typer.echo(f"{fmt}: {len(files)} file(s)")
     a = rep.model.get("approximation", {})

@@ -4,7 +4,8 @@
   layout folder (images, light directions and intensities, mask, optional ground-truth normals).
 
 Exit status: 0 imported; 2 the set is malformed (the message names the file and the fault) or
-the session exists; nothing is written then.
+the session exists; nothing is written then; 3 interrupted (Ctrl-C, SIGTERM): the same command
+continues the import.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 import typer
 
 from ..store import StoreError
+from .interrupts import command_line, interruptible_command
 from .session import STORE_OPTION, fail, unwrap
 
 app = typer.Typer(name="import", no_args_is_help=True, help=unwrap("""
@@ -21,6 +23,10 @@ app = typer.Typer(name="import", no_args_is_help=True, help=unwrap("""
 
 
 @app.command("diligent")
+@interruptible_command(lambda folder, store, session, hold_out_every, **_: (
+    "the files stored so far are kept; continue with: " + command_line(
+        "gonio", "import", "diligent", folder, store=store, session=session,
+        hold_out_every=None if hold_out_every == 4 else hold_out_every)))
 def diligent(folder: Path = typer.Argument(..., help="A DiLiGenT-layout folder: filenames.txt, "
                                            "the images, light_directions.txt, "
                                            "light_intensities.txt, mask.png, [Normal_gt.mat]."),

@@ -8,13 +8,17 @@ Exit status: 0 every method that ran succeeded; 1 a method failed; 2 usage or st
 (unknown session, unreadable mesh or targets file, a bad --out, the session being written by
 another process, a damaged frame: the message names its step); 3 the session cannot give
 reconstruction inputs (no measurement steps, a stage of the calibration missing: the message says
-which); 4 the disk filled up: what was stored is kept, and the same command resumes.
+which), or it was interrupted (Ctrl-C, SIGTERM: what was stored is kept, and the same command
+resumes). A full disk pauses it (the message says where and how much space it waits for) and it
+resumes by itself once there is room.
 """
 from __future__ import annotations
 
 import errno
+import shutil
+import time
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import typer
 from rich.console import Console
@@ -26,9 +30,19 @@ from ..outputs import OutputError, check_out_file, session_file
 from ..pipeline.progress import Progress as PipelineProgress
 from ..store import ObjectDamaged, SessionBusy, SessionNotFound, StoreFull
 from .calibrate import _targets
-from .session import STORE_OPTION, fail, open_store
+from .interrupts import command_line, interruptible_command
+from .session import STORE_OPTION, fail, human_bytes, open_store
 
-EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS, EXIT_DISK_FULL = 0, 1, 3, 4
+if TYPE_CHECKING:
+    from ..pipeline.run import ProcessReport
+
+EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS = 0, 1, 3
+#: how often a process paused on a full disk looks at the free space again, s
+SPACE_POLL_S = 5.0
+#: the largest --memory-limit, MiB (beyond any machine: a typo, or inf)
+MAX_MEMORY_LIMIT_MIB = float(2**30)
+#: the least free space a paused process waits for, bytes
+MIN_FREE_TO_RESUME = 64 << 20
 
 
 def progress_bar(quiet: bool) -> tuple[Progress, Callable[[PipelineProgress], None]]:
@@ -65,6 +79,60 @@ def print_outcome(rep, console: Console) -> None:
     console.print(f"report: {escape(str(rep.report_path))}", highlight=False, soft_wrap=True)
 
 
+def _full_disk_folder(exc: BaseException, store_root: Path) -> Path | None:
+    """The folder whose disk filled up when ``exc`` is a full disk (the store's, or the file's
+    that ``write_atomically`` names), else None."""
+    if isinstance(exc, StoreFull):
+        return store_root
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return Path(exc.filename).parent if exc.filename else store_root
+    return None
+
+
+def free_bytes(folder: Path) -> int:
+    """Free space on the disk holding ``folder``, bytes."""
+    return shutil.disk_usage(folder).free
+
+
+def _pausing_on_a_full_disk(run: Callable[[bool], ProcessReport], store_root: Path, frame_bytes: int,
+                            console: Console) -> ProcessReport:
+    """``run(first)`` (:func:`process_session`; ``first`` False once resuming, so ``--force``
+    redoes the work once only), paused while the disk is full, as a capture pauses: what was
+    stored is kept; the message says where and how much space is wanted; the free space is looked
+    at every :data:`SPACE_POLL_S` until there is that much, then ``run(False)`` resumes (stored
+    calibration, lumitexel arrays and methods are reused). Ctrl-C ends the wait (exit 3); the same
+    command resumes later.
+
+    The space wanted is the session's frames' bytes ``frame_bytes`` (processing writes less:
+    6.4 MB of lumitexel arrays, 0.3 MB of report and results for the 11.6 MB of frames of the
+    suite's session), at least :data:`MIN_FREE_TO_RESUME`."""
+    need, first = max(MIN_FREE_TO_RESUME, frame_bytes), True
+    while True:
+        try:
+            return run(first)
+        except (StoreFull, OSError) as exc:
+            folder = _full_disk_folder(exc, store_root)
+            if folder is None:
+                raise
+            console.print(escape(f"paused: the disk holding {folder} is full ({human_bytes(free_bytes(folder))} "
+                                 f"free: {exc}); every calibration stage and method stored so far is kept. "
+                                 f"Waiting for {human_bytes(need)} free there, then resuming (Ctrl-C stops; "
+                                 "the same command resumes later)"), highlight=False, soft_wrap=True)
+            while free_bytes(folder) < need:
+                time.sleep(SPACE_POLL_S)
+            console.print(f"resuming: {human_bytes(free_bytes(folder))} free", highlight=False)
+            first = False
+
+
+def process_command(session: str, store: str, methods: str | None = None, mesh: Path | None = None,
+                    targets: Path | None = None, out: Path | None = None, **_) -> str:
+    """The ``gonio process`` command line that continues an interrupted one."""
+    return command_line("gonio", "process", session, store=store, methods=methods, mesh=mesh,
+                        targets=targets, out=out)
+
+
+@interruptible_command(lambda **kw: "every calibration stage and method stored so far is kept; resume "
+                       "with: " + process_command(**kw))
 def process(session: str = typer.Argument(..., help="Session name (see 'gonio session list')."),
             store: str = STORE_OPTION,
             methods: str = typer.Option(None, "--methods", help="Comma-separated methods to run "
@@ -106,11 +174,15 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             check_out_file(out)
         except OutputError as exc:
             raise fail(str(exc)) from None
-    from ..pipeline.cluster import ClusterError, ClusterOptions
+    from ..pipeline.cluster import ClusterError, ClusterOptionError, ClusterOptions
+    from ..pipeline.images import FrameDataError
+    from ..pipeline.lumitexel_arrays import MemoryLimitError
     try:
         cluster = ClusterOptions(workers=workers, scheduler=scheduler)
-    except ValueError as exc:
+    except ClusterOptionError as exc:
         raise fail(str(exc)) from None
+    if memory_limit is not None and not memory_limit <= MAX_MEMORY_LIMIT_MIB:   # also true for NaN
+        raise fail(f"--memory-limit must be at most {MAX_MEMORY_LIMIT_MIB:g} MiB (1 PiB), got {memory_limit!r}")
     kw = {"cluster": cluster, "memory_limit": None if memory_limit is None else int(memory_limit * 2**20)}
     if mesh is not None:
         try:
@@ -138,8 +210,11 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
         bar, update = progress_bar(quiet)
         with bar:
             try:
-                rep = process_session(st, session, methods=names, force=force, progress=update,
-                                      report_path=report_path, say=lambda text: console.print(escape(text)), **kw)
+                rep = _pausing_on_a_full_disk(
+                    lambda first: process_session(st, session, methods=names, force=force and first, progress=update,
+                                            report_path=report_path, say=lambda text: console.print(escape(text)),
+                                            **kw),
+                    Path(st.root), st.progress(info.id).bytes_stored, bar.console)
             except MeshError as exc:   # the mesh against the calibration: the user's input
                 bar.stop()
                 raise fail(str(exc)) from None
@@ -147,19 +222,9 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
                 bar.stop()
                 typer.secho(f"cannot process: {exc}", err=True, fg=typer.colors.YELLOW)
                 raise typer.Exit(EXIT_NO_INPUTS) from None
-            except (ClusterError, ValueError) as exc:   # a cluster unusable, a memory limit too small
-                bar.stop()
+            except (ClusterError, MemoryLimitError, FrameDataError, SessionBusy, ObjectDamaged, OutputError) as exc:
+                bar.stop()   # any other error is a bug: its traceback is kept
                 raise fail(str(exc)) from None
-            except (SessionBusy, ObjectDamaged, OutputError) as exc:
-                bar.stop()
-                raise fail(str(exc)) from None
-            except (StoreFull, OSError) as exc:
-                if isinstance(exc, OSError) and exc.errno not in (errno.ENOSPC, errno.EDQUOT):
-                    raise
-                bar.stop()
-                raise fail(f"the disk is full ({exc}); every calibration stage and method stored so "
-                           f"far is kept: free space and run the same command again to resume",
-                           EXIT_DISK_FULL) from None
     failed = any(m.status == "failed" for m in rep.methods)
     if as_json:
         typer.echo(rep.report_path.with_suffix(".json").read_text())

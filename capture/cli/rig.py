@@ -19,8 +19,9 @@ from rich.markup import escape
 from rich.table import Table
 
 from rig import RigError
-from rig.rig import ROLES
+from rig.rig import MAX_DURATION_S, ROLES
 
+from ..outputs import OutputError, check_out_file, write_atomically
 from ..rigs import home_all, open_rig, position_text, to_toml
 
 app = typer.Typer(name="rig", help="Check, home and simulate the measurement rig.", no_args_is_help=True)
@@ -36,7 +37,7 @@ def _fail(message: str, code: int = 2) -> typer.Exit:
 def _open(rig: str, fast: bool, connect: bool):
     try:
         return open_rig(rig, fast=fast, connect=connect)
-    except (RigError, ValueError, OSError) as exc:
+    except (RigError, OSError) as exc:   # a bad rig file is a ConfigError (a RigError)
         raise _fail(f"cannot open rig {rig!r}: {exc}") from None
 
 
@@ -84,6 +85,12 @@ def check(rig: str = typer.Option("sim", "--rig", help=RIG_HELP),
                     + "; ".join(f"{r['role']}: {r['error']}" for r in failed), 1)
 
 
+def _check_seconds(option: str, value: float, why: str = "") -> None:
+    """A duration option: more than 0 and at most a day (the rig file's bound), else exit 2."""
+    if not 0 < value <= MAX_DURATION_S:   # also false for NaN
+        raise _fail(f"{option} must be more than 0 and at most {MAX_DURATION_S:g} s (a day){why}, got {value!r}")
+
+
 @app.command()
 def home(rig: str = typer.Option("sim", "--rig", help=RIG_HELP),
          role: Optional[list[str]] = typer.Option(None, "--role", help="Only these roles (repeatable)."),
@@ -94,6 +101,7 @@ def home(rig: str = typer.Option("sim", "--rig", help=RIG_HELP),
         bad = set(role) - set(ROLES)
         if bad:
             raise _fail(f"unknown role(s) {sorted(bad)}; roles are {', '.join(ROLES)}")
+    _check_seconds("--timeout", timeout)
     opened = _open(rig, fast, connect=True)
     with opened:
         try:
@@ -111,12 +119,18 @@ def sim(fast: bool = typer.Option(False, help="Complete moves instantly (default
         duration: Optional[float] = typer.Option(None, help="Stop after this many seconds (scripts)."),
         ) -> None:
     """Run the simulated serial devices for another process; print their ports and a rig TOML."""
-    from sims.lab import SimLab
+    from sims.lab import KINEMATICS, SimLab
 
-    try:
-        lab = SimLab(fast=fast, kinematics=kinematics, roles=("turntable", "positioner", "polarizer")).start()
-    except ValueError as exc:
-        raise _fail(str(exc)) from None
+    if kinematics not in KINEMATICS:
+        raise _fail(f"--kinematics must be one of {', '.join(KINEMATICS)}, got {kinematics!r}")
+    if duration is not None:
+        _check_seconds("--duration", duration, " (without it the simulators serve until Ctrl-C)")
+    if write is not None:
+        try:   # before the simulators start: a folder, /dev/full or a missing folder
+            check_out_file(write, "--write")
+        except OutputError as exc:
+            raise _fail(str(exc)) from None
+    lab = SimLab(fast=fast, kinematics=kinematics, roles=("turntable", "positioner", "polarizer")).start()
     try:
         cfg = lab.rig_config()
         toml = ("# gonio simulated lab: serial devices on pseudo-terminals.\n"
@@ -128,7 +142,10 @@ def sim(fast: bool = typer.Option(False, help="Complete moves instantly (default
         typer.echo("")
         typer.echo(toml)
         if write is not None:
-            write.write_text(toml)
+            try:
+                write_atomically(write, toml)
+            except OSError as exc:
+                raise _fail(f"--write {write}: {exc.strerror or exc}") from None
             typer.echo(f"rig file written to {write}")
         typer.echo("serving; press Ctrl-C to stop", err=True)
         try:

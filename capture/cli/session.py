@@ -281,6 +281,11 @@ def verify(name: str = typer.Argument(..., help="Session name."), store: str = S
     for step in report.incomplete_steps:
         typer.secho(f"incomplete: step {step} is marked done but has the wrong number of frames",
                     fg=typer.colors.RED)
+    if not report.journaled:
+        typer.secho(visible(f"note: session {name} has no journal (recorded before journals): were "
+                            "gonio.sqlite lost, its frames could not be put back into it; 'gonio session "
+                            f"rebuild-index --store {store}' writes one from the database now"),
+                    fg=typer.colors.YELLOW)
     if not report.ok:
         raise fail(f"{len(report.missing)} missing, {len(report.corrupt)} corrupt, "
                    f"{len(report.orphans)} orphaned file(s), {len(report.incomplete_steps)} "
@@ -318,8 +323,17 @@ def rebuild_index(store: str = STORE_OPTION) -> None:
             rep = st.rebuild_index()
         except StoreError as exc:
             raise fail(str(exc)) from None
+    if rep.journals_written:
+        typer.echo(visible(f"journals written for the session(s) recorded before journals: "
+                           f"{', '.join(rep.journals_written)} (a lost index can be rebuilt for them from now on)"))
     for note in rep.notes:
         typer.secho(visible(note), fg=typer.colors.YELLOW)
+    if rep.unlisted_files:
+        typer.secho(f"{rep.unlisted_files} file(s) ({human_bytes(rep.unlisted_bytes)}) are listed by no database row "
+                    "and no journal: frames of sessions recorded before journals whose rows are lost, or "
+                    "calibration and reconstruction files (gonio process computes those again). They are kept "
+                    f"in {st.root / 'objects'} and {st.quarantine}, but no session can be rebuilt from them: "
+                    "a frame file names neither its session nor its step", fg=typer.colors.YELLOW)
     added = ", ".join(visible(n) for n in rep.sessions_added) or "none"
     typer.echo(f"sessions restored: {added}; frame rows restored: {rep.frames_added}; files taken back "
                f"from quarantine: {rep.unquarantined}")

@@ -16,10 +16,12 @@ from typing import Optional
 
 import typer
 
-from ..outputs import OutputError, check_out_folder, safe_stem
+from ..outputs import OutputError, check_out_folder, safe_stem, write_atomically
 
 #: largest rendered side, pixels (64 MP frames; beyond that a typo runs out of memory)
 MAX_SIDE_PX = 8192
+#: rays per pixel side at most (64 rays a pixel)
+MAX_SUPERSAMPLE = 8
 
 app = typer.Typer(name="sim", help="Render the simulated lab: scenes, targets and the camera's raw frames.",
                   no_args_is_help=True)
@@ -72,7 +74,7 @@ _RENDER_HELP = "\n\n".join([
 
 @app.command(help=_RENDER_HELP)
 def render(
-    out: Path = typer.Option(..., "--out", help="Folder for the DNG and PNG (created if needed)."),
+    out: str = typer.Option(..., "--out", help="Folder for the DNG and PNG (created if needed)."),
     obj: str = typer.Option("sphere", "--object", help="On the turntable: sphere, hemisphere, multi, bunny or none."),
     scene: str = typer.Option("object", "--scene", help=f"Capture kind: {', '.join(SCENES)}."),
     turntable: float = typer.Option(0.0, "--turntable", help="Turntable angle, degrees."),
@@ -96,6 +98,8 @@ def render(
     import numpy as np
 
     from sims.objects import OBJECTS
+    from sims.ptp_sim import FNUMBER_VALUES, ISO_VALUES
+    from ..plan import MAX_EXPOSURE_S, MIN_EXPOSURE_S
     from sims.world import SimWorld, default_camera, light_position
 
     if scene not in SCENES:
@@ -113,50 +117,66 @@ def render(
         raise _fail(f"--name {name!r}: use 1-100 ASCII letters, digits, '_', '.' or '-', starting with a "
                     "letter, digit or '_' (a file stem, not a path)")
     try:
-        check_out_folder(out)
+        folder = check_out_folder(out)
     except OutputError as exc:
         raise _fail(str(exc)) from None
-    for option, value in (("--exposure", exposure), ("--iso", iso), ("--fnumber", fnumber),
-                          ("--light-radius", light_radius)):
-        if not 0 < value < math.inf:  # also catches NaN
-            raise _fail(f"{option} must be > 0, got {value!r}")
-    if supersample is not None and supersample < 1:
-        raise _fail(f"--supersample must be >= 1, got {supersample}")
-    try:
-        extra = {} if supersample is None else {"supersample": supersample}
-        world = SimWorld.for_capture(scene, None if obj == "none" else obj,
-                                     camera=default_camera(width, height), seed=seed, **extra)
-        state = {"turntable_angle_deg": turntable, "exposure_s": exposure, "iso": iso, "fnumber": fnumber,
-                 "light_position_mm": tuple(light_position(light_az, light_el, radius_mm=light_radius)),
-                 "polarizer_angle_deg": polarizer}
-        t0 = time.perf_counter()
-        dng = world.frame_source(state)
-        seconds = time.perf_counter() - t0
-    except (ValueError, TypeError) as exc:
-        raise _fail(str(exc)) from None
+    if not 0 < light_radius < math.inf:  # also catches NaN
+        raise _fail(f"--light-radius must be > 0, got {light_radius!r}")
+    for option, value, (low, high) in (("--exposure", exposure, (MIN_EXPOSURE_S, MAX_EXPOSURE_S)),
+                                       ("--iso", iso, (min(ISO_VALUES), max(ISO_VALUES))),
+                                       ("--fnumber", fnumber, (min(FNUMBER_VALUES) / 100, max(FNUMBER_VALUES) / 100))):
+        if not low <= value <= high:  # the simulated camera's range (and plans' exposures); false for NaN
+            raise _fail(f"{option} must be in {low:g}..{high:g}, got {value!r}")
+    if not -90 <= light_el <= 90:
+        raise _fail(f"--light-el must be in -90..90 degrees, got {light_el!r}")
+    if supersample is not None and not 1 <= supersample <= MAX_SUPERSAMPLE:
+        raise _fail(f"--supersample must be in 1..{MAX_SUPERSAMPLE} rays per pixel side, got {supersample}")
+    if seed < 0:
+        raise _fail(f"--seed must be >= 0, got {seed}")
+    # every option is checked above: an error from here on is a bug, and keeps its traceback
+    extra = {} if supersample is None else {"supersample": supersample}
+    world = SimWorld.for_capture(scene, None if obj == "none" else obj,
+                                 camera=default_camera(width, height), seed=seed, **extra)
+    state = {"turntable_angle_deg": turntable, "exposure_s": exposure, "iso": iso, "fnumber": fnumber,
+             "light_position_mm": tuple(light_position(light_az, light_el, radius_mm=light_radius)),
+             "polarizer_angle_deg": polarizer}
+    t0 = time.perf_counter()
+    dng = world.frame_source(state)
+    seconds = time.perf_counter() - t0
     stem = name or (f"{obj if scene == 'object' else scene}_tt{turntable:g}_az{light_az:g}_el{light_el:g}"
                     f"_pol{'none' if polarizer is None else f'{polarizer:g}'}_e{exposure:g}")
-    out.mkdir(parents=True, exist_ok=True)
-    dng_path, png_path = out / f"{stem}.dng", out / f"{stem}.png"
-    dng_path.write_bytes(dng)
+    folder.mkdir(parents=True, exist_ok=True)
+    dng_path, png_path = folder / f"{stem}.dng", folder / f"{stem}.png"
     rgb = preview_png(dng)
-    if not cv2.imwrite(str(png_path), rgb[..., ::-1]):
-        raise _fail(f"cannot write {png_path}")
+    files = {dng_path: dng, png_path: cv2.imencode(".png", rgb[..., ::-1])[1].tobytes()}
+    if truth:
+        files.update(_truth_files(world, state, folder, stem))
+    try:   # each whole or not at all (a full disk, a read-only folder)
+        for path, data in files.items():
+            write_atomically(path, data)
+    except OSError as exc:
+        raise _fail(f"cannot write {exc.filename}: {exc.strerror or exc}") from None
     saturated = float(np.mean(rgb.max(axis=2) == 255))
     typer.echo(f"{dng_path}\n{png_path}\n{width} x {height}, rendered and exposed in {seconds:.2f} s, "
                f"{100 * saturated:.1f} % of pixels at sensor white")
     if truth:
-        gt = world.ground_truth(state)
-        b = gt.buffers
-        np.savez_compressed(out / f"{stem}_truth.npz", radiance=gt.radiance, diffuse=gt.diffuse,
-                            specular=gt.specular, mask=b.mask, normal=b.normal,
-                            position=b.position, depth=b.depth, uv=b.uv, surface_index=b.surface_index,
-                            face_index=b.face_index, expected_dn=gt.expected.mean_dn,
-                            sigma_dn=gt.expected.sigma_dn, saturated=gt.expected.saturated)
-        meta = {"state": {k: v for k, v in vars(gt.state).items()},
-                "camera": {"K": gt.camera.K.tolist(), "dist": gt.camera.dist.tolist(), "R": gt.camera.R.tolist(),
-                           "t": gt.camera.t.tolist(), "width": gt.camera.width, "height": gt.camera.height},
-                "light_position_mm": gt.light_position_mm.tolist(), "object_pose": gt.object_pose.tolist(),
-                "objects": [o.name for o in gt.scene.objects]}
-        (out / f"{stem}.json").write_text(json.dumps(meta, indent=2))
-        typer.echo(f"{out / f'{stem}_truth.npz'}\n{out / f'{stem}.json'}")
+        typer.echo(f"{folder / f'{stem}_truth.npz'}\n{folder / f'{stem}.json'}")
+
+
+def _truth_files(world, state: dict, out: Path, stem: str) -> dict[Path, bytes]:
+    """``NAME_truth.npz`` (radiance, buffers) and ``NAME.json`` (state, camera, light, pose), as bytes."""
+    import numpy as np
+    gt = world.ground_truth(state)
+    b = gt.buffers
+    npz = io.BytesIO()
+    np.savez_compressed(npz, radiance=gt.radiance, diffuse=gt.diffuse,
+                        specular=gt.specular, mask=b.mask, normal=b.normal,
+                        position=b.position, depth=b.depth, uv=b.uv, surface_index=b.surface_index,
+                        face_index=b.face_index, expected_dn=gt.expected.mean_dn,
+                        sigma_dn=gt.expected.sigma_dn, saturated=gt.expected.saturated)
+    meta = {"state": {k: v for k, v in vars(gt.state).items()},
+            "camera": {"K": gt.camera.K.tolist(), "dist": gt.camera.dist.tolist(), "R": gt.camera.R.tolist(),
+                       "t": gt.camera.t.tolist(), "width": gt.camera.width, "height": gt.camera.height},
+            "light_position_mm": gt.light_position_mm.tolist(), "object_pose": gt.object_pose.tolist(),
+            "objects": [o.name for o in gt.scene.objects]}
+    return {out / f"{stem}_truth.npz": npz.getvalue(), out / f"{stem}.json": json.dumps(meta, indent=2)}

@@ -6,6 +6,9 @@ from typing import Optional
 
 import typer
 
+#: the slowest device-table refresh, s
+MAX_POLL_S = 60.0
+
 app = typer.Typer(name="tui", help="Open the operator console (terminal UI).",
                   invoke_without_command=True)
 
@@ -13,8 +16,8 @@ app = typer.Typer(name="tui", help="Open the operator console (terminal UI).",
 @app.callback()
 def tui(rig: str = typer.Option("sim", "--rig",
                                 help="'sim' for the built-in simulated lab, or a rig TOML file."),
-        store: Path = typer.Option(Path("gonio-store"), "--store",
-                                   help="Session store directory (created if missing)."),
+        store: str = typer.Option("gonio-store", "--store",
+                                  help="Session store directory (created if missing)."),
         plan: Optional[Path] = typer.Option(None, "--plan", help="Open this plan file at start."),
         fast: bool = typer.Option(False, help="Simulated devices move instantly."),
         poll: float = typer.Option(0.25, help="Device table refresh period, seconds."),
@@ -23,8 +26,10 @@ def tui(rig: str = typer.Option("sim", "--rig",
                                             "--rig sim bring their own.")) -> None:
     """Devices (jog, home, stop, camera test shot), sessions (plan, start, pause, resume, abort,
     progress), preview with histograms, and the event log. Press F1 inside for the keys."""
-    if poll <= 0:
-        raise typer.BadParameter(f"must be > 0 seconds, got {poll}", param_hint="--poll")
+    if not 0 < poll <= MAX_POLL_S:   # also false for NaN
+        raise typer.BadParameter(f"must be > 0 seconds and at most {MAX_POLL_S:g}, got {poll}", param_hint="--poll")
+    from .session import check_store_option
+    check_store_option(store, readonly=False)   # "" (the current folder) or an archive: refused
     if plan is not None and not plan.is_file():
         raise typer.BadParameter(f"plan file {plan} does not exist", param_hint="--plan")
     process_options: dict = {}
@@ -35,4 +40,4 @@ def tui(rig: str = typer.Option("sim", "--rig",
         except MeshError as exc:
             raise typer.BadParameter(str(exc), param_hint="--mesh") from None
     from ..tui import GonioApp  # Textual loads only for this command
-    GonioApp(rig, store, fast=fast, poll_s=poll, plan=plan, process_options=process_options).run()
+    GonioApp(rig, Path(store), fast=fast, poll_s=poll, plan=plan, process_options=process_options).run()

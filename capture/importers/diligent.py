@@ -238,19 +238,11 @@ def import_diligent(folder, store: Store | str | os.PathLike, session: str | Non
 
     The set is checked completely first (:class:`DiligentFormatError`), and the session name
     and an existing session refused, before the store is opened or created: a bad set or name
-    writes nothing."""
+    writes nothing. An import of the same files cut short (Ctrl-C, a full disk: the session is
+    left ``paused``) is continued from its first file not stored."""
     d = Path(folder)
     data = read_diligent(d, hold_out_every=hold_out_every)
     name = check_session_name(session or f"diligent-{data.name}")
-    if not isinstance(store, Store):
-        store = Store.open(store, create=True)
-    try:
-        store.session(name)
-    except SessionNotFound:
-        pass
-    else:
-        raise SessionExists(f"a session named {name!r} already exists in {store.root}; choose "
-                            "another --session name")
     files = [*data.filenames, "mask.png", "light_directions.txt", "light_intensities.txt",
              "filenames.txt"] + (["Normal_gt.mat"] if data.normals_gt is not None else [])
     H, W = data.mask.shape
@@ -270,13 +262,26 @@ def import_diligent(folder, store: Store | str | os.PathLike, session: str | Non
     if data.normals_gt is not None:
         steps.append({"kind": TRUTH_STEP, "file": "Normal_gt.mat", "frames": 1,
                       "use": "scoring only"})
-    info = store.create_session(name, plan=plan, plan_hash=plan_hash, steps=steps,
-                                plan_path=str(d.resolve()), operator=operator, object=data.name,
-                                notes=f"imported from {d.resolve()} ({FORMAT} layout)")
+    if not isinstance(store, Store):
+        store = Store.open(store, create=True)
+    try:
+        info = store.session(name)
+    except SessionNotFound:
+        info = store.create_session(name, plan=plan, plan_hash=plan_hash, steps=steps,
+                                    plan_path=str(d.resolve()), operator=operator, object=data.name,
+                                    notes=f"imported from {d.resolve()} ({FORMAT} layout)")
+    else:
+        if info.state == "done" or info.plan_hash != plan_hash:
+            raise SessionExists(f"a session named {name!r} already exists in {store.root}; choose "
+                                "another --session name")
     try:
         with store.writer(name):
+            stored = {f.step: f.id for f in store.frames(info.id)}
             ids = []
             for i, s in enumerate(steps):
+                if i in stored:   # an interrupted import of the same files: kept
+                    ids.append(stored[i])
+                    continue
                 fid, _ = store.add_frame(info.id, i, 0, 0, data=(d / s["file"]).read_bytes(),
                                          filename=s["file"], format=Path(s["file"]).suffix[1:],
                                          exposure_requested_s=None, exposure_s=None,
@@ -284,23 +289,26 @@ def import_diligent(folder, store: Store | str | os.PathLike, session: str | Non
                                          completes_step=True)
                 ids.append(fid)
             K = len(data.filenames)
-            store.add_calibration(info.id, "lights_directional", result={
-                "directions": data.light_directions.tolist(),
-                "intensities": data.light_intensities.tolist(),
-                "frame": plan["imported"]["frame"],
-                "source": "given with the set (light_directions.txt, light_intensities.txt)"},
-                params={"format": FORMAT}, input_frames=ids[:K])
-            store.add_calibration(info.id, "camera_orthographic", result={
-                "view_direction": data.view_direction.tolist(), "image_size_px": [W, H],
-                "source": "given with the set (DiLiGenT: orthographic, view along the optical axis)"},
-                params={"format": FORMAT})
+            given = {r.kind for r in store.results(info.id, "calibration")}   # stored before a cut
+            if "lights_directional" not in given:
+                store.add_calibration(info.id, "lights_directional", result={
+                    "directions": data.light_directions.tolist(),
+                    "intensities": data.light_intensities.tolist(),
+                    "frame": plan["imported"]["frame"],
+                    "source": "given with the set (light_directions.txt, light_intensities.txt)"},
+                    params={"format": FORMAT}, input_frames=ids[:K])
+            if "camera_orthographic" not in given:
+                store.add_calibration(info.id, "camera_orthographic", result={
+                    "view_direction": data.view_direction.tolist(), "image_size_px": [W, H],
+                    "source": "given with the set (DiLiGenT: orthographic, view along the optical axis)"},
+                    params={"format": FORMAT})
             store.set_state(info.id, "done", [Event(
                 EventKind.NOTE, name, f"imported {K} images from {d.resolve()} ({FORMAT} layout)",
                 data={"source": str(d.resolve()), "lights": K,
                       "held_out": int(data.held_out.sum()),
                       "ground_truth": data.normals_gt is not None})])
     except BaseException:
-        store.set_state(info.id, "aborted")
+        store.set_state(info.id, "paused")   # the same command continues it
         raise
     return name
 

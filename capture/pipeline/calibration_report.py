@@ -8,6 +8,7 @@ Panels whose stage did not run say why.
 """
 from __future__ import annotations
 
+import io
 import textwrap
 from pathlib import Path
 
@@ -17,6 +18,7 @@ matplotlib.use("Agg")  # before pyplot: headless servers and CI have no display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..outputs import write_atomically  # noqa: E402
 from .calibrate import CalibrationReport  # noqa: E402
 
 __all__ = ["write_report", "tonemap"]
@@ -159,9 +161,10 @@ def write_report(report: CalibrationReport, path: str | Path, *, dpi: int = 110)
     table.scale(1, 1.5)
     fig.suptitle(f"gonio calibration report: session {report.session}", fontsize=13)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
-    fig.savefig(path, dpi=dpi)
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=dpi)
     plt.close(fig)
-    return path
+    return write_atomically(path, png.getvalue())   # whole or not at all (a full disk)
 
 
 def _figures_text(figures: dict) -> str:

@@ -19,11 +19,15 @@ from typing import Any, Callable, Sequence
 
 from dask.distributed import Client, LocalCluster, as_completed
 
-__all__ = ["ClusterOptions", "ClusterError", "Executor"]
+__all__ = ["ClusterOptions", "ClusterError", "ClusterOptionError", "Executor"]
 
 
 class ClusterError(RuntimeError):
     """The cluster cannot be used (unreachable scheduler, a worker that cannot see the store)."""
+
+
+class ClusterOptionError(ValueError):
+    """``--workers`` or ``--scheduler`` is malformed (the message names the option)."""
 
 
 @dataclass(frozen=True)
@@ -48,9 +52,9 @@ class ClusterOptions:
 
     def __post_init__(self) -> None:
         if self.workers < 0:
-            raise ValueError(f"--workers must be >= 0, got {self.workers}")
+            raise ClusterOptionError(f"--workers must be >= 0, got {self.workers}")
         if self.scheduler is not None and not self.scheduler.startswith(("tcp://", "tls://", "inproc://")):
-            raise ValueError(f"--scheduler must be an address like tcp://HOST:8786, got {self.scheduler!r}")
+            raise ClusterOptionError(f"--scheduler must be an address like tcp://HOST:8786, got {self.scheduler!r}")
 
     @property
     def in_process(self) -> bool:

@@ -49,7 +49,8 @@ from ..store import Store
 from .images import SessionImages
 from .process import PoseSpec, SessionCalibration, ViewPlan, merge_pose, session_images
 
-__all__ = ["LumitexelArrays", "stream_lumitexels", "block_texels_for", "default_memory_limit", "reject_filter_for"]
+__all__ = ["LumitexelArrays", "MemoryLimitError", "stream_lumitexels", "block_texels_for", "default_memory_limit",
+           "reject_filter_for"]
 
 _SAMPLE_FIELDS = ("wi", "wo", "reflectance", "diffuse", "specular")
 #: the channel of ``samples`` that says whether the (texel, view) pair holds a sample
@@ -79,6 +80,10 @@ def default_memory_limit() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
 
 
+class MemoryLimitError(ValueError):
+    """``--memory-limit`` cannot hold one view's images per worker (the message says how much it needs)."""
+
+
 def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: int = 1) -> int:
     """Texels per block so that ``workers`` tasks, each holding one view's images and one
     block, stay within ``memory_bytes`` (at least 1024: below that the per-chunk overhead rules;
@@ -86,13 +91,13 @@ def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: i
 
     Raises
     ------
-    ValueError
+    MemoryLimitError
         The limit cannot hold even one view's images per worker (says how much it needs).
     """
     per_worker = memory_bytes / max(workers, 1)
     image = _PIXEL_BYTES * pixels
     if per_worker < 1.25 * image:
-        raise ValueError(f"--memory-limit {memory_bytes / 2**20:.0f} MiB cannot hold one view's images "
+        raise MemoryLimitError(f"--memory-limit {memory_bytes / 2**20:.0f} MiB cannot hold one view's images "
                          f"per worker ({workers} x {image / 2**20:.0f} MiB at {pixels} pixels); give at least "
                          f"{1.25 * image * max(workers, 1) / 2**20:.0f} MiB")
     fit = (per_worker - image) // (_TEXEL_BYTES_FIXED + _TEXEL_BYTES_PER_VIEW * n_views)

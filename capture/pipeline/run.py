@@ -45,7 +45,7 @@ from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
 from .lumitexel_arrays import block_texels_for, default_memory_limit, stream_lumitexels
 from .progress import Progress, ProgressSink, counter
-from .process import (MissingCalibration, ProcessInputs, SessionCalibration, plan_inputs,
+from .process import (MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
                       read_calibration, session_images, view_plan)
 from .process_report import Floor, MethodOutcome, ProcessReport
 from .report_html import write_html_report

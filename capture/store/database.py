@@ -389,6 +389,7 @@ class Store:
                 removed = self.collect_garbage() if try_lock(wfd) else None
                 fcntl.flock(wfd, fcntl.LOCK_SH)  # converts the exclusive lock if we held it
                 self._keep_reserve()
+                self.write_missing_journals(info)   # a session from before journals: journaled from now on
                 yield removed
             finally:
                 os.close(wfd)
@@ -494,6 +495,32 @@ class Store:
         with self._write() as db:
             db.execute("INSERT INTO rig_snapshots (session_id, taken, config_json, describe_json) "
                        "VALUES (?,?,?,?)", (session_id, taken, dumps(config), dumps(describe)))
+
+    def write_missing_journals(self, only: SessionInfo | None = None) -> list[str]:
+        """Write the journal (:mod:`.journal`) of each session recorded before journals existed
+        (``only``: of that session), from its rows: plan and steps, rig snapshots, frame rows.
+        From then on a lost or restored database can be rebuilt for it too. Returns the names of
+        the sessions given one; a name that is no safe file name (a store from before names were
+        checked) gets none."""
+        written = []
+        for info in [only] if only is not None else self.sessions():
+            path = self._journals.path(info.name, info.created)
+            if path is None or path.is_file():
+                continue
+            head = {"name": info.name, "operator": info.operator, "object": info.object, "notes": info.notes,
+                    "plan": info.plan, "plan_hash": info.plan_hash, "plan_path": info.plan_path,
+                    "created": info.created, "steps": [s for _, s, _ in self.steps(info.id)]}
+            frames = [{"step": f.step, "bracket_index": f.bracket_index, "repeat": f.repeat, "sha256": f.sha256,
+                       "size": f.size, "filename": f.filename, "format": f.format,
+                       "exposure_requested_s": f.exposure_requested_s, "exposure_s": f.exposure_s,
+                       "iso": f.iso, "fnumber": f.fnumber, "positions": f.positions,
+                       "captured_at": f.captured_at, "stored_at": f.stored_at, "metadata": f.metadata}
+                      for f in self.frames(info.id)]
+            self._journals.write_whole(path, [{"session": head}]
+                                       + [{"rig_snapshot": s} for s in self.rig_snapshots(info.id)]
+                                       + [{"frame": f} for f in frames])
+            written.append(info.name)
+        return written
 
     def _journal_of(self, session_id: int) -> Path | None:
         """The session's journal file (see :mod:`.journal`), looked up once."""
@@ -914,7 +941,8 @@ class Store:
                 "SELECT s.idx FROM steps s WHERE s.session_id = ? AND s.done = 1 AND s.frames != "
                 "(SELECT count(*) FROM frames f WHERE f.session_id = s.session_id AND f.step = s.idx) "
                 "ORDER BY s.idx", (info.id,))]
-        report = VerifyReport(incomplete_steps=incomplete)
+        journal = self._journals.path(info.name, info.created)
+        report = VerifyReport(incomplete_steps=incomplete, journaled=journal is not None and journal.is_file())
         for i, sha in enumerate(shas):
             path = self.object_path(sha)
             if not path.is_file():

@@ -49,6 +49,25 @@ class Journals:
         if path is not None and path.is_file():
             self._append(path, {kind: record}, mode="a")
 
+    def write_whole(self, path: Path, records: list[dict[str, Any]]) -> None:
+        """Write a whole journal at once (a session recorded before journals, from its rows):
+        a temporary file renamed into place, so a kill leaves the full journal or none."""
+        self.root.mkdir(exist_ok=True)
+        tmp = path.with_name(f".tmp-{path.name}")
+        try:
+            with open(tmp, "w", encoding="utf-8") as f:
+                f.writelines(json.dumps(r, separators=(",", ":"), allow_nan=True) + "\n" for r in records)
+                f.flush()
+                if self.durable:
+                    os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise StoreFull(f"no space left on the disk holding {self.root.parent} while writing "
+                                "a session journal; free space and try again") from None
+            raise
+
     def _append(self, path: Path, record: dict[str, Any], mode: str) -> None:
         line = json.dumps(record, separators=(",", ":"), allow_nan=True) + "\n"
         try:

@@ -8,6 +8,12 @@ moved back into ``objects/``. Steps whose frames are all there are marked done; 
 session is ``done`` when every step is, else ``paused`` (``gonio capture resume`` continues it).
 Calibration and reconstruction results are derived data and are not journaled: ``gonio process``
 computes them again.
+
+Sessions recorded before journals existed have none: the rebuild first writes one for each such
+session the database still lists (and every writer does for its session), so that from then on
+they can be rebuilt too. What it cannot do is put back the frames of such a session once its rows
+are lost: a frame file names neither its session nor its step. Those files are kept (in
+``objects/`` or ``quarantine/``) and counted in the report as files no row and no journal lists.
 """
 from __future__ import annotations
 
@@ -18,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .errors import SessionBusy
-from .objects import sha256_file
+from .objects import TMP_PREFIX, sha256_file
 from .rows import dumps, try_lock
 
 if TYPE_CHECKING:
@@ -35,6 +41,11 @@ class RebuildReport:
     frames_added: int = 0
     unquarantined: int = 0
     notes: list[str] = field(default_factory=list)
+    #: sessions recorded before journals, given one from their rows
+    journals_written: list[str] = field(default_factory=list)
+    #: files (and their bytes) that no row and no journal lists: kept, but no session to put them in
+    unlisted_files: int = 0
+    unlisted_bytes: int = 0
 
 
 def rebuild_index(store: "Store") -> RebuildReport:
@@ -49,7 +60,7 @@ def rebuild_index(store: "Store") -> RebuildReport:
     try:
         if not try_lock(fd):
             raise SessionBusy(f"a session in {store.root} is being written; rebuild the index once it ends")
-        report = RebuildReport()
+        report = RebuildReport(journals_written=store.write_missing_journals())
         for path, records in store._journals.read():
             head = records[0].get("session") if records else None
             if not isinstance(head, dict):
@@ -116,6 +127,10 @@ def rebuild_index(store: "Store") -> RebuildReport:
                            "AND f.step = steps.idx)", (time.time(), sid))
                 if new and not db.execute("SELECT 1 FROM steps WHERE session_id = ? AND done = 0", (sid,)).fetchone():
                     db.execute("UPDATE sessions SET state = 'done' WHERE id = ?", (sid,))
+        referenced = store._referenced()
+        unlisted = [p for p in store.orphans() + store.quarantined()
+                    if not p.name.startswith(TMP_PREFIX) and p.name not in referenced]
+        report.unlisted_files, report.unlisted_bytes = len(unlisted), sum(p.stat().st_size for p in unlisted)
         return report
     finally:
         os.close(fd)

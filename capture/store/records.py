@@ -110,6 +110,9 @@ class VerifyReport:
     incomplete_steps: list[int] = field(default_factory=list)
     #: sha256 -> where the session uses it (``step 3 frame 1 ...``, ``result dark #2 ...``)
     where: dict[str, list[str]] = field(default_factory=dict)
+    #: False for a session recorded before journals (none written yet): were the database lost,
+    #: its frames could not be put back (``rebuild-index`` or the next writer writes one)
+    journaled: bool = True
 
     @property
     def ok(self) -> bool:

@@ -94,6 +94,45 @@ def test_a_lost_database_is_rebuilt_from_the_journals_and_frame_files(tmp_path):
     assert _sessions(root) == before
 
 
+def test_a_store_from_before_journals_is_verified_journaled_and_rebuilt_or_says_what_it_cannot(tmp_path):
+    """A store written before journals existed (the same store with journal/ gone): verify works
+    and warns; a lost database is rebuilt as far as it can be and the command names what it cannot
+    put back, keeping the files; rebuild-index (and any writer) journals the old sessions from
+    their rows, after which a lost database is rebuilt exactly (issue 19 #2)."""
+    root = tmp_path / "store"
+    _capture(root, "old")
+    shutil.rmtree(root / "journal")
+    before = _sessions(root)
+    files = {f[3] for f in before["old"][3]}
+    v = cli.invoke(app, ["session", "verify", "old", "--store", str(root)])
+    said = " ".join(v.output.split())
+    assert v.exit_code == 0 and "note: session old has no journal (recorded before journals)" in said, v.output
+    assert "rebuild-index" in said and "ok: every file is present" in said
+    lost = tmp_path / "lost"   # the database lost before any journal was written
+    shutil.copytree(root, lost)
+    (lost / "gonio.sqlite").unlink()
+    objects = _snapshot(lost / "objects")
+    r = cli.invoke(app, ["session", "rebuild-index", "--store", str(lost)])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 0 and "sessions restored: none" in said, r.output
+    assert f"{len(files)} file(s) (" in said and "are listed by no database row and no journal" in said
+    assert "no session can be rebuilt from them" in said
+    assert _snapshot(lost / "objects") == objects   # kept as they were
+    writable = tmp_path / "writer"   # any writer of an old session journals it
+    shutil.copytree(root, writable)
+    with Store(writable, durable=False) as st, st.writer("old"):
+        pass
+    assert len(list((writable / "journal").glob("*-old.jsonl"))) == 1
+    r = cli.invoke(app, ["session", "rebuild-index", "--store", str(root)])
+    assert r.exit_code == 0 and "journals written for the session(s) recorded before journals: old" in r.output
+    assert "note:" not in cli.invoke(app, ["session", "verify", "old", "--store", str(root)]).output
+    for store in (root, writable):
+        (store / "gonio.sqlite").unlink()
+        r = cli.invoke(app, ["session", "rebuild-index", "--store", str(store)])
+        assert r.exit_code == 0 and "sessions restored: old" in r.output, r.output
+        assert _sessions(store) == before
+
+
 def test_remove_orphans_quarantines_and_purge_keeps_young_files(tmp_path):
     with Store(tmp_path, durable=False) as st:
         stray = st.put_object(b"a frame no row lists")

@@ -154,7 +154,16 @@ def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
 
 
 @pytest.fixture(scope="module")
-def processed(captured, tmp_path_factory):
+def calibrated(captured, tmp_path_factory):
+    """A copy of the store as captured and calibrated, before any method ran (``processed`` asks
+    for it, so it is always taken first)."""
+    copy = tmp_path_factory.mktemp("calibrated") / "store"
+    shutil.copytree(captured[2] / "store", copy)
+    return copy
+
+
+@pytest.fixture(scope="module")
+def processed(captured, calibrated, tmp_path_factory):
     store, lab, _ = captured
     # (Lensch runs in the demo test; here the reference and a small sharing fit keep it quick)
     session_lab = replace(lab.session_lab("proc"), method_options={"sharing": {"max_centers": 200}})
@@ -335,23 +344,31 @@ def _copy(root, tmp_path):
     return tmp_path / "store"
 
 
-def _killed_at(store_dir, hook: str, report) -> int:
-    """Run a forced ``process_session`` in a forked child that SIGKILLs itself at the calibration
-    stage boundary ``hook``; returns the child's exit code."""
+def _killed_at(store_dir, hook, report, *, force: bool = True) -> str | None:
+    """Run ``process_session`` (lambertian) in a forked child that SIGKILLs itself at the hook
+    point ``hook`` (a name, or a callable(name) -> True where to die); returns the name of the
+    hook it died at (None: it was not killed)."""
     import multiprocessing
     import os
     import signal
     from capture.store import crash
+    died = Path(report).with_suffix(".killed")
 
     def child():
-        crash.point = lambda name: os.kill(os.getpid(), signal.SIGKILL) if name == hook else None
+        kill = hook if callable(hook) else (lambda name: name == hook)
+
+        def point(name):
+            if kill(name):
+                died.write_text(name)
+                os.kill(os.getpid(), signal.SIGKILL)
+        crash.point = point
         with Store(store_dir, durable=False) as st:
-            process_session(st, "proc", methods=["lambertian"], force=True, report_path=report)
+            process_session(st, "proc", methods=["lambertian"], force=force, report_path=report)
         os._exit(0)
     p = multiprocessing.get_context("fork").Process(target=child)
     p.start()
     p.join()
-    return p.exitcode
+    return died.read_text() if p.exitcode == -9 and died.is_file() else None
 
 
 def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_same_figures(
@@ -362,7 +379,7 @@ def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_sa
     rep, _ = processed
     reference = rep.method("lambertian").figures["held_out_rel_rms"]
     store_dir = _copy(captured[2], tmp_path)
-    assert _killed_at(store_dir, "calibration lights", tmp_path / "k.html") == -9
+    assert _killed_at(store_dir, "calibration intrinsics", tmp_path / "k.html") == "calibration intrinsics"
     with Store(store_dir, durable=False) as st:
         sid = st.session("proc").id
         state = stored_calibration(st, sid)
@@ -375,6 +392,105 @@ def test_a_process_killed_mid_calibration_is_redone_by_a_plain_rerun_with_the_sa
         assert stored_calibration(st, sid).complete
         assert len(st.results(sid, "reconstruction")) == before + 1
         assert st.verify("proc").ok
+
+
+def _holds_writer_lock(store_dir, session_id: int) -> bool:
+    """True while some process holds the session's writer lock (:meth:`Store.writer`)."""
+    import fcntl
+    import os
+    path = store_dir / "locks" / f"session-{session_id}.lock"
+    if not path.exists():
+        return False
+    fd = os.open(path, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+
+
+def test_ctrl_c_twice_during_process_exits_3_keeping_what_was_stored(calibrated, tmp_path):
+    """A real ``gonio process`` sent SIGINT as soon as it works on the session, then again 0.1 s
+    later (while it unwinds): exit status 3, no traceback, the resume command, and the store as it
+    was plus whatever was completed (issue 19 #12)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from capture.pipeline.calibration_record import stored_calibration
+    store_dir = tmp_path / "store"
+    shutil.copytree(calibrated, store_dir)
+    with Store(store_dir, readonly=True) as st:
+        sid = st.session("proc").id
+        before = {r.id: r.result for r in st.results(sid)}
+        frames = st.frames(sid)
+    p = subprocess.Popen([sys.executable, "-m", "capture.cli", "process", "proc", "--store", str(store_dir),
+                          "--methods", "lambertian", "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not _holds_writer_lock(store_dir, sid) and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    p.send_signal(signal.SIGINT)
+    time.sleep(0.1)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=60)
+    said = " ".join((out + err).split())
+    assert p.returncode == 3, out + err
+    assert "Traceback" not in said and said.count("interrupted;") == 1
+    assert (f"interrupted; every calibration stage and method stored so far is kept; resume with: gonio process "
+            f"proc --store {store_dir} --methods lambertian") in said
+    with Store(store_dir, readonly=True) as st:
+        after = {r.id: r.result for r in st.results(sid)}
+        assert {k: after[k] for k in before} == before and st.frames(sid) == frames
+        assert stored_calibration(st, sid).complete
+        damage = st.verify("proc")   # an object written before its row is an orphan the next writer keeps
+        assert not (damage.missing or damage.corrupt or damage.incomplete_steps)
+
+
+def _random_hook_after(start: str, seed: int, last: str = "stage report"):
+    """A kill rule: at each hook point after ``start`` die with probability 1/3 (seeded), at
+    ``last`` at the latest: a random point among the writes that store a method's result."""
+    import random
+    rng, armed = random.Random(seed), []
+
+    def kill(name: str) -> bool:
+        if name == start:
+            armed.append(name)
+            return False
+        return bool(armed) and (name == last or rng.random() < 1 / 3)
+    return kill
+
+
+def test_process_killed_at_two_stage_boundaries_and_a_random_point_then_rerun_gives_the_same_figures(
+        processed, calibrated, tmp_path):
+    """The crash run in little (benchmarks/process_crash.py walks every hook): on the calibrated
+    session, ``process`` is SIGKILLed at the lumitexels boundary, its re-run at the method's
+    boundary, the next at a random write while the method's result is stored; a plain re-run then
+    gives the uninterrupted run's figure, with the calibration reused, the lumitexel arrays
+    resumed, one stored result and no damaged file."""
+    from capture.pipeline.calibration_record import stored_calibration
+    reference = processed[0].method("lambertian").figures["held_out_rel_rms"]
+    store_dir = tmp_path / "store"
+    shutil.copytree(calibrated, store_dir)
+    kills = [("stage lumitexels", "stage lumitexels"), ("stage lambertian", "stage lambertian"),
+             (_random_hook_after("stage lambertian", seed=1), None)]
+    for k, (rule, name) in enumerate(kills):
+        died = _killed_at(store_dir, rule, tmp_path / f"k{k}.html", force=False)
+        assert died == name if name else died is not None and not died.startswith("stage "), died   # a write
+        with Store(store_dir, readonly=True) as st:
+            damage = st.verify("proc")
+            assert not (damage.missing or damage.corrupt or damage.incomplete_steps), (died, damage)
+    with Store(store_dir, durable=False) as st:
+        again = process_session(st, "proc", methods=["lambertian"], report_path=tmp_path / "r.html")
+        sid = st.session("proc").id
+        lam = again.method("lambertian")
+        assert lam.figures["held_out_rel_rms"] == pytest.approx(reference, rel=1e-9), died
+        assert [c["status"] for c in again.calibration if c["status"] in ("redone", "ok")] == []   # reused
+        assert again.inputs["lumitexel_arrays"]["reused_views"] > 0 or lam.status == "done"
+        assert stored_calibration(st, sid).complete
+        assert len([r for r in st.results(sid, "reconstruction") if r.kind == "lambertian"]) == 1
+        assert st.verify("proc").ok   # the next writer quarantined any file a kill left unlisted
 
 
 def test_a_second_process_on_a_session_being_processed_is_refused(captured, tmp_path):

@@ -27,5 +27,5 @@ def test_tui_rejects_a_missing_plan_and_a_bad_poll_period(tmp_path, monkeypatch)
     assert "plan file nope.toml does not exist" in _text(result.output)
     result = runner.invoke(app, ["tui", "--store", "s", "--poll", "0"])
     assert result.exit_code == 2
-    assert "must be > 0 seconds, got 0.0" in _text(result.output)
+    assert "must be > 0 seconds and at most 60, got 0.0" in _text(result.output)
     assert not (tmp_path / "s").exists()  # nothing was opened
