@@ -509,7 +509,7 @@ class Store:
                 continue
             head = {"name": info.name, "operator": info.operator, "object": info.object, "notes": info.notes,
                     "plan": info.plan, "plan_hash": info.plan_hash, "plan_path": info.plan_path,
-                    "created": info.created, "steps": [s for _, s, _ in self.steps(info.id)]}
+                    "created": info.created, "steps": [s.spec for s in self.steps(info.id)]}
             frames = [{"step": f.step, "bracket_index": f.bracket_index, "repeat": f.repeat, "sha256": f.sha256,
                        "size": f.size, "filename": f.filename, "format": f.format,
                        "exposure_requested_s": f.exposure_requested_s, "exposure_s": f.exposure_s,

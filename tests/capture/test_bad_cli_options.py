@@ -149,7 +149,8 @@ def test_a_full_disk_while_the_report_is_written_pauses_and_never_leaves_a_parti
     """A real ``gonio process`` (an imported 40 x 40 set) meets ENOSPC writing its report (an
     imported session's is JSON), after the method was stored: it pauses naming the report's
     folder, resumes once there is room, reuses the stored fit, and the report is whole; no
-    temporary file is left (the report was written in place, 0 bytes on a full disk)."""
+    temporary file is left (the report was written in place, 0 bytes on a full disk).
+    The report is HTML with a JSON summary; the HTML is written first."""
     import errno
     import json
     import os
@@ -177,11 +178,13 @@ def test_a_full_disk_while_the_report_is_written_pauses_and_never_leaves_a_parti
                          "--out", str(out / "r.html"), "--json", "-q"])
     said = " ".join(r.output.split())
     assert r.exit_code == 0, r.output
-    assert f"paused: the disk holding {out} is full (1.0 MB free: [Errno 28] No space left on device: '{out / 'r.json'}')" in said
+    # the report's first file written (its HTML, since imported sessions have one) met the full disk
+    assert f"paused: the disk holding {out} is full (1.0 MB free: [Errno 28] No space left on device: '{out / 'r.html'}')" in said
     assert "Waiting for 67.1 MB free there" in said and "resuming: 1.0 TB free" in said
     report = json.loads(r.output[r.output.index("{"):])
     assert report["methods"][0]["status"] == "done"   # the fit stored before the disk filled
-    assert sorted(p.name for p in out.iterdir()) == ["r.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["r.html", "r.json"]   # whole, no temporary left
+    assert (out / "r.html").read_text().rstrip().endswith("</html>")
     assert json.loads((out / "r.json").read_text()) == report
     with Store(tmp_path / "store", readonly=True) as st:
         assert len(st.results(st.session("diligent-ball").id, "reconstruction")) == 1

@@ -79,4 +79,4 @@ def test_capture_run_with_sim_camera_stores_frames_of_that_size(tmp_path):
     r = CliRunner().invoke(app, ["capture", "plan", str(plan), "--rig", "sim", "--sim-camera", "64by48"])
     assert r.exit_code == 2 and "WIDTHxHEIGHT" in r.output, r.output
     r = CliRunner().invoke(app, ["capture", "plan", str(plan), "--rig", "sim", "--sim-camera", "65x48"])
-    assert r.exit_code == 2 and "even number" in r.output, r.output
+    assert r.exit_code == 2 and "each even" in r.output and "65x48" in r.output, r.output

@@ -174,8 +174,14 @@ def test_feed_hold_resume_and_stop_keep_position(arm, homed):
     time.sleep(0.15)
     p.feed_hold()
     deadline = time.monotonic() + 2
-    while (st := report(p)).substate != 0:  # Hold:1 decelerating, then Hold:0 complete
-        assert st.state == "Hold" and time.monotonic() < deadline
+    # GRBL's protocol_exec_rt_system() serves EXEC_STATUS_REPORT before EXEC_FEED_HOLD when both
+    # flags are set in one pass, so a '?' that arrives with the '!' may still read Run (seen in
+    # the suite, 2026-11-26): Run until the hold lands, then Hold:1 decelerating, Hold:0 complete
+    seen = []
+    while (st := report(p)).substate != 0 or st.state != "Hold":
+        seen.append(st.state)
+        assert st.state in ("Run", "Hold") and time.monotonic() < deadline, seen
+        assert "Hold" not in seen or st.state == "Hold", seen   # once held, held
         time.sleep(0.01)
     held = st.mpos
     time.sleep(0.1)
