@@ -185,21 +185,6 @@ class LabFrame:
         return x @ self.R.T + self.t_mm
 
 
-@dataclass(frozen=True)
-class MeasuredLight:
-    """One light located by the lights stage (camera frame and, with a lab frame, lab frame, mm)
-    from the spheres steps ``steps`` (one per turntable angle the spheres were captured at);
-    ``rays`` the reflected rays it was triangulated from: points (M, 3) mm and unit directions
-    (M, 3), camera frame."""
-
-    step: int
-    position_camera_mm: np.ndarray
-    position_lab_mm: np.ndarray | None
-    commanded: LightTarget | None
-    rays: tuple[np.ndarray, np.ndarray] | None = None
-    steps: tuple[int, ...] = ()
-
-
 class StageDataError(ValueError):
     """The session's stored data cannot feed a stage: a step without the read-back or planned
     value a stage needs (the message names it)."""
@@ -267,7 +252,9 @@ class _Context:
         self.detections: dict[int, TargetDetection] = {}    # checkerboard step -> corners
         self.detector: str | None = None                    # 'charuco' or 'chessboard'
         self.lab: LabFrame | None = None
-        self.lights: list[MeasuredLight] | None = None
+        #: each light the lights stage located, with the reflected rays (points mm, unit directions;
+        #: camera frame) it was triangulated from: the positioner stage fits the arm to them
+        self.lights: list[tuple[LocatedLight, tuple[np.ndarray, np.ndarray]]] | None = None
         self.positioner: PositionerModel | None = None
 
     def steps_of(self, kind: str) -> list[int]:
@@ -632,8 +619,7 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                                  spheres_used=tuple(np.concatenate(got["spheres"]).tolist()),
                                  readback_mm=_readback_light(ctx, s)))
         lights.append(pl)
-        measured.append(MeasuredLight(s, pl.position_mm, p_lab, ctx.steps[s].light,
-                                      (pl.surface_points_mm, pl.directions), tuple(got["steps"])))
+        measured.append((rows[-1], (pl.surface_points_mm, pl.directions)))
     if not rows:
         raise CalibrationError(f"no light could be located: {len(unseen)} of {len(steps)} spheres steps show "
                                "the lamp in fewer than 2 spheres" + "".join(f"; {e}" for e in errors))
@@ -650,7 +636,7 @@ def _stage_lights(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                "centres": "known" if source.startswith("known") else "silhouettes",
                "ray_residual_rms_mm": round(float(np.sqrt(np.mean(res ** 2))), 3),
                "max_std_mm": round(float(max(pl.std_mm.max() for pl in lights)), 2)}
-    return StageOutput(result, figures, ctx.frame_ids([s for m in measured for s in m.steps]),
+    return StageOutput(result, figures, ctx.frame_ids([s for m, _ in measured for s in m.steps]),
                        params={"sphere_radius_mm": radius, "sphere_centres_from": source}, errors=errors)
 
 
@@ -662,18 +648,18 @@ def _readback_light(ctx: _Context, step: int) -> np.ndarray | None:
 def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     measured = _need(ctx.lights, "lights", "measured light positions")
     lab = _need(ctx.lab, "turntable", "the lab frame: azimuth and elevation are about the turntable axis")
-    use = [m for m in measured if m.commanded is not None and m.commanded.xyz_mm is None]
+    use = [(m, rays) for m, rays in measured if m.commanded is not None and m.commanded.xyz_mm is None]
     if len(use) < 3:
         raise _Skip(f"{len(use)} spheres steps with commanded azimuth/elevation (need 3; "
                     "xyz_mm light targets have no arm model)")
-    az = np.array([m.commanded.azimuth_deg for m in use])
-    el = np.array([m.commanded.elevation_deg for m in use])
-    X = np.array([m.position_lab_mm for m in use])
+    az = np.array([m.commanded.azimuth_deg for m, _ in use])
+    el = np.array([m.commanded.elevation_deg for m, _ in use])
+    X = np.array([m.position_lab_mm for m, _ in use])
     # the rays in the lab frame, each tagged with its light's pose
-    P = np.concatenate([lab.to_lab(m.rays[0]) for m in use])
-    D = np.concatenate([m.rays[1] @ lab.R for m in use])
-    pose = np.concatenate([np.full(len(m.rays[0]), i) for i, m in enumerate(use)])
-    weight = np.concatenate([ray_weights(*m.rays, np.zeros(3)) for m in use])
+    P = np.concatenate([lab.to_lab(points) for _, (points, _) in use])
+    D = np.concatenate([dirs @ lab.R for _, (_, dirs) in use])
+    pose = np.concatenate([np.full(len(points), i) for i, (_, (points, _)) in enumerate(use)])
+    weight = np.concatenate([ray_weights(*rays, np.zeros(3)) for _, rays in use])
     model = fit_positioner_model(az, el, X, rays=(P, D, pose, weight))
     if model.radius_mm <= 0 or model.rms_mm > MAX_ARM_RMS_FRACTION * model.radius_mm:
         # LM can settle on a mirrored arm (negative radius) when the lights scatter in distance
@@ -704,7 +690,7 @@ def _stage_positioner(ctx: _Context, rep: CalibrationReport) -> StageOutput:
                "radius_mm": round(model.radius_mm, 1),
                "el_offset_deg": round(model.elevation_offset_deg, 2), "steps_with_light": len(per_step)}
     params = {"model": "arm (centre, radius, azimuth/elevation offsets)", "fitted_to": "reflected rays"}
-    return StageOutput(result, figures, ctx.frame_ids([m.step for m in use]), params=params)
+    return StageOutput(result, figures, ctx.frame_ids([m.step for m, _ in use]), params=params)
 
 
 def _stage_polarization(ctx: _Context, rep: CalibrationReport) -> StageOutput:
