@@ -183,8 +183,8 @@ def test_capture_run_then_process_gives_the_demos_frames_and_figures(demo, tmp_p
     figures as the demo's own processing of the same plan. ``--rig sim`` renders the demo's lab
     with every scene's noise seeded and the DNG clock counting captures, so the frames are the
     demo's byte for byte; the processing, a fresh calibration included, then reproduces every
-    figure: calibration, calibration against truth, inputs, and each method's held-out and
-    truth errors. Tolerance: 1e-9 relative (measured: equal to the bit in every run;
+    figure: calibration, calibration against truth, inputs, the floor, and the held-out and truth
+    errors of Lambertian and sharing. Tolerance: 1e-9 relative (measured: equal to the bit in every run;
     benchmarks/reproducibility.py measures the re-calibration's spread, none with OpenCV's
     solvers on one thread)."""
     demo_cwd, demo_run, _ = demo
@@ -198,11 +198,17 @@ def test_capture_run_then_process_gives_the_demos_frames_and_figures(demo, tmp_p
     assert len(captured) == len(demoed) > 100
     assert captured == demoed   # same steps, exposures, repeats and DNG bytes (sha256)
 
-    run = _gonio(cwd, "process", "demo-quick", "--store", "store", "-q", "--json", "--out", "report.html")
+    # two of the four methods, for the suite's time (Lensch and passive: ~17 s on 2 idle cores):
+    # the calibration, the lumitexels and the floor, which every method starts from, are compared
+    # whole, and each method is a deterministic function of them and the lab's options
+    methods = ["lambertian", "sharing"]
+    run = _gonio(cwd, "process", "demo-quick", "--store", "store", "-q", "--json", "--out", "report.html",
+                 "--methods", ",".join(methods))
     assert run.returncode == 0, run.stdout + run.stderr   # no --mesh, no targets: the lab states them
     got = json.loads(run.stdout)
     want = json.loads((demo_cwd / "demo" / "report.json").read_text())
-    assert [m["method"] for m in got["methods"]] == [m["method"] for m in want["methods"]]
+    want["methods"] = [m for m in want["methods"] if m["method"] in methods]
+    assert [m["method"] for m in got["methods"]] == methods
     for part in ("calibration", "calibration_truth", "inputs", "methods", "floor"):
         mine, theirs = dict(_numbers(got[part])), dict(_numbers(want[part]))
         assert mine.keys() == theirs.keys(), part
