@@ -156,7 +156,16 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
                                                "hold together (sets the texel chunk; default: half the "
                                                "machine's memory)."),
             quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
-    """Reconstruct a captured session with every method its captures allow and write the report."""
+    """Reconstruct a captured session with every method its captures allow and write the report.
+
+    What is stored is reused: a calibration complete for the session's captures, the lumitexel
+    arrays of the same inputs, each method already fitted (--force redoes them). Ctrl-C, a killed
+    process or a full disk (which pauses until there is room) keep everything stored; run the
+    same command again to carry on.
+
+    Exit status: 0 done, 1 a method failed, 2 bad input, 3 interrupted or no measurement to
+    process.
+    """
     from ..pipeline.methods import DEFAULT_METHODS, METHODS
     from ..pipeline.run import process_session
     from ..pipeline.imported import is_imported
