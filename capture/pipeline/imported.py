@@ -27,7 +27,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -42,10 +42,11 @@ from ..store import Store
 from .methods import MethodSkipped, fit_method
 from .process import ProcessInputs
 from .process_report import MethodOutcome, ProcessReport
+from .progress import ProgressSink, counter
 from .report_html import write_html_report
 
 __all__ = ["ImportedInputs", "ImportedFacts", "imported_facts", "imported_inputs", "process_imported_session", "is_imported",
-           "SKIPPED_STAGES", "LENSCH_OPTIONS"]
+           "relighting_pictures", "SKIPPED_STAGES", "LENSCH_OPTIONS"]
 
 #: The calibration stages a captured session runs, and why an imported set skips each.
 SKIPPED_STAGES = {
@@ -186,15 +187,49 @@ def imported_inputs(store: Store, session: str, **kw) -> ImportedInputs:
     return ImportedInputs(read_imported_session(store, session), **kw)
 
 
+def relighting_pictures(inp: ImportedInputs, predicted: np.ndarray) -> dict[str, np.ndarray]:
+    """The report's held-out relighting pictures of one method (its ``report.npz``).
+
+    For the held-out light nearest the view axis and the one farthest from it: the photograph
+    (``heldout_captured``, ``_2`` for the second; (H, W, 3) radiance per unit light intensity)
+    and the method's ``predicted`` reflectance of ``inp.held``'s samples drawn at exactly the
+    pixels it fitted (``heldout_predicted``; NaN elsewhere and where the light is below a
+    texel's horizon: nothing is filled in). ``heldout_lights`` (n, 2): each pair's light index
+    and its angle to the view axis (deg)."""
+    held, data = inp.held, inp.data
+    lights = np.unique(held.view)
+    if len(lights) == 0:
+        return {}
+    angle = np.degrees(np.arccos(np.clip(data.light_directions[lights] @ data.view_direction, -1, 1)))
+    chosen = lights[[int(np.argmin(angle)), int(np.argmax(angle))]] if len(lights) > 1 else lights
+    H, W = data.mask.shape
+    out: dict[str, np.ndarray] = {}
+    for suffix, k in zip(("", "_2"), chosen):
+        on = held.view == k
+        col, row = held.pixel[held.texel[on]].astype(int).T
+        pred = np.full((H, W, 3), np.nan, np.float32)
+        pred[row, col] = predicted[on]
+        out["heldout_captured" + suffix] = data.radiance([k])[0]
+        out["heldout_predicted" + suffix] = pred
+    out["heldout_lights"] = np.array([[k, a] for k, a in zip(chosen, angle[np.searchsorted(lights, chosen)])])
+    return out
+
+
 def _score(lt: Lumitexels, predicted: np.ndarray) -> dict[str, float]:
     use = lt.weight > 0
     return {"held_out_rel_rms": relative_rms(predicted[use], lt.reflectance[use]),
             "held_out_rel_rms_trimmed": trimmed_relative_rms(predicted[use], lt.reflectance[use])}
 
 
+def _npz(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
 def process_imported_session(store: Store, session: str, *, methods: Sequence[str],
                              force: bool = False, rng: int = 0, max_texels: int | None = 5000,
-                             progress: Callable[[str, int, int], None] | None = None,
+                             progress: ProgressSink | None = None,
                              report_path: str | Path | None = None):
     """Run ``methods`` on an imported session and write its report (``report_path``, default
     ``<session>-report.html`` beside the store, with its ``.json`` summary); returns a
@@ -234,9 +269,8 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
                                              result_id=stored[name].id))
             continue
         started = time.perf_counter()
-        sub = None if progress is None else (lambda d, t, n=name: progress(n, d, t))
         try:
-            fit = fit_method(name, inp.train, stub, rng=rng, progress=sub,
+            fit = fit_method(name, inp.train, stub, rng=rng, progress=counter(progress, name),
                              **(LENSCH_OPTIONS if name == "lensch" else {}))
         except MethodSkipped as exc:
             rep.methods.append(MethodOutcome(name, "skipped", str(exc)))
@@ -245,7 +279,8 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
             rep.methods.append(MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}"))
             continue
         figures: dict[str, Any] = dict(fit.figures)
-        figures.update(_score(inp.held, fit.predict(inp.held)))
+        predicted = fit.predict(inp.held)
+        figures.update(_score(inp.held, predicted))
         if fit.normals is not None and inp.truth is not None:
             figures["normal_error_deg"] = inp.normal_errors(fit.normals)
         seconds = round(time.perf_counter() - started, 3)
@@ -253,13 +288,11 @@ def process_imported_session(store: Store, session: str, *, methods: Sequence[st
         arrays = {**fit.arrays, "pixels": inp.pixels.astype(np.int32)}
         if fit.normals is not None:   # full precision: the report's error map restates normal_error_deg
             arrays["normals"] = np.asarray(fit.normals, np.float64)
-        buf = io.BytesIO()
-        np.savez_compressed(buf, **arrays)
         rid = store.add_reconstruction(info.id, name, result={
             "figures": figures, "warnings": fit.warnings, "inputs_summary": rep.inputs},
             params={**fit.params, **(LENSCH_OPTIONS if name == "lensch" else {}),
                     "max_texels": max_texels}, input_frames=frames,
-            artifacts={"model.npz": buf.getvalue()})
+            artifacts={"model.npz": _npz(arrays), "report.npz": _npz(relighting_pictures(inp, predicted))})
         rep.methods.append(MethodOutcome(name, "ok", "", figures, rid, seconds, fit.warnings))
     started = time.perf_counter()
     facts = imported_facts(store, session, inp, rep.methods)

@@ -115,10 +115,12 @@ def _timeline(store: Store, session_id: int) -> str:
 
 
 def comparison_figure(panels: list[tuple[str, np.ndarray]], error: tuple[str, np.ndarray, np.ndarray],
-                      alt: str) -> str:
+                      alt: str, *, dots: bool = False) -> str:
     """Radiance images (H, W, 3) side by side at one exposure, then ``error = (title, a, b)``:
     ``|a - b| / mean |b|`` per pixel. Every panel is cropped to the pixels where both ``a`` and
-    ``b`` are known (not NaN), and exposed at ``b``'s 99.5th percentile there."""
+    ``b`` are known (not NaN), and exposed at ``b``'s 99.5th percentile there. ``dots``: a panel
+    known at scattered pixels only (a method fitted to a random subset) is drawn as dots on grey,
+    so its pixels are seen, not lost among the white of the unknown ones."""
     import matplotlib.pyplot as plt
     title, a, b = error
     on = ~np.isnan(a).any(axis=2) & ~np.isnan(b).any(axis=2)
@@ -127,13 +129,26 @@ def comparison_figure(panels: list[tuple[str, np.ndarray]], error: tuple[str, np
     err = np.linalg.norm(np.nan_to_num(a - b), axis=2) / max(mean, 1e-12)
     err[~on] = np.nan
     ys, xs = np.nonzero(on)
-    crop = (slice(max(ys.min() - 4, 0), ys.max() + 5), slice(max(xs.min() - 4, 0), xs.max() + 5)) if len(ys) else \
-        (slice(None), slice(None))
+    y0, x0 = (max(ys.min() - 4, 0), max(xs.min() - 4, 0)) if len(ys) else (0, 0)
+    crop = (slice(y0, ys.max() + 5), slice(x0, xs.max() + 5)) if len(ys) else (slice(None), slice(None))
     fig, axes = plt.subplots(1, len(panels) + 1, figsize=(3.4 * (len(panels) + 1), 3.6))
+
+    def scatter(ax, img, values, **kw):
+        ax.imshow(np.full(img[crop].shape[:2], 0.5), cmap="gray", vmin=0, vmax=1)
+        known = ~np.isnan(img).any(axis=2) if img.ndim == 3 else ~np.isnan(img)
+        py, px = np.nonzero(known)
+        return ax.scatter(px - x0, py - y0, c=values[known], s=2, linewidths=0, **kw)
+
     for ax, (name, img) in zip(axes, panels):
-        ax.imshow(tonemap(img, scale)[crop])
+        if dots and np.isnan(img).any():
+            scatter(ax, img, tonemap(img, scale))
+        else:
+            ax.imshow(tonemap(img, scale)[crop])
         ax.set_title(name, fontsize=9)
-    im = axes[-1].imshow(err[crop], cmap="magma", vmin=0, vmax=1)
+    if dots:
+        im = scatter(axes[-1], err, err, cmap="magma", vmin=0, vmax=1)
+    else:
+        im = axes[-1].imshow(err[crop], cmap="magma", vmin=0, vmax=1)
     axes[-1].set_title(title, fontsize=9)
     fig.colorbar(im, ax=axes[-1], fraction=0.046)
     for ax in axes:
@@ -141,10 +156,27 @@ def comparison_figure(panels: list[tuple[str, np.ndarray]], error: tuple[str, np
     return img_tag(png_uri(fig), alt)
 
 
-def _held_out_figure(pics: dict[str, np.ndarray]) -> str:
-    cap, pred = pics["heldout_captured"], pics["heldout_predicted"]
+def _held_out_figure(pics: dict[str, np.ndarray], suffix: str = "", *, dots: bool = False) -> str:
+    cap, pred = pics["heldout_captured" + suffix], pics["heldout_predicted" + suffix]
     return comparison_figure([("captured under a held-out light", cap), ("predicted by the model", pred)],
-                             ("|error| / mean radiance", pred, cap), "held-out capture, prediction and error")
+                             ("|error| / mean radiance", pred, cap), "held-out capture, prediction and error",
+                             dots=dots)
+
+
+def _held_out_part(pics: dict[str, np.ndarray]) -> str:
+    """The held-out figures: a captured session's first held-out view, or an imported set's
+    photographs under its most frontal and most oblique held-out lights (``heldout_lights``)."""
+    if "heldout_lights" not in pics:
+        return ("<p>Left: a capture under a light the model never saw; middle: the model's "
+                "prediction for the same light; right: their difference (dark is good).</p>" + _held_out_figure(pics))
+    parts = []
+    for suffix, (k, deg) in zip(("", "_2"), pics["heldout_lights"]):
+        fitted = int(np.isfinite(pics["heldout_predicted" + suffix]).all(axis=2).sum())
+        parts.append(f"<p>Left: the photograph under held-out light {int(k) + 1} ({deg:.0f}° from the "
+                     "view axis), which no fit saw; middle: the model's prediction, drawn only at the "
+                     f"{fitted} pixels it fitted that this light reaches (grey: not fitted); right: their "
+                     "difference (dark is good).</p>" + _held_out_figure(pics, suffix, dots=True))
+    return "".join(parts)
 
 
 def _slices_figure(pics: dict[str, np.ndarray], theta_i: float) -> str:
@@ -284,9 +316,7 @@ def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str
         parts.append("<ul class='warn'>" + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul>")
     if pics:
         if "heldout_captured" in pics:
-            parts.append("<p>Left: a capture under a light the model never saw; middle: the model's "
-                         "prediction for the same light; right: their difference (dark is good).</p>"
-                         + _held_out_figure(pics))
+            parts.append(_held_out_part(pics))
         s = _slices_figure(pics, SLICE_THETA_I_DEG)
         if s:
             parts.append("<p>How much light the surface reflects towards each viewing angle when lit from "

@@ -19,6 +19,7 @@ from typer.testing import CliRunner
 from capture.cli import app
 from capture.importers import DiligentFormatError, import_diligent, read_diligent, read_imported_session
 from capture.pipeline.imported import imported_facts, imported_inputs, process_imported_session
+from capture.pipeline.progress import Progress
 from capture.store import Store
 from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 
@@ -186,6 +187,25 @@ def test_process_runs_on_an_imported_set_and_says_what_it_skips(tmp_path):
         out["inputs"]["normal_error_robust_deg"], rel=1e-9)
     scored = np.isfinite(facts.normal_errors["least squares"])   # the texels' pixels, inside the mask
     assert np.all(mask[scored]) and scored.sum() == out["inputs"]["texels"]
+    # held-out relighting pictures: the photographs under the most frontal and the most oblique
+    # held-out light (every 4th of 8: lights 4, straight on, and 8, 39 deg off), the prediction
+    # drawn at exactly the fitted pixels that light reaches (one per held-out sample), and within the 16-bit quantisation
+    # of the photograph there (a Lambertian fit of a Lambertian ball)
+    import io
+    with np.load(io.BytesIO(st.read_object(res.artifacts["report.npz"]))) as z:
+        pics = {k: z[k] for k in z.files}
+    L = LIGHTS / np.linalg.norm(LIGHTS, axis=1, keepdims=True)
+    np.testing.assert_allclose(pics["heldout_lights"], [[3, 0.0], [7, np.degrees(np.arccos(L[7, 2]))]], atol=1e-6)
+    data = read_imported_session(st, "diligent-ball")
+    for suffix, k in (("", 3), ("_2", 7)):
+        photo, pred = pics["heldout_captured" + suffix], pics["heldout_predicted" + suffix]
+        np.testing.assert_array_equal(photo, data.radiance([k])[0])
+        drawn = np.isfinite(pred).all(axis=2)
+        held = imported_inputs(st, "diligent-ball").held
+        assert np.all(mask[drawn]) and drawn.sum() == np.sum(held.view == k) > 300
+        assert np.abs(pred[drawn] - photo[drawn]).max() < 2e-3 * photo[drawn].max()
+    assert text.count('alt="held-out capture, prediction and error"') == 2
+    assert "held-out light 8 (39° from the view axis)" in text
 
 
 def test_imported_report_draws_lenschs_fitted_normals(tmp_path):
@@ -194,10 +214,14 @@ def test_imported_report_draws_lenschs_fitted_normals(tmp_path):
     n_true, mask = write_set(tmp_path / "ball")
     import_diligent(tmp_path / "ball", tmp_path / "store")
     st = Store.open(tmp_path / "store")
+    events = []
     rep = process_imported_session(st, "diligent-ball", methods=["lensch"], max_texels=60,
-                                   report_path=tmp_path / "r.html")
+                                   report_path=tmp_path / "r.html", progress=events.append)
     (lensch,) = rep.methods
     assert lensch.status == "ok", lensch.reason
+    # the pipeline's one progress protocol (what `gonio process`'s bar takes), counted to the end
+    assert events and all(isinstance(e, Progress) and e.stage == "lensch" for e in events)
+    assert events[-1].done == events[-1].total
     facts = imported_facts(st, "diligent-ball", imported_inputs(st, "diligent-ball", max_texels=60), rep.methods)
     drawn = facts.normal_errors["lensch (fitted)"]
     assert np.isfinite(drawn).sum() == 60 and np.all(mask[np.isfinite(drawn)])
