@@ -41,9 +41,11 @@ class Fitted:
 
     Attributes
     ----------
-    predict : callable(Lumitexels) -> ndarray of shape (S, 3)
-        Predicted reflectance ``f_r cos theta_i`` of each sample (texels index the training
-        lumitexels' texels).
+    predict_samples : callable(texel, wi, wo) -> ndarray of shape (S, 3)
+        Predicted reflectance ``f_r cos theta_i`` of samples: ``texel`` (S,) indexes the training
+        lumitexels' texels, ``wi``, ``wo`` (S, 3) unit directions in the texel's local frame
+        (mesh normal = +z); a function of each sample alone, so it runs over texel blocks
+        (:mod:`capture.pipeline.block_scoring`).
     brdf : callable(ndarray of int) -> BRDF
         The recovered BRDF of the given texels (per-texel parameters, local frame of the
         texel's normal), for BRDF slices.
@@ -59,13 +61,17 @@ class Fitted:
         Refined normals in the object frame, where the method fits them.
     """
 
-    predict: Callable[[Lumitexels], np.ndarray]
+    predict_samples: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
     brdf: Callable[[np.ndarray], BRDF]
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     params: dict[str, Any] = field(default_factory=dict)
     figures: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     normals: np.ndarray | None = None
+
+    def predict(self, lt: Lumitexels) -> np.ndarray:
+        """:attr:`predict_samples` of the samples of ``lt`` (texels of the training lumitexels)."""
+        return self.predict_samples(lt.texel, lt.wi, lt.wo)
 
 
 # -- reference: one albedo per texel ------------------------------------------------------------
@@ -78,8 +84,8 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
     albedo = np.pi * num / np.maximum(den, 1e-12)
     model = Lambertian(np.maximum(albedo, 0.0))
 
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return albedo[lt.texel] / np.pi * np.maximum(lt.wi[:, 2:3], 0.0)
+    def predict(texel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        return albedo[texel] / np.pi * np.maximum(wi[:, 2:3], 0.0)
 
     return Fitted(predict, lambda t: model.take(np.asarray(t)), arrays={"albedo": albedo.astype(np.float32)},
                   params={"model": "Lambertian albedo per texel (least squares of r = albedo/pi cos)"},
@@ -90,14 +96,11 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
 def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, **options) -> Fitted:
     fit = fit_svbrdf_lumitexels(train, SvbrdfOptions(fit_normals=True, **options), rng=rng, progress=progress)
 
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return fit.predict(lt.texel, lt.wi, lt.wo)   # fitted normals applied
-
     flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight))}
     arrays = {"labels": np.asarray(fit.labels), "weights": np.asarray(fit.weights, np.float32)}
     if fit.normals is not None:
         arrays["normals"] = np.asarray(fit.normals, np.float32)
-    return Fitted(predict, fit.brdf, arrays=arrays,
+    return Fitted(fit.predict, fit.brdf, arrays=arrays,   # fitted normals applied
                   params={"n_materials": "from the data", "fit_normals": True, "rng": rng},
                   figures={"materials": fit.n_materials, "table_ii_rms": dict(fit.rms),
                            "table_ii_relative_rms": dict(fit.relative_rms), "flagged_texels": flags},
@@ -122,9 +125,6 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
         t = np.asarray(t)
         return fit.brdf_at(fit.texel_xy[t], t)
 
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return fit.predict(lt.texel, lt.wi, lt.wo)
-
     figures = {"mode": fit.mode, "samples_used": fit.n_used, "samples_dropped": fit.n_dropped,
                "centres": {k: len(f.model.centers) for k, f in fit.fits.items()}}
     arrays = {"xy": xy.astype(np.float32), "albedo": np.asarray(fit.albedo, np.float32)}
@@ -133,7 +133,7 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
         normals = to_world(fit.normals.normals, tangent_frames(train.normal))
         arrays["normals"] = normals.astype(np.float32)
         figures["normals_fitted"] = int(fit.normals.fitted.sum())
-    return Fitted(predict, per_texel, arrays=arrays,
+    return Fitted(fit.predict, per_texel, arrays=arrays,
                   params={"surface_xy": "azimuth about the turntable axis and height, scaled to [0, 1]",
                           "max_centers": max_centers, "fit_normals": fit_normals, "m_xy": m_xy, "rng": rng},
                   figures=figures, normals=normals)
@@ -159,8 +159,8 @@ def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
                                 environment_weight=p.environment_weight, rng=rng, progress=progress)
     brdf = fit.brdf
 
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return brdf.evaluate(lt.wi, lt.wo) * np.maximum(lt.wi[:, 2:3], 0.0)
+    def predict(texel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        return brdf.evaluate(wi, wo) * np.maximum(wi[:, 2:3], 0.0)
 
     ad = fit.adequacy
     return Fitted(predict, lambda t: brdf,

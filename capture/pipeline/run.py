@@ -18,6 +18,7 @@ scored on the held-out captures like every method, with each method's ratio to i
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import json
 import time
@@ -43,7 +44,8 @@ from .mesh_checks import check_mesh_placement
 from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
-from .lumitexel_arrays import block_texels_for, default_memory_limit, stream_lumitexels
+from .block_scoring import score_blocks
+from .lumitexel_arrays import LumitexelArrays, block_texels_for, default_memory_limit, stream_lumitexels
 from .progress import Progress, ProgressSink, counter
 from .process import (MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
                       read_calibration, session_images, view_plan)
@@ -219,7 +221,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             for name in todo:
                 started = time.perf_counter()
                 with clock.stage(name):
-                    outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
+                    outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, truth_r, rng,
                                                  rep.inputs, counter(progress, name), (method_options or {}).get(name, {}),
                                                  rep.floor, assumption.get(name, ""))
                 outcomes[name].seconds = round(time.perf_counter() - started, 3)
@@ -279,8 +281,8 @@ def _calibration(store: Store, session: str, targets, force: bool,
 
 
 # -- one method ---------------------------------------------------------------------------------
-def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, held: Lumitexels,
-                inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
+def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArrays, train: Lumitexels,
+                held: Lumitexels, inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
                 progress, options: dict[str, Any], floor: Floor | None, assumption: str) -> MethodOutcome:
     try:
         fit = fit_method(name, train, inputs, rng=rng, progress=progress, **options)
@@ -289,15 +291,15 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
     except (ValueError, np.linalg.LinAlgError) as exc:
         return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}", outside_assumption=assumption)
     figures = dict(fit.figures)
-    predicted_train = fit.predict(train)
-    figures["training_rel_rms"] = relative_rms(predicted_train, train.reflectance)
-    predicted = fit.predict(held) if held.n_samples else np.zeros((0, 3))
-    if held.n_samples:
-        figures["held_out_rel_rms"] = relative_rms(predicted, held.reflectance)
-        figures["held_out_rel_rms_trimmed"] = trimmed_relative_rms(predicted, held.reflectance)
-    if truth_r is not None:
-        scored = held if held.n_samples else train
-        figures["truth_rel_rms"] = relative_rms(fit.predict(scored), truth_r[1] if held.n_samples else truth_r[0])
+    # scored one texel block at a time from the stored arrays (block_scoring: per-block sums)
+    scores = score_blocks(fit.predict_samples, arrays,
+                          truth_of=None if truth_r is None else functools.partial(_truth_of, truth))
+    figures["training_rel_rms"] = scores.training.relative_rms
+    if scores.held_out.count:
+        figures["held_out_rel_rms"] = scores.held_out.relative_rms
+        figures["held_out_rel_rms_trimmed"] = scores.held_out.trimmed_relative_rms()
+    if scores.truth is not None:
+        figures["truth_rel_rms"] = scores.truth.relative_rms
     if fit.normals is not None:
         figures["normal_change_deg"] = _median_angle_deg(fit.normals, train.normal)
         true_n = truth.normals(train.position) if truth is not None else None
@@ -312,9 +314,9 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
               "inputs_summary": summary, "floor": None if floor is None else asdict(floor),
               "outside_assumption": assumption}
     artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
-    if name in EXPORTED_METHODS:   # what `gonio export` writes files from
+    if name in EXPORTED_METHODS:   # what `gonio export` writes files from (in memory: its GGX fit is global)
         artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
-                                                      predicted_train, predicted)
+                                                      fit.predict(train), fit.predict(held))
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
@@ -333,29 +335,31 @@ def _npz(arrays: dict[str, np.ndarray]) -> bytes:
 
 # -- truth --------------------------------------------------------------------------------------
 def _truth_reflectance(truth, train: Lumitexels, held: Lumitexels) -> tuple[np.ndarray, np.ndarray] | None:
-    """True ``f_r cos`` of every training and held-out sample (mesh normals: the simulated
-    object's own), in the calibration's units when it is absolute (1/sr)."""
+    """True ``f_r cos`` of every training and held-out sample (:func:`_truth_of`); None when the
+    truth has no materials at these points."""
     try:
-        ids, materials = truth.materials(train.position)
+        return _truth_of(truth, train), _truth_of(truth, held)
     except ValueError:
         return None
 
-    true_n = truth.normals(train.position)
 
-    def of(lt: Lumitexels) -> np.ndarray:
-        wi, wo = lt.wi, lt.wo
-        if true_n is not None:   # the sample's directions about the true (detailed) normal
-            mesh_f, true_f = tangent_frames(lt.normal)[lt.texel], tangent_frames(true_n)[lt.texel]
-            wi, wo = to_local(to_world(wi, mesh_f), true_f), to_local(to_world(wo, mesh_f), true_f)
-        out = np.zeros((lt.n_samples, 3))
-        tid = ids[lt.texel]
-        for k, m in enumerate(materials):
-            s = tid == k
-            if s.any():
-                out[s] = m.evaluate(wi[s], wo[s]) * np.maximum(wi[s, 2:3], 0.0)
-        return out
-
-    return of(train), of(held)
+def _truth_of(truth, lt: Lumitexels) -> np.ndarray:
+    """True ``f_r cos`` (S, 3) of the samples of ``lt`` (mesh normals: the simulated object's
+    own), in the calibration's units when it is absolute (1/sr); per texel and sample, so a texel
+    block's alone. Raises ValueError where the truth has no materials."""
+    ids, materials = truth.materials(lt.position)
+    true_n = truth.normals(lt.position)
+    wi, wo = lt.wi, lt.wo
+    if true_n is not None:   # the sample's directions about the true (detailed) normal
+        mesh_f, true_f = tangent_frames(lt.normal)[lt.texel], tangent_frames(true_n)[lt.texel]
+        wi, wo = to_local(to_world(wi, mesh_f), true_f), to_local(to_world(wo, mesh_f), true_f)
+    out = np.zeros((lt.n_samples, 3))
+    tid = ids[lt.texel]
+    for k, m in enumerate(materials):
+        s = tid == k
+        if s.any():
+            out[s] = m.evaluate(wi[s], wo[s]) * np.maximum(wi[s, 2:3], 0.0)
+    return out
 
 
 def calibration_against_truth(store: Store, session: str, cal: SessionCalibration, truth) -> dict[str, Any]:
