@@ -241,6 +241,13 @@ class LumitexelArrays:
                         weight=np.ones(len(rows), np.float32), **fields)
         return lt, cols >= self.n_train
 
+    def training_texels_per_block(self) -> np.ndarray:
+        """Texels with a training sample in each block (:attr:`blocks`), (n_blocks,): reads only
+        the training views' sample flags."""
+        flags = self._open("samples")
+        return np.array([int((flags[t0:t1, :self.n_train, _MASK] > 0).any(axis=1).sum()) for t0, t1 in self.blocks],
+                        np.int64)
+
     def iter_blocks(self):
         """The texel blocks in order, each read when asked for (:class:`TexelBlock`): one block's
         samples in memory at a time."""

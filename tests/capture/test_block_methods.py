@@ -11,15 +11,17 @@ import pytest
 from capture.pipeline.block_scoring import ErrorSums, score_blocks
 from capture.pipeline.lumitexel_arrays import store_lumitexels
 from capture.pipeline.methods import fit_method
+from capture.pipeline.stored_blocks import StoredBlocks
+from reconstruct.lensch import fit_svbrdf_blocks, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.metrics import relative_rms, trimmed_relative_rms
 from sims.reflectance_samples import paper_phong_materials, synthetic_samples
 
 N_TRAIN = 11   # views 11.. (of up to 15 samples a texel) are held out
-BLOCKS = (61, 1000)
+BLOCKS = (37, 1000)
 
 
-def synthetic_lumitexels(n_texels: int = 400, rng: int = 3) -> Lumitexels:
+def synthetic_lumitexels(n_texels: int = 240, rng: int = 3) -> Lumitexels:
     """Texels of three materials, each sample on its own view (its rank within its texel)."""
     s = synthetic_samples(paper_phong_materials(exponents=(10.0, 40.0, 80.0)), n_texels, rng=rng)
     counts = np.bincount(s.texel, minlength=n_texels)
@@ -51,18 +53,71 @@ def test_error_sums_over_any_split_equal_the_metrics():
         sums.add(p[:3], m[:2])
 
 
+LENSCH = {"fit_normals": True, "normal_rounds": 1}
+
+
+@pytest.fixture(scope="module")
+def whole_lensch(stored):
+    """Lensch on the gathered training lumitexels (the pipeline's ``_lensch``, one normal round)."""
+    return fit_svbrdf_lumitexels(stored[BLOCKS[0]].gather()[0], rng=0, **LENSCH)
+
+
+@pytest.fixture(scope="module")
+def fitted(stored, whole_lensch):
+    """Per-sample predictors of the methods fitted on the gathered training lumitexels."""
+    return {"lambertian": fit_method("lambertian", stored[BLOCKS[0]].gather()[0], None).predict_samples,
+            "lensch": whole_lensch.predict}
+
+
 @pytest.mark.parametrize("method", ["lambertian", "lensch"])
-def test_held_out_scores_over_blocks_equal_the_gathered_ones(stored, method):
+def test_held_out_scores_over_blocks_equal_the_gathered_ones(stored, fitted, method):
     train, held = stored[BLOCKS[0]].gather()
-    assert held.n_samples > 100 and len(stored[BLOCKS[0]].blocks) == 7
-    fit = fit_method(method, train, None, rng=0, **({"normal_rounds": 1} if method == "lensch" else {}))
-    want = {"train": relative_rms(fit.predict(train), train.reflectance),
-            "held": relative_rms(fit.predict(held), held.reflectance),
-            "trimmed": trimmed_relative_rms(fit.predict(held), held.reflectance)}
+    assert held.n_samples > 50 and len(stored[BLOCKS[0]].blocks) == 7
+    predict = fitted[method]
+    p_train, p_held = (predict(lt.texel, lt.wi, lt.wo) for lt in (train, held))
+    want = {"train": relative_rms(p_train, train.reflectance), "held": relative_rms(p_held, held.reflectance),
+            "trimmed": trimmed_relative_rms(p_held, held.reflectance)}
     for b in BLOCKS:
-        s = score_blocks(fit.predict_samples, stored[b])
+        s = score_blocks(predict, stored[b])
         got = {"train": s.training.relative_rms, "held": s.held_out.relative_rms,
                "trimmed": s.held_out.trimmed_relative_rms()}
         assert s.held_out.count == held.n_samples and s.training.count == train.n_samples
         for k in want:
             assert got[k] == pytest.approx(want[k], rel=1e-9), (b, k)
+
+
+class _Counting(StoredBlocks):
+    """Stored blocks that count the texels gathered for the global steps."""
+
+    gathered = 0
+
+    def gather(self, texels):
+        self.gathered = max(self.gathered, len(texels))
+        return super().gather(texels)
+
+
+def test_lensch_over_blocks_of_any_size_equals_the_whole_array_fit(stored, whole_lensch):
+    train, _ = stored[BLOCKS[0]].gather()
+    whole = whole_lensch
+    assert whole.n_materials >= 2 and whole.discovery_texels == train.n_texels
+    for b in BLOCKS:
+        blocks = StoredBlocks(stored[b])
+        assert len(blocks.ranges) == len(stored[b].blocks) and blocks.n_texels == train.n_texels
+        fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, **LENSCH)
+        np.testing.assert_array_equal(fit.labels, whole.labels)
+        for name in ("weights", "normals"):
+            np.testing.assert_allclose(getattr(fit, name), getattr(whole, name), rtol=1e-9, atol=1e-12, err_msg=name)
+        for k, v in whole.rms.items():
+            assert (v is None and fit.rms[k] is None) or fit.rms[k] == pytest.approx(v, rel=1e-9), k
+        np.testing.assert_array_equal(fit.no_highlight, whole.no_highlight)
+
+
+def test_lensch_material_discovery_honours_and_states_its_subsample(stored):
+    blocks = _Counting(stored[BLOCKS[0]])
+    train, held = stored[BLOCKS[0]].gather()
+    fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, discovery_texels=160, **LENSCH)
+    assert blocks.gathered == 160 == fit.discovery_texels < train.n_texels
+    assert f"materials found on 160 of {train.n_texels} texels" in fit.report()
+    # every texel still labelled, projected and scored: the materials of 160 texels serve all 240
+    assert len(fit.labels) == len(fit.weights) == train.n_texels and fit.n_materials >= 2
+    assert relative_rms(fit.predict(held.texel, held.wi, held.wo), held.reflectance) < 0.2

@@ -1,0 +1,37 @@
+"""The stored lumitexels' training samples as :class:`reconstruct.lensch.TexelBlocks`: what the
+methods' per-texel steps read one texel block at a time (:func:`reconstruct.lensch.fit_svbrdf_blocks`)
+without ``reconstruct`` knowing Zarr.
+
+The blocks are the arrays' texel chunks; texels are numbered as
+:meth:`capture.pipeline.lumitexel_arrays.LumitexelArrays.gather` numbers them (texels without a
+training sample left out), so per-texel results line up with the gathered lumitexels'.
+Directions are in each texel's local frame (+z = its mesh normal); reflectance ``f_r cos
+theta_i`` in the calibration's units; weights 1.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from reconstruct.lensch import SampleBlock, TexelBlocks
+
+from .lumitexel_arrays import LumitexelArrays
+
+__all__ = ["StoredBlocks"]
+
+
+class StoredBlocks(TexelBlocks):
+    """The training samples of ``arrays``, block by block (one pass over the training views'
+    sample flags when made, to number the texels)."""
+
+    def __init__(self, arrays: LumitexelArrays) -> None:
+        self.arrays = arrays
+        kept = arrays.training_texels_per_block()
+        firsts = np.concatenate([[0], np.cumsum(kept)])
+        self.n_texels = int(firsts[-1])
+        self.ranges = [(int(a), int(b)) for a, b in zip(firsts[:-1], firsts[1:])]
+
+    def read(self, i: int) -> SampleBlock:
+        lt, held = self.arrays.block(*self.arrays.blocks[i])
+        train = ~held
+        return SampleBlock(lt.n_texels, lt.texel[train], *(np.asarray(getattr(lt, name)[train], np.float64)
+                                                           for name in ("wi", "wo", "reflectance", "weight")))
