@@ -39,6 +39,7 @@ import trimesh
 import zarr
 
 from reconstruct.camera import CameraModel
+from reconstruct.lensch import SvbrdfOptions
 from reconstruct.lumitexels import (AssemblyGeometry, LumitexelError, Lumitexels, ViewHits, assembly_geometry,
                                     best_views, object_frame_camera, object_frame_point, view_hits,
                                     view_samples, view_texels)
@@ -50,7 +51,7 @@ from .images import SessionImages
 from .process import PoseSpec, SessionCalibration, ViewPlan, merge_pose, session_images
 
 __all__ = ["LumitexelArrays", "MemoryLimitError", "TexelBlock", "stream_lumitexels", "store_lumitexels",
-           "block_texels_for", "default_memory_limit", "reject_filter_for"]
+           "block_texels_for", "default_memory_limit", "discovery_texels_for", "reject_filter_for"]
 
 _SAMPLE_FIELDS = ("wi", "wo", "reflectance", "diffuse", "specular")
 #: the channel of ``samples`` that says whether the (texel, view) pair holds a sample
@@ -102,6 +103,20 @@ def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: i
                          f"{1.25 * image * max(workers, 1) / 2**20:.0f} MiB")
     fit = (per_worker - image) // (_TEXEL_BYTES_FIXED + _TEXEL_BYTES_PER_VIEW * n_views)
     return int(min(_MAX_BLOCK, max(1024, fit)))
+
+
+#: bytes a texel of Lensch's material-discovery subsample holds per training view: its sample
+#: (directions, reflectance, weight, float64) twice (as read, and in the current normals' frames)
+#: and its lobe geometry, ~ 250; rounded up for the fits' temporaries
+_DISCOVERY_BYTES_PER_VIEW = 400
+
+
+def discovery_texels_for(memory_bytes: int, n_train_views: int) -> int:
+    """The most texels Lensch's material discovery may gather within ``memory_bytes`` (every
+    texel counted with a sample in every training view: a bound), capped at the method's default
+    (:attr:`reconstruct.lensch.SvbrdfOptions.discovery_texels`), at least 1000."""
+    fit = int(memory_bytes // (_DISCOVERY_BYTES_PER_VIEW * max(n_train_views, 1)))
+    return max(1000, min(SvbrdfOptions().discovery_texels, fit))
 
 
 @dataclass(frozen=True)

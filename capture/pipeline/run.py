@@ -41,11 +41,13 @@ from .calibration_record import stored_calibration
 from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
-from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
+from .methods import DEFAULT_METHODS, METHODS, BlockRoute, MethodSkipped, fit_method
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
 from .block_scoring import score_blocks
-from .lumitexel_arrays import LumitexelArrays, block_texels_for, default_memory_limit, stream_lumitexels
+from .lumitexel_arrays import (LumitexelArrays, block_texels_for, default_memory_limit, discovery_texels_for,
+                               stream_lumitexels)
+from .stored_blocks import StoredBlocks
 from .progress import Progress, ProgressSink, counter
 from .process import (MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
                       read_calibration, session_images, view_plan)
@@ -187,44 +189,50 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             first = stored[next(iter(outcomes))].result
             rep.inputs = first.get("inputs_summary", {})
             rep.floor = Floor(**first["floor"]) if first.get("floor") else None
-        if todo:
-            with clock.stage("inputs"):
-                images = session_images(store, session)
-                plan = view_plan(images, session, cal, mesh=mesh)
-            with clock.stage("lumitexels"), Executor(cluster, store_root=store.root, say=say) as executor:
-                limit = default_memory_limit() if memory_limit is None else memory_limit
-                block = block_texels_for(limit, n_views=len(plan.poses), pixels=cal.camera.width * cal.camera.height,
-                                         workers=1 if cluster.in_process else max(cluster.workers, 1))
-                arrays = stream_lumitexels(images, session, cal, plan, mesh, executor, block_texels=block,
-                                           progress=counter(progress, "lumitexels"))
-                train, held = arrays.gather()
-            with clock.stage("inputs"):
-                inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
-            truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
-            rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
-                          "polarization_separated": inputs.separated, "texels": train.n_texels,
-                          "training_samples": train.n_samples, "held_out_samples": held.n_samples,
-                          "light_source": cal.light_source, "absolute_units": cal.absolute,
-                          "passive_capture": inputs.passive is not None, "notes": inputs.notes,
-                          "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
-                                               "digest": arrays.digest, "block_texels": arrays.block_texels,
-                                               "reused_views": arrays.reused_views}}
-            if truth_r is not None:
-                scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
-                rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
-                rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
-                    scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
-                if held.n_samples:
-                    rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
-                                      trimmed_relative_rms(truth_r[1], held.reflectance))
-            assumption = {"passive": _passive_assumption(truth, train)} if truth is not None else {}
-            for name in todo:
-                started = time.perf_counter()
-                with clock.stage(name):
-                    outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, truth_r, rng,
-                                                 rep.inputs, counter(progress, name), (method_options or {}).get(name, {}),
-                                                 rep.floor, assumption.get(name, ""))
-                outcomes[name].seconds = round(time.perf_counter() - started, 3)
+        # the executor serves the lumitexels' per-view tasks and the methods' per-block tasks
+        with contextlib.ExitStack() as running:
+            if todo:
+                with clock.stage("inputs"):
+                    images = session_images(store, session)
+                    plan = view_plan(images, session, cal, mesh=mesh)
+                with clock.stage("lumitexels"):
+                    executor = running.enter_context(Executor(cluster, store_root=store.root, say=say))
+                    limit = default_memory_limit() if memory_limit is None else memory_limit
+                    block = block_texels_for(limit, n_views=len(plan.poses), pixels=cal.camera.width * cal.camera.height,
+                                             workers=1 if cluster.in_process else max(cluster.workers, 1))
+                    arrays = stream_lumitexels(images, session, cal, plan, mesh, executor, block_texels=block,
+                                               progress=counter(progress, "lumitexels"))
+                    train, held = arrays.gather()
+                    # on a cluster the block methods' per-texel steps run there, over the stored blocks
+                    route = None if cluster.in_process else BlockRoute(StoredBlocks(arrays), executor.map)
+                with clock.stage("inputs"):
+                    inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
+                truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
+                rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
+                              "polarization_separated": inputs.separated, "texels": train.n_texels,
+                              "training_samples": train.n_samples, "held_out_samples": held.n_samples,
+                              "light_source": cal.light_source, "absolute_units": cal.absolute,
+                              "passive_capture": inputs.passive is not None, "notes": inputs.notes,
+                              "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
+                                                   "digest": arrays.digest, "block_texels": arrays.block_texels,
+                                                   "reused_views": arrays.reused_views}}
+                if truth_r is not None:
+                    scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
+                    rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
+                    rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
+                        scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
+                    if held.n_samples:
+                        rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
+                                          trimmed_relative_rms(truth_r[1], held.reflectance))
+                assumption = {"passive": _passive_assumption(truth, train)} if truth is not None else {}
+                for name in todo:
+                    started = time.perf_counter()
+                    with clock.stage(name):
+                        outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, truth_r, rng,
+                                                     rep.inputs, counter(progress, name),
+                                                     _options(name, method_options, limit, arrays), rep.floor,
+                                                     assumption.get(name, ""), route)
+                    outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
         if rep.floor is not None:
             for m in rep.methods:
@@ -281,11 +289,21 @@ def _calibration(store: Store, session: str, targets, force: bool,
 
 
 # -- one method ---------------------------------------------------------------------------------
+def _options(name: str, method_options, memory_limit: int, arrays: LumitexelArrays) -> dict[str, Any]:
+    """The method's options for this lab, and for Lensch a material-discovery subsample the
+    memory limit holds (unless the lab sets one)."""
+    options = dict((method_options or {}).get(name, {}))
+    if name == "lensch":
+        options.setdefault("discovery_texels", discovery_texels_for(memory_limit, arrays.n_train))
+    return options
+
+
 def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArrays, train: Lumitexels,
                 held: Lumitexels, inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
-                progress, options: dict[str, Any], floor: Floor | None, assumption: str) -> MethodOutcome:
+                progress, options: dict[str, Any], floor: Floor | None, assumption: str,
+                route: BlockRoute | None) -> MethodOutcome:
     try:
-        fit = fit_method(name, train, inputs, rng=rng, progress=progress, **options)
+        fit = fit_method(name, train, inputs, rng=rng, progress=progress, route=route, **options)
     except MethodSkipped as exc:
         return MethodOutcome(name, "skipped", str(exc), outside_assumption=assumption)
     except (ValueError, np.linalg.LinAlgError) as exc:

@@ -28,10 +28,11 @@ class StoredBlocks(TexelBlocks):
         kept = arrays.training_texels_per_block()
         firsts = np.concatenate([[0], np.cumsum(kept)])
         self.n_texels = int(firsts[-1])
-        self.ranges = [(int(a), int(b)) for a, b in zip(firsts[:-1], firsts[1:])]
+        self._chunks = [c for c in range(len(kept)) if kept[c]]   # a chunk without such texels is no block
+        self.ranges = [(int(firsts[c]), int(firsts[c + 1])) for c in self._chunks]
 
     def read(self, i: int) -> SampleBlock:
-        lt, held = self.arrays.block(*self.arrays.blocks[i])
+        lt, held = self.arrays.block(*self.arrays.blocks[self._chunks[i]])
         train = ~held
         return SampleBlock(lt.n_texels, lt.texel[train], *(np.asarray(getattr(lt, name)[train], np.float64)
                                                            for name in ("wi", "wo", "reflectance", "weight")))

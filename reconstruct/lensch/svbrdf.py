@@ -236,7 +236,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
 
 
 def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None, *, normals=None, rng=0,
-                      progress=None, **settings) -> SvbrdfFit:
+                      progress=None, map_blocks=None, **settings) -> SvbrdfFit:
     """:func:`fit_svbrdf` over texel blocks: the global steps on a bounded subsample, the
     per-texel steps one block at a time.
 
@@ -256,20 +256,22 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         The samples (validated: unit directions above the surface, finite values), in blocks.
     options, normals, rng, progress, settings
         As :func:`fit_svbrdf`'s.
+    map_blocks : callable(fn, list of argument tuples) -> list, optional
+        Runs the per-block tasks (module-level functions of ``blocks``, a block index and the
+        model so far; results in order): default one after the other here; the pipeline passes
+        its executor's (``capture.pipeline.cluster.Executor.map``) to run them on a cluster.
     """
     opt = (options or SvbrdfOptions()).but(**settings)
     T = blocks.n_texels
     P = 1 + 3 * opt.n_lobes
-    counts = np.zeros(T, np.int64)
-    score = np.zeros(T)
-    n_usable, sq_total, w_total = 0, 0.0, 0.0
-    for (t0, t1), b in _each(blocks):   # samples per texel, highlight score (Sec. 7.1), sums
-        counts[t0:t1] = np.bincount(b.texel, minlength=t1 - t0)
-        t, z = lobe_geometry(b.wi, b.wo)
-        score[t0:t1] = _highlight_score(t, z, b.texel, t1 - t0)
-        n_usable += int(np.count_nonzero(b.weight))
-        sq_total += float(np.sum(b.weight[:, None] * b.reflectance ** 2))
-        w_total += float(b.weight.sum())
+    run = map_blocks or _serial
+    nb = range(len(blocks.ranges))
+    stats = run(_block_stats, [(blocks, i) for i in nb])   # samples per texel, highlight score (Sec. 7.1), sums
+    counts = np.concatenate([st[0] for st in stats]).astype(np.int64) if stats else np.zeros(0, np.int64)
+    score = np.concatenate([st[1] for st in stats]) if stats else np.zeros(0)
+    n_usable = sum(st[2] for st in stats)
+    sq_total = sum(st[3] for st in stats)
+    w_total = sum(st[4] for st in stats)
     if n_usable < P:
         raise SvbrdfError(f"reflectance has {n_usable} usable samples, fewer than the {P} "
                           "parameters per channel of one material")
@@ -315,24 +317,13 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     fits = _refit(data, mats, labels_d, opt, rng, max_albedo, texels=_confident(errors_d))
     mats = np.stack([f.channel_params for f in fits])
     # ... and for every texel, block by block, with the RMS of one and of the clusters' BRDFs
-    K = len(mats)
-    labels = np.zeros(T, np.int64)
-    errors_d = np.zeros((K, len(disc)))
-    similar_sums = np.zeros((K, K))
-    sse_single = sse_cluster = 0.0
-    single = clus.single.channel_params[None]
-    for (t0, t1), b in _each(blocks):
-        _, _, ch, _ = _in_frames(b, None)
-        n = t1 - t0
-        E = cluster_errors(*ch[1:], ch[0], n, mats)
-        lab = np.argmin(E, axis=0)
-        labels[t0:t1] = lab
-        lo, hi = np.searchsorted(disc, [t0, t1])
-        errors_d[:, lo:hi] = E[:, disc[lo:hi] - t0]
-        for k in range(K):
-            similar_sums[k] += E[:, lab == k].sum(axis=1)
-        sse_single += cluster_residuals(*ch, np.zeros(n, np.int64), single).sum()
-        sse_cluster += cluster_residuals(*ch, lab, mats).sum()
+    parts = run(_block_labels, [(blocks, i, mats, clus.single.channel_params[None], _within(disc, blocks.ranges[i]))
+                                for i in nb])
+    labels = np.concatenate([p[0] for p in parts])
+    errors_d = np.concatenate([p[1] for p in parts], axis=1)
+    similar_sums = sum(p[2] for p in parts)
+    sse_single = sum(p[3] for p in parts)
+    sse_cluster = sum(p[4] for p in parts)
     tick()
 
     n_res = 3 * w_total
@@ -343,12 +334,12 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     # Sec. 8: bases and projection
     similar = _most_similar(similar_sums)
     basis, size = make_bases(mats, similar)
-    weights, sse = _project(blocks, None, basis, size, labels, opt, max_albedo)
+    weights, sse = _project(run, blocks, None, basis, size, labels, opt, max_albedo)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
     if opt.pfa:  # Eq. 13 lowers the plain projection's error; kept if the selected one drops too
         trial = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
-        w_pfa, sse_pfa = _project(blocks, None, trial, size, labels, opt, max_albedo)
+        w_pfa, sse_pfa = _project(run, blocks, None, trial, size, labels, opt, max_albedo)
         if sse_pfa.sum() < sse.sum():
             basis, weights, sse = trial, w_pfa, sse_pfa
         rms["pfa"] = _rms(sse.sum(), n_res)
@@ -363,13 +354,12 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             # a round that raises the total error is undone and ends the fitting (on some
             # clusterings of the demo object a round's refit blew the training error up 10x)
             before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data)
-            floor = _inlier_floor(blocks, seen_in, basis, size, labels, weights) if opt.robust_samples else None
-            tilt = np.tile([0.0, 0.0, 1.0], (T, 1))  # relative to the current normals
-            for (t0, t1), b in _each(blocks):
-                wi, wo, ch, _ = _in_frames(b, None if seen_in is None else seen_in[t0:t1])
-                w_fit = ch[5] if floor is None else ch[5] * _inliers(ch, labels[t0:t1], weights[t0:t1], basis, size, floor)
-                tilt[t0:t1] = fit_normals_chunk(b.texel, wi, wo, b.reflectance, w_fit, labels[t0:t1], weights[t0:t1],
-                                                basis, size, min_samples=opt.min_samples)[0]
+            model = [(_part(seen_in, r), basis, size, labels[r[0]:r[1]], weights[r[0]:r[1]]) for r in blocks.ranges]
+            floor = None
+            if opt.robust_samples:   # the median over all texels of their median residual
+                floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
+            tilt = np.concatenate(run(_block_normals, [(blocks, i, *model[i], floor, opt.min_samples) for i in nb])) \
+                if T else np.zeros((0, 3))   # relative to the current normals
             w_fit_d = data.w if floor is None else data.w * _inliers(
                 data.chunk(slice(0, data.n_texels)), labels[disc], weights[disc], basis, size, floor)
             normals_local = seen_in = normalize(to_world(tilt, tangent_frames(normals_local)))
@@ -382,7 +372,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             basis, size = make_bases(mats, similar)
             if opt.pfa:
                 basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
-            weights, sse = _project(blocks, seen_in, basis, size, labels, opt, max_albedo)
+            weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
             tick()
             if sse.sum() > 1.05 * before[7].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
@@ -395,10 +385,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         else:
             normals_out = normals_local
 
-    no_highlight = np.zeros(T, bool)
-    for (t0, t1), b in _each(blocks):
-        wi, _, (tx, t, z, *_rest), _ = _in_frames(b, None if seen_in is None else seen_in[t0:t1])
-        no_highlight[t0:t1] = _no_highlight(t, z, wi, b.weight, tx, t1 - t0, labels[t0:t1], mats)
+    no_highlight = np.concatenate(run(_block_no_highlight, [(blocks, i, _part(seen_in, r), labels[r[0]:r[1]], mats)
+                                                            for i, r in enumerate(blocks.ranges)])) if T else np.zeros(0, bool)
     materials = tuple(model_of(m) for m in mats)
     rel = {k: None if v is None else v / max(np.sqrt(sq_total / n_res), 1e-300) for k, v in rms.items()}
     return SvbrdfFit(
@@ -519,10 +507,72 @@ def _refit(data: _Sorted, mats, labels, opt: SvbrdfOptions, rng, max_albedo, kee
     return fits
 
 
-def _each(blocks: TexelBlocks):
-    """``((t0, t1), SampleBlock)`` for every block, each read when reached."""
-    for i, r in enumerate(blocks.ranges):
-        yield r, blocks.read(i)
+def _serial(fn, args):
+    return [fn(*a) for a in args]
+
+
+def _part(per_texel, r):
+    """Rows ``r[0]:r[1]`` of a per-texel array (None stays None)."""
+    return None if per_texel is None else per_texel[r[0]:r[1]]
+
+
+def _within(disc, r) -> np.ndarray:
+    """The (sorted) texels of ``disc`` inside block ``r``, numbered within it."""
+    lo, hi = np.searchsorted(disc, r)
+    return disc[lo:hi] - r[0]
+
+
+# -- the per-block tasks: pure functions of (blocks, block index, the model so far) -------------
+def _block_stats(blocks: TexelBlocks, i: int):
+    """Samples per texel, the highlight score (Sec. 7.1), and the block's usable samples, sum of
+    w r^2 and of w."""
+    b = blocks.read(i)
+    t, z = lobe_geometry(b.wi, b.wo)
+    return (np.bincount(b.texel, minlength=b.n_texels), _highlight_score(t, z, b.texel, b.n_texels),
+            int(np.count_nonzero(b.weight)), float(np.sum(b.weight[:, None] * b.reflectance ** 2)),
+            float(b.weight.sum()))
+
+
+def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
+    """Eq. 10 labels of the block's texels, the errors (K, len(disc)) of its discovery texels
+    ``disc`` (numbered within the block), the errors of each label's texels under every cluster
+    (K, K), and the residual sums of squares under one BRDF (``single``) and the clusters'."""
+    b = blocks.read(i)
+    _, _, ch, _ = _in_frames(b, None)
+    E = cluster_errors(*ch[1:], ch[0], b.n_texels, mats)
+    lab = np.argmin(E, axis=0)
+    sums = np.stack([E[:, lab == k].sum(axis=1) for k in range(len(mats))])
+    return (lab, E[:, disc], sums, float(cluster_residuals(*ch, np.zeros(b.n_texels, np.int64), single).sum()),
+            float(cluster_residuals(*ch, lab, mats).sum()))
+
+
+def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo):
+    """Sec. 8 projection of the block's texels: weights (n, B) and SSE (n,)."""
+    _, _, ch, _ = _in_frames(blocks.read(i), normals)
+    return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo)
+
+
+def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights):
+    """The median residual of each of the block's texels with samples."""
+    _, _, ch, _ = _in_frames(blocks.read(i), normals)
+    _, _, med, counts = _residual_errors(ch, labels, weights, basis, size)
+    return med[counts > 0]
+
+
+def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, min_samples):
+    """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
+    on the samples :func:`_inliers` keeps when ``floor`` is given."""
+    b = blocks.read(i)
+    wi, wo, ch, _ = _in_frames(b, normals)
+    w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor)
+    return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples)[0]
+
+
+def _block_no_highlight(blocks: TexelBlocks, i: int, normals, labels, mats):
+    """:func:`_no_highlight` of the block's texels."""
+    b = blocks.read(i)
+    wi, _, (tx, t, z, *_), _ = _in_frames(b, normals)
+    return _no_highlight(t, z, wi, b.weight, tx, b.n_texels, labels, mats)
 
 
 def _in_frames(b: SampleBlock, normals):
@@ -564,21 +614,10 @@ def _residual_errors(ch, labels, weights, basis, size):
     return e, np.linalg.norm(pred, axis=1), med, counts
 
 
-def _inlier_floor(blocks: TexelBlocks, seen_in, basis, size, labels, weights) -> float:
-    """The median over texels (with samples) of their median residual: the floor of
-    :func:`_inliers`' spread, over all blocks."""
-    meds = []
-    for (t0, t1), b in _each(blocks):
-        _, _, ch, _ = _in_frames(b, None if seen_in is None else seen_in[t0:t1])
-        _, _, med, counts = _residual_errors(ch, labels[t0:t1], weights[t0:t1], basis, size)
-        meds.append(med[counts > 0])
-    return float(np.median(np.concatenate(meds)))
-
-
 def _inliers(ch, labels, weights, basis, size, floor: float, spread: float = 3.0) -> np.ndarray:
     """Samples the per-texel BRDFs explain, (S,) bool: |r - f cos| (RGB norm) within ``spread``
     robust standard deviations (1.4826 x median) of its texel's residuals, floored at
-    ``floor`` (the median texel's, :func:`_inlier_floor`), plus 5 % of the prediction."""
+    ``floor`` (the median texel's over all blocks), plus 5 % of the prediction."""
     e, pred, med, _ = _residual_errors(ch, labels, weights, basis, size)
     sigma = 1.4826 * np.maximum(med, floor)
     return e <= spread * sigma[ch[0]] + 0.05 * pred
@@ -598,15 +637,13 @@ def _most_similar(sums):
     return similar
 
 
-def _project(blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo):
+def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo):
     """Sec. 8 projection of every texel, block by block: weights (T, B) and SSE (T,)."""
-    weights = np.zeros((blocks.n_texels, basis.shape[1]))
-    sse = np.zeros(blocks.n_texels)
-    for (t0, t1), b in _each(blocks):
-        _, _, ch, _ = _in_frames(b, None if seen_in is None else seen_in[t0:t1])
-        weights[t0:t1], sse[t0:t1] = project_chunk(*ch, labels[t0:t1], basis, size, prior=opt.weight_prior,
-                                                   select=opt.select_projection, max_albedo=max_albedo)
-    return weights, sse
+    parts = run(_block_project, [(blocks, i, _part(seen_in, r), basis, size, labels[r[0]:r[1]], opt.weight_prior,
+                                  opt.select_projection, max_albedo) for i, r in enumerate(blocks.ranges)])
+    if not parts:
+        return np.zeros((0, basis.shape[1])), np.zeros(0)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 def _pfa(data: _Sorted, basis, size, labels, limit, rng):

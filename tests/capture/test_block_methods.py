@@ -5,12 +5,14 @@ capture) is written in the pipeline's Zarr layout and read back block by block.
 """
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
 from capture.pipeline.block_scoring import ErrorSums, score_blocks
 from capture.pipeline.lumitexel_arrays import store_lumitexels
-from capture.pipeline.methods import fit_method
+from capture.pipeline.methods import BlockRoute, fit_method
 from capture.pipeline.stored_blocks import StoredBlocks
 from reconstruct.lensch import fit_svbrdf_blocks, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
@@ -86,6 +88,21 @@ def test_held_out_scores_over_blocks_equal_the_gathered_ones(stored, fitted, met
             assert got[k] == pytest.approx(want[k], rel=1e-9), (b, k)
 
 
+def _as_on_a_cluster(fn, args):
+    """An executor's map as a cluster runs it: every task and result pickled, the tasks run in
+    reverse order, the results returned in order."""
+    out = [pickle.loads(pickle.dumps(fn(*pickle.loads(pickle.dumps(a))))) for a in reversed(args)]
+    return out[::-1]
+
+
+def test_lambertian_over_blocks_equals_the_in_memory_fit(stored):
+    train, held = stored[BLOCKS[0]].gather()
+    whole = fit_method("lambertian", train, None)
+    for b in BLOCKS:
+        fit = fit_method("lambertian", train, None, route=BlockRoute(StoredBlocks(stored[b]), _as_on_a_cluster))
+        np.testing.assert_allclose(fit.predict(held), whole.predict(held), rtol=1e-12, atol=0)
+
+
 class _Counting(StoredBlocks):
     """Stored blocks that count the texels gathered for the global steps."""
 
@@ -103,7 +120,7 @@ def test_lensch_over_blocks_of_any_size_equals_the_whole_array_fit(stored, whole
     for b in BLOCKS:
         blocks = StoredBlocks(stored[b])
         assert len(blocks.ranges) == len(stored[b].blocks) and blocks.n_texels == train.n_texels
-        fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, **LENSCH)
+        fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, map_blocks=_as_on_a_cluster, **LENSCH)
         np.testing.assert_array_equal(fit.labels, whole.labels)
         for name in ("weights", "normals"):
             np.testing.assert_allclose(getattr(fit, name), getattr(whole, name), rtol=1e-9, atol=1e-12, err_msg=name)
