@@ -16,8 +16,9 @@ Parts (each prints its figures):
   GGX fit and the truth columns), next to the limit;
 - ``growth``: the streamed route (lumitexels, Lambertian, Lensch) at 1x, 4x and 16x pixels
   (:func:`upscale`): time per stage, peak RSS and the growth exponents against the texel count;
-- ``today``: ``gonio process --methods lambertian`` with the base commit's code against this
-  branch's, alternated (needs ``git archive 0e5e740 | tar -x -C /tmp/gonio_today``);
+- ``today``: ``gonio process --methods lambertian,lensch`` with the base commit's code against
+  this branch's, alternated (needs ``git archive BASE | tar -x -C /tmp/gonio_today``, or
+  ``$SCALE_TODAY``);
 - ``executors``: the streamed lumitexels in-process, on 1 and on 2 local workers: stored
   ``samples`` array and gathered lumitexels compared bit for bit with the in-memory route's;
   time with 1 and 2 workers (ratio);
@@ -71,6 +72,8 @@ from sims.dng import write_dng  # noqa: E402
 SESSION = "demo-quick"
 #: rounds of the today part (each runs both codes once, alternated)
 ROUNDS = int(os.environ.get("SCALE_ROUNDS", "2"))
+#: the code the today part compares against (``git archive BASE | tar -x -C`` it)
+TODAY = os.environ.get("SCALE_TODAY", "/tmp/gonio_today")
 BLOCK = 4096
 
 
@@ -182,8 +185,9 @@ def _process(store_path: str, args: list[str], code: str = str(ROOT)) -> tuple[d
     env = {**os.environ, "PYTHONPATH": code}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
+    # run from the code's folder: ``python -m`` puts the working directory before PYTHONPATH
     r = subprocess.run([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", scratch, "--json", "-q",
-                        *args], env=env, capture_output=True, text=True)
+                        *args], env=env, capture_output=True, text=True, cwd=code)
     dt = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     shutil.rmtree(scratch, ignore_errors=True)
@@ -195,7 +199,7 @@ def _process(store_path: str, args: list[str], code: str = str(ROOT)) -> tuple[d
 
 def process_memory(store_path: str, limit_mib: float) -> None:
     summary, dt, cpu, peak = _process(store_path, ["--methods", "lambertian,lensch", "--memory-limit", str(limit_mib)])
-    held = {m["name"]: m["figures"].get("held_out_rel_rms") for m in summary["methods"]}
+    held = {m["method"]: m["figures"].get("held_out_rel_rms") for m in summary["methods"]}
     print(f"process_memory  gonio process --methods lambertian,lensch --memory-limit {limit_mib:.0f}: {dt:.1f} s "
           f"(CPU {cpu:.1f} s)  peak RSS {peak:.0f} MiB (limit {limit_mib:.0f} MiB)  texels {summary['inputs']['texels']}  "
           f"held-out {held}  stages {summary['timings']}")
@@ -208,7 +212,7 @@ def method_workers(store_path: str) -> None:
         summary, dt, _, _ = _process(store_path, ["--methods", "lambertian,lensch", "--workers", str(w)])
         runs[w] = (summary, dt)
         print(f"method_workers  {'in-process' if w == 0 else f'{w} worker(s)':11s} {dt:6.1f} s  stages {summary['timings']}")
-    figs = {w: {m["name"]: m["figures"] for m in s["methods"]} for w, (s, _) in runs.items()}
+    figs = {w: {m["method"]: m["figures"] for m in s["methods"]} for w, (s, _) in runs.items()}
 
     def close(a, b) -> bool:
         if isinstance(a, dict):
@@ -248,24 +252,16 @@ def growth(store_path: str, limit_mib: float) -> None:
 
 
 def today(store_path: str, limit_mib: float) -> None:
-    """``gonio process --methods lambertian`` with today's code (the base commit, unpacked by
-    ``git archive 0e5e740`` into /tmp/gonio_today) and this branch's, alternated twice each on
-    scratch copies of the store: wall time, CPU time (the fairer figure on a shared machine) and
-    the stage timings it reports."""
+    """``gonio process --methods lambertian,lensch`` with today's code (unpacked by ``git archive
+    BASE`` into ``$SCALE_TODAY``, default /tmp/gonio_today) and this branch's, alternated on
+    scratch copies of the store: wall time, CPU time (the fairer figure on a shared machine), the
+    stage timings it reports and the held-out figures."""
     for rnd in range(ROUNDS):
-        for name, code in (("today", "/tmp/gonio_today"), ("streamed", str(ROOT))):
-            scratch = _without_reconstructions(store_path)
-            env = {**os.environ, "PYTHONPATH": code}
-            t = time.perf_counter()
-            before = resource.getrusage(resource.RUSAGE_CHILDREN)
-            r = subprocess.run([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", scratch,
-                                "--methods", "lambertian", "--json", "-q"], env=env, capture_output=True, text=True)
-            dt = time.perf_counter() - t
-            after = resource.getrusage(resource.RUSAGE_CHILDREN)
-            cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
-            summary = json.loads(r.stdout[r.stdout.index("{"):])
-            print(f"today  round {rnd}  {name:8s} exit {r.returncode}  wall {dt:6.1f} s  CPU (user + sys) {cpu:6.1f} s  "
-                  f"stages {summary['timings']}  held-out rel. RMS {summary['methods'][0]['figures'].get('held_out_rel_rms')}")
+        for name, code in (("today", TODAY), ("branch", str(ROOT))):
+            summary, dt, cpu, _ = _process(store_path, ["--methods", "lambertian,lensch"], code)
+            held = {m["method"]: m["figures"].get("held_out_rel_rms") for m in summary["methods"]}
+            print(f"today  round {rnd}  {name:8s} wall {dt:6.1f} s  CPU (user + sys) {cpu:6.1f} s  "
+                  f"stages {summary['timings']}  held-out rel. RMS {held}")
 
 
 def executors(store_path: str) -> None:
