@@ -60,7 +60,8 @@ sys.path.insert(0, str(ROOT))
 from calibration.raw import read_raw  # noqa: E402
 from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
 from capture.pipeline.block_scoring import score_blocks  # noqa: E402
-from capture.pipeline.lumitexel_arrays import block_texels_for, discovery_texels_for, stream_lumitexels  # noqa: E402
+from capture.pipeline.lumitexel_arrays import (block_texels_for, discovery_texels_for, method_texels_for,  # noqa: E402
+                                              stream_lumitexels)
 from capture.pipeline.methods import BlockRoute, fit_method  # noqa: E402
 from capture.pipeline.stored_blocks import StoredBlocks  # noqa: E402
 from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
@@ -134,7 +135,7 @@ def one(route: str, store_path: str, limit_mib: float) -> None:
         with Executor(ClusterOptions(), store_root=store.root) as ex:
             arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=block)
         stages["lumitexels"] = time.perf_counter() - t
-        blocks = StoredBlocks(arrays)
+        blocks = StoredBlocks(arrays, method_texels_for(int(limit_mib * 2**20), arrays.n_train))
         route = BlockRoute(blocks, lambda fn, args: [fn(*a) for a in args])
         # the per-texel normals only (the samples come from the blocks)
         normals = _TexelsOnly(np.concatenate([arrays.block(t0, t1)[0].normal for t0, t1 in arrays.blocks]))

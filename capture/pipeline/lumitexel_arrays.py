@@ -51,7 +51,8 @@ from .images import SessionImages
 from .process import PoseSpec, SessionCalibration, ViewPlan, merge_pose, session_images
 
 __all__ = ["LumitexelArrays", "MemoryLimitError", "TexelBlock", "stream_lumitexels", "store_lumitexels",
-           "block_texels_for", "default_memory_limit", "discovery_texels_for", "reject_filter_for"]
+           "block_texels_for", "default_memory_limit", "discovery_texels_for", "method_texels_for",
+           "reject_filter_for"]
 
 _SAMPLE_FIELDS = ("wi", "wo", "reflectance", "diffuse", "specular")
 #: the channel of ``samples`` that says whether the (texel, view) pair holds a sample
@@ -105,18 +106,23 @@ def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: i
     return int(min(_MAX_BLOCK, max(1024, fit)))
 
 
-#: bytes a texel of Lensch's material-discovery subsample holds per training view: its sample
-#: (directions, reflectance, weight, float64) twice (as read, and in the current normals' frames)
-#: and its lobe geometry, ~ 250; rounded up for the fits' temporaries
-_DISCOVERY_BYTES_PER_VIEW = 400
+#: bytes a texel costs per training view while a method holds its samples (read as float64,
+#: again in the current normals' frames, lobe geometry, the projection's basis values): ~ 300
+#: measured on Lensch's per-block steps; rounded up
+_METHOD_BYTES_PER_VIEW = 400
+
+
+def method_texels_for(memory_bytes: int, n_train_views: int) -> int:
+    """The most texels whose samples a block method may hold at once within half of
+    ``memory_bytes`` (the other half for Lensch's material-discovery subsample), every texel
+    counted with a sample in every training view (a bound); at least 1000."""
+    return max(1000, int(memory_bytes // (2 * _METHOD_BYTES_PER_VIEW * max(n_train_views, 1))))
 
 
 def discovery_texels_for(memory_bytes: int, n_train_views: int) -> int:
-    """The most texels Lensch's material discovery may gather within ``memory_bytes`` (every
-    texel counted with a sample in every training view: a bound), capped at the method's default
-    (:attr:`reconstruct.lensch.SvbrdfOptions.discovery_texels`), at least 1000."""
-    fit = int(memory_bytes // (_DISCOVERY_BYTES_PER_VIEW * max(n_train_views, 1)))
-    return max(1000, min(SvbrdfOptions().discovery_texels, fit))
+    """Lensch's material-discovery subsample within ``memory_bytes`` (:func:`method_texels_for`),
+    capped at the method's default (:attr:`reconstruct.lensch.SvbrdfOptions.discovery_texels`)."""
+    return min(SvbrdfOptions().discovery_texels, method_texels_for(memory_bytes, n_train_views))
 
 
 @dataclass(frozen=True)
@@ -256,11 +262,11 @@ class LumitexelArrays:
                         weight=np.ones(len(rows), np.float32), **fields)
         return lt, cols >= self.n_train
 
-    def training_texels_per_block(self) -> np.ndarray:
-        """Texels with a training sample in each block (:attr:`blocks`), (n_blocks,): reads only
-        the training views' sample flags."""
+    def training_texels_per_block(self, blocks: list[tuple[int, int]]) -> np.ndarray:
+        """Texels with a training sample in each of ``blocks`` (texel ranges), (n_blocks,): reads
+        only the training views' sample flags."""
         flags = self._open("samples")
-        return np.array([int((flags[t0:t1, :self.n_train, _MASK] > 0).any(axis=1).sum()) for t0, t1 in self.blocks],
+        return np.array([int((flags[t0:t1, :self.n_train, _MASK] > 0).any(axis=1).sum()) for t0, t1 in blocks],
                         np.int64)
 
     def iter_blocks(self):

@@ -46,7 +46,7 @@ from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
 from .block_scoring import score_blocks
 from .lumitexel_arrays import (LumitexelArrays, block_texels_for, default_memory_limit, discovery_texels_for,
-                               stream_lumitexels)
+                               method_texels_for, stream_lumitexels)
 from .stored_blocks import StoredBlocks
 from .progress import Progress, ProgressSink, counter
 from .process import (MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
@@ -204,7 +204,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                                                progress=counter(progress, "lumitexels"))
                     train, held = arrays.gather()
                     # on a cluster the block methods' per-texel steps run there, over the stored blocks
-                    route = None if cluster.in_process else BlockRoute(StoredBlocks(arrays), executor.map)
+                    route = None if cluster.in_process else BlockRoute(
+                        StoredBlocks(arrays, method_texels_for(limit, arrays.n_train)), executor.map)
                 with clock.stage("inputs"):
                     inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
                 truth_r = _truth_reflectance(truth, train, held) if truth is not None else None

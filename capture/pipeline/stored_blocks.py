@@ -2,7 +2,9 @@
 methods' per-texel steps read one texel block at a time (:func:`reconstruct.lensch.fit_svbrdf_blocks`)
 without ``reconstruct`` knowing Zarr.
 
-The blocks are the arrays' texel chunks; texels are numbered as
+The blocks are the arrays' texel chunks, each cut into parts of at most ``max_texels`` (a method
+holds more per texel than the assembly did: a part of a chunk is read by decompressing the
+chunk and keeping the part's rows); texels are numbered as
 :meth:`capture.pipeline.lumitexel_arrays.LumitexelArrays.gather` numbers them (texels without a
 training sample left out), so per-texel results line up with the gathered lumitexels'.
 Directions are in each texel's local frame (+z = its mesh normal); reflectance ``f_r cos
@@ -20,19 +22,22 @@ __all__ = ["StoredBlocks"]
 
 
 class StoredBlocks(TexelBlocks):
-    """The training samples of ``arrays``, block by block (one pass over the training views'
-    sample flags when made, to number the texels)."""
+    """The training samples of ``arrays``, block by block, at most ``max_texels`` texels a block
+    (default: the arrays' chunk); one pass over the training views' sample flags when made, to
+    number the texels."""
 
-    def __init__(self, arrays: LumitexelArrays) -> None:
+    def __init__(self, arrays: LumitexelArrays, max_texels: int | None = None) -> None:
         self.arrays = arrays
-        kept = arrays.training_texels_per_block()
+        step = arrays.block_texels if max_texels is None else max(1, min(max_texels, arrays.block_texels))
+        parts = [(a, min(a + step, t1)) for t0, t1 in arrays.blocks for a in range(t0, t1, step)]
+        kept = arrays.training_texels_per_block(parts)
         firsts = np.concatenate([[0], np.cumsum(kept)])
         self.n_texels = int(firsts[-1])
-        self._chunks = [c for c in range(len(kept)) if kept[c]]   # a chunk without such texels is no block
-        self.ranges = [(int(firsts[c]), int(firsts[c + 1])) for c in self._chunks]
+        self._parts = [parts[c] for c in range(len(parts)) if kept[c]]   # a part without such texels is no block
+        self.ranges = [(int(firsts[c]), int(firsts[c + 1])) for c in range(len(parts)) if kept[c]]
 
     def read(self, i: int) -> SampleBlock:
-        lt, held = self.arrays.block(*self.arrays.blocks[self._chunks[i]])
+        lt, held = self.arrays.block(*self._parts[i])
         train = ~held
         return SampleBlock(lt.n_texels, lt.texel[train], *(np.asarray(getattr(lt, name)[train], np.float64)
                                                            for name in ("wi", "wo", "reflectance", "weight")))

@@ -98,8 +98,10 @@ def _as_on_a_cluster(fn, args):
 def test_lambertian_over_blocks_equals_the_in_memory_fit(stored):
     train, held = stored[BLOCKS[0]].gather()
     whole = fit_method("lambertian", train, None)
-    for b in BLOCKS:
-        fit = fit_method("lambertian", train, None, route=BlockRoute(StoredBlocks(stored[b]), _as_on_a_cluster))
+    # the chunks, and a chunk of all texels cut into parts of 50 (blocks within a chunk)
+    for blocks in (StoredBlocks(stored[BLOCKS[0]]), StoredBlocks(stored[BLOCKS[1]], max_texels=50)):
+        assert blocks.n_texels == train.n_texels and blocks.ranges[-1][1] == train.n_texels
+        fit = fit_method("lambertian", train, None, route=BlockRoute(blocks, _as_on_a_cluster))
         np.testing.assert_allclose(fit.predict(held), whole.predict(held), rtol=1e-12, atol=0)
 
 
