@@ -135,16 +135,17 @@ def one(route: str, store_path: str, limit_mib: float) -> None:
         with Executor(ClusterOptions(), store_root=store.root) as ex:
             arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=block)
         stages["lumitexels"] = time.perf_counter() - t
-        blocks = StoredBlocks(arrays, method_texels_for(int(limit_mib * 2**20), arrays.n_train))
+        method_block = method_texels_for(int(limit_mib * 2**20), arrays.n_train)
+        blocks = StoredBlocks(arrays, method_block)
         here = BlockRoute(blocks, lambda fn, args: [fn(*a) for a in args])
         # the per-texel normals only (the samples come from the blocks)
-        normals = _TexelsOnly(np.concatenate([arrays.block(t0, t1)[0].normal for t0, t1 in arrays.blocks]))
+        normals = _TexelsOnly(np.concatenate([arrays.block(t0, t1)[0].normal for t0, t1 in arrays.parts(method_block)]))
         texels, samples = blocks.n_texels, -1
         for name in ("lambertian", "lensch"):
             t1 = time.perf_counter()
             opts = {"discovery_texels": discovery_texels_for(int(limit_mib * 2**20), arrays.n_train)} if name == "lensch" else {}
             fit = fit_method(name, normals, None, route=here, **opts)
-            figures[name] = score_blocks(fit.predict_samples, arrays).held_out.relative_rms
+            figures[name] = score_blocks(fit.predict_samples, arrays, max_texels=method_block).held_out.relative_rms
             if name == "lensch":
                 figures["lensch_discovery"] = fit.figures["material_discovery"]
             stages[name] = time.perf_counter() - t1

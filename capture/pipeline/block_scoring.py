@@ -82,7 +82,8 @@ class BlockScores:
 
 
 def score_blocks(predict: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], arrays: LumitexelArrays,
-                 *, truth_of: Callable[[Lumitexels], np.ndarray] | None = None) -> BlockScores:
+                 *, truth_of: Callable[[Lumitexels], np.ndarray] | None = None,
+                 max_texels: int | None = None) -> BlockScores:
     """Score a fitted model over the stored lumitexels one texel block at a time.
 
     Parameters
@@ -94,10 +95,12 @@ def score_blocks(predict: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndar
     arrays : LumitexelArrays
     truth_of : callable(Lumitexels) -> ndarray (S, 3), optional
         The true reflectance of a block's samples (texels numbered within the block).
+    max_texels : int, optional
+        Texels a block at most (:meth:`LumitexelArrays.parts`; default the arrays' chunks).
     """
     truth_held, truth_train = (None, None) if truth_of is None else (ErrorSums(rows=False), ErrorSums(rows=False))
     scores = BlockScores(ErrorSums(), ErrorSums(), None)
-    for b in arrays.iter_blocks():
+    for b in arrays.iter_blocks(max_texels):
         lt = b.lumitexels
         p = predict(lt.texel + b.first_texel, lt.wi, lt.wo)
         scores.training.add(p[~b.held], lt.reflectance[~b.held])

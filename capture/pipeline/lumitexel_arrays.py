@@ -269,11 +269,18 @@ class LumitexelArrays:
         return np.array([int((flags[t0:t1, :self.n_train, _MASK] > 0).any(axis=1).sum()) for t0, t1 in blocks],
                         np.int64)
 
-    def iter_blocks(self):
-        """The texel blocks in order, each read when asked for (:class:`TexelBlock`): one block's
-        samples in memory at a time."""
+    def parts(self, max_texels: int | None = None) -> list[tuple[int, int]]:
+        """:attr:`blocks` cut into parts of at most ``max_texels`` texels (a part of a chunk is
+        read by decompressing the chunk and keeping the part's rows: a method holds more per
+        texel than the assembly did)."""
+        step = self.block_texels if max_texels is None else max(1, min(max_texels, self.block_texels))
+        return [(a, min(a + step, t1)) for t0, t1 in self.blocks for a in range(t0, t1, step)]
+
+    def iter_blocks(self, max_texels: int | None = None):
+        """The texel blocks (:meth:`parts` of ``max_texels``) in order, each read when asked for
+        (:class:`TexelBlock`): one block's samples in memory at a time."""
         first = 0
-        for t0, t1 in self.blocks:
+        for t0, t1 in self.parts(max_texels):
             lt, held = self.block(t0, t1)
             yield TexelBlock(first, lt, held)
             first += lt.n_texels

@@ -204,8 +204,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                                                progress=counter(progress, "lumitexels"))
                     train, held = arrays.gather()
                     # on a cluster the block methods' per-texel steps run there, over the stored blocks
-                    route = None if cluster.in_process else BlockRoute(
-                        StoredBlocks(arrays, method_texels_for(limit, arrays.n_train)), executor.map)
+                    method_block = method_texels_for(limit, arrays.n_train)
+                    route = None if cluster.in_process else BlockRoute(StoredBlocks(arrays, method_block), executor.map)
                 with clock.stage("inputs"):
                     inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
                 truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
@@ -232,7 +232,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                         outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, truth_r, rng,
                                                      rep.inputs, counter(progress, name),
                                                      _options(name, method_options, limit, arrays), rep.floor,
-                                                     assumption.get(name, ""), route)
+                                                     assumption.get(name, ""), route, method_block)
                     outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
         if rep.floor is not None:
@@ -302,7 +302,7 @@ def _options(name: str, method_options, memory_limit: int, arrays: LumitexelArra
 def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArrays, train: Lumitexels,
                 held: Lumitexels, inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
                 progress, options: dict[str, Any], floor: Floor | None, assumption: str,
-                route: BlockRoute | None) -> MethodOutcome:
+                route: BlockRoute | None, block_texels: int) -> MethodOutcome:
     try:
         fit = fit_method(name, train, inputs, rng=rng, progress=progress, route=route, **options)
     except MethodSkipped as exc:
@@ -311,7 +311,7 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
         return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}", outside_assumption=assumption)
     figures = dict(fit.figures)
     # scored one texel block at a time from the stored arrays (block_scoring: per-block sums)
-    scores = score_blocks(fit.predict_samples, arrays,
+    scores = score_blocks(fit.predict_samples, arrays, max_texels=block_texels,
                           truth_of=None if truth_r is None else functools.partial(_truth_of, truth))
     figures["training_rel_rms"] = scores.training.relative_rms
     if scores.held_out.count:

@@ -28,8 +28,7 @@ class StoredBlocks(TexelBlocks):
 
     def __init__(self, arrays: LumitexelArrays, max_texels: int | None = None) -> None:
         self.arrays = arrays
-        step = arrays.block_texels if max_texels is None else max(1, min(max_texels, arrays.block_texels))
-        parts = [(a, min(a + step, t1)) for t0, t1 in arrays.blocks for a in range(t0, t1, step)]
+        parts = arrays.parts(max_texels)
         kept = arrays.training_texels_per_block(parts)
         firsts = np.concatenate([[0], np.cumsum(kept)])
         self.n_texels = int(firsts[-1])
