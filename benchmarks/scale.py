@@ -13,7 +13,9 @@ Parts (each prints its figures):
   limit, both scored block by block), with time;
 - ``process_memory``: peak RSS of ``gonio process --methods lambertian,lensch --memory-limit``
   (its remaining in-memory parts included: the gathered lumitexels for the pictures, the export's
-  GGX fit and the truth columns), next to the limit;
+  GGX fit and the truth columns), next to the limit; on a captured session only (an
+  :func:`upscale`d store's calibration frames are not enlarged: ``gonio process`` finds its
+  calibration stale and the redone one fails on the darks' size);
 - ``growth``: the streamed route (lumitexels, Lambertian, Lensch) at 1x, 4x and 16x pixels
   (:func:`upscale`): time per stage, peak RSS and the growth exponents against the texel count;
 - ``today``: ``gonio process --methods lambertian,lensch`` with the base commit's code against

@@ -106,23 +106,28 @@ def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: i
     return int(min(_MAX_BLOCK, max(1024, fit)))
 
 
-#: bytes a texel costs per training view while a method holds its samples (read as float64,
-#: again in the current normals' frames, lobe geometry, the projection's basis values): ~ 300
-#: measured on Lensch's per-block steps; rounded up
-_METHOD_BYTES_PER_VIEW = 400
+#: bytes a texel of a block costs per training view while a method works on it: Lensch's normal
+#: fitting pads each texel's samples for its batched Levenberg-Marquardt (residuals, Jacobian,
+#: per-basis values); measured ~ 520 above the assembly's at 960 x 720 (10 485-texel blocks),
+#: x 3 for a margin
+_METHOD_BYTES_PER_VIEW = 1600
+#: bytes a texel of Lensch's material-discovery subsample holds per training view: its samples
+#: as read and in the current normals' frames (float64), its lobe geometry; ~ 250, rounded up
+_DISCOVERY_BYTES_PER_VIEW = 400
 
 
 def method_texels_for(memory_bytes: int, n_train_views: int) -> int:
-    """The most texels whose samples a block method may hold at once within half of
-    ``memory_bytes`` (the other half for Lensch's material-discovery subsample), every texel
-    counted with a sample in every training view (a bound); at least 1000."""
+    """The most texels of one block a block method may work on within half of ``memory_bytes``
+    (the other half for Lensch's material-discovery subsample), every texel counted with a
+    sample in every training view (a bound); at least 1000."""
     return max(1000, int(memory_bytes // (2 * _METHOD_BYTES_PER_VIEW * max(n_train_views, 1))))
 
 
 def discovery_texels_for(memory_bytes: int, n_train_views: int) -> int:
-    """Lensch's material-discovery subsample within ``memory_bytes`` (:func:`method_texels_for`),
-    capped at the method's default (:attr:`reconstruct.lensch.SvbrdfOptions.discovery_texels`)."""
-    return min(SvbrdfOptions().discovery_texels, method_texels_for(memory_bytes, n_train_views))
+    """Lensch's material-discovery subsample within half of ``memory_bytes``, capped at the
+    method's default (:attr:`reconstruct.lensch.SvbrdfOptions.discovery_texels`); at least 1000."""
+    fit = int(memory_bytes // (2 * _DISCOVERY_BYTES_PER_VIEW * max(n_train_views, 1)))
+    return max(1000, min(SvbrdfOptions().discovery_texels, fit))
 
 
 @dataclass(frozen=True)
