@@ -7,15 +7,26 @@ time and peak memory against today's in-memory inputs.
 Parts (each prints its figures):
 
 - ``memory``: peak RSS (a fresh process each) of today's in-memory route (every view merged,
-  then :func:`reconstruct.lumitexels.assemble_lumitexels`) against the streamed one under
-  ``--memory-limit`` MiB followed by a block-wise Lambertian albedo, with time;
-- ``growth``: the streamed route at 1x, 4x and 16x pixels (:func:`upscale`): time per stage,
-  peak RSS and the growth exponents against the texel count;
-- ``today``: ``gonio process --methods lambertian`` with the base commit's code against this
-  branch's, alternated (needs ``git archive 0e5e740 | tar -x -C /tmp/gonio_today``);
+  then :func:`reconstruct.lumitexels.assemble_lumitexels`, Lambertian and Lensch on the gathered
+  lumitexels) against the streamed one under ``--memory-limit`` MiB followed by the block
+  methods over the stored blocks (Lambertian, Lensch with its discovery subsample sized by the
+  limit, both scored block by block), with time;
+- ``process_memory``: peak RSS of ``gonio process --methods lambertian,lensch --memory-limit``
+  (its remaining in-memory parts included: the gathered lumitexels for the pictures, the export's
+  GGX fit and the truth columns), next to the limit; on a captured session only (an
+  :func:`upscale`d store's calibration frames are not enlarged: ``gonio process`` finds its
+  calibration stale and the redone one fails on the darks' size);
+- ``growth``: the streamed route (lumitexels, Lambertian, Lensch) at 1x, 4x and 16x pixels
+  (:func:`upscale`): time per stage, peak RSS and the growth exponents against the texel count;
+- ``today``: ``gonio process --methods lambertian,lensch`` with the base commit's code against
+  this branch's, alternated (needs ``git archive BASE | tar -x -C /tmp/gonio_today``, or
+  ``$SCALE_TODAY``);
 - ``executors``: the streamed lumitexels in-process, on 1 and on 2 local workers: stored
   ``samples`` array and gathered lumitexels compared bit for bit with the in-memory route's;
   time with 1 and 2 workers (ratio);
+- ``method_workers``: ``gonio process --methods lambertian,lensch`` in-process, with
+  ``--workers 1`` and ``--workers 2`` (the methods' per-block tasks on the cluster): time, the
+  1-vs-2 ratio, and the figures against in-process (1e-9 relative);
 - ``resume``: a streamed run SIGKILLed after a third of its views, then run again: the views
   reused and the result compared;
 - ``kill_worker``: a 2-worker run in which one worker process is SIGKILLed mid-run;
@@ -50,7 +61,11 @@ sys.path.insert(0, str(ROOT))
 
 from calibration.raw import read_raw  # noqa: E402
 from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
-from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels  # noqa: E402
+from capture.pipeline.block_scoring import score_blocks  # noqa: E402
+from capture.pipeline.lumitexel_arrays import (block_texels_for, discovery_texels_for, method_texels_for,  # noqa: E402
+                                              stream_lumitexels)
+from capture.pipeline.methods import BlockRoute, fit_method  # noqa: E402
+from capture.pipeline.stored_blocks import StoredBlocks  # noqa: E402
 from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
                                       session_inputs, view_plan)
 from capture.lab_resolver import resolve_lab  # noqa: E402
@@ -60,6 +75,8 @@ from sims.dng import write_dng  # noqa: E402
 SESSION = "demo-quick"
 #: rounds of the today part (each runs both codes once, alternated)
 ROUNDS = int(os.environ.get("SCALE_ROUNDS", "2"))
+#: the code the today part compares against (``git archive BASE | tar -x -C`` it)
+TODAY = os.environ.get("SCALE_TODAY", "/tmp/gonio_today")
 BLOCK = 4096
 
 
@@ -93,29 +110,24 @@ def _stream(store, mesh, cal, workers: int, *, fresh: bool = True, on_start=None
         return lt, arrays, time.perf_counter() - t
 
 
-def _albedo_blockwise(arrays) -> np.ndarray:
-    """Lambertian albedo per texel (the ``lambertian`` method's least squares), one texel block at
-    a time: a chunk-pure step, nothing but one block's samples in memory."""
-    out = []
-    for t0, t1 in arrays.blocks:
-        lt, held = arrays.block(t0, t1)
-        cos = lt.wi[~held, 2].astype(np.float64)
-        tex = lt.texel[~held]
-        num = np.stack([np.bincount(tex, cos * lt.reflectance[~held, c], lt.n_texels) for c in range(3)], axis=1)
-        out.append(np.pi * num / np.maximum(np.bincount(tex, cos * cos, lt.n_texels)[:, None], 1e-12))
-    return np.concatenate(out)
-
-
 def one(route: str, store_path: str, limit_mib: float) -> None:
     """Run one route in this (fresh) process and print its time and peak RSS as JSON: today's
-    in-memory inputs, or the streamed ones under ``limit_mib`` followed by a block-wise albedo."""
+    in-memory inputs and methods, or the streamed ones under ``limit_mib`` followed by the block
+    methods (Lambertian, Lensch) over the stored blocks, scored block by block."""
     store, mesh, cal = _setup(store_path)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()
     stages: dict[str, float] = {}
+    figures = {}
     if route == "in_memory":
         train, held = lumitexels_with_held_out(mesh, session_inputs(store, SESSION, calibration=cal, mesh=mesh))
         texels, samples = train.n_texels, train.n_samples + held.n_samples
+        stages["lumitexels"] = time.perf_counter() - t
+        for name in ("lambertian", "lensch"):
+            t1 = time.perf_counter()
+            fit = fit_method(name, train, None)
+            figures[name] = float(np.sqrt(np.sum((fit.predict(held) - held.reflectance) ** 2) / np.sum(held.reflectance ** 2)))
+            stages[name] = time.perf_counter() - t1
     else:
         shutil.rmtree(Path(store.root) / "arrays", ignore_errors=True)
         images = session_images(store, SESSION)
@@ -125,12 +137,33 @@ def one(route: str, store_path: str, limit_mib: float) -> None:
         with Executor(ClusterOptions(), store_root=store.root) as ex:
             arrays = stream_lumitexels(images, SESSION, cal, plan, mesh, ex, block_texels=block)
         stages["lumitexels"] = time.perf_counter() - t
-        texels, samples = len(_albedo_blockwise(arrays)), -1
-        stages["albedo"] = time.perf_counter() - t - stages["lumitexels"]
+        method_block = method_texels_for(int(limit_mib * 2**20), arrays.n_train)
+        blocks = StoredBlocks(arrays, method_block)
+        here = BlockRoute(blocks, lambda fn, args: [fn(*a) for a in args])
+        # the per-texel normals only (the samples come from the blocks)
+        normals = _TexelsOnly(np.concatenate([arrays.block(t0, t1)[0].normal for t0, t1 in arrays.parts(method_block)]))
+        texels, samples = blocks.n_texels, -1
+        for name in ("lambertian", "lensch"):
+            t1 = time.perf_counter()
+            opts = {"discovery_texels": discovery_texels_for(int(limit_mib * 2**20), arrays.n_train)} if name == "lensch" else {}
+            fit = fit_method(name, normals, None, route=here, **opts)
+            figures[name] = score_blocks(fit.predict_samples, arrays, max_texels=method_block).held_out.relative_rms
+            if name == "lensch":
+                figures["lensch_discovery"] = fit.figures["material_discovery"]
+            stages[name] = time.perf_counter() - t1
     dt = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(json.dumps({"route": route, "seconds": dt, "peak_rss_mib": peak / 1024, "stages": stages,
-                      "peak_above_setup_mib": (peak - base) / 1024, "texels": texels, "samples": samples}))
+                      "peak_above_setup_mib": (peak - base) / 1024, "texels": texels, "samples": samples,
+                      "held_out_rel_rms": figures}))
+
+
+class _TexelsOnly:
+    """What the block methods read of the training lumitexels when given a route: the per-texel
+    normals (the samples come from the blocks)."""
+
+    def __init__(self, normal: np.ndarray) -> None:
+        self.normal = normal
 
 
 def _one(route: str, store_path: str, limit_mib: float) -> dict:
@@ -145,11 +178,58 @@ def memory(store_path: str, limit_mib: float) -> None:
         r = _one(route, store_path, limit_mib)
         print(f"memory  {route:10s} {r['seconds']:6.1f} s  peak RSS {r['peak_rss_mib']:7.0f} MiB "
               f"({r['peak_above_setup_mib']:6.0f} MiB above the set-up: imports, store, calibration)"
-              + (f"  limit {limit_mib:.0f} MiB" if route == "streamed" else "") + f"  {r['texels']} texels")
+              + (f"  limit {limit_mib:.0f} MiB" if route == "streamed" else "") + f"  {r['texels']} texels  "
+              f"stages {json.dumps({k: round(v, 1) for k, v in r['stages'].items()})}  held-out {r['held_out_rel_rms']}")
+
+
+def _process(store_path: str, args: list[str], code: str = str(ROOT)) -> tuple[dict, float, float, float]:
+    """``gonio process SESSION ARGS --json`` on a scratch copy without reconstructions: the summary,
+    wall seconds, CPU seconds (user + sys) and the child's peak RSS (MiB)."""
+    scratch = _without_reconstructions(store_path)
+    env = {**os.environ, "PYTHONPATH": code}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    # run from the code's folder: ``python -m`` puts the working directory before PYTHONPATH
+    r = subprocess.run([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", scratch, "--json", "-q",
+                        *args], env=env, capture_output=True, text=True, cwd=code)
+    dt = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    shutil.rmtree(scratch, ignore_errors=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"gonio process {' '.join(args)} exited {r.returncode}: {r.stderr[-2000:]}")
+    cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
+    return json.loads(r.stdout[r.stdout.index("{"):]), dt, cpu, after.ru_maxrss / 1024
+
+
+def process_memory(store_path: str, limit_mib: float) -> None:
+    summary, dt, cpu, peak = _process(store_path, ["--methods", "lambertian,lensch", "--memory-limit", str(limit_mib)])
+    held = {m["method"]: m["figures"].get("held_out_rel_rms") for m in summary["methods"]}
+    print(f"process_memory  gonio process --methods lambertian,lensch --memory-limit {limit_mib:.0f}: {dt:.1f} s "
+          f"(CPU {cpu:.1f} s)  peak RSS {peak:.0f} MiB (limit {limit_mib:.0f} MiB)  texels {summary['inputs']['texels']}  "
+          f"held-out {held}  stages {summary['timings']}")
+
+
+def method_workers(store_path: str) -> None:
+    """The methods' per-block tasks in-process, on 1 and on 2 local workers (ratio), and their figures."""
+    runs = {}
+    for w in (0, 1, 2):
+        summary, dt, _, _ = _process(store_path, ["--methods", "lambertian,lensch", "--workers", str(w)])
+        runs[w] = (summary, dt)
+        print(f"method_workers  {'in-process' if w == 0 else f'{w} worker(s)':11s} {dt:6.1f} s  stages {summary['timings']}")
+    figs = {w: {m["method"]: m["figures"] for m in s["methods"]} for w, (s, _) in runs.items()}
+
+    def close(a, b) -> bool:
+        if isinstance(a, dict):
+            return a.keys() == b.keys() and all(close(a[k], b[k]) for k in a)
+        if isinstance(a, float) and isinstance(b, float):
+            return abs(a - b) <= 1e-9 * max(abs(a), abs(b), 1e-300)
+        return a == b
+    print(f"method_workers  1 vs 2 workers: time ratio {runs[1][1] / runs[2][1]:.2f}; figures equal in-process's to "
+          f"1e-9: 1 worker {close(figs[0], figs[1])}, 2 workers {close(figs[0], figs[2])}")
 
 
 def growth(store_path: str, limit_mib: float) -> None:
-    """The streamed route (assembly, then a block-wise albedo) on the session enlarged 1, 2 and
+    """The streamed route (assembly, then the block methods) on the session enlarged 1, 2 and
     4 times a side (1x, 4x and 16x pixels and texels; :func:`upscale`): time per stage and peak
     RSS in a fresh process each, and the growth exponent b of cost ~ texels^b (least squares in
     log-log)."""
@@ -162,36 +242,30 @@ def growth(store_path: str, limit_mib: float) -> None:
         r = _one("streamed", path, limit_mib)
         rows.append(r)
         print(f"growth  {f}x{f}  {r['texels']:8d} texels  {r['seconds']:7.1f} s  (lumitexels "
-              f"{r['stages']['lumitexels']:.1f} s, albedo {r['stages']['albedo']:.2f} s)  peak RSS "
+              f"{r['stages']['lumitexels']:.1f} s, lambertian {r['stages']['lambertian']:.2f} s, lensch "
+              f"{r['stages']['lensch']:.1f} s)  peak RSS "
               f"{r['peak_rss_mib']:6.0f} MiB ({r['peak_above_setup_mib']:5.0f} above the set-up)  limit {limit_mib:.0f} MiB")
         if f > 1:
             shutil.rmtree(path, ignore_errors=True)
     x = np.log([r["texels"] for r in rows])
     for what, ys in (("time", [r["seconds"] for r in rows]),
                      ("lumitexels time", [r["stages"]["lumitexels"] for r in rows]),
+                     ("Lensch time", [r["stages"]["lensch"] for r in rows]),
                      ("peak above the set-up", [max(r["peak_above_setup_mib"], 1.0) for r in rows])):
         print(f"growth  exponent of {what} against texels: {np.polyfit(x, np.log(ys), 1)[0]:.2f}")
 
 
 def today(store_path: str, limit_mib: float) -> None:
-    """``gonio process --methods lambertian`` with today's code (the base commit, unpacked by
-    ``git archive 0e5e740`` into /tmp/gonio_today) and this branch's, alternated twice each on
-    scratch copies of the store: wall time, CPU time (the fairer figure on a shared machine) and
-    the stage timings it reports."""
+    """``gonio process --methods lambertian,lensch`` with today's code (unpacked by ``git archive
+    BASE`` into ``$SCALE_TODAY``, default /tmp/gonio_today) and this branch's, alternated on
+    scratch copies of the store: wall time, CPU time (the fairer figure on a shared machine), the
+    stage timings it reports and the held-out figures."""
     for rnd in range(ROUNDS):
-        for name, code in (("today", "/tmp/gonio_today"), ("streamed", str(ROOT))):
-            scratch = _without_reconstructions(store_path)
-            env = {**os.environ, "PYTHONPATH": code}
-            t = time.perf_counter()
-            before = resource.getrusage(resource.RUSAGE_CHILDREN)
-            r = subprocess.run([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", scratch,
-                                "--methods", "lambertian", "--json", "-q"], env=env, capture_output=True, text=True)
-            dt = time.perf_counter() - t
-            after = resource.getrusage(resource.RUSAGE_CHILDREN)
-            cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
-            summary = json.loads(r.stdout[r.stdout.index("{"):])
-            print(f"today  round {rnd}  {name:8s} exit {r.returncode}  wall {dt:6.1f} s  CPU (user + sys) {cpu:6.1f} s  "
-                  f"stages {summary['timings']}  held-out rel. RMS {summary['methods'][0]['figures'].get('held_out_rel_rms')}")
+        for name, code in (("today", TODAY), ("branch", str(ROOT))):
+            summary, dt, cpu, _ = _process(store_path, ["--methods", "lambertian,lensch"], code)
+            held = {m["method"]: m["figures"].get("held_out_rel_rms") for m in summary["methods"]}
+            print(f"today  round {rnd}  {name:8s} wall {dt:6.1f} s  CPU (user + sys) {cpu:6.1f} s  "
+                  f"stages {summary['timings']}  held-out rel. RMS {held}")
 
 
 def executors(store_path: str) -> None:
@@ -345,10 +419,10 @@ def scheduler(store_path: str) -> None:
             p.wait()
 
 
-PARTS = {"memory": memory, "growth": growth, "today": today, "executors": executors, "resume": resume, "kill_worker": kill_worker,
-         "scheduler": scheduler}
+PARTS = {"memory": memory, "process_memory": process_memory, "growth": growth, "today": today, "executors": executors,
+         "method_workers": method_workers, "resume": resume, "kill_worker": kill_worker, "scheduler": scheduler}
 #: the parts that take the memory limit
-_LIMITED = {"memory", "growth", "today"}
+_LIMITED = {"memory", "process_memory", "growth", "today"}
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

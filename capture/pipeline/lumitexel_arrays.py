@@ -39,6 +39,7 @@ import trimesh
 import zarr
 
 from reconstruct.camera import CameraModel
+from reconstruct.lensch import SvbrdfOptions
 from reconstruct.lumitexels import (AssemblyGeometry, LumitexelError, Lumitexels, ViewHits, assembly_geometry,
                                     best_views, object_frame_camera, object_frame_point, view_hits,
                                     view_samples, view_texels)
@@ -49,7 +50,8 @@ from ..store import Store
 from .images import SessionImages
 from .process import PoseSpec, SessionCalibration, ViewPlan, merge_pose, session_images
 
-__all__ = ["LumitexelArrays", "MemoryLimitError", "stream_lumitexels", "block_texels_for", "default_memory_limit",
+__all__ = ["LumitexelArrays", "MemoryLimitError", "TexelBlock", "stream_lumitexels", "store_lumitexels",
+           "block_texels_for", "default_memory_limit", "discovery_texels_for", "method_texels_for",
            "reject_filter_for"]
 
 _SAMPLE_FIELDS = ("wi", "wo", "reflectance", "diffuse", "specular")
@@ -102,6 +104,30 @@ def block_texels_for(memory_bytes: int, *, n_views: int, pixels: int, workers: i
                          f"{1.25 * image * max(workers, 1) / 2**20:.0f} MiB")
     fit = (per_worker - image) // (_TEXEL_BYTES_FIXED + _TEXEL_BYTES_PER_VIEW * n_views)
     return int(min(_MAX_BLOCK, max(1024, fit)))
+
+
+#: bytes a texel of a block costs per training view while a method works on it: Lensch's normal
+#: fitting pads each texel's samples for its batched Levenberg-Marquardt (residuals, Jacobian,
+#: per-basis values); measured ~ 520 above the assembly's at 960 x 720 (10 485-texel blocks),
+#: x 3 for a margin
+_METHOD_BYTES_PER_VIEW = 1600
+#: bytes a texel of Lensch's material-discovery subsample holds per training view: its samples
+#: as read and in the current normals' frames (float64), its lobe geometry; ~ 250, rounded up
+_DISCOVERY_BYTES_PER_VIEW = 400
+
+
+def method_texels_for(memory_bytes: int, n_train_views: int) -> int:
+    """The most texels of one block a block method may work on within half of ``memory_bytes``
+    (the other half for Lensch's material-discovery subsample), every texel counted with a
+    sample in every training view (a bound); at least 1000."""
+    return max(1000, int(memory_bytes // (2 * _METHOD_BYTES_PER_VIEW * max(n_train_views, 1))))
+
+
+def discovery_texels_for(memory_bytes: int, n_train_views: int) -> int:
+    """Lensch's material-discovery subsample within half of ``memory_bytes``, capped at the
+    method's default (:attr:`reconstruct.lensch.SvbrdfOptions.discovery_texels`); at least 1000."""
+    fit = int(memory_bytes // (2 * _DISCOVERY_BYTES_PER_VIEW * max(n_train_views, 1)))
+    return max(1000, min(SvbrdfOptions().discovery_texels, fit))
 
 
 @dataclass(frozen=True)
@@ -241,25 +267,62 @@ class LumitexelArrays:
                         weight=np.ones(len(rows), np.float32), **fields)
         return lt, cols >= self.n_train
 
+    def training_texels_per_block(self, blocks: list[tuple[int, int]]) -> np.ndarray:
+        """Texels with a training sample in each of ``blocks`` (texel ranges), (n_blocks,): reads
+        only the training views' sample flags."""
+        flags = self._open("samples")
+        return np.array([int((flags[t0:t1, :self.n_train, _MASK] > 0).any(axis=1).sum()) for t0, t1 in blocks],
+                        np.int64)
+
+    def parts(self, max_texels: int | None = None) -> list[tuple[int, int]]:
+        """:attr:`blocks` cut into parts of at most ``max_texels`` texels (a part of a chunk is
+        read by decompressing the chunk and keeping the part's rows: a method holds more per
+        texel than the assembly did)."""
+        step = self.block_texels if max_texels is None else max(1, min(max_texels, self.block_texels))
+        return [(a, min(a + step, t1)) for t0, t1 in self.blocks for a in range(t0, t1, step)]
+
+    def iter_blocks(self, max_texels: int | None = None):
+        """The texel blocks (:meth:`parts` of ``max_texels``) in order, each read when asked for
+        (:class:`TexelBlock`): one block's samples in memory at a time."""
+        first = 0
+        for t0, t1 in self.parts(max_texels):
+            lt, held = self.block(t0, t1)
+            yield TexelBlock(first, lt, held)
+            first += lt.n_texels
+
     def gather(self) -> tuple[Lumitexels, Lumitexels]:
         """``(train, held_out)`` over every texel with a training sample, in memory: what
         :func:`capture.pipeline.process.lumitexels_with_held_out` returns, bit for bit."""
-        parts, offset = [], 0
-        for t0, t1 in self.blocks:
-            lt, held = self.block(t0, t1)
-            parts.append((lt, held, offset))
-            offset += lt.n_texels
-        if offset == 0:
+        parts = list(self.iter_blocks())
+        if sum(b.lumitexels.n_texels for b in parts) == 0:
             raise LumitexelError("no reflectance samples: no surface point is both seen and lit")
 
         def join(select_held: bool) -> Lumitexels:
-            kw = {name: np.concatenate([getattr(lt, name) for lt, _, _ in parts])
+            kw = {name: np.concatenate([getattr(b.lumitexels, name) for b in parts])
                   for name in ("position", "normal", "best_view", "pixel")}
             for name in ("view", "wi", "wo", "reflectance", "weight", *(("diffuse", "specular") if self.separated else ())):
-                kw[name] = np.concatenate([getattr(lt, name)[h == select_held] for lt, h, _ in parts])
-            kw["texel"] = np.concatenate([lt.texel[h == select_held] + off for lt, h, off in parts])
+                kw[name] = np.concatenate([getattr(b.lumitexels, name)[b.held == select_held] for b in parts])
+            kw["texel"] = np.concatenate([b.lumitexels.texel[b.held == select_held] + b.first_texel for b in parts])
             return Lumitexels(**kw)
         return join(False), join(True)
+
+
+@dataclass(frozen=True)
+class TexelBlock:
+    """One texel block of :class:`LumitexelArrays`: its ``lumitexels`` (texels numbered from 0
+    within the block, training and held-out samples together), ``held`` (S,) bool telling the
+    held-out samples, and ``first_texel``, the number of the block's first texel among all
+    texels with a training sample (the numbering of :meth:`LumitexelArrays.gather` and of every
+    fitted model's per-texel arrays)."""
+
+    first_texel: int
+    lumitexels: Lumitexels
+    held: np.ndarray
+
+    @property
+    def texels(self) -> slice:
+        """The block's texels in the gathered numbering."""
+        return slice(self.first_texel, self.first_texel + self.lumitexels.n_texels)
 
 
 def stream_lumitexels(images: SessionImages, session: str, cal: SessionCalibration, plan: ViewPlan,
@@ -359,3 +422,39 @@ def _write_texels(group: ChunkGroup, V: int, widths: list[int], block: int) -> i
     group.mark_done("texels")
     return T
 
+
+
+def store_lumitexels(lt: Lumitexels, n_train_views: int, path: str | os.PathLike, *,
+                     block_texels: int) -> LumitexelArrays:
+    """Lumitexels assembled elsewhere (synthesised for a test or a benchmark, or in memory)
+    written in :func:`stream_lumitexels`'s layout at ``path`` (a ``.zarr`` folder, replaced when
+    its content differs): views ``0 .. n_train_views - 1`` are training views, the rest held out.
+
+    Raises
+    ------
+    ValueError
+        Two samples share a (texel, view) pair (the layout holds one sample per pair), or a view
+        is negative.
+    """
+    T, V = lt.n_texels, int(lt.view.max()) + 1 if lt.n_samples else n_train_views
+    pair = lt.texel.astype(np.int64) * V + lt.view
+    if lt.n_samples and (lt.view.min() < 0 or len(np.unique(pair)) != lt.n_samples):
+        raise ValueError("store_lumitexels: each (texel, view) pair may hold one sample, views >= 0")
+    separated = lt.diffuse is not None and lt.specular is not None
+    h = hashlib.sha256()
+    for name in ("position", "normal", "texel", "view", "wi", "wo", "reflectance", *(("diffuse", "specular") if separated else ())):
+        h.update(np.ascontiguousarray(getattr(lt, name)).tobytes())
+    block = max(1, min(block_texels, T))
+    group = ChunkGroup(path, {"synthesised": h.hexdigest(), "n_train": n_train_views, "block_texels": block})
+    if not group.done("stored"):
+        dense = np.zeros((T, V, _CHANNELS), np.float32)
+        dense[lt.texel, lt.view, _MASK] = 1.0
+        for c, name in enumerate(_SAMPLE_FIELDS[:5 if separated else 3]):
+            dense[lt.texel, lt.view, 3 * c:3 * c + 3] = getattr(lt, name)
+        group.array("samples", (T, V, _CHANNELS), (block, 1, _CHANNELS), np.float32)[...] = dense
+        for name, width, dtype in (("position", 3, np.float64), ("normal", 3, np.float64),
+                                   ("best_view", 0, np.int32), ("pixel", 2, np.float32)):
+            shape, chunks = ((T, width), (block, width)) if width else ((T,), (block,))
+            group.array(f"texels/{name}", shape, chunks, dtype)[...] = getattr(lt, name)
+        group.mark_done("stored")
+    return LumitexelArrays(group.path, group.digest, T, V, n_train_views, block, separated, reused_views=0)

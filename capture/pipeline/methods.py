@@ -21,14 +21,14 @@ import numpy as np
 
 from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.frames import tangent_frames, to_world
-from reconstruct.lensch import SvbrdfOptions, fit_svbrdf_lumitexels
+from reconstruct.lensch import SvbrdfOptions, TexelBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.passive import passive_reflectometry
 from reconstruct.sharing import fit_spatial
 
 from .process import ProcessInputs
 
-__all__ = ["METHODS", "DEFAULT_METHODS", "Fitted", "MethodSkipped", "fit_method"]
+__all__ = ["METHODS", "DEFAULT_METHODS", "BLOCK_METHODS", "BlockRoute", "Fitted", "MethodSkipped", "fit_method"]
 
 
 class MethodSkipped(Exception):
@@ -41,9 +41,11 @@ class Fitted:
 
     Attributes
     ----------
-    predict : callable(Lumitexels) -> ndarray of shape (S, 3)
-        Predicted reflectance ``f_r cos theta_i`` of each sample (texels index the training
-        lumitexels' texels).
+    predict_samples : callable(texel, wi, wo) -> ndarray of shape (S, 3)
+        Predicted reflectance ``f_r cos theta_i`` of samples: ``texel`` (S,) indexes the training
+        lumitexels' texels, ``wi``, ``wo`` (S, 3) unit directions in the texel's local frame
+        (mesh normal = +z); a function of each sample alone, so it runs over texel blocks
+        (:mod:`capture.pipeline.block_scoring`).
     brdf : callable(ndarray of int) -> BRDF
         The recovered BRDF of the given texels (per-texel parameters, local frame of the
         texel's normal), for BRDF slices.
@@ -59,7 +61,7 @@ class Fitted:
         Refined normals in the object frame, where the method fits them.
     """
 
-    predict: Callable[[Lumitexels], np.ndarray]
+    predict_samples: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
     brdf: Callable[[np.ndarray], BRDF]
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     params: dict[str, Any] = field(default_factory=dict)
@@ -67,19 +69,47 @@ class Fitted:
     warnings: list[str] = field(default_factory=list)
     normals: np.ndarray | None = None
 
+    def predict(self, lt: Lumitexels) -> np.ndarray:
+        """:attr:`predict_samples` of the samples of ``lt`` (texels of the training lumitexels)."""
+        return self.predict_samples(lt.texel, lt.wi, lt.wo)
+
+
+@dataclass(frozen=True)
+class BlockRoute:
+    """Where a method's per-texel steps read their samples and run: ``blocks``, the training
+    samples one texel block at a time (the stored arrays' :class:`capture.pipeline.stored_blocks.StoredBlocks`,
+    texels numbered as the training lumitexels'), and ``map_blocks`` (fn, argument tuples) ->
+    results in order (:meth:`capture.pipeline.cluster.Executor.map`: here or on a cluster)."""
+
+    blocks: TexelBlocks
+    map_blocks: Callable[[Callable, list], list]
+
 
 # -- reference: one albedo per texel ------------------------------------------------------------
-def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
-    cos = train.wi[:, 2].astype(np.float64)
-    w = train.weight.astype(np.float64)
-    num = np.stack([np.bincount(train.texel, w * cos * train.reflectance[:, c], train.n_texels)
-                    for c in range(3)], axis=1)
-    den = np.bincount(train.texel, w * cos * cos, train.n_texels)[:, None]
-    albedo = np.pi * num / np.maximum(den, 1e-12)
+def _block_albedo(blocks: TexelBlocks, i: int) -> np.ndarray:
+    """The least-squares Lambertian albedo (n, 3) of block ``i``'s texels (a per-block task)."""
+    b = blocks.read(i)
+    return _albedo(b.texel, b.wi, b.reflectance, b.weight, b.n_texels)
+
+
+def _albedo(texel, wi, reflectance, weight, n_texels: int) -> np.ndarray:
+    cos = wi[:, 2].astype(np.float64)
+    w = weight.astype(np.float64)
+    num = np.stack([np.bincount(texel, w * cos * reflectance[:, c], n_texels) for c in range(3)], axis=1)
+    den = np.bincount(texel, w * cos * cos, n_texels)[:, None]
+    return np.pi * num / np.maximum(den, 1e-12)
+
+
+def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
+                route: BlockRoute | None = None) -> Fitted:
+    if route is None:
+        albedo = _albedo(train.texel, train.wi, train.reflectance, train.weight, train.n_texels)
+    else:
+        albedo = np.concatenate(route.map_blocks(_block_albedo, [(route.blocks, i) for i in range(len(route.blocks.ranges))]))
     model = Lambertian(np.maximum(albedo, 0.0))
 
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return albedo[lt.texel] / np.pi * np.maximum(lt.wi[:, 2:3], 0.0)
+    def predict(texel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        return albedo[texel] / np.pi * np.maximum(wi[:, 2:3], 0.0)
 
     return Fitted(predict, lambda t: model.take(np.asarray(t)), arrays={"albedo": albedo.astype(np.float32)},
                   params={"model": "Lambertian albedo per texel (least squares of r = albedo/pi cos)"},
@@ -87,19 +117,24 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress)
 
 
 # -- Lensch et al. 2003 -------------------------------------------------------------------------
-def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, **options) -> Fitted:
-    fit = fit_svbrdf_lumitexels(train, SvbrdfOptions(fit_normals=True, **options), rng=rng, progress=progress)
-
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return fit.predict(lt.texel, lt.wi, lt.wo)   # fitted normals applied
+def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, route: BlockRoute | None = None,
+            **options) -> Fitted:
+    opt = SvbrdfOptions(fit_normals=True, **options)
+    if route is None:
+        fit = fit_svbrdf_lumitexels(train, opt, rng=rng, progress=progress)
+    else:   # the same fit (to 1e-9), its per-texel steps over the stored blocks, on the executor
+        fit = fit_svbrdf_blocks(route.blocks, opt, normals=train.normal, rng=rng, progress=progress,
+                                map_blocks=route.map_blocks)
 
     flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight))}
     arrays = {"labels": np.asarray(fit.labels), "weights": np.asarray(fit.weights, np.float32)}
     if fit.normals is not None:
         arrays["normals"] = np.asarray(fit.normals, np.float32)
-    return Fitted(predict, fit.brdf, arrays=arrays,
-                  params={"n_materials": "from the data", "fit_normals": True, "rng": rng},
-                  figures={"materials": fit.n_materials, "table_ii_rms": dict(fit.rms),
+    return Fitted(fit.predict, fit.brdf, arrays=arrays,   # fitted normals applied
+                  params={"n_materials": "from the data", "fit_normals": True, "rng": rng,
+                          "discovery_texels": opt.discovery_texels},
+                  figures={"materials": fit.n_materials,
+                           "material_discovery": f"materials found on {fit.discovery_texels} of {len(fit.labels)} texels", "table_ii_rms": dict(fit.rms),
                            "table_ii_relative_rms": dict(fit.relative_rms), "flagged_texels": flags},
                   normals=None if fit.normals is None else np.asarray(fit.normals, float),
                   warnings=[h for h in fit.history if h.startswith("normal-fitting round")])
@@ -122,9 +157,6 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
         t = np.asarray(t)
         return fit.brdf_at(fit.texel_xy[t], t)
 
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return fit.predict(lt.texel, lt.wi, lt.wo)
-
     figures = {"mode": fit.mode, "samples_used": fit.n_used, "samples_dropped": fit.n_dropped,
                "centres": {k: len(f.model.centers) for k, f in fit.fits.items()}}
     arrays = {"xy": xy.astype(np.float32), "albedo": np.asarray(fit.albedo, np.float32)}
@@ -133,7 +165,7 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
         normals = to_world(fit.normals.normals, tangent_frames(train.normal))
         arrays["normals"] = normals.astype(np.float32)
         figures["normals_fitted"] = int(fit.normals.fitted.sum())
-    return Fitted(predict, per_texel, arrays=arrays,
+    return Fitted(fit.predict, per_texel, arrays=arrays,
                   params={"surface_xy": "azimuth about the turntable axis and height, scaled to [0, 1]",
                           "max_centers": max_centers, "fit_normals": fit_normals, "m_xy": m_xy, "rng": rng},
                   figures=figures, normals=normals)
@@ -159,8 +191,8 @@ def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
                                 environment_weight=p.environment_weight, rng=rng, progress=progress)
     brdf = fit.brdf
 
-    def predict(lt: Lumitexels) -> np.ndarray:
-        return brdf.evaluate(lt.wi, lt.wo) * np.maximum(lt.wi[:, 2:3], 0.0)
+    def predict(texel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        return brdf.evaluate(wi, wo) * np.maximum(wi[:, 2:3], 0.0)
 
     ad = fit.adequacy
     return Fitted(predict, lambda t: brdf,
@@ -185,14 +217,21 @@ METHODS: dict[str, Callable[..., Fitted]] = {"lambertian": _lambertian, "lensch"
 DEFAULT_METHODS = ("lambertian", "lensch", "sharing", "passive")
 
 
+#: the methods whose per-texel steps run over a :class:`BlockRoute` when given one
+BLOCK_METHODS = ("lambertian", "lensch")
+
+
 def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int = 0,
-               progress: Callable[[int, int], None] | None = None, **options: Any) -> Fitted:
+               progress: Callable[[int, int], None] | None = None, route: BlockRoute | None = None,
+               **options: Any) -> Fitted:
     """Run method ``name`` (one of :data:`METHODS`) on the training lumitexels; ``options`` are
     the method's own (``sharing``: ``max_centers``, default 1000 per RBF, the paper's "< 1000
     suffice"; ``fit_normals``, default True: normals from the diffuse samples first; ``m_xy``,
     default 1: the spatial scale on :func:`_surface_xy`'s whole-object map, where the paper's 0.3
     for a face's [0, 1]^2 blends the materials' lobes: held out 0.42 / 0.51 at 0.3, 0.39 / 0.46
     at 0.6, 0.37 / 0.47 at 1, 0.39 at 2 on the quick demo's bumpy sphere / four-material bunny).
+    With a ``route``, the :data:`BLOCK_METHODS` read their samples block by block from it and run
+    their per-block tasks on its executor (the same figures to 1e-9); the others fit ``train``.
 
     Raises
     ------
@@ -203,4 +242,6 @@ def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int 
     """
     if name not in METHODS:
         raise ValueError(f"methods: unknown {name!r}; known: {', '.join(METHODS)}")
+    if route is not None and name in BLOCK_METHODS:
+        options = {**options, "route": route}
     return METHODS[name](train, inputs, rng=rng, progress=progress, **options)

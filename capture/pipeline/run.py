@@ -18,6 +18,7 @@ scored on the held-out captures like every method, with each method's ratio to i
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import json
 import time
@@ -40,10 +41,13 @@ from .calibration_record import stored_calibration
 from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
-from .methods import DEFAULT_METHODS, METHODS, MethodSkipped, fit_method
+from .methods import DEFAULT_METHODS, METHODS, BlockRoute, MethodSkipped, fit_method
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
-from .lumitexel_arrays import block_texels_for, default_memory_limit, stream_lumitexels
+from .block_scoring import score_blocks
+from .lumitexel_arrays import (LumitexelArrays, block_texels_for, default_memory_limit, discovery_texels_for,
+                               method_texels_for, stream_lumitexels)
+from .stored_blocks import StoredBlocks
 from .progress import Progress, ProgressSink, counter
 from .process import (MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
                       read_calibration, session_images, view_plan)
@@ -185,44 +189,51 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             first = stored[next(iter(outcomes))].result
             rep.inputs = first.get("inputs_summary", {})
             rep.floor = Floor(**first["floor"]) if first.get("floor") else None
-        if todo:
-            with clock.stage("inputs"):
-                images = session_images(store, session)
-                plan = view_plan(images, session, cal, mesh=mesh)
-            with clock.stage("lumitexels"), Executor(cluster, store_root=store.root, say=say) as executor:
-                limit = default_memory_limit() if memory_limit is None else memory_limit
-                block = block_texels_for(limit, n_views=len(plan.poses), pixels=cal.camera.width * cal.camera.height,
-                                         workers=1 if cluster.in_process else max(cluster.workers, 1))
-                arrays = stream_lumitexels(images, session, cal, plan, mesh, executor, block_texels=block,
-                                           progress=counter(progress, "lumitexels"))
-                train, held = arrays.gather()
-            with clock.stage("inputs"):
-                inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
-            truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
-            rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
-                          "polarization_separated": inputs.separated, "texels": train.n_texels,
-                          "training_samples": train.n_samples, "held_out_samples": held.n_samples,
-                          "light_source": cal.light_source, "absolute_units": cal.absolute,
-                          "passive_capture": inputs.passive is not None, "notes": inputs.notes,
-                          "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
-                                               "digest": arrays.digest, "block_texels": arrays.block_texels,
-                                               "reused_views": arrays.reused_views}}
-            if truth_r is not None:
-                scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
-                rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
-                rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
-                    scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
-                if held.n_samples:
-                    rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
-                                      trimmed_relative_rms(truth_r[1], held.reflectance))
-            assumption = {"passive": _passive_assumption(truth, train)} if truth is not None else {}
-            for name in todo:
-                started = time.perf_counter()
-                with clock.stage(name):
-                    outcomes[name] = _run_method(store, info.id, name, train, held, inputs, truth, truth_r, rng,
-                                                 rep.inputs, counter(progress, name), (method_options or {}).get(name, {}),
-                                                 rep.floor, assumption.get(name, ""))
-                outcomes[name].seconds = round(time.perf_counter() - started, 3)
+        # the executor serves the lumitexels' per-view tasks and the methods' per-block tasks
+        with contextlib.ExitStack() as running:
+            if todo:
+                with clock.stage("inputs"):
+                    images = session_images(store, session)
+                    plan = view_plan(images, session, cal, mesh=mesh)
+                with clock.stage("lumitexels"):
+                    executor = running.enter_context(Executor(cluster, store_root=store.root, say=say))
+                    limit = default_memory_limit() if memory_limit is None else memory_limit
+                    block = block_texels_for(limit, n_views=len(plan.poses), pixels=cal.camera.width * cal.camera.height,
+                                             workers=1 if cluster.in_process else max(cluster.workers, 1))
+                    arrays = stream_lumitexels(images, session, cal, plan, mesh, executor, block_texels=block,
+                                               progress=counter(progress, "lumitexels"))
+                    train, held = arrays.gather()
+                    # on a cluster the block methods' per-texel steps run there, over the stored blocks
+                    method_block = method_texels_for(limit, arrays.n_train)
+                    route = None if cluster.in_process else BlockRoute(StoredBlocks(arrays, method_block), executor.map)
+                with clock.stage("inputs"):
+                    inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
+                truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
+                rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
+                              "polarization_separated": inputs.separated, "texels": train.n_texels,
+                              "training_samples": train.n_samples, "held_out_samples": held.n_samples,
+                              "light_source": cal.light_source, "absolute_units": cal.absolute,
+                              "passive_capture": inputs.passive is not None, "notes": inputs.notes,
+                              "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
+                                                   "digest": arrays.digest, "block_texels": arrays.block_texels,
+                                                   "reused_views": arrays.reused_views}}
+                if truth_r is not None:
+                    scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
+                    rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
+                    rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
+                        scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
+                    if held.n_samples:
+                        rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
+                                          trimmed_relative_rms(truth_r[1], held.reflectance))
+                assumption = {"passive": _passive_assumption(truth, train)} if truth is not None else {}
+                for name in todo:
+                    started = time.perf_counter()
+                    with clock.stage(name):
+                        outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, truth_r, rng,
+                                                     rep.inputs, counter(progress, name),
+                                                     _options(name, method_options, limit, arrays), rep.floor,
+                                                     assumption.get(name, ""), route, method_block)
+                    outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
         if rep.floor is not None:
             for m in rep.methods:
@@ -279,25 +290,35 @@ def _calibration(store: Store, session: str, targets, force: bool,
 
 
 # -- one method ---------------------------------------------------------------------------------
-def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, held: Lumitexels,
-                inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
-                progress, options: dict[str, Any], floor: Floor | None, assumption: str) -> MethodOutcome:
+def _options(name: str, method_options, memory_limit: int, arrays: LumitexelArrays) -> dict[str, Any]:
+    """The method's options for this lab, and for Lensch a material-discovery subsample the
+    memory limit holds (unless the lab sets one)."""
+    options = dict((method_options or {}).get(name, {}))
+    if name == "lensch":
+        options.setdefault("discovery_texels", discovery_texels_for(memory_limit, arrays.n_train))
+    return options
+
+
+def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArrays, train: Lumitexels,
+                held: Lumitexels, inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
+                progress, options: dict[str, Any], floor: Floor | None, assumption: str,
+                route: BlockRoute | None, block_texels: int) -> MethodOutcome:
     try:
-        fit = fit_method(name, train, inputs, rng=rng, progress=progress, **options)
+        fit = fit_method(name, train, inputs, rng=rng, progress=progress, route=route, **options)
     except MethodSkipped as exc:
         return MethodOutcome(name, "skipped", str(exc), outside_assumption=assumption)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}", outside_assumption=assumption)
     figures = dict(fit.figures)
-    predicted_train = fit.predict(train)
-    figures["training_rel_rms"] = relative_rms(predicted_train, train.reflectance)
-    predicted = fit.predict(held) if held.n_samples else np.zeros((0, 3))
-    if held.n_samples:
-        figures["held_out_rel_rms"] = relative_rms(predicted, held.reflectance)
-        figures["held_out_rel_rms_trimmed"] = trimmed_relative_rms(predicted, held.reflectance)
-    if truth_r is not None:
-        scored = held if held.n_samples else train
-        figures["truth_rel_rms"] = relative_rms(fit.predict(scored), truth_r[1] if held.n_samples else truth_r[0])
+    # scored one texel block at a time from the stored arrays (block_scoring: per-block sums)
+    scores = score_blocks(fit.predict_samples, arrays, max_texels=block_texels,
+                          truth_of=None if truth_r is None else functools.partial(_truth_of, truth))
+    figures["training_rel_rms"] = scores.training.relative_rms
+    if scores.held_out.count:
+        figures["held_out_rel_rms"] = scores.held_out.relative_rms
+        figures["held_out_rel_rms_trimmed"] = scores.held_out.trimmed_relative_rms()
+    if scores.truth is not None:
+        figures["truth_rel_rms"] = scores.truth.relative_rms
     if fit.normals is not None:
         figures["normal_change_deg"] = _median_angle_deg(fit.normals, train.normal)
         true_n = truth.normals(train.position) if truth is not None else None
@@ -312,9 +333,9 @@ def _run_method(store: Store, session_id: int, name: str, train: Lumitexels, hel
               "inputs_summary": summary, "floor": None if floor is None else asdict(floor),
               "outside_assumption": assumption}
     artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
-    if name in EXPORTED_METHODS:   # what `gonio export` writes files from
+    if name in EXPORTED_METHODS:   # what `gonio export` writes files from (in memory: its GGX fit is global)
         artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
-                                                      predicted_train, predicted)
+                                                      fit.predict(train), fit.predict(held))
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
@@ -333,29 +354,31 @@ def _npz(arrays: dict[str, np.ndarray]) -> bytes:
 
 # -- truth --------------------------------------------------------------------------------------
 def _truth_reflectance(truth, train: Lumitexels, held: Lumitexels) -> tuple[np.ndarray, np.ndarray] | None:
-    """True ``f_r cos`` of every training and held-out sample (mesh normals: the simulated
-    object's own), in the calibration's units when it is absolute (1/sr)."""
+    """True ``f_r cos`` of every training and held-out sample (:func:`_truth_of`); None when the
+    truth has no materials at these points."""
     try:
-        ids, materials = truth.materials(train.position)
+        return _truth_of(truth, train), _truth_of(truth, held)
     except ValueError:
         return None
 
-    true_n = truth.normals(train.position)
 
-    def of(lt: Lumitexels) -> np.ndarray:
-        wi, wo = lt.wi, lt.wo
-        if true_n is not None:   # the sample's directions about the true (detailed) normal
-            mesh_f, true_f = tangent_frames(lt.normal)[lt.texel], tangent_frames(true_n)[lt.texel]
-            wi, wo = to_local(to_world(wi, mesh_f), true_f), to_local(to_world(wo, mesh_f), true_f)
-        out = np.zeros((lt.n_samples, 3))
-        tid = ids[lt.texel]
-        for k, m in enumerate(materials):
-            s = tid == k
-            if s.any():
-                out[s] = m.evaluate(wi[s], wo[s]) * np.maximum(wi[s, 2:3], 0.0)
-        return out
-
-    return of(train), of(held)
+def _truth_of(truth, lt: Lumitexels) -> np.ndarray:
+    """True ``f_r cos`` (S, 3) of the samples of ``lt`` (mesh normals: the simulated object's
+    own), in the calibration's units when it is absolute (1/sr); per texel and sample, so a texel
+    block's alone. Raises ValueError where the truth has no materials."""
+    ids, materials = truth.materials(lt.position)
+    true_n = truth.normals(lt.position)
+    wi, wo = lt.wi, lt.wo
+    if true_n is not None:   # the sample's directions about the true (detailed) normal
+        mesh_f, true_f = tangent_frames(lt.normal)[lt.texel], tangent_frames(true_n)[lt.texel]
+        wi, wo = to_local(to_world(wi, mesh_f), true_f), to_local(to_world(wo, mesh_f), true_f)
+    out = np.zeros((lt.n_samples, 3))
+    tid = ids[lt.texel]
+    for k, m in enumerate(materials):
+        s = tid == k
+        if s.any():
+            out[s] = m.evaluate(wi[s], wo[s]) * np.maximum(wi[s, 2:3], 0.0)
+    return out
 
 
 def calibration_against_truth(store: Store, session: str, cal: SessionCalibration, truth) -> dict[str, Any]:

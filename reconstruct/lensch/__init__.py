@@ -6,7 +6,8 @@ into per-cluster bases with optional principal function analysis (Sec. 8), norma
 """
 from .lafortune_fit import LafortuneFit, LafortuneFitError, fit_lafortune
 from .options import SvbrdfError, SvbrdfOptions
-from .svbrdf import RMS_COLUMNS, SvbrdfFit, fit_svbrdf, fit_svbrdf_lumitexels
+from .svbrdf import RMS_COLUMNS, SvbrdfFit, fit_svbrdf, fit_svbrdf_blocks, fit_svbrdf_lumitexels
+from .texel_blocks import ArrayBlocks, SampleBlock, TexelBlocks
 
-__all__ = ["fit_lafortune", "LafortuneFit", "LafortuneFitError", "fit_svbrdf",
-           "fit_svbrdf_lumitexels", "SvbrdfFit", "SvbrdfError", "SvbrdfOptions", "RMS_COLUMNS"]
+__all__ = ["fit_lafortune", "LafortuneFit", "LafortuneFitError", "fit_svbrdf", "fit_svbrdf_blocks",
+           "fit_svbrdf_lumitexels", "TexelBlocks", "ArrayBlocks", "SampleBlock", "SvbrdfFit", "SvbrdfError", "SvbrdfOptions", "RMS_COLUMNS"]

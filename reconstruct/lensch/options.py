@@ -69,6 +69,12 @@ class SvbrdfOptions:
         round uses the same samples; the RMS columns still count every sample.
     chunk_texels : int
         Texels per chunk of the per-texel steps.
+    discovery_texels : int
+        Most texels material discovery (the clustering and each material's fits, redone after
+        each normal-fitting round) works on: a random subsample of that many when there are
+        more, whose samples are held in memory (Lensch et al. fitted 1.6-3.6 million
+        lumitexels; the clustering itself picks ``cluster_texels`` of these). The default
+        covers every session gonio has met (the demo: 37 k texels).
     """
 
     n_materials: int | None = None
@@ -86,6 +92,7 @@ class SvbrdfOptions:
     select_projection: bool = True
     robust_samples: bool = False
     chunk_texels: int = 100_000
+    discovery_texels: int = 200_000
 
     def __post_init__(self):
         def whole(name, least):
@@ -95,7 +102,7 @@ class SvbrdfOptions:
         if self.n_materials is not None:
             whole("n_materials", 1)
         for name in ("n_lobes", "max_materials", "cluster_texels", "fit_texels",
-                     "fit_samples", "chunk_texels"):
+                     "fit_samples", "chunk_texels", "discovery_texels"):
             whole(name, 1)
         whole("min_samples", 0)
         whole("normal_rounds", 0)

@@ -23,6 +23,7 @@ from .normals import fit_normals_chunk
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
                          project_chunk)
+from .texel_blocks import ArrayBlocks, SampleBlock, TexelBlocks
 
 
 #: Keys of :attr:`SvbrdfFit.rms`, the columns of the paper's Table II.
@@ -69,6 +70,9 @@ class SvbrdfFit:
         Samples per texel.
     history : tuple of str
         The clustering's split decisions, then any normal-fitting round that was undone.
+    discovery_texels : int
+        The texels material discovery (clustering, the materials' fits) worked on: all of them,
+        or a random subsample of ``SvbrdfOptions.discovery_texels``.
     """
 
     labels: np.ndarray
@@ -84,6 +88,7 @@ class SvbrdfFit:
     no_highlight: np.ndarray
     n_samples: np.ndarray
     history: tuple = field(default=())
+    discovery_texels: int = 0
 
     @property
     def n_materials(self) -> int:
@@ -137,7 +142,8 @@ class SvbrdfFit:
         cols = "  ".join(f"{k}={'-' if v is None else f'{v:.4g}'}" for k, v in self.rms.items())
         rel = "  ".join(f"{k}={'-' if v is None else f'{v:.4f}'}" for k, v in self.relative_rms.items())
         return (f"Lensch SVBRDF: {len(self.labels)} texels, {self.n_materials} materials, "
-                f"{self.weights.shape[1]} basis slots\n  RMS (1/sr): {cols}\n  relative RMS: {rel}\n"
+                f"{self.weights.shape[1]} basis slots (materials found on {self.discovery_texels} of "
+                f"{len(self.labels)} texels)\n  RMS (1/sr): {cols}\n  relative RMS: {rel}\n"
                 f"  flagged: {int(self.too_few_samples.sum())} with too few samples, "
                 f"{int(self.no_highlight.sum())} without a highlight")
 
@@ -220,24 +226,67 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
     Returns
     -------
     SvbrdfFit
+        The same as :func:`fit_svbrdf_blocks` on these samples in blocks of ``chunk_texels``.
     """
     opt = (options or SvbrdfOptions()).but(**settings)
     wi, wo, r, w = check_samples(wi, wo, reflectance, weight, error=SvbrdfError)
     tx, T = _check_texel(texel, len(wi), normals)
+    return fit_svbrdf_blocks(ArrayBlocks(tx, wi, wo, r, w, n_texels=T, block_texels=opt.chunk_texels), opt,
+                             normals=normals, rng=rng, progress=progress)
+
+
+def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None, *, normals=None, rng=0,
+                      progress=None, map_blocks=None, **settings) -> SvbrdfFit:
+    """:func:`fit_svbrdf` over texel blocks: the global steps on a bounded subsample, the
+    per-texel steps one block at a time.
+
+    Material discovery (the clustering of Sec. 7 and each material's Lafortune fit, refitted
+    after each round of normal fitting) works on at most ``options.discovery_texels`` texels
+    drawn at random (all of them when there are no more; :attr:`SvbrdfFit.discovery_texels`
+    says how many), whose samples are gathered in memory. Everything else runs block by block,
+    each a pure function of (the model so far, one block's samples) -> per-texel arrays: the
+    samples per texel and the highlight score (Sec. 7.1), the labels (Eq. 10) and the RMS
+    columns, the projection (Sec. 8), the normal fitting (Sec. 9) and the no-highlight flags.
+    Per-texel arrays (labels, weights, normals: tens of bytes a texel) are held whole. The
+    result does not depend on the blocks (to rounding: per-block sums).
+
+    Parameters
+    ----------
+    blocks : TexelBlocks
+        The samples (validated: unit directions above the surface, finite values), in blocks.
+    options, normals, rng, progress, settings
+        As :func:`fit_svbrdf`'s.
+    map_blocks : callable(fn, list of argument tuples) -> list, optional
+        Runs the per-block tasks (module-level functions of ``blocks``, a block index and the
+        model so far; results in order): default one after the other here; the pipeline passes
+        its executor's (``capture.pipeline.cluster.Executor.map``) to run them on a cluster.
+    """
+    opt = (options or SvbrdfOptions()).but(**settings)
+    T = blocks.n_texels
     P = 1 + 3 * opt.n_lobes
-    if np.count_nonzero(w) < P:
-        raise SvbrdfError(f"reflectance has {np.count_nonzero(w)} usable samples, fewer than the {P} "
+    run = map_blocks or _serial
+    nb = range(len(blocks.ranges))
+    stats = run(_block_stats, [(blocks, i) for i in nb])   # samples per texel, highlight score (Sec. 7.1), sums
+    counts = np.concatenate([st[0] for st in stats]).astype(np.int64) if stats else np.zeros(0, np.int64)
+    score = np.concatenate([st[1] for st in stats]) if stats else np.zeros(0)
+    n_usable = sum(st[2] for st in stats)
+    sq_total = sum(st[3] for st in stats)
+    w_total = sum(st[4] for st in stats)
+    if n_usable < P:
+        raise SvbrdfError(f"reflectance has {n_usable} usable samples, fewer than the {P} "
                           "parameters per channel of one material")
     rng = np.random.default_rng(rng)
-    order = np.argsort(tx, kind="stable")  # samples sorted by texel: chunks are contiguous
-    tx, wi, wo, r, w = tx[order], wi[order], wo[order], r[order], w[order]
-    counts = np.bincount(tx, minlength=T)
-    t, z = lobe_geometry(wi, wo)
-    data = _Sorted(tx=tx, t=t, z=z, cos_i=wi[:, 2], r=r, w=w,
-                   offsets=np.concatenate([[0], np.cumsum(counts)]), chunk_texels=opt.chunk_texels)
+    # material discovery on a bounded random subsample (drawn only when it is one)
+    if T <= opt.discovery_texels:
+        disc = np.arange(T)
+    else:
+        disc = np.sort(rng.choice(np.flatnonzero(counts > 0), min(opt.discovery_texels,
+                                                                   int(np.count_nonzero(counts))), replace=False))
+    found = blocks.gather(disc)
+    data, _ = _sorted(found, None, opt.chunk_texels)
     # energy conservation, in the data's units: no lobe, and no texel's weighted mix of lobes,
     # may reflect more (a lobe unpinned by its samples otherwise explodes at held-out lights)
-    max_albedo = MAX_LOBE_ALBEDO * albedo_unit(r, w)
+    max_albedo = MAX_LOBE_ALBEDO * albedo_unit(data.r, data.w)
     stages = 3 + int(opt.pfa) + 2 * opt.normal_rounds * int(opt.fit_normals)
     stage = 0
 
@@ -248,12 +297,13 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
             progress(stage, stages)
 
     # Sec. 7.1: clustering texels, favouring those likely to show a highlight
-    usable = np.flatnonzero(counts >= opt.min_samples)
+    counts_d = counts[disc]
+    usable = np.flatnonzero(counts_d >= opt.min_samples)
     if len(usable) < 2:
-        usable = np.flatnonzero(counts > 0)
-    score = _highlight_score(t, z, tx, T)[usable]
+        usable = np.flatnonzero(counts_d > 0)
+    score_d = score[disc][usable]
     n_pick = min(opt.cluster_texels, len(usable))
-    prob = (0.25 + score) / (0.25 + score).sum()
+    prob = (0.25 + score_d) / (0.25 + score_d).sum()
     chosen = np.sort(rng.choice(usable, n_pick, replace=False, p=prob))
     # clustering fits in absolute units (cheaper); the final fits below use ``noise``
     clus = split_recluster_fit(data.subset(chosen, rng), n_materials=opt.n_materials,
@@ -261,72 +311,73 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
                                min_texels=max(3, min(10, len(chosen) // 20)), rng=rng)
     tick()
 
-    # Eq. 10 for every texel, then each cluster's BRDF refit on (up to fit_texels of) its texels
+    # Eq. 10 for the discovered texels, then each cluster's BRDF refit on (up to fit_texels of) them
     mats = np.stack([f.channel_params for f in clus.fits])
-    labels, errors = _label(data, mats)
-    fits = _refit(data, mats, labels, opt, rng, max_albedo, texels=_confident(errors))
+    labels_d, errors_d = _label(data, mats)
+    fits = _refit(data, mats, labels_d, opt, rng, max_albedo, texels=_confident(errors_d))
     mats = np.stack([f.channel_params for f in fits])
-    labels, errors = _label(data, mats)
+    # ... and for every texel, block by block, with the RMS of one and of the clusters' BRDFs
+    parts = run(_block_labels, [(blocks, i, mats, clus.single.channel_params[None], _within(disc, blocks.ranges[i]))
+                                for i in nb])
+    labels = np.concatenate([p[0] for p in parts])
+    errors_d = np.concatenate([p[1] for p in parts], axis=1)
+    similar_sums = sum(p[2] for p in parts)
+    sse_single = sum(p[3] for p in parts)
+    sse_cluster = sum(p[4] for p in parts)
     tick()
 
-    sq_total = float(np.sum(w[:, None] * r ** 2))
-    n_res = 3 * float(w.sum())
+    n_res = 3 * w_total
     rms = dict.fromkeys(RMS_COLUMNS)
-
-    def residual(labels_, materials_):  # sum of squares of the texels' cluster BRDFs, by chunks
-        return sum(cluster_residuals(*data.chunk(c), labels_[c], materials_).sum() for c in data.chunks())
-    rms["single"] = _rms(residual(np.zeros(T, np.int64), clus.single.channel_params[None]), n_res)
-    rms["cluster"] = _rms(residual(labels, mats), n_res)
+    rms["single"] = _rms(sse_single, n_res)
+    rms["cluster"] = _rms(sse_cluster, n_res)
 
     # Sec. 8: bases and projection
-    similar = _most_similar(errors, labels, len(mats))
+    similar = _most_similar(similar_sums)
     basis, size = make_bases(mats, similar)
-    weights, sse = _project(data, basis, size, labels, opt, max_albedo)
+    weights, sse = _project(run, blocks, None, basis, size, labels, opt, max_albedo)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
     if opt.pfa:  # Eq. 13 lowers the plain projection's error; kept if the selected one drops too
-        trial = _pfa(data, basis, size, labels, opt.fit_texels, rng)
-        w_pfa, sse_pfa = _project(data, trial, size, labels, opt, max_albedo)
+        trial = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
+        w_pfa, sse_pfa = _project(run, blocks, None, trial, size, labels, opt, max_albedo)
         if sse_pfa.sum() < sse.sum():
             basis, weights, sse = trial, w_pfa, sse_pfa
         rms["pfa"] = _rms(sse.sum(), n_res)
         tick()
 
     normals_local = normals_out = None
+    seen_in = None   # the normals (local) the samples are seen about; None: the mesh normals
     undone: list[str] = []
     if opt.fit_normals:  # Sec. 9, then refit the clusters' BRDFs in the new frames and project again
         normals_local = np.tile([0.0, 0.0, 1.0], (T, 1))
-        wi0, wo0 = wi, wo  # the samples in the mesh normals' frames
         for round_ in range(opt.normal_rounds):
             # a round that raises the total error is undone and ends the fitting (on some
             # clusterings of the demo object a round's refit blew the training error up 10x)
-            before = (normals_local, fits, mats, basis, size, weights, sse, wi, wo, data)
-            tilt = np.tile([0.0, 0.0, 1.0], (T, 1))  # relative to the current normals
-            w_fit = w * _inliers(data, basis, size, labels, weights) if opt.robust_samples else w
-            for c in data.chunks():
-                s = data.samples(c)
-                tilt[c] = fit_normals_chunk(tx[s] - c.start, wi[s], wo[s], r[s], w_fit[s], labels[c],
-                                            weights[c], basis, size, min_samples=opt.min_samples)[0]
-            normals_local = normalize(to_world(tilt, tangent_frames(normals_local)))
+            before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data)
+            model = [(_part(seen_in, r), basis, size, labels[r[0]:r[1]], weights[r[0]:r[1]]) for r in blocks.ranges]
+            floor = None
+            if opt.robust_samples:   # the median over all texels of their median residual
+                floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
+            tilt = np.concatenate(run(_block_normals, [(blocks, i, *model[i], floor, opt.min_samples) for i in nb])) \
+                if T else np.zeros((0, 3))   # relative to the current normals
+            w_fit_d = data.w if floor is None else data.w * _inliers(
+                data.chunk(slice(0, data.n_texels)), labels[disc], weights[disc], basis, size, floor)
+            normals_local = seen_in = normalize(to_world(tilt, tangent_frames(normals_local)))
             tick()
-            frames = tangent_frames(normals_local)[tx]
-            wi, wo = normalize(to_local(wi0, frames)), normalize(to_local(wo0, frames))
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
-            visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-            t, z = lobe_geometry(wi, wo)
-            data = dataclasses.replace(data, t=t, z=z, cos_i=np.where(visible, wi[:, 2], 0.0))
-            fits = _refit(dataclasses.replace(data, w=w_fit), mats, labels, opt, rng, max_albedo,
-                          keep=visible, texels=_confident(errors))
+            data, visible = _sorted(found, normals_local[disc], opt.chunk_texels)
+            fits = _refit(dataclasses.replace(data, w=w_fit_d), mats, labels[disc], opt, rng, max_albedo,
+                          keep=visible, texels=_confident(errors_d))
             mats = np.stack([f.channel_params for f in fits])
             basis, size = make_bases(mats, similar)
             if opt.pfa:
-                basis = _pfa(data, basis, size, labels, opt.fit_texels, rng)
-            weights, sse = _project(data, basis, size, labels, opt, max_albedo)
+                basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
+            weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
             tick()
-            if sse.sum() > 1.05 * before[6].sum():
+            if sse.sum() > 1.05 * before[7].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
-                              f"{sse.sum() / before[6].sum():.2f}x: undone")
-                normals_local, fits, mats, basis, size, weights, sse, wi, wo, data = before
+                              f"{sse.sum() / before[7].sum():.2f}x: undone")
+                normals_local, seen_in, fits, mats, basis, size, weights, sse, data = before
                 break
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
@@ -334,15 +385,16 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
         else:
             normals_out = normals_local
 
+    no_highlight = np.concatenate(run(_block_no_highlight, [(blocks, i, _part(seen_in, r), labels[r[0]:r[1]], mats)
+                                                            for i, r in enumerate(blocks.ranges)])) if T else np.zeros(0, bool)
     materials = tuple(model_of(m) for m in mats)
     rel = {k: None if v is None else v / max(np.sqrt(sq_total / n_res), 1e-300) for k, v in rms.items()}
     return SvbrdfFit(
         labels=labels, materials=materials, material_covariance=tuple(f.covariance for f in fits),
         basis=tuple(tuple(model_of(basis[k, b]) for b in range(size[k])) for k in range(len(mats))),
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
-        relative_rms=rel, too_few_samples=counts < opt.min_samples,
-        no_highlight=_no_highlight(data.t, data.z, wi, w, tx, T, labels, mats), n_samples=counts,
-        history=(*clus.history, *undone))
+        relative_rms=rel, too_few_samples=counts < opt.min_samples, no_highlight=no_highlight,
+        n_samples=counts, history=(*clus.history, *undone), discovery_texels=len(disc))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
@@ -455,47 +507,143 @@ def _refit(data: _Sorted, mats, labels, opt: SvbrdfOptions, rng, max_albedo, kee
     return fits
 
 
-def _inliers(data: _Sorted, basis, size, labels, weights, spread: float = 3.0) -> np.ndarray:
+def _serial(fn, args):
+    return [fn(*a) for a in args]
+
+
+def _part(per_texel, r):
+    """Rows ``r[0]:r[1]`` of a per-texel array (None stays None)."""
+    return None if per_texel is None else per_texel[r[0]:r[1]]
+
+
+def _within(disc, r) -> np.ndarray:
+    """The (sorted) texels of ``disc`` inside block ``r``, numbered within it."""
+    lo, hi = np.searchsorted(disc, r)
+    return disc[lo:hi] - r[0]
+
+
+# -- the per-block tasks: pure functions of (blocks, block index, the model so far) -------------
+def _block_stats(blocks: TexelBlocks, i: int):
+    """Samples per texel, the highlight score (Sec. 7.1), and the block's usable samples, sum of
+    w r^2 and of w."""
+    b = blocks.read(i)
+    t, z = lobe_geometry(b.wi, b.wo)
+    return (np.bincount(b.texel, minlength=b.n_texels), _highlight_score(t, z, b.texel, b.n_texels),
+            int(np.count_nonzero(b.weight)), float(np.sum(b.weight[:, None] * b.reflectance ** 2)),
+            float(b.weight.sum()))
+
+
+def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
+    """Eq. 10 labels of the block's texels, the errors (K, len(disc)) of its discovery texels
+    ``disc`` (numbered within the block), the errors of each label's texels under every cluster
+    (K, K), and the residual sums of squares under one BRDF (``single``) and the clusters'."""
+    b = blocks.read(i)
+    _, _, ch, _ = _in_frames(b, None)
+    E = cluster_errors(*ch[1:], ch[0], b.n_texels, mats)
+    lab = np.argmin(E, axis=0)
+    sums = np.stack([E[:, lab == k].sum(axis=1) for k in range(len(mats))])
+    return (lab, E[:, disc], sums, float(cluster_residuals(*ch, np.zeros(b.n_texels, np.int64), single).sum()),
+            float(cluster_residuals(*ch, lab, mats).sum()))
+
+
+def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo):
+    """Sec. 8 projection of the block's texels: weights (n, B) and SSE (n,)."""
+    _, _, ch, _ = _in_frames(blocks.read(i), normals)
+    return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo)
+
+
+def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights):
+    """The median residual of each of the block's texels with samples."""
+    _, _, ch, _ = _in_frames(blocks.read(i), normals)
+    _, _, med, counts = _residual_errors(ch, labels, weights, basis, size)
+    return med[counts > 0]
+
+
+def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, min_samples):
+    """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
+    on the samples :func:`_inliers` keeps when ``floor`` is given."""
+    b = blocks.read(i)
+    wi, wo, ch, _ = _in_frames(b, normals)
+    w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor)
+    return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples)[0]
+
+
+def _block_no_highlight(blocks: TexelBlocks, i: int, normals, labels, mats):
+    """:func:`_no_highlight` of the block's texels."""
+    b = blocks.read(i)
+    wi, _, (tx, t, z, *_), _ = _in_frames(b, normals)
+    return _no_highlight(t, z, wi, b.weight, tx, b.n_texels, labels, mats)
+
+
+def _in_frames(b: SampleBlock, normals):
+    """A block's samples about ``normals`` (n, 3) (the texels' current normals in their input
+    local frames; None: the input frames as they are): ``wi``, ``wo``, the per-texel steps'
+    tuple (texel, t, z, cos_i, reflectance, weight) and, with normals, which samples stay
+    above the horizon (cos_i is 0 for the others)."""
+    wi, wo, visible = b.wi, b.wo, None
+    cos_i = wi[:, 2]
+    if normals is not None:
+        frames = tangent_frames(normals)[b.texel]
+        wi, wo = normalize(to_local(wi, frames)), normalize(to_local(wo, frames))
+        visible = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        cos_i = np.where(visible, wi[:, 2], 0.0)
+    t, z = lobe_geometry(wi, wo)
+    return wi, wo, (b.texel, t, z, cos_i, b.reflectance, b.weight), visible
+
+
+def _sorted(b: SampleBlock, normals, chunk_texels: int):
+    """One block (the discovery subsample) as :class:`_Sorted`, about ``normals`` as
+    :func:`_in_frames`; and its visible mask (None without normals)."""
+    _, _, (tx, t, z, cos_i, r, w), visible = _in_frames(b, normals)
+    return _Sorted(tx=tx, t=t, z=z, cos_i=cos_i, r=r, w=w, offsets=np.searchsorted(tx, np.arange(b.n_texels + 1)),
+                   chunk_texels=chunk_texels), visible
+
+
+def _residual_errors(ch, labels, weights, basis, size):
+    """Per sample |r - f cos| (RGB norm) and |f cos| under the per-texel BRDFs, and per texel the
+    median of the former (0 without samples)."""
+    tx, t, z, cos_i, r, _ = ch
+    n = len(labels)
+    A = basis_values(t, z, cos_i, tx, labels, basis, size)
+    pred = np.einsum("sbc,sb->sc", A, weights[tx])
+    e = np.linalg.norm(r - pred, axis=1)
+    order = np.lexsort((e, tx))
+    counts = np.bincount(tx, minlength=n)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    med = np.where(counts > 0, e[order][np.minimum(start + (counts - 1) // 2, len(e) - 1)], 0.0) if len(e) else np.zeros(n)
+    return e, np.linalg.norm(pred, axis=1), med, counts
+
+
+def _inliers(ch, labels, weights, basis, size, floor: float, spread: float = 3.0) -> np.ndarray:
     """Samples the per-texel BRDFs explain, (S,) bool: |r - f cos| (RGB norm) within ``spread``
-    robust standard deviations (1.4826 x median) of its texel's residuals, floored at the median
-    texel's, plus 5 % of the prediction."""
-    keep = np.ones(len(data.t), bool)
-    for c in data.chunks():
-        ct, t, z, cos_i, r, _ = data.chunk(c)
-        n = c.stop - c.start
-        A = basis_values(t, z, cos_i, ct, labels[c], basis, size)
-        pred = np.einsum("sbc,sb->sc", A, weights[c][ct])
-        e = np.linalg.norm(r - pred, axis=1)
-        order = np.lexsort((e, ct))
-        counts = np.bincount(ct, minlength=n)
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        med = np.where(counts > 0, e[order][np.minimum(start + (counts - 1) // 2, len(e) - 1)], 0.0)
-        sigma = 1.4826 * np.maximum(med, np.median(med[counts > 0]))
-        keep[data.samples(c)] = e <= spread * sigma[ct] + 0.05 * np.linalg.norm(pred, axis=1)
-    return keep
+    robust standard deviations (1.4826 x median) of its texel's residuals, floored at
+    ``floor`` (the median texel's over all blocks), plus 5 % of the prediction."""
+    e, pred, med, _ = _residual_errors(ch, labels, weights, basis, size)
+    sigma = 1.4826 * np.maximum(med, floor)
+    return e <= spread * sigma[ch[0]] + 0.05 * pred
 
 
-def _most_similar(errors, labels, K):
-    """For each cluster the other cluster with the least error over its texels (-1 if K == 1)."""
+def _most_similar(sums):
+    """For each cluster the other cluster with the least error over its texels (-1 if K == 1);
+    ``sums`` (K, K): row k the errors of cluster k's texels under every cluster, summed."""
+    K = len(sums)
     similar = np.full(K, -1)
     if K < 2:
         return similar
     for k in range(K):
-        e = errors[:, labels == k].sum(axis=1)
+        e = sums[k].copy()
         e[k] = np.inf
         similar[k] = int(np.argmin(e))
     return similar
 
 
-def _project(data: _Sorted, basis, size, labels, opt: SvbrdfOptions, max_albedo):
-    """Sec. 8 projection of every texel, chunk by chunk: weights (T, B) and SSE (T,)."""
-    weights = np.zeros((data.n_texels, basis.shape[1]))
-    sse = np.zeros(data.n_texels)
-    for c in data.chunks():
-        weights[c], sse[c] = project_chunk(*data.chunk(c), labels[c], basis, size,
-                                           prior=opt.weight_prior, select=opt.select_projection,
-                                           max_albedo=max_albedo)
-    return weights, sse
+def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo):
+    """Sec. 8 projection of every texel, block by block: weights (T, B) and SSE (T,)."""
+    parts = run(_block_project, [(blocks, i, _part(seen_in, r), basis, size, labels[r[0]:r[1]], opt.weight_prior,
+                                  opt.select_projection, max_albedo) for i, r in enumerate(blocks.ranges)])
+    if not parts:
+        return np.zeros((0, basis.shape[1])), np.zeros(0)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 def _pfa(data: _Sorted, basis, size, labels, limit, rng):

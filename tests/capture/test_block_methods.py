@@ -1,0 +1,142 @@
+"""The methods over texel blocks (issue 21): every figure computed block by block from the stored
+lumitexel arrays must equal the one computed on the gathered arrays to 1e-9 relative, whatever
+the block size. A small synthetic lumitexel set (Lensch Sec. 11's Phong materials, not a
+capture) is written in the pipeline's Zarr layout and read back block by block.
+"""
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from capture.pipeline.block_scoring import ErrorSums, score_blocks
+from capture.pipeline.lumitexel_arrays import store_lumitexels
+from capture.pipeline.methods import BlockRoute, fit_method
+from capture.pipeline.stored_blocks import StoredBlocks
+from reconstruct.lensch import fit_svbrdf_blocks, fit_svbrdf_lumitexels
+from reconstruct.lumitexels import Lumitexels
+from reconstruct.metrics import relative_rms, trimmed_relative_rms
+from sims.reflectance_samples import paper_phong_materials, synthetic_samples
+
+N_TRAIN = 11   # views 11.. (of up to 15 samples a texel) are held out
+BLOCKS = (37, 1000)
+
+
+def synthetic_lumitexels(n_texels: int = 240, rng: int = 3) -> Lumitexels:
+    """Texels of three materials, each sample on its own view (its rank within its texel)."""
+    s = synthetic_samples(paper_phong_materials(exponents=(10.0, 40.0, 80.0)), n_texels, rng=rng)
+    counts = np.bincount(s.texel, minlength=n_texels)
+    view = np.arange(len(s.texel)) - np.repeat(np.cumsum(counts) - counts, counts)
+    g = np.random.default_rng(rng)
+    f32 = lambda a: np.asarray(a, np.float32)   # noqa: E731  (the stored layout's precision)
+    return Lumitexels(position=g.normal(size=(n_texels, 3)) * 50, normal=s.normal, best_view=np.zeros(n_texels, np.int32),
+                      pixel=f32(g.uniform(0, 100, (n_texels, 2))), texel=s.texel, view=view.astype(np.int32),
+                      wi=f32(s.wi), wo=f32(s.wo), reflectance=f32(s.reflectance), weight=np.ones(len(s.texel), np.float32))
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory):
+    lt = synthetic_lumitexels()
+    root = tmp_path_factory.mktemp("blocks")
+    return {b: store_lumitexels(lt, N_TRAIN, root / f"b{b}.zarr", block_texels=b) for b in BLOCKS}
+
+
+def test_error_sums_over_any_split_equal_the_metrics():
+    g = np.random.default_rng(0)
+    p, m = g.normal(size=(1001, 3)), g.normal(size=(1001, 3))
+    sums = ErrorSums()
+    for part in np.array_split(np.arange(1001), [3, 400, 401, 950]):
+        sums.add(p[part], m[part])
+    assert sums.relative_rms == pytest.approx(relative_rms(p, m), rel=1e-12)
+    assert sums.trimmed_relative_rms() == pytest.approx(trimmed_relative_rms(p, m), rel=1e-12)
+    assert np.isnan(ErrorSums().relative_rms)
+    with pytest.raises(ValueError, match="shape"):
+        sums.add(p[:3], m[:2])
+
+
+LENSCH = {"fit_normals": True, "normal_rounds": 1}
+
+
+@pytest.fixture(scope="module")
+def whole_lensch(stored):
+    """Lensch on the gathered training lumitexels (the pipeline's ``_lensch``, one normal round)."""
+    return fit_svbrdf_lumitexels(stored[BLOCKS[0]].gather()[0], rng=0, **LENSCH)
+
+
+@pytest.fixture(scope="module")
+def fitted(stored, whole_lensch):
+    """Per-sample predictors of the methods fitted on the gathered training lumitexels."""
+    return {"lambertian": fit_method("lambertian", stored[BLOCKS[0]].gather()[0], None).predict_samples,
+            "lensch": whole_lensch.predict}
+
+
+@pytest.mark.parametrize("method", ["lambertian", "lensch"])
+def test_held_out_scores_over_blocks_equal_the_gathered_ones(stored, fitted, method):
+    train, held = stored[BLOCKS[0]].gather()
+    assert held.n_samples > 50 and len(stored[BLOCKS[0]].blocks) == 7
+    predict = fitted[method]
+    p_train, p_held = (predict(lt.texel, lt.wi, lt.wo) for lt in (train, held))
+    want = {"train": relative_rms(p_train, train.reflectance), "held": relative_rms(p_held, held.reflectance),
+            "trimmed": trimmed_relative_rms(p_held, held.reflectance)}
+    for b in BLOCKS:
+        s = score_blocks(predict, stored[b], max_texels=None if b == BLOCKS[0] else 29)
+        got = {"train": s.training.relative_rms, "held": s.held_out.relative_rms,
+               "trimmed": s.held_out.trimmed_relative_rms()}
+        assert s.held_out.count == held.n_samples and s.training.count == train.n_samples
+        for k in want:
+            assert got[k] == pytest.approx(want[k], rel=1e-9), (b, k)
+
+
+def _as_on_a_cluster(fn, args):
+    """An executor's map as a cluster runs it: every task and result pickled, the tasks run in
+    reverse order, the results returned in order."""
+    out = [pickle.loads(pickle.dumps(fn(*pickle.loads(pickle.dumps(a))))) for a in reversed(args)]
+    return out[::-1]
+
+
+def test_lambertian_over_blocks_equals_the_in_memory_fit(stored):
+    train, held = stored[BLOCKS[0]].gather()
+    whole = fit_method("lambertian", train, None)
+    # the chunks, and a chunk of all texels cut into parts of 50 (blocks within a chunk)
+    for blocks in (StoredBlocks(stored[BLOCKS[0]]), StoredBlocks(stored[BLOCKS[1]], max_texels=50)):
+        assert blocks.n_texels == train.n_texels and blocks.ranges[-1][1] == train.n_texels
+        fit = fit_method("lambertian", train, None, route=BlockRoute(blocks, _as_on_a_cluster))
+        np.testing.assert_allclose(fit.predict(held), whole.predict(held), rtol=1e-12, atol=0)
+
+
+class _Counting(StoredBlocks):
+    """Stored blocks that count the texels gathered for the global steps."""
+
+    gathered = 0
+
+    def gather(self, texels):
+        self.gathered = max(self.gathered, len(texels))
+        return super().gather(texels)
+
+
+def test_lensch_over_blocks_of_any_size_equals_the_whole_array_fit(stored, whole_lensch):
+    train, _ = stored[BLOCKS[0]].gather()
+    whole = whole_lensch
+    assert whole.n_materials >= 2 and whole.discovery_texels == train.n_texels
+    for b in BLOCKS:
+        blocks = StoredBlocks(stored[b])
+        assert len(blocks.ranges) == len(stored[b].blocks) and blocks.n_texels == train.n_texels
+        fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, map_blocks=_as_on_a_cluster, **LENSCH)
+        np.testing.assert_array_equal(fit.labels, whole.labels)
+        for name in ("weights", "normals"):
+            np.testing.assert_allclose(getattr(fit, name), getattr(whole, name), rtol=1e-9, atol=1e-12, err_msg=name)
+        for k, v in whole.rms.items():
+            assert (v is None and fit.rms[k] is None) or fit.rms[k] == pytest.approx(v, rel=1e-9), k
+        np.testing.assert_array_equal(fit.no_highlight, whole.no_highlight)
+
+
+def test_lensch_material_discovery_honours_and_states_its_subsample(stored):
+    blocks = _Counting(stored[BLOCKS[0]])
+    train, held = stored[BLOCKS[0]].gather()
+    fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, discovery_texels=160, **LENSCH)
+    assert blocks.gathered == 160 == fit.discovery_texels < train.n_texels
+    assert f"materials found on 160 of {train.n_texels} texels" in fit.report()
+    # every texel still labelled, projected and scored: the materials of 160 texels serve all 240
+    assert len(fit.labels) == len(fit.weights) == train.n_texels and fit.n_materials >= 2
+    assert relative_rms(fit.predict(held.texel, held.wi, held.wo), held.reflectance) < 0.2
