@@ -99,9 +99,12 @@ def learn_modes(brdfs, grid=(32, 32), *, n_modes: int = N_MODES, offset: float =
         raise ValueError(f"n_modes must be an int in [1, {len(x) - 1}] for {len(tables)} "
                          f"materials (3 channels each), got {n_modes!r}")
     mean = x.mean(axis=0)
-    _, sv, vt = np.linalg.svd(x - mean, full_matrices=False)
-    return ModesPrior(mean, vt[:n_modes], sv[:n_modes] ** 2 / (len(x) - 1),
-                      check_grid(grid), float(offset), name, len(tables))
+    # principal axes from the (samples x samples) Gram matrix: far smaller than nodes^2
+    var, u = np.linalg.eigh((x - mean) @ (x - mean).T)
+    var, u = var[::-1][:n_modes], u[:, ::-1][:, :n_modes]
+    modes = u.T @ (x - mean) / np.sqrt(var)[:, None]
+    return ModesPrior(mean, modes, var / (len(x) - 1), check_grid(grid), float(offset), name,
+                      len(tables))
 
 
 @dataclass(frozen=True)
