@@ -11,14 +11,17 @@ Prints, in one run:
    - the floor: a perfect 90 x 90 x 180 table of the truth (``TabulatedIsotropic.from_brdf``);
    for the analytic zoo (sharp: Ashikhmin-Shirley, GGX over Oren-Nayar; smooth: retro, sheen)
    and measured materials (NBRDF fits of MERL / Nielsen, RGL files).
-2. Passive reflectometry, Romeiro et al. Fig. 6: per MERL material, one ``--sphere`` px image
-   of a sphere under Grace Cathedral (``--env-height`` rows), the smoothness prior learned
-   from the *other* MERL materials (leave-one-out, as the paper did), the recovered BRDF's Eq. 1
-   error beside that of the material's own 32 x 32 bivariate reduction, in both readings of
-   Eq. 1 (per-sample relative, and pooled: RMS difference over RMS value) and per-sample over
-   the nodes the environment constrains (``Adequacy.constrained``), materials sorted by the
-   reduction's error (the paper's order); written as ``passive_fig6.png`` in ``--out``.
-   ``--lam 1e-6`` gives the fixed weight used before cross-validation.
+2. Passive reflectometry, Romeiro et al. Fig. 6: per MERL material (every ``--every``-th from
+   ``--offset``), one ``--sphere`` px image of a sphere under Grace Cathedral (``--env-height``
+   rows), the prior learned from the *other* MERL materials (leave-one-out, as the paper did):
+   their modes of variation in log space (``--prior modes``, ``learn_modes``) or Eq. 6's
+   derivative variances (``--prior smoothness``); the recovered BRDF's Eq. 1 error beside that
+   of the material's own 32 x 32 bivariate reduction, in both readings of Eq. 1 (per-sample
+   relative, and pooled: RMS difference over RMS value), per-sample over the nodes the
+   environment constrains (``Adequacy.constrained``) and per-sample with both directions
+   within 80 deg of the normal; materials sorted by the reduction's error (the paper's order);
+   written as ``passive_fig6.png`` in ``--out``. ``--lam`` overrides the prior's weight
+   (``cv``: cross-validated, derivative prior only).
 
 Needs ``../shared/data/brdfs`` and ``../shared/data/probes``. Run with
 ``OPENBLAS_NUM_THREADS=1`` on a shared machine. ``--quick``: small sizes, few materials.

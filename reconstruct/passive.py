@@ -14,7 +14,9 @@ of a known curved object under a known distant environment (a light probe); no a
    library (``passive_prior``), solved twice (a diffuse-preferring and a gloss-preferring
    prior), keeping the lower residual. With the prior the problem is strictly convex, so an
    exact active-set solve replaces the paper's iterative one started from a Lambertian BRDF
-   (that best constant BRDF is still reported: ``PassiveFit.lambertian``).
+   (that best constant BRDF is still reported: ``PassiveFit.lambertian``). Or, given a
+   ``ModesPrior`` (a library's modes of variation in log space, the paper's named
+   alternative; ``passive_modes``), the posterior mode under it.
 4. Adequacy (Sect. 3.1): singular values and rank of L, per-node coverage against a uniform
    environment, the poorly observed parts of the domain (specular, retro, grazing), and
    warnings in words.
