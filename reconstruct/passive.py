@@ -14,7 +14,9 @@ of a known curved object under a known distant environment (a light probe); no a
    library (``passive_prior``), solved twice (a diffuse-preferring and a gloss-preferring
    prior), keeping the lower residual. With the prior the problem is strictly convex, so an
    exact active-set solve replaces the paper's iterative one started from a Lambertian BRDF
-   (that best constant BRDF is still reported: ``PassiveFit.lambertian``).
+   (that best constant BRDF is still reported: ``PassiveFit.lambertian``). Or, given a
+   ``ModesPrior`` (a library's modes of variation in log space, the paper's named
+   alternative; ``passive_modes``), the posterior mode under it.
 4. Adequacy (Sect. 3.1): singular values and rank of L, per-node coverage against a uniform
    environment, the poorly observed parts of the domain (specular, retro, grazing), and
    warnings in words.
@@ -35,10 +37,12 @@ from .brdf import BRDF, Bivariate, TabulatedIsotropic
 from .coords import from_halfway_difference
 from .envmap import LUMINANCE, EnvironmentMap
 from .passive_lighting import check_grid, check_sources, lighting_matrix
+from .passive_modes import ModesPrior, learn_modes, solve_modes
 from .passive_prior import PRIOR_KINDS, SmoothnessPrior, default_prior, learn_prior
 
 __all__ = ["passive_reflectometry", "PassiveFit", "Adequacy", "UnconstrainedBand", "PassiveInputError",
-           "PassiveWarning", "lighting_matrix", "learn_prior", "bivariate_error"]
+           "PassiveWarning", "lighting_matrix", "learn_prior", "learn_modes", "ModesPrior",
+           "bivariate_error"]
 
 #: Regularisation weight of Eq. 6 for the normalised data term when ``lam`` is a number: tuned
 #: once with the analytic default priors, on materials and an environment outside the test and
@@ -48,6 +52,13 @@ LAMBDA = 1e-6
 #: Candidate weights of ``lam="cv"`` (one per decade) and its number of observation folds.
 CV_LAMBDAS = 10.0 ** np.arange(-11, -3)
 CV_FOLDS = 4
+#: Weight of a ``ModesPrior`` (the data's noise variance over its mean square, per unit of the
+#: prior's variance): chosen on every 10th MERL material under Grace (1e-4: 2 of 10 within the
+#: Fig. 6 target, 1e-5: 4, 1e-6: 1) and held on the materials between (docs/zoo.md).
+#: Cross-validation over pixels cannot choose it: a weaker prior frees modes that only the
+#: unobserved nodes feel, so held-out pixels prefer 1e-7 to 1e-8, where those nodes run off
+#: by factors of 1e4 to 1e16.
+MODES_LAMBDA = 1e-5
 #: Maps with more texels are area-averaged to 2 x 181^2 (~65,000: the paper's 32,000 directions
 #: per visible hemisphere); the lighting matrix costs time linear in the texel count.
 MAX_TEXELS = 65536
@@ -286,7 +297,7 @@ def bivariate_error(estimate: BRDF, truth: BRDF, *, shape=(90, 90, 180),
 
 def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, grid=(32, 32),
                           n_normals=8000, max_view_angle_deg=80, prior=None, two_priors=True,
-                          environment_weight=None, lam=LAMBDA, rng=0,
+                          environment_weight=None, lam=None, rng=0,
                           progress=None) -> PassiveFit:
     """Recover a bivariate BRDF from one HDR image of a known shape under a known environment.
 
@@ -313,9 +324,12 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         Observations to draw (all usable pixels when there are fewer).
     max_view_angle_deg : float
         Pixels whose normal is further than this from the view are dropped.
-    prior : SmoothnessPrior or sequence of them, optional
-        Custom prior(s) (``learn_prior``); default the learned "diffuse" and "glossy" priors
-        (both when ``two_priors``, else the glossy one).
+    prior : SmoothnessPrior or sequence of them, or ModesPrior, optional
+        Custom smoothness prior(s) (``learn_prior``, Eq. 6); default the learned "diffuse" and
+        "glossy" priors (both when ``two_priors``, else the glossy one). A ``ModesPrior``
+        (``learn_modes``: a library's mean and modes of variation in log space) replaces Eq.
+        6's derivative penalty by a Gaussian prior on log(f + offset) (``passive_modes``); with
+        a MERL library it is the better prior (Fig. 6 on MERL, docs/zoo.md).
     two_priors : bool
         Solve with both default priors ("diffuse" first) and keep the lower residual (the
         paper's variant), "glossy" only if it is below ``PRIOR_MARGIN`` x the diffuse one.
@@ -323,9 +337,10 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         Trust in each texel / source in [0, 1] (a probe's blind cone: 0). Observations whose
         cosine-weighted hemisphere is more than ``MAX_UNTRUSTED`` (2 %) untrusted are dropped;
         the rest use the weighted radiance.
-    lam : float or "cv"
-        Regularisation weight of Eq. 6 (for the normalised data term), default ``LAMBDA``.
-        ``"cv"``:
+    lam : float or "cv", optional
+        Regularisation weight of Eq. 6 (for the normalised data term), default ``LAMBDA``;
+        for a ``ModesPrior`` the prior's weight, default ``MODES_LAMBDA`` ("cv" is refused:
+        see there). ``"cv"`` (smoothness priors):
         chosen from ``CV_LAMBDAS`` by ``CV_FOLDS``-fold cross-validation over the observations
         (pixels): each candidate is fitted, per prior, to the green channel of all folds but one
         (without the f >= 0 bound, a Cholesky solve) and scored by its residual on the held-out
@@ -367,10 +382,13 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
                                 f"{max_view_angle_deg!r}")
     if not (isinstance(n_normals, (int, np.integer)) and n_normals >= 1):
         raise PassiveInputError(f"n_normals must be a positive int, got {n_normals!r}")
-    if not (isinstance(lam, str) and lam == "cv") and not (
+    if lam is not None and not (isinstance(lam, str) and lam == "cv") and not (
             isinstance(lam, (int, float, np.floating)) and lam >= 0):
-        raise PassiveInputError(f"lam must be a number >= 0 or 'cv', got {lam!r}")
+        raise PassiveInputError(f"lam must be a number >= 0, 'cv' or None, got {lam!r}")
     priors = _priors(prior, two_priors, (n_t, n_s))
+    if isinstance(priors[0], ModesPrior) and isinstance(lam, str):
+        raise PassiveInputError("lam='cv' is for smoothness priors: held-out pixels cannot see "
+                                "the nodes a ModesPrior extrapolates (MODES_LAMBDA)")
     gen = np.random.default_rng(rng)
 
     n, v, I = _observations(images, max_view_angle_deg, n_normals, gen)
@@ -395,9 +413,39 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     G = [a.T @ a for a in A]
     h = [a.T @ bb for a, bb in zip(A, b)]
     lamb = np.array([h[c].sum() / G[c].sum() for c in range(3)])  # best constant f
+    if isinstance(priors[0], ModesPrior):
+        lam = MODES_LAMBDA if lam is None else lam
+        sols = [solve_modes(priors[0], G[c], h[c], b[c] @ b[c], lam) for c in range(3)]
+        f = np.stack([s.f for s in sols], axis=1)
+        res = np.array([np.linalg.norm(A[c] @ f[:, c] - b[c]) / np.linalg.norm(b[c])
+                        for c in range(3)])
+        priors, converged = priors[:1], all(s.converged for s in sols)
+        solutions, residuals = {priors[0].name: f}, {priors[0].name: res}
+        if progress is not None:
+            progress(total, total)
+    else:
+        solutions, residuals, converged, lam = _solve_smoothness(
+            priors, A, b, G, h, lam, gen, (n_t, n_s), progress, len(n), total)
+    best = next(iter(residuals))  # a later (less smooth) prior must fit clearly better
+    for name, res in residuals.items():
+        if res.mean() < PRIOR_MARGIN * residuals[best].mean():
+            best = name
+    adequacy = _adequacy(L, G[1], n, v, d, E, omega, (n_t, n_s), residuals[best])
+    for w in adequacy.warnings:
+        warnings.warn(w, PassiveWarning, stacklevel=2)
+    return PassiveFit(Bivariate(solutions[best].reshape(n_t, n_s, 3)), residuals[best], best,
+                      residuals, lamb, adequacy, converged, float(lam), adequacy.warnings)
+
+
+def _solve_smoothness(priors, A, b, G, h, lam, gen, grid, progress, done, total):
+    """Eq. 6 with each ``SmoothnessPrior``: solutions (n, 3) and residuals (3,) by prior
+    name, whether every solve converged, and the weight used."""
+    n_t, n_s = grid
     roughness = [D.T @ D for D in (p.difference_operators() for p in priors)]
     if isinstance(lam, str):
         lam = _cross_validated_lambda(A[1], b[1], roughness, gen)
+    elif lam is None:
+        lam = LAMBDA
     solutions, residuals, converged = {}, {}, True
     for k, p in enumerate(priors):
         R = lam * roughness[k]
@@ -410,16 +458,8 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
                         for c in range(3)])
         solutions[p.name], residuals[p.name] = f, res
         if progress is not None:
-            progress(len(n) + k + 1, total)
-    best = next(iter(residuals))  # a later (less smooth) prior must fit clearly better
-    for name, res in residuals.items():
-        if res.mean() < PRIOR_MARGIN * residuals[best].mean():
-            best = name
-    adequacy = _adequacy(L, G[1], n, v, d, E, omega, (n_t, n_s), residuals[best])
-    for w in adequacy.warnings:
-        warnings.warn(w, PassiveWarning, stacklevel=2)
-    return PassiveFit(Bivariate(solutions[best].reshape(n_t, n_s, 3)), residuals[best], best,
-                      residuals, lamb, adequacy, converged, float(lam), adequacy.warnings)
+            progress(done + k + 1, total)
+    return solutions, residuals, converged, lam
 
 
 # -- input checks and observations ---------------------------------------------------------------
@@ -544,6 +584,11 @@ def _priors(prior, two_priors, grid):
     if prior is None:
         kinds = PRIOR_KINDS if two_priors else ("glossy",)
         return [default_prior(k, grid) for k in kinds]
+    if isinstance(prior, ModesPrior):
+        if prior.grid != tuple(grid):
+            raise PassiveInputError(f"prior {prior.name!r} was learned on grid {prior.grid}, "
+                                    f"not {grid}")
+        return [prior]
     ps = [prior] if isinstance(prior, SmoothnessPrior) else list(prior)
     for k, p in enumerate(ps):
         if not isinstance(p, SmoothnessPrior):
@@ -577,6 +622,7 @@ def _cross_validated_lambda(A, b, roughness, gen) -> float:
                     continue
                 score[j] += np.sum((A[test] @ f - b[test]) ** 2)
     return float(CV_LAMBDAS[int(np.argmin(score))])
+
 
 def _nnls_quadratic(Q, h, free=None, *, max_iter=200):
     """argmin_{x >= 0} x^T Q x / 2 - h^T x for symmetric positive definite ``Q`` (n, n).

@@ -99,6 +99,20 @@ def learn_prior(brdfs, grid=(32, 32), *, name: str = "custom", floor: float = 1e
         If ``brdfs`` holds fewer than two materials or something that is not a BRDF.
     """
     n_t, n_s = check_grid(grid)
+    tables = library_tables(brdfs, grid)
+    t = np.moveaxis(tables, -1, 1).reshape(-1, n_t, n_s)  # channels as samples
+    var_s = np.var(np.diff(t, axis=2), axis=0)
+    var_t = np.var(np.diff(t, axis=1), axis=0)
+    lo = floor * np.median(np.concatenate([var_s.ravel(), var_t.ravel()]))
+    if not lo > 0:
+        raise ValueError("brdfs do not vary: every derivative variance is 0")
+    return SmoothnessPrior(np.maximum(var_s, lo), np.maximum(var_t, lo), name, len(tables))
+
+
+def library_tables(brdfs, grid) -> np.ndarray:
+    """Each library member reduced to the (t, s) grid (``Bivariate.from_brdf``; a
+    ``Bivariate`` of that grid as it is): (n_brdfs, n_t, n_s, 3), 1/sr."""
+    n_t, n_s = check_grid(grid)
     brdfs = list(brdfs)
     if len(brdfs) < 2:
         raise ValueError(f"brdfs must hold at least two materials, got {len(brdfs)}")
@@ -110,13 +124,7 @@ def learn_prior(brdfs, grid=(32, 32), *, name: str = "custom", floor: float = 1e
             tables.append(b.table)
         else:
             tables.append(Bivariate.from_brdf(b, n_t, n_s, n_phi=PRIOR_PHI_SAMPLES).table)
-    t = np.moveaxis(np.stack(tables), -1, 1).reshape(-1, n_t, n_s)  # channels as samples
-    var_s = np.var(np.diff(t, axis=2), axis=0)
-    var_t = np.var(np.diff(t, axis=1), axis=0)
-    lo = floor * np.median(np.concatenate([var_s.ravel(), var_t.ravel()]))
-    if not lo > 0:
-        raise ValueError("brdfs do not vary: every derivative variance is 0")
-    return SmoothnessPrior(np.maximum(var_s, lo), np.maximum(var_t, lo), name, len(brdfs))
+    return np.stack(tables)
 
 
 def prior_library(kind: str) -> list[BRDF]:

@@ -15,9 +15,12 @@ experiment, 10 images of 100 x 100 px, 21 held out; ``benchmarks/zoo.py``):
 - **The w scale of M (Eq. 4) per material.** It sets how strongly samples of neighbouring
   theta_d planes (images) talk to each other: a highlight that varies fast in (u, v) but slowly
   in theta_d wants a small m_w (Ashikhmin-Shirley: 0.25), a retro-reflective lobe that varies
-  only with theta_d wants a large one (4: median 16 % at 0.5 -> 1.1 %). No single value serves
-  both, so ``m_w="auto"`` chooses it from ``M_W_CANDIDATES`` by holding out whole theta_d groups
-  of the input (images), as the paper's held-out images are, and keeping the lowest error.
+  only with theta_d wants a large one (4: median 16 % at 0.5 -> 1.1 %), and a highlight only
+  ~0.5 deg wide (MERL specular-red-phenolic) sags between the theta_d planes of the images
+  unless they are brought within its width (0.0625: 23.6 % at 0.25 -> 9.4 %). No single value
+  serves all, so ``m_w="auto"`` chooses it from ``M_W_CANDIDATES`` by holding out whole theta_d
+  groups of the input (images), as the paper's held-out images are, and keeping the lowest
+  error.
 """
 from __future__ import annotations
 
@@ -35,8 +38,9 @@ from .rbf import RbfFit, SharingError, fit_rbf
 #: small enough that highlights are compressed, large enough that a nearly black channel's
 #: noise is not blown up (0.01 and 0.1 gave the same held-out errors on the sharp lobes).
 LOG_OFFSET = 0.01
-#: w scales ``m_w="auto"`` chooses from.
-M_W_CANDIDATES = (0.25, 0.5, 1.0, 2.0, 4.0)
+#: w scales ``m_w="auto"`` chooses from (module docstring; 0.0625 and 0.125 for the narrowest
+#: highlights).
+M_W_CANDIDATES = (0.0625, 0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
 #: theta_d groups held out (one at a time, interior ones) when choosing m_w.
 M_W_FOLDS = 3
 #: Fewer samples than this are fitted with m_w = 0.5 (too few to hold a group out).
@@ -162,7 +166,7 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
     m_w : float or "auto"
         Scale of the w = 2 theta_d / pi axis, M = diag(1, 1, m_w) (Eq. 4; the paper's typical
         values 0.1-0.5). "auto": chosen from ``M_W_CANDIDATES`` by held-out theta_d groups
-        (module docstring; costs ``M_W_FOLDS`` x 5 fits of half the budget). Needs at least
+        (module docstring; costs ``M_W_FOLDS`` x 7 fits of half the budget). Needs at least
         three groups (images) and ``MIN_SAMPLES_FOR_CHOICE`` samples; with fewer, 0.5.
     log_values : bool
         Interpolate log(f_r + offset) (module docstring); False: f_r as the paper wrote it.

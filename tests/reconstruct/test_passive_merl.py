@@ -1,6 +1,7 @@
 """Passive reflectometry on measured MERL materials (NBRDF fits from ``../shared/data/brdfs``):
-the cross-validated regularisation weight against the fixed one, the two readings of Eq. 1,
-and the adequacy report's unconstrained region."""
+the Fig. 6 target with the modes-of-variation prior, the cross-validated regularisation weight
+against the fixed one, the two readings of Eq. 1, and the adequacy report's unconstrained
+region."""
 from __future__ import annotations
 
 import warnings
@@ -8,12 +9,12 @@ import warnings
 import numpy as np
 import pytest
 
-from reconstruct.brdf import Lambertian
-from reconstruct.brdf.zoo import measured_zoo
+from reconstruct.brdf import Bivariate, Lambertian
+from reconstruct.brdf.zoo import measured_files, measured_zoo
 from reconstruct.distant import shade_distant, sphere_normals
 from reconstruct.envmap import EnvironmentMap
-from reconstruct.passive import (LAMBDA, PassiveWarning, bivariate_error, learn_prior,
-                                 passive_reflectometry)
+from reconstruct.passive import (LAMBDA, PassiveWarning, bivariate_error, learn_modes,
+                                 learn_prior, passive_reflectometry)
 
 CAMERA_TO_PROBE = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
 #: The prior's library: every 10th MERL material, none of those tested (the benchmark uses
@@ -23,6 +24,11 @@ LIBRARY = ("merl/alum-bronze", "merl/blue-acrylic", "merl/color-changing-paint1"
            "merl/specular-white-phenolic", "merl/white-acrylic", "merl/black-oxidized-steel",
            "merl/green-latex")
 TESTED = ("merl/hematite",)
+#: Fig. 6 materials held to the target, a glossy dielectric and a wood finish (docs/zoo.md, with
+#: the 99-material prior: 13.5 % against 22.7 %, 23.2 % against 29.4 %), and their prior's
+#: library: every third MERL material (alphabetical) but these (32; learning from all 98 others
+#: takes three times as long and gives 13.7 % and 23.3 %).
+FIG6 = ("merl/white-acrylic", "merl/natural-209")
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +40,35 @@ def zoo(shared_data):
 def grace(shared_data):
     return EnvironmentMap.load(shared_data / "probes" / "grace.hdr",
                                rotation=CAMERA_TO_PROBE).resized(16)
+
+
+def sphere_image(truth, env, size=48):
+    normals, mask = sphere_normals(size)
+    image = np.zeros(normals.shape)
+    image[mask] = shade_distant(truth, normals[mask], *env.sources())
+    return image, normals, mask
+
+
+def test_modes_prior_meets_the_fig6_target(shared_data, grace):
+    """Romeiro Fig. 6 with the prior of modes of variation (``learn_modes``) learned from 32
+    other MERL materials: for each of ``FIG6``, one 48 x 48 sphere under Grace (16 x 32
+    texels) gives a BRDF whose per-sample Eq. 1 error is within the issue's target, 2x the
+    error of the material's own 32 x 32 bivariate reduction plus 5 points (measured 15.5 %
+    against 22.7 %, 24.5 % against 29.4 %; the derivative prior with the cross-validated
+    weight and the 99-material library: white-acrylic 38.7 %)."""
+    files = {k: p for k, p in measured_files(shared_data / "brdfs").items()
+             if k.startswith("merl/")}
+    library = [k for k in sorted(files)[::3] if k not in FIG6]
+    zoo = measured_zoo(shared_data / "brdfs", tuple(library) + FIG6)
+    prior = learn_modes([zoo[k] for k in library], (32, 32))
+    for name in FIG6:
+        truth = zoo[name]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PassiveWarning)
+            fit = passive_reflectometry(*sphere_image(truth, grace), grace, prior=prior)
+        error = bivariate_error(fit.brdf, truth, shape=(45, 45, 90))
+        floor = bivariate_error(Bivariate.from_brdf(truth, 32, 32), truth, shape=(45, 45, 90))
+        assert error <= 2 * floor + 0.05, (name, error, floor)
 
 
 def test_eq1_readings_closed_form():
@@ -62,9 +97,7 @@ def test_cross_validated_weight_beats_the_fixed_one(zoo, grace):
     pearl-paint, also tried, gains less with this small prior (55 % -> 30 %, not half)."""
     truth = zoo["merl/hematite"]
     prior = learn_prior([zoo[k] for k in LIBRARY], (32, 32), name="merl-10")
-    normals, mask = sphere_normals(48)
-    image = np.zeros(normals.shape)
-    image[mask] = shade_distant(truth, normals[mask], *grace.sources())
+    image, normals, mask = sphere_image(truth, grace)
     errors = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PassiveWarning)
