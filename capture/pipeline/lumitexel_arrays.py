@@ -40,8 +40,8 @@ import zarr
 
 from reconstruct.camera import CameraModel
 from reconstruct.lumitexels import (AssemblyGeometry, LumitexelError, Lumitexels, ViewHits, assembly_geometry,
-                                    best_views, object_frame_camera, object_frame_point, view_hits,
-                                    view_samples, view_texels)
+                                    best_views, footprint_normal_spread, object_frame_camera,
+                                    object_frame_point, view_hits, view_samples, view_texels)
 
 from .chunks import ChunkGroup, arrays_folder, mark_done
 from .cluster import Executor
@@ -259,7 +259,10 @@ class LumitexelArrays:
                 kw[name] = np.concatenate([getattr(lt, name)[h == select_held] for lt, h, _ in parts])
             kw["texel"] = np.concatenate([lt.texel[h == select_held] + off for lt, h, off in parts])
             return Lumitexels(**kw)
-        return join(False), join(True)
+        train, held = join(False), join(True)
+        # a texel's spread compares it with its pixel neighbours, which other blocks may hold
+        train.footprint_spread_deg = held.footprint_spread_deg = footprint_normal_spread(train)
+        return train, held
 
 
 def stream_lumitexels(images: SessionImages, session: str, cal: SessionCalibration, plan: ViewPlan,

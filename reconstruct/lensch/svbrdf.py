@@ -67,6 +67,10 @@ class SvbrdfFit:
         extrapolated from the cluster, not measured (Sec. 11).
     n_samples : ndarray (T,) int
         Samples per texel.
+    mixed_footprint : ndarray (T,) bool
+        Texels whose normal turns by more than ``max_footprint_spread_deg`` across their pixel
+        footprint: left out of material discovery and the materials' fits, then labelled,
+        projected and given a normal like the rest (all False when no spread was given).
     history : tuple of str
         The clustering's split decisions, then any normal-fitting round that was undone.
     """
@@ -83,6 +87,7 @@ class SvbrdfFit:
     too_few_samples: np.ndarray
     no_highlight: np.ndarray
     n_samples: np.ndarray
+    mixed_footprint: np.ndarray
     history: tuple = field(default=())
 
     @property
@@ -139,7 +144,8 @@ class SvbrdfFit:
         return (f"Lensch SVBRDF: {len(self.labels)} texels, {self.n_materials} materials, "
                 f"{self.weights.shape[1]} basis slots\n  RMS (1/sr): {cols}\n  relative RMS: {rel}\n"
                 f"  flagged: {int(self.too_few_samples.sum())} with too few samples, "
-                f"{int(self.no_highlight.sum())} without a highlight")
+                f"{int(self.no_highlight.sum())} without a highlight, "
+                f"{int(self.mixed_footprint.sum())} whose footprint mixes normals (not in material discovery)")
 
 
 def _check_texel(texel, S, normals):
@@ -159,6 +165,16 @@ def _check_texel(texel, S, normals):
             raise SvbrdfError("normals must be finite unit vectors")
         T = len(nr)
     return tx.astype(np.int64), T
+
+
+def _mixed_footprint(spread, T: int, limit: float) -> np.ndarray:
+    """Texels whose footprint ``spread`` (T,) degrees exceeds ``limit``, (T,) bool (NaN: not)."""
+    if spread is None:
+        return np.zeros(T, bool)
+    sp = np.asarray(spread, dtype=np.float64)
+    if sp.shape != (T,):
+        raise SvbrdfError(f"footprint_spread must have shape ({T},) (one per texel), got {sp.shape}")
+    return np.nan_to_num(sp, nan=0.0) > limit
 
 
 def _highlight_score(t, z, texel, T):
@@ -191,7 +207,7 @@ def _no_highlight(t, z, wi, w, texel, T, labels, mats):
 
 
 def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None, *, normals=None,
-               weight=None, rng=0, progress=None, **settings) -> SvbrdfFit:
+               weight=None, footprint_spread=None, rng=0, progress=None, **settings) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
     Parameters
@@ -209,6 +225,10 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
         The texels' (mesh) normals, any frame; fitted normals are returned in that frame.
     weight : array_like (S,), optional
         Sample weights (default 1).
+    footprint_spread : array_like (T,), optional
+        How much each texel's normal turns across its pixel footprint, degrees (NaN: unknown,
+        kept); above ``max_footprint_spread_deg`` a texel takes no part in material discovery
+        (:func:`reconstruct.lumitexels.footprint_normal_spread`).
     rng : int or numpy.random.Generator
         Seed for texel selection and the held-out halves.
     progress : callable, optional
@@ -224,6 +244,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
     opt = (options or SvbrdfOptions()).but(**settings)
     wi, wo, r, w = check_samples(wi, wo, reflectance, weight, error=SvbrdfError)
     tx, T = _check_texel(texel, len(wi), normals)
+    mixed = _mixed_footprint(footprint_spread, T, opt.max_footprint_spread_deg)
     P = 1 + 3 * opt.n_lobes
     if np.count_nonzero(w) < P:
         raise SvbrdfError(f"reflectance has {np.count_nonzero(w)} usable samples, fewer than the {P} "
@@ -248,7 +269,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
             progress(stage, stages)
 
     # Sec. 7.1: clustering texels, favouring those likely to show a highlight
-    usable = np.flatnonzero(counts >= opt.min_samples)
+    usable = np.flatnonzero((counts >= opt.min_samples) & ~mixed)
     if len(usable) < 2:
         usable = np.flatnonzero(counts > 0)
     score = _highlight_score(t, z, tx, T)[usable]
@@ -264,7 +285,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
     # Eq. 10 for every texel, then each cluster's BRDF refit on (up to fit_texels of) its texels
     mats = np.stack([f.channel_params for f in clus.fits])
     labels, errors = _label(data, mats)
-    fits = _refit(data, mats, labels, opt, rng, max_albedo, texels=_confident(errors))
+    fits = _refit(data, mats, labels, opt, rng, max_albedo, texels=_confident(errors) & ~mixed)
     mats = np.stack([f.channel_params for f in fits])
     labels, errors = _label(data, mats)
     tick()
@@ -316,7 +337,7 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
             t, z = lobe_geometry(wi, wo)
             data = dataclasses.replace(data, t=t, z=z, cos_i=np.where(visible, wi[:, 2], 0.0))
             fits = _refit(dataclasses.replace(data, w=w_fit), mats, labels, opt, rng, max_albedo,
-                          keep=visible, texels=_confident(errors))
+                          keep=visible, texels=_confident(errors) & ~mixed)
             mats = np.stack([f.channel_params for f in fits])
             basis, size = make_bases(mats, similar)
             if opt.pfa:
@@ -342,14 +363,15 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
         relative_rms=rel, too_few_samples=counts < opt.min_samples,
         no_highlight=_no_highlight(data.t, data.z, wi, w, tx, T, labels, mats), n_samples=counts,
-        history=(*clus.history, *undone))
+        mixed_footprint=mixed, history=(*clus.history, *undone))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
-    """:func:`fit_svbrdf` on a :class:`reconstruct.lumitexels.Lumitexels` (its sample weights and
-    normals are used; fitted normals come back in the object frame)."""
+    """:func:`fit_svbrdf` on a :class:`reconstruct.lumitexels.Lumitexels` (its sample weights,
+    normals and footprint spreads are used; fitted normals come back in the object frame)."""
     kw.setdefault("normals", lt.normal)
     kw.setdefault("weight", lt.weight)
+    kw.setdefault("footprint_spread", lt.footprint_spread_deg)
     return fit_svbrdf(lt.texel, lt.wi, lt.wo, lt.reflectance, options, **kw)
 
 
