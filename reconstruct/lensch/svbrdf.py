@@ -323,7 +323,9 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
             # clusterings of the demo object a round's refit blew the training error up 10x)
             before = (normals_local, fits, mats, basis, size, weights, sse, wi, wo, data)
             tilt = np.tile([0.0, 0.0, 1.0], (T, 1))  # relative to the current normals
-            w_fit = w * _inliers(data, basis, size, labels, weights) if opt.robust_samples else w
+            w_fit = w * _inliers(data, basis, size, labels, weights, opt.robust_spread) if opt.robust_samples else w
+            if opt.brightest_dropped > 0:
+                w_fit = w_fit * _below_brightest(data, opt.brightest_dropped)
             for c in data.chunks():
                 s = data.samples(c)
                 tilt[c] = fit_normals_chunk(tx[s] - c.start, wi[s], wo[s], r[s], w_fit[s], labels[c],
@@ -477,7 +479,7 @@ def _refit(data: _Sorted, mats, labels, opt: SvbrdfOptions, rng, max_albedo, kee
     return fits
 
 
-def _inliers(data: _Sorted, basis, size, labels, weights, spread: float = 3.0) -> np.ndarray:
+def _inliers(data: _Sorted, basis, size, labels, weights, spread: float) -> np.ndarray:
     """Samples the per-texel BRDFs explain, (S,) bool: |r - f cos| (RGB norm) within ``spread``
     robust standard deviations (1.4826 x median) of its texel's residuals, floored at the median
     texel's, plus 5 % of the prediction."""
@@ -495,6 +497,17 @@ def _inliers(data: _Sorted, basis, size, labels, weights, spread: float = 3.0) -
         sigma = 1.4826 * np.maximum(med, np.median(med[counts > 0]))
         keep[data.samples(c)] = e <= spread * sigma[ct] + 0.05 * np.linalg.norm(pred, axis=1)
     return keep
+
+
+def _below_brightest(data: _Sorted, share: float) -> np.ndarray:
+    """Samples outside each texel's brightest ``share`` (by channel-summed reflectance, rank
+    within the texel), (S,) bool."""
+    r = data.r.sum(axis=1)
+    order = np.lexsort((r, data.tx))   # by texel, then brightness: a texel's samples stay contiguous
+    counts = np.diff(data.offsets)
+    rank = np.empty(len(r), np.int64)
+    rank[order] = np.arange(len(r)) - np.repeat(data.offsets[:-1], counts)
+    return rank < np.ceil((1.0 - share) * counts)[data.tx]
 
 
 def _most_similar(errors, labels, K):
