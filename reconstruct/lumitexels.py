@@ -223,6 +223,8 @@ def footprint_normal_spread(lt: Lumitexels) -> np.ndarray:
     samples); samples with weight 0 (held out) take no part.
     """
     P = lt.n_texels
+    if P == 0:
+        return np.zeros(0, np.float32)
     normal, ok = _photometric_normals(lt)
     px = np.rint(lt.pixel).astype(np.int64)
     key = (lt.best_view.astype(np.int64) << 42) | (px[:, 1] << 21) | px[:, 0]
