@@ -58,9 +58,10 @@ SKIPPED_STAGES = {
     "mesh": "no mesh: normals from robust least-squares photometric stereo on the training lights",
 }
 #: Lensch options on real photographs: robust sample selection against cast shadows and
-#: inter-reflections before each normal-fitting round, and two lobes per material (see
-#: benchmarks/diligent.py --ablation for what each buys).
-LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2}
+#: inter-reflections before each normal-fitting round (within 1.5 robust sigma), each texel's
+#: brightest 10 % of samples left out of it (ST14's low-intensity part), two lobes per material
+#: (see benchmarks/diligent.py --ablation for what each buys).
+LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2, "robust_spread": 1.5, "brightest_dropped": 0.1}
 
 
 def is_imported(store: Store, session: str) -> bool:

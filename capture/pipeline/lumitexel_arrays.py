@@ -41,8 +41,8 @@ import zarr
 from reconstruct.camera import CameraModel
 from reconstruct.lensch import SvbrdfOptions
 from reconstruct.lumitexels import (AssemblyGeometry, LumitexelError, Lumitexels, ViewHits, assembly_geometry,
-                                    best_views, object_frame_camera, object_frame_point, view_hits,
-                                    view_samples, view_texels)
+                                    best_views, footprint_normal_spread, object_frame_camera,
+                                    object_frame_point, view_hits, view_samples, view_texels)
 
 from .chunks import ChunkGroup, arrays_folder, mark_done
 from .cluster import Executor
@@ -304,7 +304,10 @@ class LumitexelArrays:
                 kw[name] = np.concatenate([getattr(b.lumitexels, name)[b.held == select_held] for b in parts])
             kw["texel"] = np.concatenate([b.lumitexels.texel[b.held == select_held] + b.first_texel for b in parts])
             return Lumitexels(**kw)
-        return join(False), join(True)
+        train, held = join(False), join(True)
+        # a texel's spread compares it with its pixel neighbours, which other blocks may hold
+        train.footprint_spread_deg = held.footprint_spread_deg = footprint_normal_spread(train)
+        return train, held
 
 
 @dataclass(frozen=True)

@@ -126,7 +126,8 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
         fit = fit_svbrdf_blocks(route.blocks, opt, normals=train.normal, rng=rng, progress=progress,
                                 map_blocks=route.map_blocks)
 
-    flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight))}
+    flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight)),
+             "mixed_footprint": int(np.sum(fit.mixed_footprint))}
     arrays = {"labels": np.asarray(fit.labels), "weights": np.asarray(fit.weights, np.float32)}
     if fit.normals is not None:
         arrays["normals"] = np.asarray(fit.normals, np.float32)

@@ -41,7 +41,7 @@ import trimesh
 from calibration.polarization import separate_parallel_crossed
 from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
-from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels
+from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels, footprint_normal_spread
 from reconstruct.raycast import Mesh, Surface, first_hits
 from rig import LightTarget
 
@@ -538,7 +538,10 @@ def split_samples(lt: Lumitexels, held: np.ndarray) -> tuple[Lumitexels, Lumitex
     keep = np.flatnonzero(np.bincount(lt.texel[~held], minlength=lt.n_texels) > 0)
     sub = lt.subset(keep)
     h = held[np.isin(lt.texel, keep)]  # subset keeps the samples' order
-    return select_samples(sub, ~h), select_samples(sub, h)
+    train, held_out = select_samples(sub, ~h), select_samples(sub, h)
+    # the footprint spread from the training samples alone, the same for both sets' texels
+    train.footprint_spread_deg = held_out.footprint_spread_deg = footprint_normal_spread(train)
+    return train, held_out
 
 
 def select_samples(lt: Lumitexels, mask: np.ndarray) -> Lumitexels:
@@ -546,4 +549,4 @@ def select_samples(lt: Lumitexels, mask: np.ndarray) -> Lumitexels:
     per_sample = {f: (None if getattr(lt, f) is None else getattr(lt, f)[mask])
                   for f in ("texel", "view", "wi", "wo", "reflectance", "weight", "diffuse", "specular")}
     return Lumitexels(position=lt.position, normal=lt.normal, best_view=lt.best_view, pixel=lt.pixel,
-                      **per_sample)
+                      footprint_spread_deg=lt.footprint_spread_deg, **per_sample)

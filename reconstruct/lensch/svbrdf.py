@@ -68,6 +68,10 @@ class SvbrdfFit:
         extrapolated from the cluster, not measured (Sec. 11).
     n_samples : ndarray (T,) int
         Samples per texel.
+    mixed_footprint : ndarray (T,) bool
+        Texels whose normal turns by more than ``max_footprint_spread_deg`` across their pixel
+        footprint: left out of material discovery and the materials' fits, then labelled,
+        projected and given a normal like the rest (all False when no spread was given).
     history : tuple of str
         The clustering's split decisions, then any normal-fitting round that was undone.
     discovery_texels : int
@@ -87,6 +91,7 @@ class SvbrdfFit:
     too_few_samples: np.ndarray
     no_highlight: np.ndarray
     n_samples: np.ndarray
+    mixed_footprint: np.ndarray
     history: tuple = field(default=())
     discovery_texels: int = 0
 
@@ -145,7 +150,8 @@ class SvbrdfFit:
                 f"{self.weights.shape[1]} basis slots (materials found on {self.discovery_texels} of "
                 f"{len(self.labels)} texels)\n  RMS (1/sr): {cols}\n  relative RMS: {rel}\n"
                 f"  flagged: {int(self.too_few_samples.sum())} with too few samples, "
-                f"{int(self.no_highlight.sum())} without a highlight")
+                f"{int(self.no_highlight.sum())} without a highlight, "
+                f"{int(self.mixed_footprint.sum())} whose footprint mixes normals (not in material discovery)")
 
 
 def _check_texel(texel, S, normals):
@@ -165,6 +171,16 @@ def _check_texel(texel, S, normals):
             raise SvbrdfError("normals must be finite unit vectors")
         T = len(nr)
     return tx.astype(np.int64), T
+
+
+def _mixed_footprint(spread, T: int, limit: float) -> np.ndarray:
+    """Texels whose footprint ``spread`` (T,) degrees exceeds ``limit``, (T,) bool (NaN: not)."""
+    if spread is None:
+        return np.zeros(T, bool)
+    sp = np.asarray(spread, dtype=np.float64)
+    if sp.shape != (T,):
+        raise SvbrdfError(f"footprint_spread must have shape ({T},) (one per texel), got {sp.shape}")
+    return np.nan_to_num(sp, nan=0.0) > limit
 
 
 def _highlight_score(t, z, texel, T):
@@ -197,7 +213,7 @@ def _no_highlight(t, z, wi, w, texel, T, labels, mats):
 
 
 def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None, *, normals=None,
-               weight=None, rng=0, progress=None, **settings) -> SvbrdfFit:
+               weight=None, footprint_spread=None, rng=0, progress=None, **settings) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
     Parameters
@@ -215,6 +231,10 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
         The texels' (mesh) normals, any frame; fitted normals are returned in that frame.
     weight : array_like (S,), optional
         Sample weights (default 1).
+    footprint_spread : array_like (T,), optional
+        How much each texel's normal turns across its pixel footprint, degrees (NaN: unknown,
+        kept); above ``max_footprint_spread_deg`` a texel takes no part in material discovery
+        (:func:`reconstruct.lumitexels.footprint_normal_spread`).
     rng : int or numpy.random.Generator
         Seed for texel selection and the held-out halves.
     progress : callable, optional
@@ -232,11 +252,11 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
     wi, wo, r, w = check_samples(wi, wo, reflectance, weight, error=SvbrdfError)
     tx, T = _check_texel(texel, len(wi), normals)
     return fit_svbrdf_blocks(ArrayBlocks(tx, wi, wo, r, w, n_texels=T, block_texels=opt.chunk_texels), opt,
-                             normals=normals, rng=rng, progress=progress)
+                             normals=normals, footprint_spread=footprint_spread, rng=rng, progress=progress)
 
 
-def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None, *, normals=None, rng=0,
-                      progress=None, map_blocks=None, **settings) -> SvbrdfFit:
+def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None, *, normals=None,
+                      footprint_spread=None, rng=0, progress=None, map_blocks=None, **settings) -> SvbrdfFit:
     """:func:`fit_svbrdf` over texel blocks: the global steps on a bounded subsample, the
     per-texel steps one block at a time.
 
@@ -254,7 +274,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     ----------
     blocks : TexelBlocks
         The samples (validated: unit directions above the surface, finite values), in blocks.
-    options, normals, rng, progress, settings
+    options, normals, footprint_spread, rng, progress, settings
         As :func:`fit_svbrdf`'s.
     map_blocks : callable(fn, list of argument tuples) -> list, optional
         Runs the per-block tasks (module-level functions of ``blocks``, a block index and the
@@ -263,6 +283,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     """
     opt = (options or SvbrdfOptions()).but(**settings)
     T = blocks.n_texels
+    mixed = _mixed_footprint(footprint_spread, T, opt.max_footprint_spread_deg)
     P = 1 + 3 * opt.n_lobes
     run = map_blocks or _serial
     nb = range(len(blocks.ranges))
@@ -298,7 +319,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
 
     # Sec. 7.1: clustering texels, favouring those likely to show a highlight
     counts_d = counts[disc]
-    usable = np.flatnonzero(counts_d >= opt.min_samples)
+    usable = np.flatnonzero((counts_d >= opt.min_samples) & ~mixed[disc])
     if len(usable) < 2:
         usable = np.flatnonzero(counts_d > 0)
     score_d = score[disc][usable]
@@ -314,7 +335,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     # Eq. 10 for the discovered texels, then each cluster's BRDF refit on (up to fit_texels of) them
     mats = np.stack([f.channel_params for f in clus.fits])
     labels_d, errors_d = _label(data, mats)
-    fits = _refit(data, mats, labels_d, opt, rng, max_albedo, texels=_confident(errors_d))
+    fits = _refit(data, mats, labels_d, opt, rng, max_albedo, texels=_confident(errors_d) & ~mixed[disc])
     mats = np.stack([f.channel_params for f in fits])
     # ... and for every texel, block by block, with the RMS of one and of the clusters' BRDFs
     parts = run(_block_labels, [(blocks, i, mats, clus.single.channel_params[None], _within(disc, blocks.ranges[i]))
@@ -358,16 +379,19 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             floor = None
             if opt.robust_samples:   # the median over all texels of their median residual
                 floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
-            tilt = np.concatenate(run(_block_normals, [(blocks, i, *model[i], floor, opt.min_samples) for i in nb])) \
+            tilt = np.concatenate(run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread,
+                                                        opt.brightest_dropped, opt.min_samples) for i in nb])) \
                 if T else np.zeros((0, 3))   # relative to the current normals
             w_fit_d = data.w if floor is None else data.w * _inliers(
-                data.chunk(slice(0, data.n_texels)), labels[disc], weights[disc], basis, size, floor)
+                data.chunk(slice(0, data.n_texels)), labels[disc], weights[disc], basis, size, floor, opt.robust_spread)
+            if opt.brightest_dropped > 0:
+                w_fit_d = w_fit_d * _below_brightest(data.tx, data.r, opt.brightest_dropped)
             normals_local = seen_in = normalize(to_world(tilt, tangent_frames(normals_local)))
             tick()
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             data, visible = _sorted(found, normals_local[disc], opt.chunk_texels)
             fits = _refit(dataclasses.replace(data, w=w_fit_d), mats, labels[disc], opt, rng, max_albedo,
-                          keep=visible, texels=_confident(errors_d))
+                          keep=visible, texels=_confident(errors_d) & ~mixed[disc])
             mats = np.stack([f.channel_params for f in fits])
             basis, size = make_bases(mats, similar)
             if opt.pfa:
@@ -394,14 +418,15 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         basis=tuple(tuple(model_of(basis[k, b]) for b in range(size[k])) for k in range(len(mats))),
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
         relative_rms=rel, too_few_samples=counts < opt.min_samples, no_highlight=no_highlight,
-        n_samples=counts, history=(*clus.history, *undone), discovery_texels=len(disc))
+        n_samples=counts, mixed_footprint=mixed, history=(*clus.history, *undone), discovery_texels=len(disc))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
-    """:func:`fit_svbrdf` on a :class:`reconstruct.lumitexels.Lumitexels` (its sample weights and
-    normals are used; fitted normals come back in the object frame)."""
+    """:func:`fit_svbrdf` on a :class:`reconstruct.lumitexels.Lumitexels` (its sample weights,
+    normals and footprint spreads are used; fitted normals come back in the object frame)."""
     kw.setdefault("normals", lt.normal)
     kw.setdefault("weight", lt.weight)
+    kw.setdefault("footprint_spread", lt.footprint_spread_deg)
     return fit_svbrdf(lt.texel, lt.wi, lt.wo, lt.reflectance, options, **kw)
 
 
@@ -559,12 +584,16 @@ def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, l
     return med[counts > 0]
 
 
-def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, min_samples):
+def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, spread,
+                   brightest, min_samples):
     """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
-    on the samples :func:`_inliers` keeps when ``floor`` is given."""
+    on the samples :func:`_inliers` keeps when ``floor`` is given, less each texel's
+    ``brightest`` share (:func:`_below_brightest`)."""
     b = blocks.read(i)
     wi, wo, ch, _ = _in_frames(b, normals)
-    w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor)
+    w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor, spread)
+    if brightest > 0:
+        w = w * _below_brightest(b.texel, b.reflectance, brightest)
     return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples)[0]
 
 
@@ -614,13 +643,25 @@ def _residual_errors(ch, labels, weights, basis, size):
     return e, np.linalg.norm(pred, axis=1), med, counts
 
 
-def _inliers(ch, labels, weights, basis, size, floor: float, spread: float = 3.0) -> np.ndarray:
+def _inliers(ch, labels, weights, basis, size, floor: float, spread: float) -> np.ndarray:
     """Samples the per-texel BRDFs explain, (S,) bool: |r - f cos| (RGB norm) within ``spread``
     robust standard deviations (1.4826 x median) of its texel's residuals, floored at
     ``floor`` (the median texel's over all blocks), plus 5 % of the prediction."""
     e, pred, med, _ = _residual_errors(ch, labels, weights, basis, size)
     sigma = 1.4826 * np.maximum(med, floor)
     return e <= spread * sigma[ch[0]] + 0.05 * pred
+
+
+def _below_brightest(texel, reflectance, share: float) -> np.ndarray:
+    """Samples outside each texel's brightest ``share`` (by channel-summed reflectance, rank
+    within the texel), (S,) bool."""
+    r = reflectance.sum(axis=1)
+    order = np.lexsort((r, texel))   # by texel, then brightness
+    counts = np.bincount(texel)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.empty(len(r), np.int64)
+    rank[order] = np.arange(len(r)) - starts[texel[order]]
+    return rank < np.ceil((1.0 - share) * counts)[texel]
 
 
 def _most_similar(sums):

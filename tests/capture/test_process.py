@@ -575,7 +575,7 @@ def _assert_same(a, b):
             u, v = getattr(x, f.name), getattr(y, f.name)
             assert (u is None) == (v is None), f.name
             if u is not None:
-                assert u.dtype == v.dtype and np.array_equal(u, v), f.name
+                assert u.dtype == v.dtype and np.array_equal(u, v, equal_nan=u.dtype.kind == "f"), f.name
 
 
 def _stream(captured, inputs, workers=0, block=700):

@@ -8,9 +8,14 @@ import numpy as np
 import pytest
 
 from reconstruct.lensch import fit_svbrdf_lumitexels
-from reconstruct.lumitexels import assemble_lumitexels
+from reconstruct.lumitexels import assemble_lumitexels, footprint_normal_spread
 from sims.objects import BUMPY_MATERIALS, make_object
 from sims.reflectance_samples import turntable_capture
+
+
+#: Footprint spread (deg) above which texels are kept out of material discovery here (the
+#: option's default is off: see SvbrdfOptions.max_footprint_spread_deg).
+FLAG_DEG = 6.0
 
 
 def _angle(a, b):
@@ -24,33 +29,78 @@ def bumpy_fit():
     lt = assemble_lumitexels(obj.fitter_mesh, views + held)
     held_out = lt.view >= len(views)
     lt.weight = np.where(held_out, 0.0, 1.0).astype(np.float32)  # held-out samples: no weight
-    fit = fit_svbrdf_lumitexels(lt, fit_normals=True, normal_rounds=1, max_materials=5, rng=0)
+    lt.footprint_spread_deg = footprint_normal_spread(lt)        # from the training samples
+    fit = fit_svbrdf_lumitexels(lt, fit_normals=True, normal_rounds=1, max_materials=5, rng=0,
+                                max_footprint_spread_deg=FLAG_DEG)
     return obj, lt, held_out, fit
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 24, open: texels whose footprint mixes the bumps' normals are not flagged. The blue "
-    "material (N = 70) shows lobes broadened to N ~ 30-45 by the bumps, more where they are "
-    "denser; since the material count judges splits with per-texel scales fitted on all of a "
-    "texel's samples (which keeps the paper's materials 6 exponents apart) that spread passes "
-    "as two materials (N 35 / 44, held-out gains 0.08, as the paper's closest true pair): "
-    "1,354 of its 3,011 texels in the main cluster, 45 % < 60 %. Before, the count split it "
-    "too (N 46 / 27) but kept 70 % in one cluster."))
-def test_every_material_is_found(bumpy_fit):
-    """Each true material's texels go mostly to one cluster whose BRDF is close to the truth."""
+def _main_clusters(fit, truth):
+    """Per true material: its main cluster and the share of its texels there."""
+    out = []
+    for k in range(len(BUMPY_MATERIALS)):
+        counts = np.bincount(fit.labels[truth == k], minlength=fit.n_materials)
+        out.append((int(counts.argmax()), counts.max() / counts.sum()))
+    return out
+
+
+def test_each_material_goes_mostly_to_one_cluster_of_its_colour(bumpy_fit):
+    """With texels whose footprint spread exceeds FLAG_DEG kept out of material discovery, each
+    true material's texels go mostly (> 60 %) to one cluster with its diffuse colour. On this
+    capture, without the flag, blue's main cluster held 45 % of its texels (with it 73 %); on
+    another (capture and bumps of seed 1) 83-84 % either way."""
     obj, lt, _, fit = bumpy_fit
     truth = obj.material_at(lt.position)
     assert 3 <= fit.n_materials <= 5
-    for k, true in enumerate(BUMPY_MATERIALS):
-        labels = fit.labels[truth == k]
-        main = np.bincount(labels, minlength=fit.n_materials).argmax()
-        assert np.mean(labels == main) > 0.6
-        m = fit.materials[main]
-        np.testing.assert_allclose(m.rho_d, np.broadcast_to(true.rho_d, (3,)), rtol=0.1, atol=0.02)
+    assert 0.03 < fit.mixed_footprint.mean() < 0.25   # flagged: the relief's steep parts only
+    for (main, share), true in zip(_main_clusters(fit, truth), BUMPY_MATERIALS):
+        assert share > 0.6
+        np.testing.assert_allclose(fit.materials[main].rho_d, np.broadcast_to(true.rho_d, (3,)),
+                                   rtol=0.1, atol=0.02)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "issue 24, open: 5 materials, not 3. The two extra clusters (~270 texels each, bluish, z 48-69 "
+    "mm) are the blue texels that saw a highlight: with this camera and these lights the "
+    "highlights fall in a band (half-vector ~26 deg up, z ~58 mm) that the engraved ring "
+    "(z 55 mm) crosses, so the specular evidence comes from texels whose mesh normals are "
+    "4-7 deg off (86 % of the main blue cluster never saw a highlight). Leaving texels out by "
+    "the footprint spread, by the true neighbour spread or by the true tilt (all tried) does "
+    "not remove them. The blue main cluster's N is ~45 (70 true): the 2 x 2-pixel bilinear "
+    "footprint spans ~4 deg of the smooth sphere's normals alone, twice that in the mirror "
+    "direction, about the lobe's half width."))
+def test_exactly_the_three_materials_with_their_lobes(bumpy_fit):
+    obj, lt, _, fit = bumpy_fit
+    truth = obj.material_at(lt.position)
+    assert fit.n_materials == 3
+    for (main, _), true in zip(_main_clusters(fit, truth), BUMPY_MATERIALS):
         # exponents: a texel 3-4 x wider than the bumps averages tilted normals, which widens
         # the lobe the data show (sharpest material, N = 70, is hit most)
-        np.testing.assert_allclose(np.asarray(m.n)[0], np.broadcast_to(np.asarray(true.n)[0], (3,)),
-                                   rtol=0.35)
+        np.testing.assert_allclose(np.asarray(fit.materials[main].n)[0],
+                                   np.broadcast_to(np.asarray(true.n)[0], (3,)), rtol=0.35)
+
+
+def test_footprint_spread_follows_the_relief_and_stays_low_on_a_smooth_sphere(bumpy_fit):
+    """The photometric footprint spread against the truth: on the bumpy object the texels it
+    flags are where the true normal turns most between pixel neighbours; on the smooth sphere
+    (same camera, lights and noise; its curvature turns the normal ~2 deg a pixel) almost none
+    is flagged."""
+    obj, lt, _, fit = bumpy_fit
+    true_n = obj.normal_at(lt.position)
+    px = np.rint(lt.pixel).astype(int)
+    where = {(int(v), int(x), int(y)): i for i, (v, (x, y)) in enumerate(zip(lt.best_view, px))}
+    true_turn = np.full(lt.n_texels, np.nan)
+    for i, (v, (x, y)) in enumerate(zip(lt.best_view, px)):   # the reference, plainly
+        nb = [where.get((int(v), x + dx, y + dy)) for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+        ang = [_angle(true_n[i:i + 1], true_n[j:j + 1])[0] for j in nb if j is not None]
+        if ang:
+            true_turn[i] = np.median(ang)
+    flagged = fit.mixed_footprint
+    assert np.nanmean(true_turn[flagged]) > 1.5 * np.nanmean(true_turn[~flagged])
+    sphere = make_object("sphere")
+    views, _ = turntable_capture(sphere, width=80, rng=1)
+    spread = footprint_normal_spread(assemble_lumitexels(sphere.parts[0].surface, views))
+    assert np.mean(spread > FLAG_DEG) < 0.05
 
 
 def test_table2_columns_decrease_and_held_out_views_are_predicted(bumpy_fit):

@@ -9,6 +9,7 @@ import pytest
 from reconstruct.brdf import Lafortune
 from reconstruct.frames import tangent_frames, to_local
 from reconstruct.lensch import SvbrdfError, SvbrdfOptions, fit_svbrdf
+from reconstruct.lensch.svbrdf import _below_brightest
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.projection import cluster_errors
 from sims.reflectance_samples import fit_true_assignment, paper_phong_materials, synthetic_samples
@@ -238,6 +239,30 @@ def test_bad_input_names_the_argument():
         fit_svbrdf(*args, SvbrdfOptions(), noise="gaussian")
     with pytest.raises(SvbrdfError, match="unknown fit_svbrdf setting.*n_lobe\\b"):
         fit_svbrdf(*args, n_lobe=2)
+    with pytest.raises(SvbrdfError, match=r"footprint_spread must have shape \(50,\)"):
+        fit_svbrdf(*args, footprint_spread=np.zeros(49))
+    with pytest.raises(SvbrdfError, match="max_footprint_spread_deg must be > 0 degrees, got nan"):
+        SvbrdfOptions(max_footprint_spread_deg=float("nan"))
+    with pytest.raises(SvbrdfError, match=r"brightest_dropped must be a share in \[0, 1\), got 1.0"):
+        SvbrdfOptions(brightest_dropped=1.0)
+    with pytest.raises(SvbrdfError, match="robust_spread must be > 0, got 0"):
+        SvbrdfOptions(robust_spread=0)
+
+
+def test_brightest_dropped_ranks_within_each_texel():
+    """Each texel keeps its darkest ceil((1 - share) n) samples by channel sum, whatever the
+    other texels' brightness (checked against a plain per-texel sort)."""
+    rng = np.random.default_rng(0)
+    counts = np.array([1, 5, 10, 7])
+    tx = np.repeat(np.arange(4), counts)
+    r = rng.uniform(0, 1, (len(tx), 3)) * np.array([1, 10, 0.1, 3])[tx, None]
+    shuffled = rng.permutation(len(tx))   # a block's samples need not be sorted by texel
+    keep = np.empty(len(tx), bool)
+    keep[shuffled] = _below_brightest(tx[shuffled], r[shuffled], 0.3)
+    for i, n in enumerate(counts):
+        own = r[tx == i].sum(axis=1)
+        expect = own < np.sort(own)[int(np.ceil(0.7 * n))] if np.ceil(0.7 * n) < n else np.ones(n, bool)
+        np.testing.assert_array_equal(keep[tx == i], expect)
 
 
 def test_options_object_and_keywords_give_the_same_fit():
