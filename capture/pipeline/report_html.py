@@ -32,7 +32,7 @@ from .passive_sample import SAMPLE_FIGURES
 from .pictures import SLICE_THETA_I_DEG
 from .plan_table import plan_rows
 
-__all__ = ["write_html_report", "METHOD_NOTES", "ExportLink", "export_links", "link_export",
+__all__ = ["write_html_report", "METHOD_NOTES", "summary_note", "ExportLink", "export_links", "link_export",
            "check_session_report", "comparison_figure", "html_table", "img_tag", "png_uri", "tonemap", "CSS"]
 
 #: what each method is, in one paragraph a newcomer can read
@@ -274,10 +274,12 @@ def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str
             if k not in ("table_ii_rms", "poorly_observed", "unconstrained", *SAMPLE_FIGURES)]
     if "image_of" in figures:
         parts.append(_sample_sphere_part(figures, pics or {}))
-    parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
-                 "the captures under lights it never saw (<b>_trimmed</b>: without the 1 % worst samples, which "
-                 "carry most of a glossy object's pooled error); <b>truth_rel_rms</b>: the same against the "
-                 "true reflectance (simulation only).</p>" + html_table(rows))
+    if "held_out_rel_rms" in figures:
+        parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
+                     "the captures under lights it never saw (<b>_trimmed</b>: without the 1 % worst samples, "
+                     "which carry most of a glossy object's pooled error); <b>truth_rel_rms</b>: the same against "
+                     "the true reflectance (simulation only).</p>")
+    parts.append(html_table(rows))
     if figures.get("table_ii_rms"):
         parts.append("<p>Lensch Table II: the RMS fitting error after each stage (single average BRDF, "
                      "per cluster, projection, PFA, normal fitting) — it should fall from left to right.</p>"
@@ -324,8 +326,11 @@ def _sample_sphere_part(figures: dict[str, Any], pics: dict[str, np.ndarray]) ->
              "sphere, within its assumption (one material, a known curved shape), so its result is that "
              "material's reflectance and is scored against it, not on the object's held-out lights. The "
              "BRDF error compares the recovered reflectance function with the true one over every pair of "
-             "directions (0 is perfect; a matte guess shows what ignoring the highlight costs).</p>"
-             + html_table(rows)]
+             "directions (0 is perfect; a matte guess shows what ignoring the highlight costs). The floor is "
+             "the true reflectance rendered under the room's light as the mirror ball measured it: where it is "
+             "far from the photograph, that measured light cannot explain the sphere even with the true "
+             "material, and the figures against the truth measure the light probe rather than the "
+             "method.</p>" + html_table(rows)]
     if "sample_captured" in pics:
         cap, rec = pics["sample_captured"], pics["sample_recovered"]
         panels = [("photographed under the room's light", cap), ("recovered BRDF, rendered", rec)]
@@ -366,7 +371,7 @@ def _adequacy_table(figures: dict[str, Any]) -> str:
             + html_table(rows))
 
 
-def _summary_note(m, figures: dict[str, Any]) -> str:
+def summary_note(m, figures: dict[str, Any]) -> str:
     """A method's note in the summary: outside its assumption, or scored on the sample sphere."""
     if m.outside_assumption:
         return f"outside its assumption: {m.outside_assumption}"
@@ -391,7 +396,7 @@ def _summary(rep, figures, with_truth: bool, imported: bool = False) -> str:
              **({"× floor": ratio(m)} if rep.floor is not None else {}),
              **({"vs truth rel. RMS": figures(m).get("truth_rel_rms", float("nan"))} if with_truth else {}),
              **({"normal error (°)": figures(m).get("normal_error_deg", "–")} if imported else {}),
-             "note": _summary_note(m, figures(m))}
+             "note": summary_note(m, figures(m))}
             for m in rep.methods]
     if rep.floor is not None:
         note = (f"<p><b>The floor</b>: the simulation's true reflectance, scored exactly as the methods are "
