@@ -56,7 +56,8 @@ from .stage_records import (DarkRecord, EnvironmentRecord, GrayCardRecord, Intri
                             PositionerRecord, RecordFormatError, StageRecord, TurntableRecord, read_record)
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
-           "PassiveInput", "SampleSphereGeometry", "sample_sphere_of", "sphere_passive_input", "ProcessInputs", "read_calibration", "session_images", "session_inputs",
+           "PassiveInput", "SampleSphereGeometry", "sample_sphere_of", "sphere_passive_input", "ProcessInputs",
+           "read_calibration", "session_images", "session_inputs",
            "PoseSpec", "ViewPlan", "view_plan", "pose_view", "merge_pose", "plan_inputs",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose"]
 
@@ -256,7 +257,7 @@ class SampleSphereGeometry:
 
     The centre is the lab's fixture pose, not found in the image: the probe's circle detection
     (:func:`calibration.spheres.find_mirror_sphere`) locks onto the room's edges behind a glossy
-    sample (on the demo's 320 x 240 image it found a circle 110 px from the ball), and the stand
+    sample (on the demo's 320 x 240 image it found a circle 105 px from the ball), and the stand
     at the platter's centre is as well known as the lab frame the turntable calibration gives."""
 
     radius_mm: float

@@ -163,7 +163,8 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     passive = text.split("<h3>4. passive</h3>")[1]
     # the sample sphere's part: its figures against the truth, the sphere photographed, recovered
     # and true, and under a room the method never saw
-    assert "On the sample sphere" in passive and f"<td>{f['eq1_error']:.4g}</td>" in passive
+    eq1 = methods["passive"]["figures"]["eq1_error"]
+    assert "On the sample sphere" in passive and f"<td>{eq1:.4g}</td>" in passive
     assert "sample sphere: photograph, recovered and true" in passive
     assert "sample sphere under a held-out environment" in passive
     poor = methods["passive"]["figures"]["poorly_observed"]
