@@ -68,6 +68,11 @@ class LabTargets:
     #: cv2.CALIB_* flags for the intrinsics fit; with k3 free the fit fixes it at 0 when the
     #: views do not determine it (a turntable-only board sweep covers only the image centre)
     intrinsics_flags: int = 0
+    #: the homogeneous sample sphere of a ``passive_sphere`` capture: its radius (calipers) and
+    #: its centre on its stand, lab frame, mm (both or neither; None: passive reflectometry runs
+    #: on the object's ``passive`` capture, if any)
+    sample_sphere_radius_mm: float | None = None
+    sample_sphere_centre_mm: tuple[float, float, float] | None = None
 
     def has_board(self, kind: str) -> bool:
         """Whether the ``'chessboard'`` or ``'charuco'`` board is described."""
@@ -113,6 +118,25 @@ class LabTargets:
             centres = tuple(tuple(float(v) for v in row) for row in arr)
         # frozen: normalise TOML lists (and an empty list: no positions) in place
         object.__setattr__(self, "sphere_centres_mm", centres if centres else None)
+        self._check_sample_sphere()
+
+    def _check_sample_sphere(self) -> None:
+        r, c = self.sample_sphere_radius_mm, self.sample_sphere_centre_mm
+        if (r is None) != (c is None):
+            raise ValueError("LabTargets: the sample sphere needs both sample_sphere_radius_mm and "
+                             "sample_sphere_centre_mm (or neither)")
+        if r is None:
+            return
+        if not (isinstance(r, (int, float)) and np.isfinite(r) and r > 0):
+            raise ValueError(f"LabTargets.sample_sphere_radius_mm must be > 0 mm, got {r!r}")
+        try:
+            arr = np.asarray(c, dtype=float)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"LabTargets.sample_sphere_centre_mm must be a finite [x, y, z] (lab frame, mm), "
+                             f"got {c!r}")
+        object.__setattr__(self, "sample_sphere_centre_mm", tuple(float(v) for v in arr))
 
 
 @dataclass(frozen=True)

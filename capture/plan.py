@@ -29,7 +29,7 @@ A plan is a TOML file (or :class:`Plan` built in Python)::
 
     [[calibration]]                 # named calibration captures
     kind = "dark"                   # dark | checkerboard | handheld_board | spheres | gray_card
-    frames = 5                      # | mirror_probe | passive
+    frames = 5                      # | mirror_probe | passive | passive_sphere
 
     [[calibration]]
     kind = "handheld_board"         # the board held in front of the camera, a new pose per view
@@ -75,6 +75,7 @@ SCENE_TARGETS = {
     "gray_card": "put the gray card on the turntable",
     "mirror_probe": "put the mirror sphere on the turntable",
     "passive": "put the object on the turntable, lamp off, room lit",
+    "passive_sphere": "put the sample sphere on its stand at the turntable's centre, lamp off, room lit",
 }
 
 CALIBRATION_KINDS = {
@@ -89,6 +90,9 @@ CALIBRATION_KINDS = {
     "mirror_probe": (1, "none"),
     # the object lit by the room alone (lamp off): passive reflectometry's input
     "passive": (1, "none"),
+    # a homogeneous sphere of the sample material lit by the room alone: passive reflectometry
+    # within its assumption (one material, a known curved shape)
+    "passive_sphere": (1, "none"),
 }
 
 #: hand-held board views a plan takes when it names no count, and the fewest it accepts
@@ -218,7 +222,7 @@ class Calibration:
     ----------
     kind : str
         One of ``dark``, ``checkerboard``, ``handheld_board``, ``spheres``, ``gray_card``,
-        ``mirror_probe``, ``passive``.
+        ``mirror_probe``, ``passive``, ``passive_sphere``.
     frames : int or None
         Captures per pose (None: the kind's default; dark frames default to 5).
     exposure_s : float, tuple of float or None

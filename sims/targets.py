@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from reconstruct.brdf import BRDF, Lambertian
+from reconstruct.brdf import BRDF, CookTorrance, Lambertian
 from reconstruct.envmap import EnvironmentMap
 from reconstruct.raycast import Plane, Sphere
 from reconstruct.render import Mirror, SceneObject
@@ -352,6 +352,32 @@ class CalibrationSphere:
 
     def scene_object(self, center_mm, name: str | None = None) -> SceneObject:
         return SceneObject(self.surface(center_mm), self.material(), name or f"{self.kind}_sphere")
+
+
+#: the sample sphere's material: a glossy dielectric (red-brown plastic) with a visible lobe,
+#: GGX roughness 0.12 over a coloured body (Cook-Torrance, Schlick f0 = 0.04)
+SAMPLE_MATERIAL = CookTorrance(kd=(0.30, 0.12, 0.06), f0=0.04, alpha=0.12)
+
+
+@dataclass(frozen=True)
+class SampleSphere:
+    """A homogeneous sphere of known ``radius_mm`` made of one ``material`` (a BRDF): the
+    curved, homogeneous sample passive reflectometry needs (Romeiro et al. 2008 Sec. 3)."""
+
+    radius_mm: float = 30.0
+    material: BRDF = SAMPLE_MATERIAL
+
+    def __post_init__(self) -> None:
+        if not self.radius_mm > 0:
+            raise ValueError(f"SampleSphere.radius_mm must be > 0, got {self.radius_mm!r}")
+        if not isinstance(self.material, BRDF):
+            raise TypeError(f"SampleSphere.material must be a reconstruct BRDF, got {type(self.material).__name__}")
+
+    def scene_object(self, center_mm, name: str = "sample_sphere") -> SceneObject:
+        c = np.asarray(center_mm, dtype=np.float64)
+        if c.shape != (3,):
+            raise ValueError(f"center_mm must be a 3-vector (world, mm), got shape {c.shape}")
+        return SceneObject(Sphere(self.radius_mm, c), self.material, name)
 
 
 @dataclass(frozen=True)

@@ -32,8 +32,8 @@ from reconstruct.brdf import Lambertian
 from .handheld import handheld_board_pose, handheld_view
 from .objects import GroundTruthObject, make_object, turntable_pose
 from .sensor import ExpectedRaw, SensorModel
-from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, PrintedBoard, environment,
-                      SphereRow)
+from .targets import (CalibrationSphere, Checkerboard, CharucoTarget, GrayCard, PrintedBoard, SampleSphere,
+                      environment, SphereRow)
 
 #: Radiant intensity of the rig's lamp (renderer units per sr), RGB (a slightly warm white).
 LIGHT_INTENSITY = (8.0e5, 7.5e5, 6.8e5)
@@ -47,9 +47,15 @@ ARM_RADIUS_MM = 500.0
 ARM_CENTER_MM = (0.0, 0.0, 0.0)
 #: Scene kinds :meth:`SimWorld.for_capture` knows.
 #: the scenes the simulated camera can show; the plan's scene targets (capture.plan.SCENE_TARGETS)
-#: under the same names, and simulator-only ones (charuco, chrome, passive, flat)
+#: under the same names, and simulator-only ones (charuco, chrome, flat)
 CAPTURE_KINDS = ("object", "checkerboard", "handheld_board", "charuco", "chrome", "spheres", "gray_card",
-                 "mirror_probe", "passive", "dark", "flat")
+                 "mirror_probe", "passive", "passive_sphere", "dark", "flat")
+#: the scenes lit by the room alone (Grace Cathedral), lamp off, no cloth under them
+ROOM_LIT_KINDS = ("mirror_probe", "passive", "passive_sphere")
+#: where the sample sphere (:class:`sims.targets.SampleSphere`, 30 mm radius) sits: on a 25 mm
+#: stand at the platter's centre, its centre on the turntable axis (so no reading moves it), lab
+#: frame, mm
+SAMPLE_SPHERE_CENTRE_MM = (0.0, 0.0, 55.0)
 
 
 def light_position(azimuth_deg: float, elevation_deg: float, *, radius_mm: float = ARM_RADIUS_MM,
@@ -269,6 +275,14 @@ def sphere_target(kind: str = "chrome", *, radius_mm: float = 25.4,
     return Target(f"{kind}_sphere", lambda ang: [ball.scene_object(c)], lambda ang: c[None], False, ball)
 
 
+def sample_sphere_target(sphere: SampleSphere | None = None, *, center_mm=SAMPLE_SPHERE_CENTRE_MM) -> Target:
+    """The homogeneous sample sphere on its stand (default :class:`sims.targets.SampleSphere` at
+    :data:`SAMPLE_SPHERE_CENTRE_MM`), fixed in the world; its point is its centre."""
+    ball = SampleSphere() if sphere is None else sphere
+    c = np.asarray(center_mm, float)
+    return Target("sample_sphere", lambda ang: [ball.scene_object(c)], lambda ang: c[None], False, ball)
+
+
 def gray_card_target(*, tilt_deg: float = 25.0) -> Target:
     """The 18 % gray card standing on the turntable like a board; its points are its corners."""
     card = GrayCard()
@@ -355,11 +369,15 @@ class SimWorld:
         self.flat_radiance: float | None = None
         # what set_scene("object") puts back
         self._home = dict(object=self.object, environment=environment, light_intensity=light_intensity,
-                          supersample=self.supersample,
+                          supersample=self.supersample, env_samples=self.env_samples,
                           platter=self.platter, flash_lit=self.flash_lit)
 
     _SCENE_FIELDS = ("object", "targets", "environment", "light_intensity", "platter", "dark", "flat_radiance",
-                     "supersample", "flash_lit")
+                     "supersample", "flash_lit", "env_samples")
+    #: Monte-Carlo environment samples per pixel a capture kind needs: a glossy lobe under the
+    #: room sparkles at the default 32 (a 320 x 240 sample-sphere image left passive
+    #: reflectometry a 22-57 % residual and a 150 % Eq. 1 error; 256: 9-16 % and 30 %)
+    KIND_ENV_SAMPLES = {"passive_sphere": 256}
     #: pixel-area integration per capture kind: one ray per pixel aliases sharp print edges by
     #: ~0.25 px and the ~1 px lamp highlight on a small steel ball enough to move a triangulated
     #: light by ~2 % (3 x 3 brings it under 0.4 %, tests/calibration)
@@ -390,12 +408,14 @@ class SimWorld:
         :meth:`for_capture`; the names of a plan's scene targets), keeping the camera, sensor,
         lamp polarizer and noise stream. ``"object"`` puts this world's own object back."""
         keep = dict(camera=self.camera, sensor=self.sensor, light_radius_mm=self.light_radius_mm,
-                    light_polarizer_deg=self.light_polarizer_deg, env_samples=self.env_samples,
+                    light_polarizer_deg=self.light_polarizer_deg,
+                    env_samples=self.KIND_ENV_SAMPLES.get(kind, self._home["env_samples"]),
                     supersample=max(self._home["supersample"], self._kind_supersample(kind, self.camera)))
         home = dict(self._home)
         obj = home.pop("object")
         home.pop("supersample")
-        if kind in ("mirror_probe", "passive"):  # they bring their own lighting and no cloth
+        home.pop("env_samples")
+        if kind in ROOM_LIT_KINDS:  # they bring their own lighting and no cloth
             home = {"environment": home["environment"]} if home["environment"] is not None else {}
         if kind == "handheld_board":  # so does the held board (the ring flash, the air behind it)
             home = {k: v for k, v in home.items() if k not in ("platter", "flash_lit")}
@@ -430,13 +450,16 @@ class SimWorld:
         default, since one ray per pixel aliases the print's edges by ~0.25 px), ``"chrome"`` (one chrome sphere),
         ``"spheres"`` (Lensch's row of six steel spheres, beside the object), ``"gray_card"``,
         ``"mirror_probe"`` (a chrome sphere under the Grace Cathedral probe, no lamp), ``"passive"``
-        (the object under that probe, no lamp: passive reflectometry), ``"dark"`` (lens
+        (the object under that probe, no lamp: passive reflectometry), ``"passive_sphere"`` (the
+        homogeneous sample sphere under that probe, no lamp: :func:`sample_sphere_target`), ``"dark"`` (lens
         cap on: sensor dark frame), ``"flat"`` (a uniform white field)."""
         if kind not in CAPTURE_KINDS:
             raise ValueError(f"capture kind must be one of {CAPTURE_KINDS}, got {kind!r}")
         if kind == "object":
             return cls(object, **kwargs)
         kwargs.setdefault("supersample", cls._kind_supersample(kind, kwargs.get("camera")))
+        if kind in cls.KIND_ENV_SAMPLES:
+            kwargs.setdefault("env_samples", cls.KIND_ENV_SAMPLES[kind])
         if kind in ("checkerboard", "charuco"):
             return cls(None, targets=[board_on_turntable(CAPTURE_CHARUCO)], **kwargs)
         if kind == "handheld_board":  # held in the air: no cloth; the ring flash lights it
@@ -451,13 +474,15 @@ class SimWorld:
             return cls(object, targets=[spheres_target("steel")], **kwargs)
         if kind == "gray_card":
             return cls(None, targets=[gray_card_target()], **kwargs)
-        if kind in ("mirror_probe", "passive"):
+        if kind in ROOM_LIT_KINDS:
             if "environment" not in kwargs:
                 kwargs["environment"] = environment("grace")
             kwargs.setdefault("light_intensity", 0.0)
             kwargs.setdefault("platter", False)
             if kind == "passive":
                 return cls(object, **kwargs)
+            if kind == "passive_sphere":
+                return cls(None, targets=[sample_sphere_target()], **kwargs)
             return cls(None, targets=[sphere_target("chrome")], **kwargs)
         world = cls(None, **kwargs)
         if kind == "dark":
@@ -570,8 +595,8 @@ def capture_targets(spheres: Target | None = None) -> dict[str, Any]:
     geometry and the height of its corner grid's centre as it stands on the turntable, the
     light-calibration spheres' radius, mirror reflectance and centres at turntable reading 0
     (``spheres``: default the steel-ball row of :meth:`SimWorld.for_capture`'s ``spheres``
-    scene), the gray card's albedo. Keys are the field names of a calibration's target
-    description (``capture.lab.LabTargets``)."""
+    scene), the gray card's albedo, the sample sphere's radius (calipers) and its stand's centre.
+    Keys are the field names of a calibration's target description (``capture.lab.LabTargets``)."""
     charuco = board_on_turntable(CAPTURE_CHARUCO)
     balls = spheres_target("steel") if spheres is None else spheres
     return {"charuco_squares": CAPTURE_CHARUCO.squares, "charuco_square_mm": CAPTURE_CHARUCO.square_mm,
@@ -580,7 +605,9 @@ def capture_targets(spheres: Target | None = None) -> dict[str, Any]:
             "sphere_radius_mm": balls.spec.radius_mm,
             "sphere_reflectance": CalibrationSphere(balls.spec.radius_mm, balls.spec.kind).reflectance,
             "sphere_centres_mm": tuple(map(tuple, balls.points_world(0.0).tolist())),
-            "gray_card_albedo": gray_card_target().spec.albedo}
+            "gray_card_albedo": gray_card_target().spec.albedo,
+            "sample_sphere_radius_mm": sample_sphere_target().spec.radius_mm,
+            "sample_sphere_centre_mm": SAMPLE_SPHERE_CENTRE_MM}
 
 
 def camera_clock(state: Mapping[str, Any] | None) -> str:

@@ -60,6 +60,7 @@ def progress_bar(quiet: bool) -> tuple[Progress, Callable[[PipelineProgress], No
 
 def print_outcome(rep, console: Console) -> None:
     """The methods table and the report path."""
+    from ..pipeline.report_html import summary_note
     table = Table(title=f"reconstruction of session {escape(rep.session)}")
     for col in ("method", "status", "s", "held-out rel. RMS", "x floor", "vs truth", "note"):
         table.add_column(col, overflow="fold")
@@ -70,8 +71,7 @@ def print_outcome(rep, console: Console) -> None:
                       f"{f['held_out_rel_rms']:.3f}" if "held_out_rel_rms" in f else "",
                       f"{m.floor_ratio:.2f}" if m.floor_ratio is not None else "",
                       f"{f['truth_rel_rms']:.3f}" if "truth_rel_rms" in f else "",
-                      escape(f"outside its assumption: {m.outside_assumption}" if m.outside_assumption
-                             else m.reason or "; ".join(m.warnings)))
+                      escape(summary_note(m, f) or m.reason or "; ".join(m.warnings)))
     console.print(table)
     console.print(f"floor (the true model on the same held-out captures): {rep.floor.held_out_rel_rms:.3f}"
                   if rep.floor is not None else "floor: none (no ground truth; it exists for sessions "

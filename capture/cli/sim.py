@@ -28,7 +28,7 @@ app = typer.Typer(name="sim", help="Render the simulated lab: scenes, targets an
 
 #: sims.world.CAPTURE_KINDS, restated so that --help does not import the renderer (tests/sims/test_world.py)
 SCENES = ("object", "checkerboard", "handheld_board", "charuco", "chrome", "spheres", "gray_card", "mirror_probe",
-          "passive", "dark", "flat")
+          "passive", "passive_sphere", "dark", "flat")
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:

@@ -18,7 +18,12 @@ runner asked the operator to set up (``prepare_target``), all through one camera
                 (Lensch et al. 2003 Sec. 4.1)
 ``gray_card``   the 18 % card standing on the turntable
 ``mirror_probe``  a chrome ball under the Grace Cathedral probe, lamp off
-``passive``     the object under that probe, lamp off (passive reflectometry)
+``passive``     the object under that probe, lamp off (passive reflectometry outside its
+                assumption: the object has several materials)
+``passive_sphere``  the homogeneous sample sphere (:class:`sims.targets.SampleSphere`: 30 mm
+                radius, the glossy Cook-Torrance :data:`sims.targets.SAMPLE_MATERIAL`) on a
+                stand at the platter's centre under that probe, lamp off (passive
+                reflectometry within its assumption)
 ==============  ==============================================================================
 
 :meth:`DemoLab.targets` states these targets as the calibration reads them
@@ -38,14 +43,15 @@ import trimesh
 from calibration.raw import read_raw
 from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.camera import CameraModel
+from reconstruct.envmap import EnvironmentMap
 from reconstruct.raycast import Mesh, Plane
 from reconstruct.render import SceneObject
 from rig import LightTarget
 from sims.lab import LAB_NAME
 from sims.objects import MULTI_MATERIALS, OBJECTS, GroundTruthObject, make_object, region_ids
-from sims.targets import CHROME_REFLECTANCE, GrayCard
+from sims.targets import CHROME_REFLECTANCE, GrayCard, SampleSphere, environment
 from sims.world import (CAPTURE_CHARUCO, LIGHT_INTENSITY, SimWorld, Target, capture_targets, default_camera,
-                        light_position, spheres_target, standing_pose)
+                        light_position, sample_sphere_target, spheres_target, standing_pose)
 
 from ..lab import GrayCardPose, LabTargets, SessionLab
 
@@ -59,6 +65,10 @@ FULL_RESOLUTION = (640, 480)
 SPHERE_RADIUS_MM = 25.0
 #: the lamp's diffuser radius as the spheres see it: its highlight spans a few pixels
 SPHERES_LAMP_RADIUS_MM = 60.0
+#: the room light the sample sphere's recovered BRDF is also rendered under (the captures are lit
+#: by Grace Cathedral): a held-out environment, and its map height (texels: 16 rows, 512 texels, keep
+#: its two renders of the sample sphere under 1 s)
+HELD_OUT_PROBE = ("uffizi", 16)
 
 
 def _backdrop() -> Target:
@@ -77,12 +87,14 @@ class DemoTruth:
     ``camera`` the true camera (lab -> camera pose), ``object`` the object with its true
     materials, ``light_intensity`` the lamp's (renderer units / sr, RGB), ``sensor_dn_per_radiance``
     (3,) the camera's DN/s per unit of renderer radiance at the image centre (so calibrated
-    intensities in DN/s mm^2 compare with the truth)."""
+    intensities in DN/s mm^2 compare with the truth), ``sample_sphere`` the sample sphere of the
+    ``passive_sphere`` capture (its radius and its one true material)."""
 
     camera: CameraModel
     object: GroundTruthObject
     light_intensity: np.ndarray
     sensor_dn_per_radiance: np.ndarray
+    sample_sphere: SampleSphere
 
     @staticmethod
     def light_position(light: LightTarget) -> np.ndarray:
@@ -97,6 +109,12 @@ class DemoTruth:
         if self.object.name != "multi":
             raise ValueError(f"no per-point material truth for object {self.object.name!r}")
         return region_ids(points, self.object.height_mm), MULTI_MATERIALS
+
+    @staticmethod
+    def held_out_environment() -> EnvironmentMap:
+        """A room the passive captures never saw (:data:`HELD_OUT_PROBE`), lab frame."""
+        name, height = HELD_OUT_PROBE
+        return environment(name).resized(height)
 
     def normals(self, points: np.ndarray) -> np.ndarray | None:
         """True unit normals (N, 3) at object-frame points where the rendered surface has detail
@@ -138,6 +156,7 @@ class DemoLab:
             "gray_card": SimWorld.for_capture("gray_card", camera=cam, seed=seed + 5),
             "mirror_probe": SimWorld.for_capture("mirror_probe", None, camera=cam, seed=seed + 6),
             "passive": SimWorld.for_capture("passive", self.object, camera=cam, seed=seed + 7),
+            "passive_sphere": SimWorld.for_capture("passive_sphere", camera=cam, seed=seed + 9),
         }
         self.current = self.worlds["object"]
 
@@ -194,7 +213,7 @@ class DemoLab:
               * sensor.pixel_pitch_um ** 2 / sensor.e_per_dn(iso))
         return DemoTruth(camera=self.camera, object=self.object,
                          light_intensity=np.broadcast_to(np.asarray(LIGHT_INTENSITY, float), (3,)).copy(),
-                         sensor_dn_per_radiance=dn)
+                         sensor_dn_per_radiance=dn, sample_sphere=sample_sphere_target().spec)
 
 
 def demo_lab_for(store, session: str) -> DemoLab:

@@ -183,10 +183,14 @@ def _surface_xy(position: np.ndarray) -> np.ndarray:
 
 # -- Romeiro et al. 2008 ------------------------------------------------------------------------
 def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+    """One BRDF from the room-lit image: of the lab's sample sphere when captured
+    (``inputs.passive.sample_sphere``: the BRDF is the sample's, scored by
+    :mod:`capture.pipeline.passive_sample`), else of the object (outside the method's assumption
+    when it has several materials). ``predict`` applies that one BRDF to any lumitexels."""
     p = inputs.passive
     if p is None:
         why = "; ".join(n.removeprefix("passive: ") for n in inputs.notes if "passive" in n) or \
-            "no passive capture (add [[calibration]] kind = \"passive\": lamp off, room lit)"
+            "no passive capture (add [[calibration]] kind = \"passive_sphere\": the sample sphere, lamp off, room lit)"
         raise MethodSkipped(f"passive: {why}")
     fit = passive_reflectometry(p.image, p.normals, p.mask, p.environment, view_dirs=p.view_dirs,
                                 environment_weight=p.environment_weight, rng=rng, progress=progress)
@@ -207,9 +211,10 @@ def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) ->
                            "unconstrained": [{"theta_d_deg": list(b.theta_d_deg), "theta_h_deg": b.theta_h_deg,
                                               "poorly_lit_share": b.poorly_lit_share}
                                              for b in ad.unconstrained_bands()]},
-                  warnings=[*dict.fromkeys([*fit.warnings, *ad.warnings]),
-                            "passive reflectometry recovers one BRDF for the whole object: on a "
-                            "multi-material object it is their average"])
+                  warnings=[*dict.fromkeys([*fit.warnings, *ad.warnings]), *(
+                      [] if p.sample_sphere is not None else
+                      ["passive reflectometry recovers one BRDF for the whole object: on a "
+                       "multi-material object it is their average"])])
 
 
 METHODS: dict[str, Callable[..., Fitted]] = {"lambertian": _lambertian, "lensch": _lensch,

@@ -20,9 +20,10 @@ mirror-probe environment map. :func:`session_inputs` then turns every measuremen
 
 Measurement steps whose light the plan marks ``held_out`` become :attr:`ProcessInputs.held_out`
 views: captured like the rest, never given to a fitter, used to score renders of the recovered
-models. A ``passive`` capture (lamp off, room lit) becomes a :class:`PassiveInput`: the image,
-the object's normals and view directions per pixel from the mesh, and the environment map, all
-in the lab frame.
+models. A ``passive_sphere`` capture (the lab's homogeneous sample sphere, lamp off, room lit)
+or else a ``passive`` capture (the object) becomes a :class:`PassiveInput`: the image, the
+normals and view directions per pixel (from the sphere's stated radius and centre, or from the
+mesh), and the environment map, all in the lab frame.
 
 Frames and units: the lab frame of :mod:`capture.pipeline.calibrate` (origin on the turntable axis at the
 platter, +z up, +x towards the camera), mm; radiance in DN/s; light intensity in DN/s * mm^2 per
@@ -35,6 +36,7 @@ import io
 from dataclasses import dataclass, field
 from typing import Callable, Sequence, TypeVar
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -42,10 +44,10 @@ from calibration.polarization import separate_parallel_crossed
 from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
 from reconstruct.lumitexels import Lumitexels, View, assemble_lumitexels, footprint_normal_spread
-from reconstruct.raycast import Mesh, Surface, first_hits
+from reconstruct.raycast import Mesh, Sphere, Surface, first_hits
 from rig import LightTarget
 
-from ..lab import GrayCardPose
+from ..lab import GrayCardPose, LabTargets
 from ..plan import Step
 from ..store import ResultRecord, Store
 from .calibration_record import stored_calibration
@@ -54,7 +56,8 @@ from .stage_records import (DarkRecord, EnvironmentRecord, GrayCardRecord, Intri
                             PositionerRecord, RecordFormatError, StageRecord, TurntableRecord, read_record)
 
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
-           "PassiveInput", "ProcessInputs", "read_calibration", "session_images", "session_inputs",
+           "PassiveInput", "SampleSphereGeometry", "sample_sphere_of", "sphere_passive_input", "ProcessInputs",
+           "read_calibration", "session_images", "session_inputs",
            "PoseSpec", "ViewPlan", "view_plan", "pose_view", "merge_pose", "plan_inputs",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose"]
 
@@ -247,12 +250,35 @@ def _light_intensity(gray: GrayCardRecord | None, steps: dict, lights: dict, ang
 
 
 # -- the inputs of all methods -----------------------------------------------------------------
+@dataclass(frozen=True)
+class SampleSphereGeometry:
+    """The homogeneous sample sphere of a ``passive_sphere`` capture as the lab states it: its
+    ``radius_mm`` (measured with calipers) and ``centre_mm`` (3,) on its stand, lab frame, mm.
+
+    The centre is the lab's fixture pose, not found in the image: the probe's circle detection
+    (:func:`calibration.spheres.find_mirror_sphere`) locks onto the room's edges behind a glossy
+    sample (on the demo's 320 x 240 image it found a circle 105 px from the ball), and the stand
+    at the platter's centre is as well known as the lab frame the turntable calibration gives."""
+
+    radius_mm: float
+    centre_mm: np.ndarray
+
+
+def sample_sphere_of(targets: LabTargets | None) -> SampleSphereGeometry | None:
+    """The sample sphere the lab's targets state (None: none stated)."""
+    if targets is None or targets.sample_sphere_radius_mm is None:
+        return None
+    return SampleSphereGeometry(float(targets.sample_sphere_radius_mm),
+                                np.asarray(targets.sample_sphere_centre_mm, float))
+
+
 @dataclass
 class PassiveInput:
-    """One image of the object lit by the room (lamp off), ready for passive reflectometry.
+    """One image lit by the room (lamp off), ready for passive reflectometry: of the lab's
+    homogeneous sample sphere (``sample_sphere`` its geometry) or, without one, of the object.
 
     ``image`` (H, W, 3) DN/s; ``normals`` (H, W, 3) unit, lab frame (zero outside ``mask``);
-    ``mask`` (H, W) bool: the object, unclipped; ``view_dirs`` (H, W, 3) unit, surface -> camera,
+    ``mask`` (H, W) bool: the surface, unclipped; ``view_dirs`` (H, W, 3) unit, surface -> camera,
     lab frame; ``environment`` the probe map (lab frame, DN/s) and its ``weight``."""
 
     step: int
@@ -263,6 +289,7 @@ class PassiveInput:
     environment: EnvironmentMap
     environment_weight: np.ndarray | None
     frame_ids: list[int]
+    sample_sphere: SampleSphereGeometry | None = None
 
 
 @dataclass
@@ -336,11 +363,13 @@ class PoseSpec:
 class ViewPlan:
     """What the inputs are made of, before any image is read: the measurement ``poses`` in
     capture order and the ``passive`` step (None: none captured, or no mesh / probe map, with the
-    reason in ``notes``)."""
+    reason in ``notes``), a ``passive_sphere`` step when there is one (then ``sample_sphere`` is
+    its geometry), else a ``passive`` one (the object)."""
 
     poses: tuple[PoseSpec, ...]
     passive: int | None
     notes: tuple[str, ...]
+    sample_sphere: SampleSphereGeometry | None = None
 
     @property
     def ordered(self) -> list[PoseSpec]:
@@ -349,8 +378,10 @@ class ViewPlan:
 
 
 def view_plan(images: SessionImages, session: str, cal: SessionCalibration, *,
-              mesh: trimesh.Trimesh | None = None) -> ViewPlan:
-    """The session's measurement poses and passive step (no image is read).
+              mesh: trimesh.Trimesh | None = None, sample_sphere: SampleSphereGeometry | None = None) -> ViewPlan:
+    """The session's measurement poses and passive step (no image is read): the sample sphere's
+    ``passive_sphere`` capture when the session has one and the lab states the sphere
+    (``sample_sphere``), else the object's ``passive`` capture.
 
     Raises
     ------
@@ -361,6 +392,7 @@ def view_plan(images: SessionImages, session: str, cal: SessionCalibration, *,
     frames = images
     measure = [i for i, d in sorted(frames.steps.items()) if d.kind == "measure" and frames.by_step.get(i)]
     passive = [i for i, d in sorted(frames.steps.items()) if d.kind == "passive" and frames.by_step.get(i)]
+    on_sphere = [i for i, d in sorted(frames.steps.items()) if d.kind == "passive_sphere" and frames.by_step.get(i)]
     if not measure:
         raise ProcessError(f"session {session!r} has no stored measurement steps")
     missing = [i for i in measure if i not in cal.lights_mm]
@@ -386,16 +418,21 @@ def view_plan(images: SessionImages, session: str, cal: SessionCalibration, *,
                               tuple(f.id for i in used for f in frames.by_step[steps[i]])))
     if all(p.held_out for p in poses):
         raise ProcessError(f"session {session!r}: every measurement light is held out; nothing to fit")
-    notes, p_step = [], None
-    if passive:
-        if cal.environment is None:
-            notes.append("passive capture present but no mirror-probe environment map is stored: "
-                         "passive reflectometry skipped")
-        elif mesh is None:
+    notes, p_step, sphere = [], None, None
+    if on_sphere and sample_sphere is None:
+        notes.append("passive_sphere capture present but the lab states no sample sphere "
+                     "(sample_sphere_radius_mm and sample_sphere_centre_mm in --targets): not used")
+    if (passive or (on_sphere and sample_sphere is not None)) and cal.environment is None:
+        notes.append("passive capture present but no mirror-probe environment map is stored: "
+                     "passive reflectometry skipped")
+    elif on_sphere and sample_sphere is not None:
+        p_step, sphere = on_sphere[0], sample_sphere
+    elif passive:
+        if mesh is None:
             notes.append("passive capture present but no mesh: passive reflectometry skipped")
         else:
             p_step = passive[0]
-    return ViewPlan(tuple(poses), p_step, tuple(notes))
+    return ViewPlan(tuple(poses), p_step, tuple(notes), sphere)
 
 
 def pose_view(pose: PoseSpec, images: Sequence[StepImage], cal: SessionCalibration) -> View:
@@ -419,7 +456,7 @@ def merge_pose(images: SessionImages, pose: PoseSpec, cal: SessionCalibration) -
 
 
 def session_inputs(store: Store, session: str, *, calibration: SessionCalibration | None = None,
-                   mesh: trimesh.Trimesh | None = None,
+                   mesh: trimesh.Trimesh | None = None, sample_sphere: SampleSphereGeometry | None = None,
                    progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
     """Turn a calibrated session's measurement (and passive) steps into method inputs, every
     view's images in memory (``gonio process`` streams instead:
@@ -432,7 +469,9 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
     calibration : SessionCalibration, optional
         Default: :func:`read_calibration` (no gray-card pose).
     mesh : trimesh.Trimesh, optional
-        The object's mesh (object frame, mm): needed for the passive input's normals.
+        The object's mesh (object frame, mm): needed for the object's passive input's normals.
+    sample_sphere : SampleSphereGeometry, optional
+        The lab's sample sphere (:func:`sample_sphere_of`): a ``passive_sphere`` capture's geometry.
     progress : callable(done, total), optional
         After each merged pose.
 
@@ -443,7 +482,7 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
     """
     cal = read_calibration(store, session) if calibration is None else calibration
     images = session_images(store, session)
-    plan = view_plan(images, session, cal, mesh=mesh)
+    plan = view_plan(images, session, cal, mesh=mesh, sample_sphere=sample_sphere)
     return plan_inputs(images, plan, cal, mesh, images_of=range(len(plan.poses)), progress=progress)
 
 
@@ -468,7 +507,12 @@ def plan_inputs(images: SessionImages, plan: ViewPlan, cal: SessionCalibration, 
         (hsteps if pose.held_out else vsteps).append(pose.steps)
     for pose in plan.poses:
         frame_ids += pose.frame_ids
-    p_input = None if plan.passive is None else _passive_input(_merge(images, plan.passive), cal, mesh)
+    if plan.passive is None:
+        p_input = None
+    elif plan.sample_sphere is not None:
+        p_input = sphere_passive_input(_merge(images, plan.passive), cal, plan.sample_sphere)
+    else:
+        p_input = _passive_input(_merge(images, plan.passive), cal, mesh)
     return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
                          view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
                          notes=list(plan.notes))
@@ -508,6 +552,26 @@ def _passive_input(im: StepImage, cal: SessionCalibration, mesh: trimesh.Trimesh
     return PassiveInput(step=im.step, image=im.radiance, normals=normals.reshape(H, W, 3), mask=mask,
                         view_dirs=view.reshape(H, W, 3), environment=cal.environment,
                         environment_weight=cal.environment_weight, frame_ids=im.frame_ids)
+
+
+def sphere_passive_input(im: StepImage, cal: SessionCalibration, sphere: SampleSphereGeometry) -> PassiveInput:
+    """Per-pixel lab-frame normals and view directions of the sample sphere in its image: the
+    calibrated camera's rays on the stated sphere (fixed in the lab: no turntable pose). The
+    mask leaves out the outline's pixels (their footprint mixes the sphere with the room
+    behind it) and invalid (clipped) ones."""
+    cam = cal.camera
+    o, d = cam.pixel_rays()
+    hits = first_hits([Sphere(sphere.radius_mm, sphere.centre_mm)], o, d)
+    H, W = cam.height, cam.width
+    normals = np.zeros((H * W, 3))
+    normals[hits.mask] = hits.normal[hits.mask]
+    view = np.zeros((H * W, 3))
+    view[hits.mask] = -d[hits.mask] / np.linalg.norm(d[hits.mask], axis=1, keepdims=True)
+    inside = cv2.erode(hits.mask.reshape(H, W).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    return PassiveInput(step=im.step, image=im.radiance, normals=normals.reshape(H, W, 3), mask=inside & im.valid,
+                        view_dirs=view.reshape(H, W, 3), environment=cal.environment,
+                        environment_weight=cal.environment_weight, frame_ids=im.frame_ids,
+                        sample_sphere=sphere)
 
 
 def lumitexels_with_held_out(mesh: trimesh.Trimesh | Surface, inputs: ProcessInputs, *,

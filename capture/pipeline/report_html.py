@@ -28,10 +28,11 @@ import numpy as np
 
 from ..outputs import write_atomically
 from ..store import ResultRecord, Store
+from .passive_sample import SAMPLE_FIGURES
 from .pictures import SLICE_THETA_I_DEG
 from .plan_table import plan_rows
 
-__all__ = ["write_html_report", "METHOD_NOTES", "ExportLink", "export_links", "link_export",
+__all__ = ["write_html_report", "METHOD_NOTES", "summary_note", "ExportLink", "export_links", "link_export",
            "check_session_report", "comparison_figure", "html_table", "img_tag", "png_uri", "tonemap", "CSS"]
 
 #: what each method is, in one paragraph a newcomer can read
@@ -48,9 +49,11 @@ METHOD_NOTES = {
                "The method needs exact surface normals: where the matte (diffuse) part shows that a "
                "point's normal differs from the mesh's, the normal is first refitted from it (photometric "
                "stereo), so bumps the mesh lacks do not move the predicted highlights.",
-    "passive": "Romeiro et al. 2008 (passive reflectometry): one image of the object lit only by the room, "
-               "whose light is known from a mirror-ball photograph, gives one reflectance function for the "
-               "whole object (it assumes a single material).",
+    "passive": "Romeiro et al. 2008 (passive reflectometry): one image of a curved surface of one material, "
+               "lit only by the room, whose light is known from a mirror-ball photograph, gives that material's "
+               "reflectance function. The lab photographs a sphere of the sample material for it; a session "
+               "without that photograph uses its image of the object, whose several materials the one "
+               "function can only average.",
 }
 
 
@@ -300,11 +303,15 @@ def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str
         return "\n".join(parts)
     figures = outcome.figures if stored is None else stored.result.get("figures", outcome.figures)
     rows = [{"measure": k, "value": v} for k, v in figures.items()
-            if k not in ("table_ii_rms", "poorly_observed", "unconstrained")]
-    parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
-                 "the captures under lights it never saw (<b>_trimmed</b>: without the 1 % worst samples, which "
-                 "carry most of a glossy object's pooled error); <b>truth_rel_rms</b>: the same against the "
-                 "true reflectance (simulation only).</p>" + html_table(rows))
+            if k not in ("table_ii_rms", "poorly_observed", "unconstrained", *SAMPLE_FIGURES)]
+    if "image_of" in figures:
+        parts.append(_sample_sphere_part(figures, pics or {}))
+    if "held_out_rel_rms" in figures:
+        parts.append("<p><b>held_out_rel_rms</b>: relative RMS difference between the model's prediction and "
+                     "the captures under lights it never saw (<b>_trimmed</b>: without the 1 % worst samples, "
+                     "which carry most of a glossy object's pooled error); <b>truth_rel_rms</b>: the same against "
+                     "the true reflectance (simulation only).</p>")
+    parts.append(html_table(rows))
     if figures.get("table_ii_rms"):
         parts.append("<p>Lensch Table II: the RMS fitting error after each stage (single average BRDF, "
                      "per cluster, projection, PFA, normal fitting) — it should fall from left to right.</p>"
@@ -328,6 +335,53 @@ def _method_section(i: int, outcome, stored: ResultRecord | None, pics: dict[str
     return "\n".join(parts)
 
 
+_SAMPLE_LABELS = {
+    "image_of": "the image is of", "sphere_pixels": "pixels used",
+    "eq1_error": "BRDF error against the truth (Romeiro Eq. 1, per sample)",
+    "eq1_error_lambertian": "the same for the best matte (Lambertian) BRDF",
+    "eq1_error_reduction": "the same for the true BRDF reduced to the method's 2-D table (the best it can do)",
+    "eq1_error_pooled": "BRDF error against the truth (Eq. 1 pooled: RMS difference / RMS value)",
+    "render_rel_rms": "recovered BRDF rendered under the room's light vs the photograph (rel. RMS)",
+    "floor_render_rel_rms": "the floor: the true BRDF rendered under the room's light as measured vs the photograph "
+                            "(what the probe map, the sensor and the geometry leave)",
+    "truth_render_rel_rms": "recovered vs true BRDF rendered under the room's light (rel. RMS)",
+    "held_out_env_rel_rms": "recovered vs true BRDF rendered under another room's light (rel. RMS)"}
+
+
+def _sample_sphere_part(figures: dict[str, Any], pics: dict[str, np.ndarray]) -> str:
+    """Passive reflectometry on the sample sphere: its figures against the truth and the sphere
+    rendered with the recovered and the true BRDF (:mod:`capture.pipeline.passive_sample`)."""
+    rows = [{"measure": _SAMPLE_LABELS[k], "value": figures[k]} for k in SAMPLE_FIGURES if k in figures]
+    parts = ["<p><b>On the sample sphere.</b> The method ran on its photograph of the homogeneous sample "
+             "sphere, within its assumption (one material, a known curved shape), so its result is that "
+             "material's reflectance and is scored against it, not on the object's held-out lights. The "
+             "BRDF error compares the recovered reflectance function with the true one over every pair of "
+             "directions (0 is perfect; a matte guess shows what ignoring the highlight costs). The floor is "
+             "the true reflectance rendered under the room's light as the mirror ball measured it: where it is "
+             "far from the photograph, that measured light cannot explain the sphere even with the true "
+             "material, and the figures against the truth measure the light probe rather than the "
+             "method.</p>" + html_table(rows)]
+    if "sample_captured" in pics:
+        cap, rec = pics["sample_captured"], pics["sample_recovered"]
+        panels = [("photographed under the room's light", cap), ("recovered BRDF, rendered", rec)]
+        if "sample_truth" in pics:
+            panels.append(("true BRDF, rendered", pics["sample_truth"]))
+            err = ("|recovered − true| / mean radiance", rec, pics["sample_truth"])
+        else:
+            err = ("|recovered − photograph| / mean radiance", rec, cap)
+        parts.append("<p>The sample sphere under the room's light: the photograph, the recovered "
+                     "reflectance rendered on the sphere, and (simulation) the true one.</p>"
+                     + comparison_figure(panels, err, "sample sphere: photograph, recovered and true"))
+    if "sample_heldout_truth" in pics:
+        want, got = pics["sample_heldout_truth"], pics["sample_heldout_recovered"]
+        parts.append("<p>The same sphere rendered under another room's light, which the method never saw: "
+                     "true and recovered reflectance.</p>"
+                     + comparison_figure([("true BRDF, another room", want), ("recovered BRDF, another room", got)],
+                                         ("|recovered − true| / mean radiance", got, want),
+                                         "sample sphere under a held-out environment"))
+    return "\n".join(parts)
+
+
 def _adequacy_table(figures: dict[str, Any]) -> str:
     """Passive reflectometry's adequacy report (Romeiro et al. Sect. 3.1) as a table: the regions of
     the BRDF's (theta_h, theta_d) domain and the share of their nodes the room lit too little to
@@ -347,6 +401,19 @@ def _adequacy_table(figures: dict[str, Any]) -> str:
             + html_table(rows))
 
 
+def summary_note(m, figures: dict[str, Any]) -> str:
+    """A method's note in the summary: outside its assumption, or scored on the sample sphere."""
+    if m.outside_assumption:
+        return f"outside its assumption: {m.outside_assumption}"
+    if "image_of" not in figures:
+        return ""
+    note = f"on {figures['image_of']}, not the object (no held-out lights)"
+    if "eq1_error" in figures:
+        note += (f": BRDF error (Eq. 1) {figures['eq1_error']:.3g}, a matte BRDF's "
+                 f"{figures['eq1_error_lambertian']:.3g}")
+    return note
+
+
 def _summary(rep, figures, with_truth: bool, imported: bool = False) -> str:
     """The methods table (held-out score, its ratio to the floor, the error against the truth;
     for an imported set the normals' error against its ground truth) and the floor, or why there
@@ -359,7 +426,7 @@ def _summary(rep, figures, with_truth: bool, imported: bool = False) -> str:
              **({"× floor": ratio(m)} if rep.floor is not None else {}),
              **({"vs truth rel. RMS": figures(m).get("truth_rel_rms", float("nan"))} if with_truth else {}),
              **({"normal error (°)": figures(m).get("normal_error_deg", "–")} if imported else {}),
-             "note": f"outside its assumption: {m.outside_assumption}" if m.outside_assumption else ""}
+             "note": summary_note(m, figures(m))}
             for m in rep.methods]
     if rep.floor is not None:
         note = (f"<p><b>The floor</b>: the simulation's true reflectance, scored exactly as the methods are "

@@ -13,7 +13,9 @@ With a :class:`capture.demo_lab.DemoTruth` (the simulated lab's ground truth) th
 truth columns: calibration errors (focal length, lights, lamp intensity), the inputs' own error
 (measured reflectance against the true ``f_r cos``: what calibration and noise leave) and each
 model's error against the truth on the held-out samples, and the :class:`Floor`: the true model
-scored on the held-out captures like every method, with each method's ratio to it.
+scored on the held-out captures like every method, with each method's ratio to it. Passive
+reflectometry on the lab's sample sphere is scored on the sphere instead
+(:mod:`capture.pipeline.passive_sample`): the object's held-out lights see another surface.
 """
 from __future__ import annotations
 
@@ -41,7 +43,8 @@ from .calibration_record import stored_calibration
 from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
-from .methods import DEFAULT_METHODS, METHODS, BlockRoute, MethodSkipped, fit_method
+from .methods import DEFAULT_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method
+from .passive_sample import SampleTruth, score_sample_sphere
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
 from .block_scoring import score_blocks
@@ -50,7 +53,7 @@ from .lumitexel_arrays import (LumitexelArrays, block_texels_for, default_memory
 from .stored_blocks import StoredBlocks
 from .progress import Progress, ProgressSink, counter
 from .process import (MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
-                      read_calibration, session_images, view_plan)
+                      read_calibration, sample_sphere_of, select_samples, session_images, view_plan)
 from .process_report import Floor, MethodOutcome, ProcessReport
 from .report_html import write_html_report
 from ..outputs import session_file, write_atomically
@@ -194,7 +197,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
             if todo:
                 with clock.stage("inputs"):
                     images = session_images(store, session)
-                    plan = view_plan(images, session, cal, mesh=mesh)
+                    plan = view_plan(images, session, cal, mesh=mesh, sample_sphere=sample_sphere_of(lab.targets))
                 with clock.stage("lumitexels"):
                     executor = running.enter_context(Executor(cluster, store_root=store.root, say=say))
                     limit = default_memory_limit() if memory_limit is None else memory_limit
@@ -213,7 +216,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                               "polarization_separated": inputs.separated, "texels": train.n_texels,
                               "training_samples": train.n_samples, "held_out_samples": held.n_samples,
                               "light_source": cal.light_source, "absolute_units": cal.absolute,
-                              "passive_capture": inputs.passive is not None, "notes": inputs.notes,
+                              "passive_capture": inputs.passive is not None,
+                              "passive_on": _passive_subject(inputs), "notes": inputs.notes,
                               "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
                                                    "digest": arrays.digest, "block_texels": arrays.block_texels,
                                                    "reused_views": arrays.reused_views}}
@@ -225,7 +229,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                     if held.n_samples:
                         rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
                                           trimmed_relative_rms(truth_r[1], held.reflectance))
-                assumption = {"passive": _passive_assumption(truth, train)} if truth is not None else {}
+                on_object = inputs.passive is None or inputs.passive.sample_sphere is None
+                assumption = {"passive": _passive_assumption(truth, train)} if truth is not None and on_object else {}
                 for name in todo:
                     started = time.perf_counter()
                     with clock.stage(name):
@@ -249,6 +254,13 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
 
 def _ratio(score: float | None, floor: float) -> float | None:
     return None if score is None or not floor > 0 else float(score) / floor
+
+
+def _passive_subject(inputs: ProcessInputs) -> str:
+    """What passive reflectometry's image shows ("" when there is none)."""
+    if inputs.passive is None:
+        return ""
+    return "the object" if inputs.passive.sample_sphere is None else "the sample sphere"
 
 
 def _passive_assumption(truth, train: Lumitexels) -> str:
@@ -309,8 +321,44 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
         return MethodOutcome(name, "skipped", str(exc), outside_assumption=assumption)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}", outside_assumption=assumption)
+    if name == "passive" and inputs.passive is not None and inputs.passive.sample_sphere is not None:
+        figures, pictures = _sample_sphere_figures(fit, train, held, inputs, truth)
+    else:
+        figures, pictures = _object_figures(fit, arrays, block_texels, train, held, inputs, truth, truth_r)
+    result = {"figures": figures, "warnings": fit.warnings,
+              "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
+                         "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
+                         "training_samples": train.n_samples, "held_out_samples": held.n_samples},
+              "inputs_summary": summary, "floor": None if floor is None else asdict(floor),
+              "outside_assumption": assumption}
+    artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
+    if name in EXPORTED_METHODS:   # what `gonio export` writes files from (in memory: its GGX fit is global)
+        artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
+                                                      fit.predict(train), fit.predict(held))
+    rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
+                                   input_frames=inputs.view_frames, artifacts=artifacts)
+    return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
+
+
+def _sample_sphere_figures(fit: Fitted, train: Lumitexels, held: Lumitexels, inputs: ProcessInputs,
+                           truth) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Passive reflectometry's figures and pictures on the sample sphere: against the sphere's
+    image and, with truth, its true material (never the object's held-out lights: another surface)."""
+    material = truth.sample_sphere.material if truth is not None else None
+    brdf = fit.brdf(np.zeros(1, int))
+    score = score_sample_sphere(brdf, fit.arrays["lambertian"], inputs.passive, truth=material,
+                                held_out_environment=truth.held_out_environment() if truth is not None else None)
+    no_held = select_samples(held, np.zeros(held.n_samples, bool))
+    pictures = method_pictures(fit, train, no_held, inputs, None if material is None else SampleTruth(material))
+    return {**fit.figures, **score.figures}, {**pictures, **score.pictures}
+
+
+def _object_figures(fit: Fitted, arrays: LumitexelArrays, block_texels: int, train: Lumitexels, held: Lumitexels,
+                    inputs: ProcessInputs, truth, truth_r) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """A method's figures on the object's training and held-out samples (and the truth's),
+    scored one texel block at a time from the stored arrays (block_scoring: per-block sums), and
+    its report pictures."""
     figures = dict(fit.figures)
-    # scored one texel block at a time from the stored arrays (block_scoring: per-block sums)
     scores = score_blocks(fit.predict_samples, arrays, max_texels=block_texels,
                           truth_of=None if truth_r is None else functools.partial(_truth_of, truth))
     figures["training_rel_rms"] = scores.training.relative_rms
@@ -325,20 +373,7 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
         if true_n is not None:   # detail the mesh lacks: the fitted normals should recover it
             figures["normal_error_mesh_deg"] = _median_angle_deg(train.normal, true_n)
             figures["normal_error_fitted_deg"] = _median_angle_deg(fit.normals, true_n)
-    pictures = method_pictures(fit, train, held, inputs, truth)
-    result = {"figures": figures, "warnings": fit.warnings,
-              "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
-                         "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
-                         "training_samples": train.n_samples, "held_out_samples": held.n_samples},
-              "inputs_summary": summary, "floor": None if floor is None else asdict(floor),
-              "outside_assumption": assumption}
-    artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
-    if name in EXPORTED_METHODS:   # what `gonio export` writes files from (in memory: its GGX fit is global)
-        artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
-                                                      fit.predict(train), fit.predict(held))
-    rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
-                                   input_frames=inputs.view_frames, artifacts=artifacts)
-    return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
+    return figures, method_pictures(fit, train, held, inputs, truth)
 
 
 def _median_angle_deg(a: np.ndarray, b: np.ndarray) -> float:

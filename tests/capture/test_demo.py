@@ -80,6 +80,7 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     assert max(abs(v) for v in cal["intensity_error_pct"]) < 3.0
     inputs = summary["inputs"]
     assert inputs["held_out_views"] == 4 and inputs["polarization_separated"] and inputs["passive_capture"]
+    assert inputs["passive_on"] == "the sample sphere"   # the plan's passive_sphere capture
     # the typical measured sample within 5 % of the true reflectance (seen: +1 %)
     assert abs(inputs["measured_vs_truth_median_ratio"] - 1) < 0.05
     methods = {m["method"]: m for m in summary["methods"]}
@@ -87,8 +88,10 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     assert methods["lambertian"]["status"] == "ok"
     # a matte model misses every highlight (seen: 0.74 held out, 0.77 against the truth)
     assert 0.3 < methods["lambertian"]["figures"]["held_out_rel_rms"] < 0.95
+    on_object = {k: m for k, m in methods.items() if k != "passive"}   # passive ran on the sample sphere
     for m in methods.values():   # the quick plan captures what every method needs: none may skip
         assert m["status"] == "ok", (m["method"], m["status"], m["reason"])
+    for m in on_object.values():
         assert np.isfinite(m["figures"]["held_out_rel_rms"])
     lam = methods["lambertian"]["figures"]
     f = methods["lensch"]["figures"]
@@ -123,30 +126,47 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     f = methods["sharing"]["figures"]
     assert f["held_out_rel_rms"] < 0.75 * lam["held_out_rel_rms"], f
     assert f["held_out_rel_rms_trimmed"] < 0.75 * lam["held_out_rel_rms_trimmed"], f
-    # the 320 x 240 probe (a 19 px ball) cannot explain the image: the method must say so
-    # rather than return a confident answer (seen: relative residual 54-77 %)
+    # the 320 x 240 probe (a 20 px ball) cannot explain the image: the method must say so
+    # rather than return a confident answer (seen: relative residual 19-38 % on the sample sphere)
     assert any("residual" in w for w in methods["passive"]["warnings"]), methods["passive"]["warnings"]
+    # passive on the sample sphere is scored against the sphere's true material, not on the
+    # object's held-out lights. The probe map of a 20 px ball is what limits it here: the true
+    # BRDF rendered under that map is 0.85 off the photograph (the truth's own map: 0.09,
+    # tests/capture/test_passive_sample.py), so the recovered BRDF, which fits the photograph
+    # under that map, must explain it better than the truth does (seen 0.33 vs 0.85); its
+    # Eq. 1 error against the truth (seen 1.69; a matte BRDF's 1.62, the reduction's 0.07) is
+    # reported, not bounded (docs/measurements.md)
+    f = methods["passive"]["figures"]
+    assert f["render_rel_rms"] < f["floor_render_rel_rms"], f
+    assert 0 < f["eq1_error_reduction"] < 0.1 and f["eq1_error_reduction"] < f["eq1_error"], f
+    assert np.isfinite(f["eq1_error_lambertian"]) and np.isfinite(f["held_out_env_rel_rms"]), f
+    assert "held_out_rel_rms" not in f and methods["passive"]["floor_ratio"] is None, f
     # The floor: the simulation's true model scored on the same held-out captures as the methods
     # (seen: 0.26, trimmed 0.14; ratios lambertian 3.1, lensch 2.5, sharing 1.5, passive 6.2).
     # Every model is fitted to noisy captures through the same calibration, so none may come out
     # below the truth; each ratio is its held-out error over the floor's
     floor = summary["floor"]
     assert 0 < floor["held_out_rel_rms"] < 1 and 0 < floor["held_out_rel_rms_trimmed"] <= floor["held_out_rel_rms"]
-    for m in methods.values():
+    for m in on_object.values():
         f = m["figures"]
         assert f["held_out_rel_rms"] > floor["held_out_rel_rms"], (m["method"], f, floor)
         assert m["floor_ratio"] == pytest.approx(f["held_out_rel_rms"] / floor["held_out_rel_rms"], rel=1e-9)
         assert m["floor_ratio_trimmed"] == pytest.approx(
             f["held_out_rel_rms_trimmed"] / floor["held_out_rel_rms_trimmed"], rel=1e-9)
     assert "floor (the true model on the same held-out captures)" in run.stdout
-    # passive runs on the multi-material object and is labelled outside its assumption (one
-    # homogeneous curved surface); the other methods assume no single material
-    assert "materials" in methods["passive"]["outside_assumption"], methods["passive"]
-    assert not any(m["outside_assumption"] for k, m in methods.items() if k != "passive")
-    assert "Outside its assumption" in text
+    # passive runs on the homogeneous sample sphere, within its assumption; no method is labelled
+    # outside it (the old plans' object capture: test_an_old_plan_runs_passive_on_the_object_...)
+    assert not any(m["outside_assumption"] for m in methods.values())
+    assert "Outside its assumption" not in text
     # passive's adequacy report is a table in its section, not only warnings: the paper's regions
     # with the share of their nodes the room lit too little, and the theta_d bands it left to the prior
     passive = text.split("<h3>4. passive</h3>")[1]
+    # the sample sphere's part: its figures against the truth, the sphere photographed, recovered
+    # and true, and under a room the method never saw
+    eq1 = methods["passive"]["figures"]["eq1_error"]
+    assert "On the sample sphere" in passive and f"<td>{eq1:.4g}</td>" in passive
+    assert "sample sphere: photograph, recovered and true" in passive
+    assert "sample sphere under a held-out environment" in passive
     poor = methods["passive"]["figures"]["poorly_observed"]
     assert len(poor) == 3 and "What the room's light could not constrain" in passive
     for region, share in poor.items():

@@ -23,15 +23,17 @@ from typer.testing import CliRunner
 from capture.cli import app
 from capture.pipeline.demo_lab import DemoLab, fitter_mesh
 from capture.pipeline.report_html import ExportLink, export_links, link_export
-from capture.pipeline.run import process_session
+from capture.pipeline.methods import fit_method
+from capture.pipeline.run import _passive_assumption, process_session
 from capture.pipeline.cluster import ClusterOptions, Executor
 from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels
 from capture.plan import Plan
-from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, read_calibration,
-                             session_images, session_inputs, view_plan)
+from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, plan_inputs,
+                                      read_calibration, sample_sphere_of, session_images, session_inputs, view_plan)
 from capture.rigs import open_rig
 from capture.runner import Runner, create_session
 from capture.store import Store
+from reconstruct.envmap import EnvironmentMap
 from sims.ptp_sim import placeholder_frame
 
 PLAN = {
@@ -46,7 +48,8 @@ PLAN = {
          "turntable_angles_deg": [300, 310, 320, 330, 340, 350, 0, 10, 20, 30, 40, 50, 60]},
         {"kind": "spheres", "lights": "grid"},
         {"kind": "gray_card", "lights": "first"},
-    ],
+        {"kind": "passive", "when": "after"},   # the object under the room's light: a plan from before
+    ],                                          # the sample sphere (no passive_sphere capture)
 }
 
 
@@ -258,6 +261,26 @@ def test_uncalibrated_session_says_which_stage_is_missing(tmp_path):
     assert issubclass(MissingCalibration, ProcessError)
 
 
+def test_an_old_plan_runs_passive_on_the_object_labelled_outside_its_assumption(captured, inputs):
+    """A plan without the sample sphere's ``passive_sphere`` capture, with the object's ``passive``
+    one (and, stated here, a probe map: a uniform room): passive reflectometry runs on the object,
+    though the lab states a sample sphere, and is labelled outside its assumption (the bumpy
+    sphere has three materials)."""
+    store, lab, _ = captured
+    cal, _, train, _ = inputs
+    cal = replace(cal, environment=EnvironmentMap.constant(np.full(3, 1e4), height=8), environment_weight=None)
+    images = session_images(store, "proc")
+    sphere = sample_sphere_of(lab.targets())
+    assert sphere is not None   # the lab has one; this session never photographed it
+    plan = view_plan(images, "proc", cal, mesh=fitter_mesh(lab.object), sample_sphere=sphere)
+    assert plan.sample_sphere is None and images.steps[plan.passive].kind == "passive" and not plan.notes
+    p = plan_inputs(images, plan, cal, fitter_mesh(lab.object)).passive
+    assert p.sample_sphere is None and p.mask.sum() > 1000   # the object's pixels, normals from its mesh
+    fit = fit_method("passive", train, replace(inputs[1], passive=p), rng=0)
+    assert any("multi-material" in w for w in fit.warnings)
+    assert "3 materials" in _passive_assumption(lab.truth(), train)
+
+
 def test_cli_process(captured, tmp_path):
     """A session recorded on --rig sim needs no --mesh (the lab states its mesh, targets and
     truth); one from another rig does."""
@@ -268,7 +291,8 @@ def test_cli_process(captured, tmp_path):
     out = json.loads(r.output)
     status = {m["method"]: m for m in out["methods"]}
     assert status["lambertian"]["status"] in ("ok", "done")
-    assert status["passive"]["status"] == "skipped" and "no passive capture" in status["passive"]["reason"]
+    # the plan's passive capture has no mirror probe to go with it: skipped, saying so
+    assert status["passive"]["status"] == "skipped" and "no mirror-probe" in status["passive"]["reason"]
     assert (tmp_path / "p.html").is_file() and out["report"].endswith("p.html")
     r = CliRunner().invoke(app, ["process", "proc", "--store", str(root / "store"), "-q",
                                  "--methods", "lambertian"])
@@ -522,7 +546,7 @@ def test_process_and_verify_name_the_same_damaged_frame(captured, tmp_path, dama
     else:
         path.unlink()
     where = f"step {f.step} frame {f.bracket_index} of the bracket, repeat {f.repeat}"
-    # passive is not stored (no passive capture): the inputs are read again
+    # passive is not stored (no mirror probe): the inputs are read again
     r = CliRunner().invoke(app, ["process", "proc", "--store", str(store_dir), "-q", "--methods", "passive"])
     said = " ".join(r.output.split())
     assert r.exit_code == 2 and where in said and "Traceback" not in said, said

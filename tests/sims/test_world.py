@@ -11,7 +11,8 @@ from reconstruct.brdf import CookTorrance, Lambertian
 from reconstruct.raycast import reflect
 from sims.objects import make_sphere
 from sims.sensor import SensorModel
-from sims.world import (CAPTURE_KINDS, RigState, SimWorld, camera_clock, default_camera,
+from sims.targets import SAMPLE_MATERIAL
+from sims.world import (CAPTURE_KINDS, RigState, SimWorld, camera_clock, capture_targets, default_camera,
                         light_position, supersampled_camera)
 
 SMALL = dict(width=160, height=120)
@@ -223,3 +224,19 @@ def test_set_scene_follows_the_runner_targets_and_comes_back():
     assert names() == home and world.environment is None and len(world.scene().lights) == 1
     with pytest.raises(ValueError, match="capture kind"):
         world.set_scene("tripod")
+
+
+def test_the_sample_sphere_scene_is_the_sphere_the_lab_states_under_the_room_alone():
+    """``passive_sphere``: one homogeneous sphere where :func:`capture_targets` says it is, lit by the
+    room alone (no lamp, no cloth) at the environment sample count a glossy lobe needs; the world's
+    own count comes back with the object."""
+    world = SimWorld("sphere", camera=_small_camera(), sensor=SensorModel.compact(), seed=2)
+    world.prepare_target("passive_sphere")
+    (ball,) = world.scene().objects
+    stated = capture_targets()
+    assert ball.name == "sample_sphere" and ball.surface.radius == stated["sample_sphere_radius_mm"] == 30.0
+    assert np.allclose(ball.surface.center, stated["sample_sphere_centre_mm"])
+    assert ball.material is SAMPLE_MATERIAL and world.scene().lights == [] and world.environment is not None
+    assert world.env_samples == SimWorld.KIND_ENV_SAMPLES["passive_sphere"] > 32
+    world.set_scene("object")
+    assert world.env_samples == 32 and len(world.scene().lights) == 1
