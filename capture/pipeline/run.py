@@ -132,6 +132,10 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     memory_limit : int, optional
         Bytes the per-view tasks may hold together; sets the texel block size
         (:func:`capture.pipeline.lumitexel_arrays.block_texels_for`; default: half the machine's memory).
+        Where the gathered lumitexels would exceed it (:meth:`LumitexelArrays.gathered_bytes`)
+        they are not gathered: the inputs come from one pass over blocks
+        (:mod:`capture.pipeline.block_inputs`), Lambertian and Lensch run over blocks here too,
+        the export is fitted on a stated subsample of texels and sharing is skipped.
     say : callable(str), optional
         One-line news (the Dask dashboard's address when a cluster is used).
     lab : SessionLab, optional
