@@ -67,6 +67,7 @@ from capture.pipeline.lumitexel_arrays import (block_texels_for, discovery_texel
                                               stream_lumitexels)
 from capture.pipeline.methods import BlockRoute, fit_method  # noqa: E402
 from capture.pipeline.stored_blocks import StoredBlocks  # noqa: E402
+from capture.pipeline.run import process_session  # noqa: E402
 from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
                                       session_inputs, view_plan)
 from capture.lab_resolver import resolve_lab  # noqa: E402
@@ -202,11 +203,25 @@ def _process(store_path: str, args: list[str], code: str = str(ROOT)) -> tuple[d
     return json.loads(r.stdout[r.stdout.index("{"):]), dt, cpu, after.ru_maxrss / 1024
 
 
+def setup_rss(store_path: str) -> None:
+    """Print, as JSON, the peak RSS (MiB) of ``gonio process``'s set-up alone: its imports, the
+    store, the lab and the calibration read (what no memory limit covers)."""
+    _setup(store_path)
+    print(json.dumps({"setup_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "imports": process_session.__module__}))
+
+
 def process_memory(store_path: str, limit_mib: float) -> None:
+    r = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", "setup"], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT, check=True)
+    setup = json.loads(r.stdout[r.stdout.index("{"):])["setup_mib"]
     summary, dt, cpu, peak = _process(store_path, ["--methods", "lambertian,lensch", "--memory-limit", str(limit_mib)])
     held = {m["method"]: m["figures"].get("held_out_rel_rms") for m in summary["methods"]}
+    found = {m["method"]: m["figures"].get("material_discovery") for m in summary["methods"] if m["method"] == "lensch"}
     print(f"process_memory  gonio process --methods lambertian,lensch --memory-limit {limit_mib:.0f}: {dt:.1f} s "
-          f"(CPU {cpu:.1f} s)  peak RSS {peak:.0f} MiB (limit {limit_mib:.0f} MiB)  texels {summary['inputs']['texels']}  "
+          f"(CPU {cpu:.1f} s)  peak RSS {peak:.0f} MiB, {peak - setup:.0f} above the set-up's {setup:.0f} "
+          f"(limit {limit_mib:.0f} MiB)  texels {summary['inputs']['texels']}  "
+          f"over blocks: {summary['inputs'].get('over_blocks', 'no (gathered)')}  {found}  "
           f"held-out {held}  stages {summary['timings']}")
 
 
@@ -446,6 +461,8 @@ if __name__ == "__main__":
     a = ap.parse_args()
     if a.upscale:
         upscale(a.store, a.upscale, a.dest)
+    elif a.one == "setup":
+        setup_rss(a.store)
     elif a.one == "streamed_keep":   # the resume part's victim: a streamed run left to be killed
         s, m, c = _setup(a.store)
         _stream(s, m, c, 0, fresh=False)
