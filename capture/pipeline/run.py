@@ -375,7 +375,7 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
                                                           fit.predict(train), fit.predict(held))
         else:
             artifacts["appearance.npz"], figures["export_texels"] = _appearance_on_subsample(
-                name, fit, arrays, train.n_texels, inputs, arrays.gatherable_texels(refused // 2), rng, block_texels)
+                name, fit, arrays, train.n_texels, inputs, arrays.gatherable_texels(refused // 4), rng, block_texels)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
@@ -384,7 +384,9 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
 def _appearance_on_subsample(name: str, fit: Fitted, arrays: LumitexelArrays, n_texels: int, inputs: ProcessInputs,
                              n_pick: int, rng: int, block_texels: int) -> tuple[bytes, str]:
     """:func:`capture.export.appearance.appearance_npz` of ``n_pick`` of the ``n_texels`` texels
-    drawn at random (all their samples gathered), and the figure that says so."""
+    drawn at random (all their samples gathered), and the figure that says so. (Gathered samples
+    a quarter of the limit: the GGX fit and Lensch's predictions about as much again; 23 301
+    texels of 36 views took 165 MiB at 9x pixels.)"""
     pick = np.sort(np.random.default_rng(rng).choice(n_texels, min(n_pick, n_texels), replace=False))
     train, held = arrays.gather(pick, max_texels=block_texels)
     sub = dataclasses.replace(fit, arrays={k: np.asarray(v)[pick] for k, v in fit.arrays.items() if k == "labels"},
