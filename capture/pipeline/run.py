@@ -242,7 +242,11 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                         if held.n_samples:
                             rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
                                               trimmed_relative_rms(truth_r[1], held.reflectance))
-                else:
+                else:   # and what the methods to run never read is let go: the held-out view's
+                    # diffuse/specular images, the passive input unless passive runs (+135 MiB at 9x)
+                    inputs = dataclasses.replace(inputs, passive=inputs.passive if "passive" in todo else None,
+                                                 held_out=[dataclasses.replace(v, diffuse=None, specular=None)
+                                                           for v in inputs.held_out])
                     rep.inputs["over_blocks"] = (
                         f"the gathered lumitexels ({arrays.gathered_bytes() / 2**20:.0f} MiB at most) exceed --memory-limit "
                         f"{limit / 2**20:.0f} MiB: scoring, Lambertian and Lensch over blocks of {method_block} texels, "
