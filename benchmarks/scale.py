@@ -12,10 +12,10 @@ Parts (each prints its figures):
   methods over the stored blocks (Lambertian, Lensch with its discovery subsample sized by the
   limit, both scored block by block), with time;
 - ``process_memory``: peak RSS of ``gonio process --methods lambertian,lensch --memory-limit``
-  (its remaining in-memory parts included: the gathered lumitexels for the pictures, the export's
-  GGX fit and the truth columns), next to the limit; on a captured session only (an
-  :func:`upscale`d store's calibration frames are not enlarged: ``gonio process`` finds its
-  calibration stale and the redone one fails on the darks' size);
+  next to the limit (where the gathered lumitexels would exceed it, ``gonio process`` runs over
+  texel blocks: the pictures from one view's samples, the export on a subsample of texels); on
+  the quick demo or an :func:`upscale`d store (its stored calibration kept: the frame digest of
+  its closing record updated);
 - ``growth``: the streamed route (lumitexels, Lambertian, Lensch) at 1x, 4x and 16x pixels
   (:func:`upscale`): time per stage, peak RSS and the growth exponents against the texel count;
 - ``today``: ``gonio process --methods lambertian,lensch`` with the base commit's code against
@@ -60,12 +60,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from calibration.raw import read_raw  # noqa: E402
+from capture.pipeline.calibration_record import RUN_KIND, frames_digest  # noqa: E402
 from capture.pipeline.cluster import ClusterOptions, Executor  # noqa: E402
 from capture.pipeline.block_scoring import score_blocks  # noqa: E402
 from capture.pipeline.lumitexel_arrays import (block_texels_for, discovery_texels_for, method_texels_for,  # noqa: E402
                                               stream_lumitexels)
 from capture.pipeline.methods import BlockRoute, fit_method  # noqa: E402
 from capture.pipeline.stored_blocks import StoredBlocks  # noqa: E402
+from capture.pipeline.run import process_session  # noqa: E402
 from capture.pipeline.process import (lumitexels_with_held_out, read_calibration, session_images,  # noqa: E402
                                       session_inputs, view_plan)
 from capture.lab_resolver import resolve_lab  # noqa: E402
@@ -201,11 +203,25 @@ def _process(store_path: str, args: list[str], code: str = str(ROOT)) -> tuple[d
     return json.loads(r.stdout[r.stdout.index("{"):]), dt, cpu, after.ru_maxrss / 1024
 
 
+def setup_rss(store_path: str) -> None:
+    """Print, as JSON, the peak RSS (MiB) of ``gonio process``'s set-up alone: its imports, the
+    store, the lab and the calibration read (what no memory limit covers)."""
+    _setup(store_path)
+    print(json.dumps({"setup_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "imports": process_session.__module__}))
+
+
 def process_memory(store_path: str, limit_mib: float) -> None:
+    r = subprocess.run([sys.executable, __file__, "--store", store_path, "--one", "setup"], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT, check=True)
+    setup = json.loads(r.stdout[r.stdout.index("{"):])["setup_mib"]
     summary, dt, cpu, peak = _process(store_path, ["--methods", "lambertian,lensch", "--memory-limit", str(limit_mib)])
     held = {m["method"]: m["figures"].get("held_out_rel_rms") for m in summary["methods"]}
+    found = {m["method"]: m["figures"].get("material_discovery") for m in summary["methods"] if m["method"] == "lensch"}
     print(f"process_memory  gonio process --methods lambertian,lensch --memory-limit {limit_mib:.0f}: {dt:.1f} s "
-          f"(CPU {cpu:.1f} s)  peak RSS {peak:.0f} MiB (limit {limit_mib:.0f} MiB)  texels {summary['inputs']['texels']}  "
+          f"(CPU {cpu:.1f} s)  peak RSS {peak:.0f} MiB, {peak - setup:.0f} above the set-up's {setup:.0f} "
+          f"(limit {limit_mib:.0f} MiB)  texels {summary['inputs']['texels']}  "
+          f"over blocks: {summary['inputs'].get('over_blocks', 'no (gathered)')}  {found}  "
           f"held-out {held}  stages {summary['timings']}")
 
 
@@ -383,9 +399,18 @@ def upscale(store_path: str, f: int, dest: str) -> None:
             K[:2, 2] = f * (K[:2, 2] + 0.5) - 0.5   # pixel centres: the enlarged pixel grid's
             r["K"], r["image_size"] = K.tolist(), [f * v for v in r["image_size"]]
             db.execute("UPDATE results SET result_json = ? WHERE id = ?", (json.dumps(r), rid))
+    # the stored calibration stays valid for the enlarged frames (darks and intrinsics enlarged
+    # with them; the rest is in mm, degrees and DN): its closing record names the new frames, so
+    # gonio process reuses it instead of recalibrating from frames that were not enlarged
+    digest = frames_digest(store, sid)
+    with sqlite3.connect(Path(dest) / "gonio.sqlite") as db:
+        for rid, text in db.execute("SELECT id, result_json FROM results WHERE kind = ?", (RUN_KIND,)).fetchall():
+            run = json.loads(text)
+            run["frames_digest"] = digest
+            db.execute("UPDATE results SET result_json = ? WHERE id = ?", (json.dumps(run), rid))
     store.close()
     print(f"upscale  {dest}: measurement and passive frames and darks enlarged {f} x {f}, "
-          f"{r['image_size'][0]} x {r['image_size'][1]}")
+          f"{r['image_size'][0]} x {r['image_size'][1]}; the stored calibration kept (its frame digest updated)")
 
 
 def scheduler(store_path: str) -> None:
@@ -436,6 +461,8 @@ if __name__ == "__main__":
     a = ap.parse_args()
     if a.upscale:
         upscale(a.store, a.upscale, a.dest)
+    elif a.one == "setup":
+        setup_rss(a.store)
     elif a.one == "streamed_keep":   # the resume part's victim: a streamed run left to be killed
         s, m, c = _setup(a.store)
         _stream(s, m, c, 0, fresh=False)

@@ -154,7 +154,9 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
                                           "(tcp://HOST:8786); its workers must see the store at the same path."),
             memory_limit: float = typer.Option(None, "--memory-limit", min=1, help="MiB the per-view tasks may "
                                                "hold together (sets the texel chunk; default: half the "
-                                               "machine's memory)."),
+                                               "machine's memory). Where the gathered lumitexels would "
+                                               "exceed it, the methods run over texel blocks and sharing "
+                                               "is skipped."),
             quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Reconstruct a captured session with every method its captures allow and write the report.
 

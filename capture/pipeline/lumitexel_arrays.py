@@ -64,6 +64,9 @@ _TEXEL_BYTES_FIXED, _TEXEL_BYTES_PER_VIEW = 200, 80
 #: bytes per pixel a view's task holds: raw bracket frames, the merge's float64 planes, the
 #: demosaiced radiance, diffuse, specular and validity (measured ~ 140 at 320 x 240, 2 x 2 frames)
 _PIXEL_BYTES = 160
+#: bytes of one sample in the gathered lumitexels: texel int64, view int32, weight and wi, wo,
+#: reflectance, diffuse, specular float32 (76), rounded up
+_GATHERED_SAMPLE_BYTES = 80
 
 
 #: texels per block at most: a view's chunk of ``samples`` is then 16 MiB, past which a bigger
@@ -290,13 +293,23 @@ class LumitexelArrays:
             yield TexelBlock(first, lt, held)
             first += lt.n_texels
 
-    def gather(self) -> tuple[Lumitexels, Lumitexels]:
-        """``(train, held_out)`` over every texel with a training sample, in memory: what
-        :func:`capture.pipeline.process.lumitexels_with_held_out` returns, bit for bit."""
-        parts = list(self.iter_blocks())
-        if sum(b.lumitexels.n_texels for b in parts) == 0:
-            raise LumitexelError("no reflectance samples: no surface point is both seen and lit")
+    def gathered_bytes(self) -> int:
+        """The most bytes :meth:`gather` holds, from the arrays' shape alone: every (texel, view)
+        pair a sample of :data:`_GATHERED_SAMPLE_BYTES`, twice (the blocks read, then joined)."""
+        return 2 * _GATHERED_SAMPLE_BYTES * self.n_texels * self.n_views
 
+    def gatherable_texels(self, memory_bytes: int) -> int:
+        """The most texels whose samples :meth:`gather` (``texels=``) holds within ``memory_bytes``
+        (every texel counted with a sample in every view: a bound); at least 1."""
+        return max(1, int(memory_bytes // (2 * _GATHERED_SAMPLE_BYTES * max(self.n_views, 1))))
+
+    def gather(self, texels: np.ndarray | None = None, *,
+               max_texels: int | None = None) -> tuple[Lumitexels, Lumitexels]:
+        """``(train, held_out)`` over every texel with a training sample, in memory: what
+        :func:`capture.pipeline.process.lumitexels_with_held_out` returns, bit for bit. With
+        ``texels`` (sorted, unique, in that numbering) only those texels, renumbered from 0;
+        blocks read :meth:`parts` of ``max_texels``."""
+        parts = list(self.iter_blocks(max_texels)) if texels is None else self._picked(texels, max_texels)
         def join(select_held: bool) -> Lumitexels:
             kw = {name: np.concatenate([getattr(b.lumitexels, name) for b in parts])
                   for name in ("position", "normal", "best_view", "pixel")}
@@ -308,6 +321,20 @@ class LumitexelArrays:
         # a texel's spread compares it with its pixel neighbours, which other blocks may hold
         train.footprint_spread_deg = held.footprint_spread_deg = footprint_normal_spread(train)
         return train, held
+
+    def _picked(self, texels: np.ndarray, max_texels: int | None) -> list["TexelBlock"]:
+        """The blocks of :meth:`iter_blocks` cut down to ``texels`` (gathered numbering), each
+        block's first texel renumbered among the picked."""
+        texels = np.asarray(texels, np.int64)
+        out, first = [], 0
+        for b in self.iter_blocks(max_texels):
+            span = b.texels
+            local = texels[(texels >= span.start) & (texels < span.stop)] - span.start
+            if len(local):
+                keep = np.isin(b.lumitexels.texel, local)
+                out.append(TexelBlock(first, b.lumitexels.subset(local), b.held[keep]))
+                first += len(local)
+        return out
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from reconstruct.sharing import fit_spatial
 
 from .process import ProcessInputs
 
-__all__ = ["METHODS", "DEFAULT_METHODS", "BLOCK_METHODS", "BlockRoute", "Fitted", "MethodSkipped", "fit_method"]
+__all__ = ["METHODS", "DEFAULT_METHODS", "BLOCK_METHODS", "GATHERING_METHODS", "BlockRoute", "Fitted", "MethodSkipped", "fit_method"]
 
 
 class MethodSkipped(Exception):
@@ -225,6 +225,9 @@ DEFAULT_METHODS = ("lambertian", "lensch", "sharing", "passive")
 
 #: the methods whose per-texel steps run over a :class:`BlockRoute` when given one
 BLOCK_METHODS = ("lambertian", "lensch")
+#: the methods that fit every training sample at once (``gonio process`` skips them when the
+#: gathered lumitexels would exceed ``--memory-limit``; passive fits one image, not the lumitexels)
+GATHERING_METHODS = ("sharing",)
 
 
 def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int = 0,

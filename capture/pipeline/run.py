@@ -20,6 +20,7 @@ reflectometry on the lab's sample sphere is scored on the sphere instead
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import io
 import json
@@ -43,16 +44,17 @@ from .calibration_record import stored_calibration
 from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
-from .methods import DEFAULT_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method
+from .methods import DEFAULT_METHODS, GATHERING_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method
 from .passive_sample import SampleTruth, score_sample_sphere
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
+from .block_inputs import inputs_over_blocks
 from .block_scoring import score_blocks
 from .lumitexel_arrays import (LumitexelArrays, block_texels_for, default_memory_limit, discovery_texels_for,
                                method_texels_for, stream_lumitexels)
 from .stored_blocks import StoredBlocks
 from .progress import Progress, ProgressSink, counter
-from .process import (MissingCalibration, ProcessError, ProcessInputs, SessionCalibration, plan_inputs,
+from .process import (MissingCalibration, ProcessInputs, SessionCalibration, plan_inputs,
                       read_calibration, sample_sphere_of, select_samples, session_images, view_plan)
 from .process_report import Floor, MethodOutcome, ProcessReport
 from .report_html import write_html_report
@@ -133,6 +135,10 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     memory_limit : int, optional
         Bytes the per-view tasks may hold together; sets the texel block size
         (:func:`capture.pipeline.lumitexel_arrays.block_texels_for`; default: half the machine's memory).
+        Where the gathered lumitexels would exceed it (:meth:`LumitexelArrays.gathered_bytes`)
+        they are not gathered: the inputs come from one pass over blocks
+        (:mod:`capture.pipeline.block_inputs`), Lambertian and Lensch run over blocks here too,
+        the export is fitted on a stated subsample of texels and sharing is skipped.
     say : callable(str), optional
         One-line news (the Dask dashboard's address when a cluster is used).
     lab : SessionLab, optional
@@ -205,39 +211,65 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                                              workers=1 if cluster.in_process else max(cluster.workers, 1))
                     arrays = stream_lumitexels(images, session, cal, plan, mesh, executor, block_texels=block,
                                                progress=counter(progress, "lumitexels"))
-                    train, held = arrays.gather()
                     # on a cluster the block methods' per-texel steps run there, over the stored blocks
                     method_block = method_texels_for(limit, arrays.n_train)
-                    route = None if cluster.in_process else BlockRoute(StoredBlocks(arrays, method_block), executor.map)
+                    refused = None if arrays.gathered_bytes() <= limit else limit
+                    if refused is None:
+                        train, held = arrays.gather()
+                        n_samples = (train.n_samples, held.n_samples)
+                        route = None if cluster.in_process else BlockRoute(StoredBlocks(arrays, method_block), executor.map)
+                    else:   # gathering would exceed the limit: one pass over blocks, every block method over them
+                        over = inputs_over_blocks(arrays, max_texels=method_block, truth_of=None if truth is None
+                                                  else functools.partial(_truth_of, truth))
+                        train, held = over.train, over.held   # every texel, one view's samples each
+                        n_samples = (over.n_training_samples, over.n_held_samples)
+                        route = BlockRoute(StoredBlocks(arrays, method_block), executor.map)
                 with clock.stage("inputs"):
                     inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
-                truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
                 rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
                               "polarization_separated": inputs.separated, "texels": train.n_texels,
-                              "training_samples": train.n_samples, "held_out_samples": held.n_samples,
+                              "training_samples": n_samples[0], "held_out_samples": n_samples[1],
                               "light_source": cal.light_source, "absolute_units": cal.absolute,
                               "passive_capture": inputs.passive is not None,
                               "passive_on": _passive_subject(inputs), "notes": inputs.notes,
                               "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
                                                    "digest": arrays.digest, "block_texels": arrays.block_texels,
                                                    "reused_views": arrays.reused_views}}
-                if truth_r is not None:
-                    scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
-                    rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
-                    rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
-                        scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
-                    if held.n_samples:
-                        rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
-                                          trimmed_relative_rms(truth_r[1], held.reflectance))
+                if refused is None:
+                    truth_r = _truth_reflectance(truth, train, held) if truth is not None else None
+                    scored_truth = truth_r is not None
+                    if truth_r is not None:
+                        scored = (held, truth_r[1]) if held.n_samples else (train, truth_r[0])
+                        rep.inputs["measured_vs_truth_rel_rms"] = relative_rms(scored[0].reflectance, scored[1])
+                        rep.inputs["measured_vs_truth_median_ratio"] = float(np.median(
+                            scored[0].reflectance.sum(axis=1) / np.maximum(scored[1].sum(axis=1), 1e-12)))
+                        if held.n_samples:
+                            rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
+                                              trimmed_relative_rms(truth_r[1], held.reflectance))
+                else:   # and what the methods to run never read is let go: the held-out view's
+                    # diffuse/specular images, the passive input unless passive runs (+135 MiB at 9x)
+                    inputs = dataclasses.replace(inputs, passive=inputs.passive if "passive" in todo else None,
+                                                 held_out=[dataclasses.replace(v, diffuse=None, specular=None)
+                                                           for v in inputs.held_out])
+                    rep.inputs["over_blocks"] = (
+                        f"the gathered lumitexels ({arrays.gathered_bytes() / 2**20:.0f} MiB at most) exceed --memory-limit "
+                        f"{limit / 2**20:.0f} MiB: scoring, Lambertian and Lensch over blocks of {method_block} texels, "
+                        f"the pictures from one view's samples, the export fitted on a subsample of texels, "
+                        f"{', '.join(GATHERING_METHODS)} skipped")
+                    scored_truth = over.truth is not None
+                    if over.truth is not None:
+                        rep.inputs["measured_vs_truth_rel_rms"] = over.truth.measured_vs_truth_rel_rms
+                        rep.inputs["measured_vs_truth_median_ratio"] = over.truth.measured_vs_truth_median_ratio
+                        rep.floor = over.truth.floor
                 on_object = inputs.passive is None or inputs.passive.sample_sphere is None
                 assumption = {"passive": _passive_assumption(truth, train)} if truth is not None and on_object else {}
                 for name in todo:
                     started = time.perf_counter()
                     with clock.stage(name):
-                        outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, truth_r, rng,
-                                                     rep.inputs, counter(progress, name),
+                        outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, scored_truth,
+                                                     rng, rep.inputs, counter(progress, name),
                                                      _options(name, method_options, limit, arrays), rep.floor,
-                                                     assumption.get(name, ""), route, method_block)
+                                                     assumption.get(name, ""), route, method_block, refused)
                     outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
         if rep.floor is not None:
@@ -312,9 +344,17 @@ def _options(name: str, method_options, memory_limit: int, arrays: LumitexelArra
 
 
 def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArrays, train: Lumitexels,
-                held: Lumitexels, inputs: ProcessInputs, truth, truth_r, rng: int, summary: dict,
+                held: Lumitexels, inputs: ProcessInputs, truth, scored_truth: bool, rng: int, summary: dict,
                 progress, options: dict[str, Any], floor: Floor | None, assumption: str,
-                route: BlockRoute | None, block_texels: int) -> MethodOutcome:
+                route: BlockRoute | None, block_texels: int, refused: int | None) -> MethodOutcome:
+    """Fit, score and store one method. ``refused``: the memory limit (bytes) when the
+    lumitexels were not gathered (``train`` and ``held`` then hold every texel but one view's
+    samples each): the methods that need every sample at once are skipped, the export is fitted
+    on a subsample of texels."""
+    if refused is not None and name in GATHERING_METHODS:
+        return MethodOutcome(name, "skipped", f"{name}: its fit takes every training sample at once (the gathered "
+                             f"lumitexels, {arrays.gathered_bytes() / 2**20:.0f} MiB at most), more than --memory-limit "
+                             f"{refused / 2**20:.0f} MiB; give a larger limit to run it", outside_assumption=assumption)
     try:
         fit = fit_method(name, train, inputs, rng=rng, progress=progress, route=route, **options)
     except MethodSkipped as exc:
@@ -323,18 +363,22 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
         return MethodOutcome(name, "failed", f"{type(exc).__name__}: {exc}", outside_assumption=assumption)
     if name == "passive" and inputs.passive is not None and inputs.passive.sample_sphere is not None:
         figures, pictures = _sample_sphere_figures(fit, train, held, inputs, truth)
-    else:
-        figures, pictures = _object_figures(fit, arrays, block_texels, train, held, inputs, truth, truth_r)
+    else:   # pictures: one view's samples each when the lumitexels were not gathered
+        figures, pictures = _object_figures(fit, arrays, block_texels, train, held, inputs, truth, scored_truth)
     result = {"figures": figures, "warnings": fit.warnings,
               "inputs": {"calibration_ids": inputs.calibration.ids, "views": inputs.view_steps,
                          "held_out_views": inputs.held_out_steps, "texels": train.n_texels,
-                         "training_samples": train.n_samples, "held_out_samples": held.n_samples},
+                         "training_samples": summary["training_samples"], "held_out_samples": summary["held_out_samples"]},
               "inputs_summary": summary, "floor": None if floor is None else asdict(floor),
               "outside_assumption": assumption}
     artifacts = {"model.npz": _npz(fit.arrays), "report.npz": _npz(pictures)}
-    if name in EXPORTED_METHODS:   # what `gonio export` writes files from (in memory: its GGX fit is global)
-        artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
-                                                      fit.predict(train), fit.predict(held))
+    if name in EXPORTED_METHODS:   # what `gonio export` writes files from (its GGX fit is global)
+        if refused is None:
+            artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
+                                                          fit.predict(train), fit.predict(held))
+        else:
+            artifacts["appearance.npz"], figures["export_texels"] = _appearance_on_subsample(
+                name, fit, arrays, train.n_texels, inputs, arrays.gatherable_texels(refused // 4), rng, block_texels)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
@@ -354,13 +398,13 @@ def _sample_sphere_figures(fit: Fitted, train: Lumitexels, held: Lumitexels, inp
 
 
 def _object_figures(fit: Fitted, arrays: LumitexelArrays, block_texels: int, train: Lumitexels, held: Lumitexels,
-                    inputs: ProcessInputs, truth, truth_r) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+                    inputs: ProcessInputs, truth, scored_truth: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """A method's figures on the object's training and held-out samples (and the truth's),
     scored one texel block at a time from the stored arrays (block_scoring: per-block sums), and
     its report pictures."""
     figures = dict(fit.figures)
     scores = score_blocks(fit.predict_samples, arrays, max_texels=block_texels,
-                          truth_of=None if truth_r is None else functools.partial(_truth_of, truth))
+                          truth_of=functools.partial(_truth_of, truth) if scored_truth else None)
     figures["training_rel_rms"] = scores.training.relative_rms
     if scores.held_out.count:
         figures["held_out_rel_rms"] = scores.held_out.relative_rms
@@ -374,6 +418,22 @@ def _object_figures(fit: Fitted, arrays: LumitexelArrays, block_texels: int, tra
             figures["normal_error_mesh_deg"] = _median_angle_deg(train.normal, true_n)
             figures["normal_error_fitted_deg"] = _median_angle_deg(fit.normals, true_n)
     return figures, method_pictures(fit, train, held, inputs, truth)
+
+
+def _appearance_on_subsample(name: str, fit: Fitted, arrays: LumitexelArrays, n_texels: int, inputs: ProcessInputs,
+                             n_pick: int, rng: int, block_texels: int) -> tuple[bytes, str]:
+    """:func:`capture.export.appearance.appearance_npz` of ``n_pick`` of the ``n_texels`` texels
+    drawn at random (all their samples gathered), and the figure that says so. (Gathered samples
+    a quarter of the limit: the GGX fit and Lensch's predictions about as much again; 23 301
+    texels of 36 views took 165 MiB at 9x pixels.)"""
+    pick = np.sort(np.random.default_rng(rng).choice(n_texels, min(n_pick, n_texels), replace=False))
+    train, held = arrays.gather(pick, max_texels=block_texels)
+    sub = dataclasses.replace(fit, arrays={k: np.asarray(v)[pick] for k, v in fit.arrays.items() if k == "labels"},
+                              normals=None if fit.normals is None else fit.normals[pick])
+    npz = appearance_npz(name, sub, train, held, inputs.views, inputs.held_out,
+                         fit.predict_samples(pick[train.texel], train.wi, train.wo),
+                         fit.predict_samples(pick[held.texel], held.wi, held.wo))
+    return npz, f"the export fitted on {len(pick)} of {n_texels} texels drawn at random (--memory-limit)"
 
 
 def _median_angle_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -105,6 +105,20 @@ def test_lambertian_over_blocks_equals_the_in_memory_fit(stored):
         np.testing.assert_allclose(fit.predict(held), whole.predict(held), rtol=1e-12, atol=0)
 
 
+def test_a_gathered_texel_subsample_equals_the_subset_of_the_gathered_arrays(stored):
+    """The export's subsample (``gonio process`` beyond its memory limit): the picked texels with
+    all their training and held-out samples, renumbered from 0, read in parts of any size."""
+    train, held = stored[BLOCKS[0]].gather()
+    pick = np.sort(np.random.default_rng(1).choice(train.n_texels, 50, replace=False))
+    for arrays, part in ((stored[BLOCKS[0]], None), (stored[BLOCKS[1]], 29)):
+        got = arrays.gather(pick, max_texels=part)
+        for mine, whole in zip(got, (train, held)):
+            want = whole.subset(pick)
+            assert mine.n_texels == 50 and mine.n_samples == want.n_samples > 0
+            for name in ("position", "normal", "texel", "view", "wi", "wo", "reflectance"):
+                np.testing.assert_array_equal(getattr(mine, name), getattr(want, name), err_msg=name)
+
+
 class _Counting(StoredBlocks):
     """Stored blocks that count the texels gathered for the global steps."""
 

@@ -9,6 +9,7 @@ what is held out.
 from __future__ import annotations
 
 import base64
+import io
 import json
 import re
 import shutil
@@ -26,6 +27,7 @@ from capture.pipeline.report_html import ExportLink, export_links, link_export
 from capture.pipeline.methods import fit_method
 from capture.pipeline.run import _passive_assumption, process_session
 from capture.pipeline.cluster import ClusterOptions, Executor
+from capture.pipeline import lumitexel_arrays
 from capture.pipeline.lumitexel_arrays import block_texels_for, stream_lumitexels
 from capture.plan import Plan
 from capture.pipeline.process import (MissingCalibration, ProcessError, lumitexels_with_held_out, plan_inputs,
@@ -656,3 +658,49 @@ def test_cli_rejects_a_scheduler_that_is_not_an_address(captured):
     store, *_ = captured
     r = CliRunner().invoke(app, ["process", "proc", "--store", str(store.root), "--scheduler", "localhost"])
     assert r.exit_code == 2 and "--scheduler must be an address like tcp://HOST:8786" in r.output
+
+
+def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_with_the_same_figures(
+        captured, calibrated, tmp_path, monkeypatch):
+    """Issue 21: where the gathered lumitexels would exceed ``--memory-limit``, ``gonio process``
+    does not gather them: the inputs' truth figures, the floor, Lambertian, its scores and the
+    pictures come from texel blocks, equal to the gathered route's to 1e-9; sharing (a fit of
+    every sample at once) is skipped with the limit named. (Lensch over blocks equals its
+    gathered fit in test_block_methods; here it would add 25 s.)"""
+    _, lab, _ = captured
+    session_lab = lab.session_lab("proc")
+    # a limit that holds one 320 x 240 view's images; each sample counted at 100x its size, so
+    # the gathered samples' bound exceeds it (this session's real bound is a few MiB)
+    limit = 16 * 2**20
+    monkeypatch.setattr(lumitexel_arrays, "_GATHERED_SAMPLE_BYTES", 8000)
+    runs = {}
+    for route, memory in (("gathered", None), ("blocks", limit)):
+        copy = tmp_path / route / "store"
+        shutil.copytree(calibrated, copy)
+        store = Store(copy, durable=False)
+        methods = ["lambertian"] + (["sharing"] if memory else [])
+        rep = process_session(store, "proc", methods=methods, lab=session_lab, memory_limit=memory,
+                              report_path=tmp_path / f"{route}.html")
+        runs[route] = (store, rep)
+    (gstore, gathered), (bstore, blocks) = runs["gathered"], runs["blocks"]
+    assert "over_blocks" not in gathered.inputs and "16 MiB" in blocks.inputs["over_blocks"]
+    for key in ("texels", "training_samples", "held_out_samples", "measured_vs_truth_rel_rms",
+                "measured_vs_truth_median_ratio"):
+        assert blocks.inputs[key] == pytest.approx(gathered.inputs[key], rel=1e-9), key
+    assert gathered.floor is not None
+    assert blocks.floor.held_out_rel_rms == pytest.approx(gathered.floor.held_out_rel_rms, rel=1e-9)
+    assert blocks.floor.held_out_rel_rms_trimmed == pytest.approx(gathered.floor.held_out_rel_rms_trimmed, rel=1e-9)
+    g, b = gathered.method("lambertian"), blocks.method("lambertian")
+    assert g.status == b.status == "ok", (g.reason, b.reason)
+    numbers = [k for k, v in g.figures.items() if isinstance(v, (int, float))]
+    assert {"held_out_rel_rms", "held_out_rel_rms_trimmed", "truth_rel_rms"} <= set(numbers)
+    for key in numbers:
+        assert b.figures[key] == pytest.approx(g.figures[key], rel=1e-9), key
+    pictures = [np.load(io.BytesIO(s.read_object(next(r for r in s.results(s.session("proc").id)
+                                                         if r.id == rid).artifacts["report.npz"])))
+                for s, rid in ((gstore, g.result_id), (bstore, b.result_id))]
+    assert set(pictures[0].files) == set(pictures[1].files) and "heldout_predicted" in pictures[0].files
+    for name in pictures[0].files:   # one view's samples drawn: the same pictures
+        np.testing.assert_allclose(pictures[1][name], pictures[0][name], rtol=1e-6, err_msg=name)
+    skipped = blocks.method("sharing")
+    assert skipped.status == "skipped" and "--memory-limit 16 MiB" in skipped.reason
