@@ -353,6 +353,8 @@ class SimWorld:
         self._lock = threading.Lock()  # the camera sim may call frame_source from its own thread
         self.dark = False
         self.flat_radiance: float | None = None
+        # the last frame's (render key, radiance): a bracket's exposures see the same radiance
+        self._last_radiance: tuple[tuple, np.ndarray] | None = None
         # what set_scene("object") puts back
         self._home = dict(object=self.object, environment=environment, light_intensity=light_intensity,
                           supersample=self.supersample,
@@ -530,12 +532,30 @@ class SimWorld:
         :meth:`RigState.from_state` for the keys). Thread-safe; each call draws fresh noise."""
         st = RigState.from_state(state)
         with self._lock:  # one frame at a time: a scene change (set_scene) waits for it
-            rad = self.radiance(st)
+            rad = self._bracket_radiance(st)
             raw = self.sensor.expose(rad, st.exposure_s, st.iso, self._rng, **self._optics(st))
         return self.sensor.to_dng(raw, exposure_s=st.exposure_s, iso=st.iso, fnumber=st.fnumber,
                                   datetime=camera_clock(state))
 
     __call__ = frame_source
+
+    def _bracket_radiance(self, st: RigState) -> np.ndarray:
+        """:meth:`radiance` of ``st``, rendered once for consecutive frames that differ only in
+        exposure time, ISO or aperture (a bracket: the render does not depend on them, and
+        the sensor draws each frame's own noise). The key holds the scene's parts themselves
+        and is compared by identity, so a scene change or a replaced part renders afresh.
+        Call with the lock held."""
+        key = (replace(st, exposure_s=1.0, iso=1.0, fnumber=1.0), self.camera, self.light_radius_mm,
+               self.light_polarizer_deg, self.env_samples, *(getattr(self, f) for f in self._SCENE_FIELDS),
+               *self.targets)
+        last = self._last_radiance
+        if last is not None and len(last[0]) == len(key) and last[0][0] == key[0] \
+                and all(a is b for a, b in zip(last[0][1:], key[1:])):
+            return last[1]
+        rad = self.radiance(st)
+        rad.flags.writeable = False  # shared by the bracket's frames
+        self._last_radiance = (key, rad)
+        return rad
 
     def _optics(self, st: RigState) -> dict:
         K = self.camera.K
