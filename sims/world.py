@@ -25,7 +25,7 @@ import numpy as np
 
 from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
-from reconstruct.render import PointLight, RenderResult, Scene, SceneObject, render
+from reconstruct.render import PointLight, PrimaryHits, RenderResult, Scene, SceneObject, render
 from reconstruct.raycast import Plane
 from reconstruct.brdf import Lambertian
 
@@ -355,6 +355,8 @@ class SimWorld:
         self.flat_radiance: float | None = None
         # the last frame's (render key, radiance): a bracket's exposures see the same radiance
         self._last_radiance: tuple[tuple, np.ndarray] | None = None
+        # the last pose's (geometry key, camera rays' first hits): its lights and analyser angles
+        self._last_primary: tuple[tuple, PrimaryHits] | None = None
         # what set_scene("object") puts back
         self._home = dict(object=self.object, environment=environment, light_intensity=light_intensity,
                           supersample=self.supersample,
@@ -486,19 +488,21 @@ class SimWorld:
                                     radius=self.light_radius_mm, polarizer=self.light_polarizer_deg))
         return sc
 
-    def _render(self, sc: Scene, st: RigState, camera: CameraModel, seed, components: bool = False) -> RenderResult:
+    def _render(self, sc: Scene, st: RigState, camera: CameraModel, seed, components: bool = False,
+                primary: PrimaryHits | None = None) -> RenderResult:
         return render(sc, camera, shadows=True, polarizer=st.polarizer_deg,
-                      env_samples=self.env_samples, rng=seed, components=components)
+                      env_samples=self.env_samples, rng=seed, components=components, primary=primary)
 
     def radiance(self, state: RigState | Mapping | None = None, *, seed: int = 0) -> np.ndarray:
         """Noise-free radiance (H, W, 3) float32 the sensor integrates for ``state``."""
         st = state if isinstance(state, RigState) else RigState.from_state(state)
         return self._frame(st, seed, truth=False)[0]
 
-    def _frame(self, st: RigState, seed, *, truth: bool):
+    def _frame(self, st: RigState, seed, *, truth: bool, primary: PrimaryHits | None = None):
         """(radiance, diffuse, specular, buffers) of a frame: the radiance box-filtered over the
         supersample grid; with ``truth`` also its diffuse / specular parts (same filter) and the
-        geometry buffers at the pixel centres (None otherwise)."""
+        geometry buffers at the pixel centres (None otherwise). ``primary``: the supersampled
+        camera's first hits kept for this pose (see :class:`reconstruct.render.PrimaryHits`)."""
         H, W = self.camera.height, self.camera.width
         sc = self.scene(st)
         if self.dark or self.flat_radiance is not None:  # lens cap / uniform field: no render
@@ -508,7 +512,7 @@ class SimWorld:
             return rad, rad, np.zeros_like(rad), self._render(sc, st, self.camera, seed)
         s = self.supersample
         hi = self._render(sc, st, self.camera if s == 1 else supersampled_camera(self.camera, s), seed,
-                          components=truth)
+                          components=truth, primary=primary)
 
         def box(a):
             return a if s == 1 else a.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
@@ -548,14 +552,30 @@ class SimWorld:
         key = (replace(st, exposure_s=1.0, iso=1.0, fnumber=1.0), self.camera, self.light_radius_mm,
                self.light_polarizer_deg, self.env_samples, *(getattr(self, f) for f in self._SCENE_FIELDS),
                *self.targets)
-        last = self._last_radiance
-        if last is not None and len(last[0]) == len(key) and last[0][0] == key[0] \
-                and all(a is b for a, b in zip(last[0][1:], key[1:])):
-            return last[1]
-        rad = self.radiance(st)
+        if _same_key(self._last_radiance, key):
+            return self._last_radiance[1]
+        rad = self._frame(st, 0, truth=False, primary=self._primary_hits(st))[0]
         rad.flags.writeable = False  # shared by the bracket's frames
         self._last_radiance = (key, rad)
         return rad
+
+    #: the most camera rays whose first hits are kept between frames (~130 bytes each)
+    PRIMARY_HITS_MAX_RAYS = 1 << 20
+
+    def _primary_hits(self, st: RigState) -> PrimaryHits | None:
+        """The kept first hits of this pose's camera rays (empty for a new pose), shared by the
+        frames of one pose under other lights, the ring flash or analyser angles: what the camera
+        rays hit depends on the turntable angle, the camera and what stands in the scene only.
+        None past :attr:`PRIMARY_HITS_MAX_RAYS`. Call with the lock held."""
+        key = (st.turntable_deg, self.camera, self.supersample, self.object, self.platter, self.targets,
+               *self.targets)
+        if _same_key(self._last_primary, key):
+            return self._last_primary[1]
+        self._last_primary = None  # let the last pose's hits go before the new ones are traced
+        if self.camera.width * self.camera.height * self.supersample ** 2 > self.PRIMARY_HITS_MAX_RAYS:
+            return None
+        self._last_primary = (key, PrimaryHits())
+        return self._last_primary[1]
 
     def _optics(self, st: RigState) -> dict:
         K = self.camera.K
@@ -601,6 +621,13 @@ def capture_targets(spheres: Target | None = None) -> dict[str, Any]:
             "sphere_reflectance": CalibrationSphere(balls.spec.radius_mm, balls.spec.kind).reflectance,
             "sphere_centres_mm": tuple(map(tuple, balls.points_world(0.0).tolist())),
             "gray_card_albedo": gray_card_target().spec.albedo}
+
+
+def _same_key(kept: tuple | None, key: tuple) -> bool:
+    """Whether ``kept``'s key is ``key``: its first entry (a value) equal, the rest (the scene's
+    parts) the same objects."""
+    return kept is not None and len(kept[0]) == len(key) and kept[0][0] == key[0] \
+        and all(a is b for a, b in zip(kept[0][1:], key[1:]))
 
 
 def camera_clock(state: Mapping[str, Any] | None) -> str:
