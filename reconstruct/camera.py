@@ -30,6 +30,22 @@ def _undistorted_grid(K: tuple, dist: tuple, width: int, height: int) -> np.ndar
     return xy
 
 
+#: the most pixels whose world directions :func:`_world_directions` keeps (24 bytes each)
+_KEPT_DIRECTIONS_MAX = 1 << 21
+
+
+@functools.lru_cache(maxsize=4)
+def _world_directions(K: tuple, dist: tuple, R: tuple, width: int, height: int) -> np.ndarray:
+    """Unit world directions of every pixel centre's ray, row-major, (H*W, 3), read-only: what
+    :meth:`CameraModel.row_rays` returns, computed once per lens, orientation and image size
+    (a simulated session renders many frames through one fixed camera)."""
+    camera = CameraModel(np.asarray(K).reshape(3, 3), width, height, dist=np.asarray(dist),
+                         R=np.asarray(R).reshape(3, 3))
+    d = camera._directions(_undistorted_grid(K, dist, width, height))
+    d.flags.writeable = False
+    return d
+
+
 @dataclass(frozen=True)
 class CameraModel:
     """Intrinsics, distortion and pose of one view.
@@ -142,7 +158,10 @@ class CameraModel:
         if not 0 <= r0 <= r1 <= self.height:
             raise ValueError(f"rows [{r0}, {r1}) must lie within [0, {self.height}]")
         W = self.width
-        if np.any(self.dist):
+        if np.any(self.dist) and W * self.height <= _KEPT_DIRECTIONS_MAX:
+            d = _world_directions(tuple(self.K.ravel()), tuple(self.dist), tuple(self.R.ravel()), W,
+                                  self.height)[r0 * W:r1 * W]
+        elif np.any(self.dist):
             grid = _undistorted_grid(tuple(self.K.ravel()), tuple(self.dist), W, self.height)
             d = self._directions(grid[r0 * W:r1 * W])
         else:  # d = R^T K^-1 (x, y, 1) = x a + y b + c: an outer sum, no per-pixel product

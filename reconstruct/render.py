@@ -305,6 +305,41 @@ class RenderResult:
     specular: np.ndarray | None = None
 
 
+class PrimaryHits:
+    """The camera rays and their first hits, kept by one :func:`render` for the next ones of the
+    same geometry through the same camera (``render(..., primary=...)``).
+
+    What a frame's camera rays hit depends on the surfaces and the camera only; a capture renders
+    one pose under many lights and analyser angles, so later frames start from the kept hits and
+    trace only what depends on the lights (shading, shadow and mirror rays): the same arithmetic,
+    the same bytes. The caller owns the promise that the surfaces and the camera are unchanged;
+    the image size and the chunk rows are checked. The kept arrays are read-only.
+    """
+
+    def __init__(self) -> None:
+        self._layout: tuple[int, int, int] | None = None  # (width, height, rows per chunk)
+        self._chunks: dict[int, tuple[np.ndarray, np.ndarray, Hits]] = {}
+
+    def _bind(self, width: int, height: int, rows: int) -> None:
+        layout = (width, height, rows)
+        if self._layout is None:
+            self._layout = layout
+        elif self._layout != layout:
+            raise ValueError(f"primary hits were kept for a {self._layout[0]} x {self._layout[1]} "
+                             f"image in chunks of {self._layout[2]} rows, not {width} x {height} "
+                             f"in chunks of {rows}: use a new PrimaryHits for another camera")
+
+    def _get(self, r0: int, compute):
+        """The chunk starting at row ``r0``: kept, or ``compute()`` -> (o, d, hits) kept."""
+        kept = self._chunks.get(r0)
+        if kept is None:
+            kept = compute()
+            for a in (kept[1], *vars(kept[2]).values()):
+                a.flags.writeable = False
+            self._chunks[r0] = kept  # chunks are disjoint: threads never share a key
+        return kept
+
+
 @dataclass(frozen=True)
 class _Options:
     shadows: bool
@@ -323,7 +358,8 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
            polarizer: float | None = None, env_samples: int = 64,
            env_sampling: str = "mis", max_bounces: int = 2, rng=0,
            background=None, chunk: int = DEFAULT_CHUNK,
-           threads: int | None = None, components: bool = False) -> RenderResult:
+           threads: int | None = None, components: bool = False,
+           primary: PrimaryHits | None = None) -> RenderResult:
     """Render ``scene`` as seen by ``camera``.
 
     Parameters
@@ -360,6 +396,9 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     components : bool
         Also return ``diffuse`` and ``specular`` radiance buffers (ground truth for
         diffuse/specular separation); costs a second BRDF evaluation per light.
+    primary : PrimaryHits, optional
+        The camera rays' first hits kept from an earlier render of the same surfaces through the
+        same camera (filled by the first render given it); see :class:`PrimaryHits`.
 
     Returns
     -------
@@ -402,12 +441,20 @@ def render(scene: Scene, camera: CameraModel, *, shadows: bool = True,
     specular = np.zeros((n, 3), np.float32) if components else None
     rows = max(1, int(chunk) // W)
     starts = list(range(0, H, rows))
+    surfaces = scene.surfaces
+    if primary is not None:
+        primary._bind(W, H, rows)
+
+    def camera_hits(r0, r1):
+        o, d = camera.row_rays(r0, r1)
+        return o, d, _first_hits(surfaces, o, d) if surfaces else _no_hits(len(d))
 
     def run(r0, gen):
         r1 = min(H, r0 + rows)
         sl = slice(r0 * W, r1 * W)
-        o, d = camera.row_rays(r0, r1)
-        L, Ld, hits = _trace(scene, o, d, replace(opts, rng=gen), 0, bg)
+        o, d, first = camera_hits(r0, r1) if primary is None else primary._get(
+            r0, lambda: camera_hits(r0, r1))
+        L, Ld, hits = _trace(scene, o, d, replace(opts, rng=gen), 0, bg, first)
         rad[sl] = L  # chunks write disjoint slices: safe from threads
         if components:
             diffuse[sl] = Ld
@@ -505,14 +552,15 @@ def _env_weight(opts: _Options) -> float:
     return 1.0 if opts.analyser is None else 0.5
 
 
-def _trace(scene: Scene, o, d, opts: _Options, depth: int, background):
+def _trace(scene: Scene, o, d, opts: _Options, depth: int, background, hits: Hits | None = None):
     """Radiance along rays (unit ``d``), its diffuse part (None unless ``opts.components``)
-    and the rays' first hits."""
+    and the rays' first hits (``hits``: already found, else traced here)."""
     surfaces = scene.surfaces
     n = len(d)
     L = np.zeros((n, 3))
     Ld = np.zeros((n, 3)) if opts.components else None
-    hits = _first_hits(surfaces, o, d) if surfaces else _no_hits(n)
+    if hits is None:
+        hits = _first_hits(surfaces, o, d) if surfaces else _no_hits(n)
     miss = ~hits.mask
     if np.any(miss):
         if background is not None and depth == 0:

@@ -25,7 +25,7 @@ import numpy as np
 
 from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
-from reconstruct.render import PointLight, RenderResult, Scene, SceneObject, render
+from reconstruct.render import PointLight, PrimaryHits, RenderResult, Scene, SceneObject, render
 from reconstruct.raycast import Plane
 from reconstruct.brdf import Lambertian
 
@@ -367,6 +367,10 @@ class SimWorld:
         self._lock = threading.Lock()  # the camera sim may call frame_source from its own thread
         self.dark = False
         self.flat_radiance: float | None = None
+        # the last frame's (render key, radiance): a bracket's exposures see the same radiance
+        self._last_radiance: tuple[tuple, np.ndarray] | None = None
+        # the last pose's (geometry key, camera rays' first hits): its lights and analyser angles
+        self._last_primary: tuple[tuple, PrimaryHits] | None = None
         # what set_scene("object") puts back
         self._home = dict(object=self.object, environment=environment, light_intensity=light_intensity,
                           supersample=self.supersample, env_samples=self.env_samples,
@@ -509,19 +513,21 @@ class SimWorld:
                                     radius=self.light_radius_mm, polarizer=self.light_polarizer_deg))
         return sc
 
-    def _render(self, sc: Scene, st: RigState, camera: CameraModel, seed, components: bool = False) -> RenderResult:
+    def _render(self, sc: Scene, st: RigState, camera: CameraModel, seed, components: bool = False,
+                primary: PrimaryHits | None = None) -> RenderResult:
         return render(sc, camera, shadows=True, polarizer=st.polarizer_deg,
-                      env_samples=self.env_samples, rng=seed, components=components)
+                      env_samples=self.env_samples, rng=seed, components=components, primary=primary)
 
     def radiance(self, state: RigState | Mapping | None = None, *, seed: int = 0) -> np.ndarray:
         """Noise-free radiance (H, W, 3) float32 the sensor integrates for ``state``."""
         st = state if isinstance(state, RigState) else RigState.from_state(state)
         return self._frame(st, seed, truth=False)[0]
 
-    def _frame(self, st: RigState, seed, *, truth: bool):
+    def _frame(self, st: RigState, seed, *, truth: bool, primary: PrimaryHits | None = None):
         """(radiance, diffuse, specular, buffers) of a frame: the radiance box-filtered over the
         supersample grid; with ``truth`` also its diffuse / specular parts (same filter) and the
-        geometry buffers at the pixel centres (None otherwise)."""
+        geometry buffers at the pixel centres (None otherwise). ``primary``: the supersampled
+        camera's first hits kept for this pose (see :class:`reconstruct.render.PrimaryHits`)."""
         H, W = self.camera.height, self.camera.width
         sc = self.scene(st)
         if self.dark or self.flat_radiance is not None:  # lens cap / uniform field: no render
@@ -531,7 +537,7 @@ class SimWorld:
             return rad, rad, np.zeros_like(rad), self._render(sc, st, self.camera, seed)
         s = self.supersample
         hi = self._render(sc, st, self.camera if s == 1 else supersampled_camera(self.camera, s), seed,
-                          components=truth)
+                          components=truth, primary=primary)
 
         def box(a):
             return a if s == 1 else a.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
@@ -555,12 +561,46 @@ class SimWorld:
         :meth:`RigState.from_state` for the keys). Thread-safe; each call draws fresh noise."""
         st = RigState.from_state(state)
         with self._lock:  # one frame at a time: a scene change (set_scene) waits for it
-            rad = self.radiance(st)
+            rad = self._bracket_radiance(st)
             raw = self.sensor.expose(rad, st.exposure_s, st.iso, self._rng, **self._optics(st))
         return self.sensor.to_dng(raw, exposure_s=st.exposure_s, iso=st.iso, fnumber=st.fnumber,
                                   datetime=camera_clock(state))
 
     __call__ = frame_source
+
+    def _bracket_radiance(self, st: RigState) -> np.ndarray:
+        """:meth:`radiance` of ``st``, rendered once for consecutive frames that differ only in
+        exposure time, ISO or aperture (a bracket: the render does not depend on them, and
+        the sensor draws each frame's own noise). The key holds the scene's parts themselves
+        and is compared by identity, so a scene change or a replaced part renders afresh.
+        Call with the lock held."""
+        key = (replace(st, exposure_s=1.0, iso=1.0, fnumber=1.0), self.camera, self.light_radius_mm,
+               self.light_polarizer_deg, self.env_samples, *(getattr(self, f) for f in self._SCENE_FIELDS),
+               *self.targets)
+        if _same_key(self._last_radiance, key):
+            return self._last_radiance[1]
+        rad = self._frame(st, 0, truth=False, primary=self._primary_hits(st))[0]
+        rad.flags.writeable = False  # shared by the bracket's frames
+        self._last_radiance = (key, rad)
+        return rad
+
+    #: the most camera rays whose first hits are kept between frames (~130 bytes each)
+    PRIMARY_HITS_MAX_RAYS = 1 << 20
+
+    def _primary_hits(self, st: RigState) -> PrimaryHits | None:
+        """The kept first hits of this pose's camera rays (empty for a new pose), shared by the
+        frames of one pose under other lights, the ring flash or analyser angles: what the camera
+        rays hit depends on the turntable angle, the camera and what stands in the scene only.
+        None past :attr:`PRIMARY_HITS_MAX_RAYS`. Call with the lock held."""
+        key = (st.turntable_deg, self.camera, self.supersample, self.object, self.platter, self.targets,
+               *self.targets)
+        if _same_key(self._last_primary, key):
+            return self._last_primary[1]
+        self._last_primary = None  # let the last pose's hits go before the new ones are traced
+        if self.camera.width * self.camera.height * self.supersample ** 2 > self.PRIMARY_HITS_MAX_RAYS:
+            return None
+        self._last_primary = (key, PrimaryHits())
+        return self._last_primary[1]
 
     def _optics(self, st: RigState) -> dict:
         K = self.camera.K
@@ -608,6 +648,13 @@ def capture_targets(spheres: Target | None = None) -> dict[str, Any]:
             "gray_card_albedo": gray_card_target().spec.albedo,
             "sample_sphere_radius_mm": sample_sphere_target().spec.radius_mm,
             "sample_sphere_centre_mm": SAMPLE_SPHERE_CENTRE_MM}
+
+
+def _same_key(kept: tuple | None, key: tuple) -> bool:
+    """Whether ``kept``'s key is ``key``: its first entry (a value) equal, the rest (the scene's
+    parts) the same objects."""
+    return kept is not None and len(kept[0]) == len(key) and kept[0][0] == key[0] \
+        and all(a is b for a, b in zip(kept[0][1:], key[1:]))
 
 
 def camera_clock(state: Mapping[str, Any] | None) -> str:

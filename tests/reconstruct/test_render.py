@@ -3,6 +3,7 @@ cast shadows, polarizers, environment lighting, SVBRDF plumbing and geometry buf
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,8 +15,8 @@ from reconstruct.camera import CameraModel
 from reconstruct.envmap import EnvironmentMap
 from reconstruct.frames import tangent_frames, to_local
 from reconstruct.raycast import Mesh, Plane, Sphere, reflect
-from reconstruct.render import (DirectionalLight, MaterialMap, Mirror, PointLight, Scene,
-                                render, render_rays)
+from reconstruct.render import (DirectionalLight, MaterialMap, Mirror, PointLight, PrimaryHits,
+                                Scene, render, render_rays)
 
 
 def _unit(v):
@@ -525,6 +526,28 @@ def test_threads_and_seeds_reproducible(small_cam):
     np.testing.assert_array_equal(one, gen)
     other = render(sc, small_cam, threads=2, rng=6, **kw).radiance
     assert np.any(other != one)
+
+
+def test_kept_primary_hits_give_the_same_frames_under_other_lights(small_cam):
+    """Frames of one geometry under other lights and analyser angles, started from the first
+    frame's kept camera hits, equal fresh renders bit for bit in every buffer (glossy sphere,
+    mirror ball, shadows on a plane, the environment); another image size is refused."""
+    sc = Scene(environment=EnvironmentMap.from_function(_sky, 16))
+    sc.add(Sphere(25.0, center=(-20, 0, 50)), CookTorrance(kd=0.4, f0=0.5, alpha=0.3))
+    sc.add(Sphere(12.0, center=(30, -10, 40)), Mirror(0.7))
+    sc.add(Plane((400.0, 400.0)), Lambertian(0.5))
+    kept = PrimaryHits()
+    for k, (light, pol) in enumerate([((100.0, -200.0, 150.0), None), ((-150.0, -100.0, 250.0), 0.0),
+                                      ((-150.0, -100.0, 250.0), 90.0)]):
+        sc.lights = [PointLight(light, 1e5, radius=10.0, polarizer=0.0)]
+        kw = dict(polarizer=pol, env_samples=2, chunk=64 * 8, rng=k)
+        again, fresh = render(sc, small_cam, primary=kept, **kw), render(sc, small_cam, **kw)
+        for name in ("radiance", "mask", "normal", "position", "depth", "uv", "face_index",
+                     "surface_index"):
+            np.testing.assert_array_equal(getattr(again, name), getattr(fresh, name), err_msg=name)
+    assert len(kept._chunks) == 6        # 48 rows in chunks of 8, traced by the first frame only
+    with pytest.raises(ValueError, match="32 x 24"):
+        render(sc, replace(small_cam, width=32, height=24), primary=kept, chunk=64 * 8)
 
 
 def test_components_split_diffuse_and_specular(small_cam):

@@ -240,3 +240,28 @@ def test_the_sample_sphere_scene_is_the_sphere_the_lab_states_under_the_room_alo
     assert world.env_samples == SimWorld.KIND_ENV_SAMPLES["passive_sphere"] > 32
     world.set_scene("object")
     assert world.env_samples == 32 and len(world.scene().lights) == 1
+
+
+def test_a_bracket_renders_once_and_gives_the_bytes_of_fresh_renders(monkeypatch):
+    """Frames differing only in exposure, ISO or aperture share one render (the radiance does not
+    depend on them); their DNGs are byte for byte those of a world that renders every frame
+    afresh, and a moved light, a turned polarizer or a changed scene renders again."""
+    import sims.world as world_module
+    renders = []
+    real_render = world_module.render
+    monkeypatch.setattr(world_module, "render", lambda *a, **k: renders.append(1) or real_render(*a, **k))
+    base = {"turntable_angle_deg": 30.0, "polarizer_angle_deg": 0.0, "fnumber": 8.0, "iso": 100}
+    states = [{**base, "exposure_s": 0.01}, {**base, "exposure_s": 0.04, "iso": 200},
+              {**base, "exposure_s": 0.01, "polarizer_angle_deg": 90.0},
+              {**base, "exposure_s": 0.01, "light_position_mm": tuple(light_position(40.0, 30.0))}]
+    cached, fresh = (SimWorld("sphere", camera=_small_camera(), seed=5) for _ in range(2))
+    a = [cached.frame_source(s) for s in states]
+    assert len(renders) == 3                 # the second frame reused the first one's render
+    b = []
+    for s in states:
+        fresh._last_radiance = None          # forget it: every frame rendered afresh
+        b.append(fresh.frame_source(s))
+    assert len(renders) == 7 and a == b
+    cached.set_scene("gray_card")
+    cached.frame_source(states[-1])
+    assert len(renders) == 8                 # same rig state, new scene: rendered again
