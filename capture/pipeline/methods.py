@@ -123,8 +123,8 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
     if route is None:
         fit = fit_svbrdf_lumitexels(train, opt, rng=rng, progress=progress)
     else:   # the same fit (to 1e-9), its per-texel steps over the stored blocks, on the executor
-        fit = fit_svbrdf_blocks(route.blocks, opt, normals=train.normal, rng=rng, progress=progress,
-                                map_blocks=route.map_blocks)
+        fit = fit_svbrdf_blocks(route.blocks, opt, normals=train.normal, footprint_spread=train.footprint_spread_deg,
+                                rng=rng, progress=progress, map_blocks=route.map_blocks)
 
     flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight)),
              "mixed_footprint": int(np.sum(fit.mixed_footprint))}

@@ -176,6 +176,9 @@ def _check_texel(texel, S, normals):
 def _mixed_footprint(spread, T: int, limit: float) -> np.ndarray:
     """Texels whose footprint ``spread`` (T,) degrees exceeds ``limit``, (T,) bool (NaN: not)."""
     if spread is None:
+        if np.isfinite(limit):   # a threshold with nothing to compare: say so, not ignore it
+            raise SvbrdfError(f"max_footprint_spread_deg is {limit:g} but no footprint_spread was given "
+                              "(reconstruct.lumitexels.footprint_normal_spread of the texels)")
         return np.zeros(T, bool)
     sp = np.asarray(spread, dtype=np.float64)
     if sp.shape != (T,):

@@ -243,6 +243,12 @@ def test_bad_input_names_the_argument():
         fit_svbrdf(*args, footprint_spread=np.zeros(49))
     with pytest.raises(SvbrdfError, match="max_footprint_spread_deg must be > 0 degrees, got nan"):
         SvbrdfOptions(max_footprint_spread_deg=float("nan"))
+    # a threshold with no spreads to compare (e.g. samples without their lumitexels) is refused,
+    # not silently ignored
+    m = Lafortune.phong(rho_d=(0.3, 0.2, 0.1), rho_s=0.6, exponent=25.0)
+    d = synthetic_samples((m,), 40, rng=1)
+    with pytest.raises(SvbrdfError, match="max_footprint_spread_deg is 6 but no footprint_spread was given"):
+        fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, max_footprint_spread_deg=6.0)
     with pytest.raises(SvbrdfError, match=r"brightest_dropped must be a share in \[0, 1\), got 1.0"):
         SvbrdfOptions(brightest_dropped=1.0)
     with pytest.raises(SvbrdfError, match="robust_spread must be > 0, got 0"):
