@@ -278,7 +278,8 @@ def lighting_sums(normals, values, directions, radiance, solid_angle, *, view_di
         Observations per block (>= 1).
     map_blocks : callable(fn, list of argument tuples) -> list, optional
         Runs the per-block tasks (:func:`block_sums`, :data:`MAP_BATCH` at a time; results in
-        order): default one after the other here; the pipeline passes its executor's.
+        order): default one after the other here, each block's sums added before the next is
+        built; the pipeline passes its executor's.
     progress : callable, optional
         ``progress(done, total)`` in observations, after each batch.
 
@@ -304,9 +305,10 @@ def lighting_sums(normals, values, directions, radiance, solid_angle, *, view_di
     P = grid[0] * grid[1]
     gram, rhs, column, value_sq = np.zeros((3, P, P)), np.zeros((3, P)), np.zeros((3, P)), np.zeros(3)
     run = map_blocks or (lambda fn, args: [fn(*a) for a in args])
+    batch = 1 if map_blocks is None else MAP_BATCH   # a batch's sums held at once, then added in place
     done = 0
-    for start in range(0, len(tasks), MAP_BATCH):   # a batch's sums held at once, then added in place
-        for part in run(block_sums, tasks[start:start + MAP_BATCH]):
+    for start in range(0, len(tasks), batch):
+        for part in run(block_sums, tasks[start:start + batch]):
             gram += part.gram
             rhs += part.rhs
             column += part.column
