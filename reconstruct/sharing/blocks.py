@@ -38,10 +38,10 @@ FIT_TEXELS = 200_000
 
 @dataclass(frozen=True)
 class _BlockTexels:
-    """One block's per-texel results: ``normals`` (n, 3) in the texels' local frames, ``fitted``
-    and ``tilt_deg`` (n,) as :class:`PhotometricNormals` (None without the normal refit),
-    ``albedo`` (n, 3) f_r, ``used`` (n,) samples the fit uses; ``n_samples`` in the block and
-    the used samples' w range (``w_lo``, ``w_hi``; +inf, -inf when none)."""
+    """One block's per-texel results: ``normals``, the refitted normals of its n texels in their
+    local frames (None without the refit), ``albedo`` (n, 3) f_r, ``used`` (n,) the samples the
+    fit uses; ``n_samples`` in the block and the used samples' w range (``w_lo``, ``w_hi``;
+    +inf, -inf when none)."""
 
     normals: PhotometricNormals | None
     albedo: np.ndarray
