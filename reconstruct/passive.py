@@ -8,7 +8,10 @@ of a known curved object under a known distant environment (a light probe); no a
    (pixel weight 1 / cos of the view angle), those more than ``max_view_angle_deg`` from the
    view dropped (low signal, unreliable normals).
 2. Lighting matrix (Eqs. 2-5, ``passive_lighting.lighting_matrix``): one row per observation,
-   one column per node, per colour channel, from every texel of the environment map.
+   one column per node, per colour channel, from every texel of the environment map; built over
+   blocks of observations and reduced to the normal equations block by block
+   (``passive_lighting.lighting_sums``), so the rows are never held whole (but for ``lam="cv"``,
+   whose folds are rows).
 3. Eq. 6: non-negative least squares with spatially varying Tikhonov smoothness on the s- and
    t-differences, weighted by the inverse standard deviation learned per node from a BRDF
    library (``passive_prior``), solved twice (a diffuse-preferring and a gloss-preferring
@@ -36,7 +39,7 @@ from scipy.linalg import cho_factor, cho_solve
 from .brdf import BRDF, Bivariate, TabulatedIsotropic
 from .coords import from_halfway_difference
 from .envmap import LUMINANCE, EnvironmentMap
-from .passive_lighting import check_grid, check_sources, lighting_matrix
+from .passive_lighting import check_grid, check_sources, lighting_matrix, lighting_sums
 from .passive_modes import ModesPrior, learn_modes, solve_modes
 from .passive_prior import PRIOR_KINDS, SmoothnessPrior, default_prior, learn_prior
 
@@ -298,7 +301,7 @@ def bivariate_error(estimate: BRDF, truth: BRDF, *, shape=(90, 90, 180),
 def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, grid=(32, 32),
                           n_normals=8000, max_view_angle_deg=80, prior=None, two_priors=True,
                           environment_weight=None, lam=None, rng=0,
-                          progress=None) -> PassiveFit:
+                          progress=None, map_blocks=None) -> PassiveFit:
     """Recover a bivariate BRDF from one HDR image of a known shape under a known environment.
 
     Parameters
@@ -358,6 +361,9 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         Observation sampling.
     progress : callable, optional
         ``progress(done, total)``: lighting-matrix normals, then the solves.
+    map_blocks : callable(fn, list of argument tuples) -> list, optional
+        Runs the lighting matrix's per-block tasks (``passive_lighting.lighting_sums``):
+        default here, one after the other; the pipeline passes its executor's.
 
     Returns
     -------
@@ -402,48 +408,57 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
                                 f"finite, non-negative radiance)")
     total = len(n) + len(priors)
     report = None if progress is None else (lambda k, _: progress(k, total))
-    L = lighting_matrix(n, d, E, omega, view_dirs=v, grid=(n_t, n_s),
-                        progress=report)
-    irr = L.sum(axis=(1, 2), dtype=np.float64) / len(n)           # mean irradiance per channel
+    sums = lighting_sums(n, I, d, E, omega, view_dirs=v, grid=(n_t, n_s), map_blocks=map_blocks,
+                         progress=report)
+    irr = sums.column.sum(axis=1) / len(n)                        # mean irradiance per channel
     if not np.all(irr > 0):
         raise PassiveInputError("environment gives no light to the observed normals")
     scale = 1.0 / (irr * np.sqrt(len(n)))
-    A = [L[c].astype(np.float64) * scale[c] for c in range(3)]
-    b = [I[:, c] * scale[c] for c in range(3)]
-    G = [a.T @ a for a in A]
-    h = [a.T @ bb for a, bb in zip(A, b)]
+    G = [sums.gram[c] * scale[c] ** 2 for c in range(3)]   # of the scaled rows A = scale L, b = scale I
+    h = [sums.rhs[c] * scale[c] ** 2 for c in range(3)]
+    bb = sums.value_sq * scale ** 2
     lamb = np.array([h[c].sum() / G[c].sum() for c in range(3)])  # best constant f
     if isinstance(priors[0], ModesPrior):
         lam = MODES_LAMBDA if lam is None else lam
-        sols = [solve_modes(priors[0], G[c], h[c], b[c] @ b[c], lam) for c in range(3)]
+        sols = [solve_modes(priors[0], G[c], h[c], bb[c], lam) for c in range(3)]
         f = np.stack([s.f for s in sols], axis=1)
-        res = np.array([np.linalg.norm(A[c] @ f[:, c] - b[c]) / np.linalg.norm(b[c])
-                        for c in range(3)])
+        res = _residuals(f, G, h, bb)
         priors, converged = priors[:1], all(s.converged for s in sols)
         solutions, residuals = {priors[0].name: f}, {priors[0].name: res}
         if progress is not None:
             progress(total, total)
     else:
+        green = None if not isinstance(lam, str) else (   # the folds are rows: held for "cv"
+            lighting_matrix(n, d, E, omega, view_dirs=v, grid=(n_t, n_s))[1].astype(np.float64) * scale[1],
+            I[:, 1] * scale[1])
         solutions, residuals, converged, lam = _solve_smoothness(
-            priors, A, b, G, h, lam, gen, (n_t, n_s), progress, len(n), total)
+            priors, green, G, h, bb, lam, gen, (n_t, n_s), progress, len(n), total)
     best = next(iter(residuals))  # a later (less smooth) prior must fit clearly better
     for name, res in residuals.items():
         if res.mean() < PRIOR_MARGIN * residuals[best].mean():
             best = name
-    adequacy = _adequacy(L, G[1], n, v, d, E, omega, (n_t, n_s), residuals[best])
+    adequacy = _adequacy(sums.column, G[1], n, v, d, E, omega, (n_t, n_s), residuals[best])
     for w in adequacy.warnings:
         warnings.warn(w, PassiveWarning, stacklevel=2)
     return PassiveFit(Bivariate(solutions[best].reshape(n_t, n_s, 3)), residuals[best], best,
                       residuals, lamb, adequacy, converged, float(lam), adequacy.warnings)
 
 
-def _solve_smoothness(priors, A, b, G, h, lam, gen, grid, progress, done, total):
+def _residuals(f, G, h, bb) -> np.ndarray:
+    """|A_c f_c - b_c| / |b_c| per channel (3,) from the normal equations' terms (G = A^T A,
+    h = A^T b, bb = b . b): no rows needed."""
+    sq = [f[:, c] @ G[c] @ f[:, c] - 2.0 * f[:, c] @ h[c] + bb[c] for c in range(3)]
+    return np.sqrt(np.maximum(sq, 0.0) / bb)
+
+
+def _solve_smoothness(priors, green, G, h, bb, lam, gen, grid, progress, done, total):
     """Eq. 6 with each ``SmoothnessPrior``: solutions (n, 3) and residuals (3,) by prior
-    name, whether every solve converged, and the weight used."""
+    name, whether every solve converged, and the weight used. ``green``: the green channel's
+    scaled rows and values (A, b), for ``lam="cv"``'s folds (None otherwise)."""
     n_t, n_s = grid
     roughness = [D.T @ D for D in (p.difference_operators() for p in priors)]
     if isinstance(lam, str):
-        lam = _cross_validated_lambda(A[1], b[1], roughness, gen)
+        lam = _cross_validated_lambda(*green, roughness, gen)
     elif lam is None:
         lam = LAMBDA
     solutions, residuals, converged = {}, {}, True
@@ -454,9 +469,7 @@ def _solve_smoothness(priors, A, b, G, h, lam, gen, grid, progress, done, total)
         for c in range(3):
             f[:, c], ok, free = _nnls_quadratic(G[c] + R, h[c], free)
             converged &= ok
-        res = np.array([np.linalg.norm(A[c] @ f[:, c] - b[c]) / np.linalg.norm(b[c])
-                        for c in range(3)])
-        solutions[p.name], residuals[p.name] = f, res
+        solutions[p.name], residuals[p.name] = f, _residuals(f, G, h, bb)
         if progress is not None:
             progress(done + k + 1, total)
     return solutions, residuals, converged, lam
@@ -662,9 +675,10 @@ def _nnls_quadratic(Q, h, free=None, *, max_iter=200):
 
 # -- adequacy ------------------------------------------------------------------------------------
 
-def _adequacy(L, gram_green, n, v, d, E, omega, grid, residual):
-    """``gram_green``: L^T L of the green channel (scaled as in the solve), whose singular
-    values stand for the luminance's (green carries 72 % of it) without another product."""
+def _adequacy(column, gram_green, n, v, d, E, omega, grid, residual):
+    """``column`` (3, P): the lighting matrix's column sums; ``gram_green``: L^T L of the green
+    channel (scaled as in the solve), whose singular values stand for the luminance's (green
+    carries 72 % of it) without another product."""
     n_t, n_s = grid
     sv = np.sqrt(np.clip(np.linalg.eigvalsh(gram_green)[::-1], 0, None))
     rank = int(np.sum(sv > 1e-3 * sv[0]))
@@ -676,7 +690,7 @@ def _adequacy(L, gram_green, n, v, d, E, omega, grid, residual):
     white = lighting_matrix(n[sub], white_d, np.ones((len(white_d), 3)),
                             np.full(len(white_d), 4 * np.pi / len(white_d)), view_dirs=vs,
                             grid=grid)[1].astype(np.float64).sum(axis=0)
-    seen = LUMINANCE @ L.sum(axis=1, dtype=np.float64)
+    seen = LUMINANCE @ column
     with np.errstate(invalid="ignore", divide="ignore"):
         coverage = (seen / seen.sum()) / (white / white.sum())
     coverage[white <= 1e-9 * white.max()] = np.nan

@@ -155,8 +155,8 @@ def process(session: str = typer.Argument(..., help="Session name (see 'gonio se
             memory_limit: float = typer.Option(None, "--memory-limit", min=1, help="MiB the per-view tasks may "
                                                "hold together (sets the texel chunk; default: half the "
                                                "machine's memory). Where the gathered lumitexels would "
-                                               "exceed it, the methods run over texel blocks and sharing "
-                                               "is skipped."),
+                                               "exceed it, the methods run over texel blocks (Lensch's "
+                                               "materials and sharing's RBFs on a stated subsample)."),
             quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
     """Reconstruct a captured session with every method its captures allow and write the report.
 

@@ -21,14 +21,14 @@ import numpy as np
 
 from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.frames import tangent_frames, to_world
-from reconstruct.lensch import SvbrdfOptions, TexelBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
+from reconstruct.lensch import ArrayBlocks, SvbrdfOptions, TexelBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.passive import passive_reflectometry
-from reconstruct.sharing import fit_spatial
+from reconstruct.sharing import FIT_TEXELS, fit_spatial_blocks
 
 from .process import ProcessInputs
 
-__all__ = ["METHODS", "DEFAULT_METHODS", "BLOCK_METHODS", "GATHERING_METHODS", "BlockRoute", "Fitted", "MethodSkipped", "fit_method"]
+__all__ = ["METHODS", "DEFAULT_METHODS", "BLOCK_METHODS", "BlockRoute", "sharing_texels_for", "Fitted", "MethodSkipped", "fit_method"]
 
 
 class MethodSkipped(Exception):
@@ -142,24 +142,26 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
 
 
 # -- Zickler et al. 2005 ------------------------------------------------------------------------
-def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
-             max_centers: int = 1000, fit_normals: bool = True, m_xy: float = 1.0) -> Fitted:
+def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, route: BlockRoute | None = None,
+             max_centers: int = 1000, fit_normals: bool = True, m_xy: float = 1.0, fit_texels: int = FIT_TEXELS) -> Fitted:
     if train.diffuse is None or train.specular is None:
         raise MethodSkipped("sharing: no polarized frames (the dichromatic model needs parallel and "
                             "crossed captures of each pose)")
     xy = _surface_xy(train.position)
-    cos = np.maximum(train.wi[:, 2:3], 1e-6)
-    fit = fit_spatial(xy[train.texel], train.wi, train.wo, None, texel=train.texel,
-                      diffuse=train.diffuse / cos, specular=train.specular / cos,
-                      max_centers=max_centers, fit_normals=fit_normals, m_xy=m_xy, rng=rng,
-                      progress=progress)
+    blocks = route.blocks if route is not None else ArrayBlocks(   # the gathered lumitexels as one block
+        train.texel, train.wi, train.wo, train.reflectance, train.weight, n_texels=train.n_texels,
+        block_texels=max(train.n_texels, 1), diffuse=train.diffuse, specular=train.specular)
+    # the per-texel steps per block, the RBFs on at most fit_texels texels' samples
+    fit = fit_spatial_blocks(blocks, xy, fit_texels=fit_texels, max_centers=max_centers, fit_normals=fit_normals,
+                             m_xy=m_xy, rng=rng, progress=progress, map_blocks=None if route is None else route.map_blocks)
 
     def per_texel(t: np.ndarray) -> BRDF:   # about the fitted normals, where there are
         t = np.asarray(t)
         return fit.brdf_at(fit.texel_xy[t], t)
 
     figures = {"mode": fit.mode, "samples_used": fit.n_used, "samples_dropped": fit.n_dropped,
-               "centres": {k: len(f.model.centers) for k, f in fit.fits.items()}}
+               "centres": {k: len(f.model.centers) for k, f in fit.fits.items()},
+               "rbf_texels": f"RBFs fitted on {fit.fit_texels} of {train.n_texels} texels"}
     arrays = {"xy": xy.astype(np.float32), "albedo": np.asarray(fit.albedo, np.float32)}
     normals = None
     if fit.normals is not None:   # local (mesh normal = +z) -> object frame
@@ -168,8 +170,23 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
         figures["normals_fitted"] = int(fit.normals.fitted.sum())
     return Fitted(fit.predict, per_texel, arrays=arrays,
                   params={"surface_xy": "azimuth about the turntable axis and height, scaled to [0, 1]",
-                          "max_centers": max_centers, "fit_normals": fit_normals, "m_xy": m_xy, "rng": rng},
+                          "max_centers": max_centers, "fit_normals": fit_normals, "m_xy": m_xy, "rng": rng,
+                          "fit_texels": fit_texels},
                   figures=figures, normals=normals)
+
+
+#: bytes a sample in sharing's global step (the gathered subsample, its re-framed samples and the
+#: greedy RBF fits) holds: 1 460 measured (tracemalloc, 1000 centres, 5 k -> 22 k samples); the RBF's
+#: own working set, ~50 MiB at 1000 centres (its matrices and candidate distances), comes on top
+_SHARING_BYTES_PER_SAMPLE = 1500
+
+
+def sharing_texels_for(memory_bytes: int, n_train_views: int) -> int:
+    """Sharing's RBF subsample (texels) within half of ``memory_bytes``, every texel counted with a
+    sample in every training view (a bound), capped at the method's default
+    (:data:`reconstruct.sharing.FIT_TEXELS`); at least 1000."""
+    fit = int(memory_bytes // (2 * _SHARING_BYTES_PER_SAMPLE * max(n_train_views, 1)))
+    return max(1000, min(FIT_TEXELS, fit))
 
 
 def _surface_xy(position: np.ndarray) -> np.ndarray:
@@ -182,18 +199,20 @@ def _surface_xy(position: np.ndarray) -> np.ndarray:
 
 
 # -- Romeiro et al. 2008 ------------------------------------------------------------------------
-def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress) -> Fitted:
+def _passive(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, route: BlockRoute | None = None) -> Fitted:
     """One BRDF from the room-lit image: of the lab's sample sphere when captured
     (``inputs.passive.sample_sphere``: the BRDF is the sample's, scored by
     :mod:`capture.pipeline.passive_sample`), else of the object (outside the method's assumption
-    when it has several materials). ``predict`` applies that one BRDF to any lumitexels."""
+    when it has several materials). ``predict`` applies that one BRDF to any lumitexels. With a
+    ``route``, its lighting matrix's blocks of pixels run on the route's executor."""
     p = inputs.passive
     if p is None:
         why = "; ".join(n.removeprefix("passive: ") for n in inputs.notes if "passive" in n) or \
             "no passive capture (add [[calibration]] kind = \"passive_sphere\": the sample sphere, lamp off, room lit)"
         raise MethodSkipped(f"passive: {why}")
     fit = passive_reflectometry(p.image, p.normals, p.mask, p.environment, view_dirs=p.view_dirs,
-                                environment_weight=p.environment_weight, rng=rng, progress=progress)
+                                environment_weight=p.environment_weight, rng=rng, progress=progress,
+                                map_blocks=None if route is None else route.map_blocks)
     brdf = fit.brdf
 
     def predict(texel: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
@@ -223,11 +242,9 @@ METHODS: dict[str, Callable[..., Fitted]] = {"lambertian": _lambertian, "lensch"
 DEFAULT_METHODS = ("lambertian", "lensch", "sharing", "passive")
 
 
-#: the methods whose per-texel steps run over a :class:`BlockRoute` when given one
-BLOCK_METHODS = ("lambertian", "lensch")
-#: the methods that fit every training sample at once (``gonio process`` skips them when the
-#: gathered lumitexels would exceed ``--memory-limit``; passive fits one image, not the lumitexels)
-GATHERING_METHODS = ("sharing",)
+#: the methods whose per-block tasks run over a :class:`BlockRoute` when given one (passive fits
+#: one image, not the lumitexels: only its lighting matrix's blocks of pixels run on the executor)
+BLOCK_METHODS = ("lambertian", "lensch", "sharing", "passive")
 
 
 def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int = 0,
@@ -238,9 +255,12 @@ def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int 
     suffice"; ``fit_normals``, default True: normals from the diffuse samples first; ``m_xy``,
     default 1: the spatial scale on :func:`_surface_xy`'s whole-object map, where the paper's 0.3
     for a face's [0, 1]^2 blends the materials' lobes: held out 0.42 / 0.51 at 0.3, 0.39 / 0.46
-    at 0.6, 0.37 / 0.47 at 1, 0.39 at 2 on the quick demo's bumpy sphere / four-material bunny).
+    at 0.6, 0.37 / 0.47 at 1, 0.39 at 2 on the quick demo's bumpy sphere / four-material bunny;
+    ``fit_texels``, default :data:`reconstruct.sharing.FIT_TEXELS`: the RBFs' random subsample of
+    texels).
     With a ``route``, the :data:`BLOCK_METHODS` read their samples block by block from it and run
-    their per-block tasks on its executor (the same figures to 1e-9); the others fit ``train``.
+    their per-block tasks on its executor (the same figures to 1e-9; passive only runs its
+    lighting matrix's blocks of pixels there); the others fit ``train``.
 
     Raises
     ------

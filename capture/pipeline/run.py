@@ -44,7 +44,7 @@ from .calibration_record import stored_calibration
 from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
-from .methods import DEFAULT_METHODS, GATHERING_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method
+from .methods import DEFAULT_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method, sharing_texels_for
 from .passive_sample import SampleTruth, score_sample_sphere
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
@@ -137,8 +137,8 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         (:func:`capture.pipeline.lumitexel_arrays.block_texels_for`; default: half the machine's memory).
         Where the gathered lumitexels would exceed it (:meth:`LumitexelArrays.gathered_bytes`)
         they are not gathered: the inputs come from one pass over blocks
-        (:mod:`capture.pipeline.block_inputs`), Lambertian and Lensch run over blocks here too,
-        the export is fitted on a stated subsample of texels and sharing is skipped.
+        (:mod:`capture.pipeline.block_inputs`), Lambertian, Lensch and sharing run over blocks
+        here too, and the export is fitted on a stated subsample of texels.
     say : callable(str), optional
         One-line news (the Dask dashboard's address when a cluster is used).
     lab : SessionLab, optional
@@ -253,9 +253,9 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                                                            for v in inputs.held_out])
                     rep.inputs["over_blocks"] = (
                         f"the gathered lumitexels ({arrays.gathered_bytes() / 2**20:.0f} MiB at most) exceed --memory-limit "
-                        f"{limit / 2**20:.0f} MiB: scoring, Lambertian and Lensch over blocks of {method_block} texels, "
-                        f"the pictures from one view's samples, the export fitted on a subsample of texels, "
-                        f"{', '.join(GATHERING_METHODS)} skipped")
+                        f"{limit / 2**20:.0f} MiB: scoring, Lambertian, Lensch and sharing over blocks of {method_block} texels "
+                        f"(Lensch's materials and sharing's RBFs fitted on a subsample), the pictures from one view's "
+                        f"samples, the export fitted on a subsample of texels")
                     scored_truth = over.truth is not None
                     if over.truth is not None:
                         rep.inputs["measured_vs_truth_rel_rms"] = over.truth.measured_vs_truth_rel_rms
@@ -335,11 +335,13 @@ def _calibration(store: Store, session: str, targets, force: bool,
 
 # -- one method ---------------------------------------------------------------------------------
 def _options(name: str, method_options, memory_limit: int, arrays: LumitexelArrays) -> dict[str, Any]:
-    """The method's options for this lab, and for Lensch a material-discovery subsample the
-    memory limit holds (unless the lab sets one)."""
+    """The method's options for this lab, and for Lensch a material-discovery subsample, for
+    sharing an RBF subsample, the memory limit holds (unless the lab sets one)."""
     options = dict((method_options or {}).get(name, {}))
     if name == "lensch":
         options.setdefault("discovery_texels", discovery_texels_for(memory_limit, arrays.n_train))
+    if name == "sharing":
+        options.setdefault("fit_texels", sharing_texels_for(memory_limit, arrays.n_train))
     return options
 
 
@@ -349,12 +351,7 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
                 route: BlockRoute | None, block_texels: int, refused: int | None) -> MethodOutcome:
     """Fit, score and store one method. ``refused``: the memory limit (bytes) when the
     lumitexels were not gathered (``train`` and ``held`` then hold every texel but one view's
-    samples each): the methods that need every sample at once are skipped, the export is fitted
-    on a subsample of texels."""
-    if refused is not None and name in GATHERING_METHODS:
-        return MethodOutcome(name, "skipped", f"{name}: its fit takes every training sample at once (the gathered "
-                             f"lumitexels, {arrays.gathered_bytes() / 2**20:.0f} MiB at most), more than --memory-limit "
-                             f"{refused / 2**20:.0f} MiB; give a larger limit to run it", outside_assumption=assumption)
+    samples each): the export is fitted on a subsample of texels."""
     try:
         fit = fit_method(name, train, inputs, rng=rng, progress=progress, route=route, **options)
     except MethodSkipped as exc:

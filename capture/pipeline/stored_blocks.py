@@ -8,7 +8,8 @@ chunk and keeping the part's rows); texels are numbered as
 :meth:`capture.pipeline.lumitexel_arrays.LumitexelArrays.gather` numbers them (texels without a
 training sample left out), so per-texel results line up with the gathered lumitexels'.
 Directions are in each texel's local frame (+z = its mesh normal); reflectance ``f_r cos
-theta_i`` in the calibration's units; weights 1.
+theta_i`` in the calibration's units (and its polarization-separated parts, where captured, as
+stored: float32); weights 1.
 """
 from __future__ import annotations
 
@@ -38,5 +39,6 @@ class StoredBlocks(TexelBlocks):
     def read(self, i: int) -> SampleBlock:
         lt, held = self.arrays.block(*self._parts[i])
         train = ~held
+        separated = (lt.diffuse[train], lt.specular[train]) if lt.diffuse is not None else ()   # stored precision
         return SampleBlock(lt.n_texels, lt.texel[train], *(np.asarray(getattr(lt, name)[train], np.float64)
-                                                           for name in ("wi", "wo", "reflectance", "weight")))
+                                                           for name in ("wi", "wo", "reflectance", "weight")), *separated)

@@ -23,7 +23,9 @@ class SampleBlock:
     """Samples of ``n_texels`` texels, sorted by texel: ``texel`` (S,) int64 numbered from 0
     within the block, ``wi`` / ``wo`` (S, 3) float64 unit directions to the light / camera in the
     texel's local frame (+z = its normal), ``reflectance`` (S, 3) ``f_r cos theta_i`` (1/sr or
-    the calibration's units), ``weight`` (S,) float64."""
+    the calibration's units), ``weight`` (S,) float64; ``diffuse`` / ``specular`` (S, 3), the
+    polarization-separated parts of ``reflectance`` in the samples' stored precision, or None
+    where the captures were not separated (reflectance sharing's dichromatic fit reads them)."""
 
     n_texels: int
     texel: np.ndarray
@@ -31,6 +33,8 @@ class SampleBlock:
     wo: np.ndarray
     reflectance: np.ndarray
     weight: np.ndarray
+    diffuse: np.ndarray | None = None
+    specular: np.ndarray | None = None
 
 
 class TexelBlocks(ABC):
@@ -57,7 +61,8 @@ class TexelBlocks(ABC):
             want[texels[lo:hi] - t0] = True
             keep = want[b.texel]
             local = np.cumsum(want) - 1 + lo   # block texel -> its place among ``texels``
-            parts.append((local[b.texel[keep]], b.wi[keep], b.wo[keep], b.reflectance[keep], b.weight[keep]))
+            parts.append((local[b.texel[keep]], b.wi[keep], b.wo[keep], b.reflectance[keep], b.weight[keep],
+                          *((b.diffuse[keep], b.specular[keep]) if b.diffuse is not None else ())))
         if not parts:
             z = np.zeros((0, 3))
             return SampleBlock(len(texels), np.zeros(0, np.int64), z, z, z, np.zeros(0))
@@ -67,14 +72,19 @@ class TexelBlocks(ABC):
 class ArrayBlocks(TexelBlocks):
     """Samples in memory (validated, any order) served in blocks of ``block_texels`` texels.
 
-    ``texel`` (S,) int 0..n_texels-1; ``wi``, ``wo``, ``reflectance`` (S, 3); ``weight`` (S,).
-    The samples are sorted by texel once (stable: a texel's samples keep their order).
+    ``texel`` (S,) int 0..n_texels-1; ``wi``, ``wo``, ``reflectance`` (S, 3); ``weight`` (S,);
+    optionally ``diffuse`` and ``specular`` (S, 3). The samples are sorted by texel once (stable:
+    a texel's samples keep their order).
     """
 
-    def __init__(self, texel, wi, wo, reflectance, weight, *, n_texels: int, block_texels: int) -> None:
+    def __init__(self, texel, wi, wo, reflectance, weight, *, n_texels: int, block_texels: int,
+                 diffuse=None, specular=None) -> None:
+        if (diffuse is None) != (specular is None):
+            raise ValueError("ArrayBlocks: diffuse and specular must be given together")
         order = np.argsort(texel, kind="stable")
         self.texel, self.wi, self.wo = np.asarray(texel, np.int64)[order], wi[order], wo[order]
         self.reflectance, self.weight = reflectance[order], weight[order]
+        self.diffuse, self.specular = (None, None) if diffuse is None else (diffuse[order], specular[order])
         self.n_texels = n_texels
         self.ranges = [(a, min(a + block_texels, n_texels)) for a in range(0, n_texels, block_texels)]
         self._offsets = np.searchsorted(self.texel, np.arange(n_texels + 1))
@@ -82,4 +92,5 @@ class ArrayBlocks(TexelBlocks):
     def read(self, i: int) -> SampleBlock:
         t0, t1 = self.ranges[i]
         s = slice(self._offsets[t0], self._offsets[t1])
-        return SampleBlock(t1 - t0, self.texel[s] - t0, self.wi[s], self.wo[s], self.reflectance[s], self.weight[s])
+        return SampleBlock(t1 - t0, self.texel[s] - t0, self.wi[s], self.wo[s], self.reflectance[s], self.weight[s],
+                           *((self.diffuse[s], self.specular[s]) if self.diffuse is not None else ()))

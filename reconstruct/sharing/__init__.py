@@ -5,11 +5,14 @@ as linear-RBF interpolants in the joint spatial/angular domain (x, y, u, v, w).
 - :func:`fit_isotropic`: the homogeneous fit (``isotropic.py``: log-domain values, w scale
   chosen on held-out images); :func:`fit_spatial`: the spatially varying, dichromatic and
   single-image fits (``fits.py``); both give ``BRDF`` models (``models.py``);
+  :func:`fit_spatial_blocks`: the dichromatic fit over texel blocks, its per-texel steps one
+  block at a time and the RBFs on a stated subsample of texels (``blocks.py``);
 - :func:`photometric_normals`: per-texel normals from the diffuse samples, the geometry the fits
   need where a mesh lacks the surface's relief (``normals.py``; ``fit_spatial(fit_normals=True)``);
 - :func:`samples_from_images`: reflectance samples from images under distant lights;
 - baselines for the paper's comparisons (``baselines.py``).
 """
+from .blocks import FIT_TEXELS, fit_spatial_blocks
 from .fits import SpatialFit, fit_spatial, group_median
 from .isotropic import IsotropicFit, ScaleChoice, fit_isotropic
 from .models import RbfBRDF, SpatialRbfBRDF
@@ -18,7 +21,7 @@ from .rbf import RbfFit, RbfModel, SharingError, fit_rbf
 from .samples import ImageSamples, samples_from_images
 
 __all__ = ["RbfFit", "RbfModel", "SharingError", "fit_rbf", "IsotropicFit", "SpatialFit",
-           "fit_isotropic", "ScaleChoice", "fit_spatial", "group_median", "RbfBRDF",
+           "fit_isotropic", "ScaleChoice", "fit_spatial", "fit_spatial_blocks", "FIT_TEXELS", "group_median", "RbfBRDF",
            "SpatialRbfBRDF",
            "ImageSamples", "samples_from_images", "PhotometricNormals", "photometric_normals",
            "reframe"]

@@ -61,7 +61,9 @@ def _values(name: str, a, n: int, keep: np.ndarray, channels=(1, 3)) -> np.ndarr
     return np.where(keep[:, None], arr, 0.0)
 
 
-def _samples(wi, wo, valid, min_cos: float) -> _Samples:
+def _samples(wi, wo, valid, min_cos: float, *, some: bool = True) -> _Samples:
+    """The samples checked, with the ones a fit uses marked; ``some``: at least one must be
+    (False for one texel block of many, which may hold none)."""
     wi = _directions("wi", wi)
     wo = _directions("wo", wo, len(wi))
     if not 0.0 <= min_cos < 1.0:
@@ -73,10 +75,56 @@ def _samples(wi, wo, valid, min_cos: float) -> _Samples:
             raise SharingError(f"valid must be a bool array of shape ({len(wi)},), got "
                                f"{v.dtype} {v.shape}")
         keep &= v
-    if not keep.any():
+    if some and not keep.any():
         raise SharingError(f"wi: none of the {len(wi)} samples is usable (valid, lit with "
                            f"cos theta_i >= min_cos = {min_cos}, seen from above)")
     return _Samples(wi, wo, keep, wi[:, 2])
+
+
+def _separated(s: _Samples, diffuse, specular) -> tuple[np.ndarray, np.ndarray]:
+    """Diffuse (S, 3) and grey specular (S, 1) f_r, zero where a sample is not used."""
+    n = len(s.wi)
+    return (_values("diffuse", diffuse, n, s.keep, channels=(3,)),
+            _values("specular", specular, n, s.keep).mean(axis=1, keepdims=True))
+
+
+def _texel_normals(texel, s: _Samples, dif: np.ndarray, n_texels: int) -> PhotometricNormals:
+    """Each texel's normal from its diffuse samples (Sect. 7.1), in the samples' frame."""
+    return photometric_normals(texel, s.wi, dif * s.cos_i[:, None], n_texels, valid=s.keep)
+
+
+def _about_normals(texel, s: _Samples, dif, spec, normals: np.ndarray, min_cos: float):
+    """The samples re-expressed about per-texel ``normals`` (T, 3): directions, the samples the
+    fit uses (lit and seen about the new normal), and f_r (= measured / cos theta_i, so the same
+    measurement divided by the new cos theta_i)."""
+    wi2, wo2 = reframe(texel, normals, s.wi, s.wo)
+    ratio = s.cos_i / np.maximum(wi2[:, 2], 1e-9)
+    keep = s.keep & (wi2[:, 2] >= max(min_cos, 1e-9)) & (wo2[:, 2] > 0)
+    return _Samples(wi2, wo2, keep, wi2[:, 2]), dif * ratio[:, None], spec * ratio[:, None]
+
+
+def _texel_albedo(dif: np.ndarray, texel, keep: np.ndarray, n_texels: int) -> np.ndarray:
+    """Per-texel diffuse albedo a(x) as f_r (T, 3): the median of its used diffuse samples
+    (Sect. 7.1), 0 where it has none."""
+    albedo = group_median(dif[keep], texel[keep], n_texels)
+    return np.where(np.isfinite(albedo), np.maximum(albedo, 0.0), 0.0)
+
+
+def _rbf_space(xy: np.ndarray, uvw: np.ndarray, single_image: bool, m_xy: float, m_w: float):
+    """The RBF's points q = (x, y, u, v[, w]) (S, 4 or 5) and the diagonal of M (Eq. 6)."""
+    q = np.hstack([xy, uvw[:, :2] if single_image else uvw])
+    return q, (m_xy, m_xy, 1.0, 1.0) + (() if single_image else (m_w,))
+
+
+def _dichromatic_rbfs(q, s: _Samples, dif, spec, w, albedo: np.ndarray, single_image: bool, opts) -> dict:
+    """Eq. 7's RBFs: g on the specular samples, d on the diffuse ones normalised by their
+    texel's albedo ``albedo`` (S, 3) (none in the single-image case, Eq. 8)."""
+    k = s.keep
+    fits = {"specular": fit_rbf(q[k], spec[k], weight=w[k], **opts)}
+    if not single_image:
+        lit = k & (albedo.min(axis=1) > 0)  # a black texel's normalised diffuse is undefined
+        fits["diffuse"] = fit_rbf(q[lit], dif[lit] / albedo[lit], weight=w[lit], **opts)
+    return fits
 
 
 def _w_varies(uvw: np.ndarray) -> bool:
@@ -132,6 +180,10 @@ class SpatialFit:
         With ``fit_normals``: each texel's normal in the samples' frame (the given normal is
         +z). The BRDFs (``brdf_at``, ``brdf``) are then about these normals; :meth:`predict`
         takes directions in the samples' frame and applies them.
+    fit_texels : int or None
+        How many texels' samples the RBFs were fitted on (:func:`fit_spatial_blocks`' random
+        subsample, every texel when there are no more); None: every sample given. ``n_used``
+        and ``n_dropped`` count every texel's samples (the albedo and normals use them all).
     """
 
     mode: str
@@ -141,6 +193,7 @@ class SpatialFit:
     n_used: int
     n_dropped: int
     normals: PhotometricNormals | None = None
+    fit_texels: int | None = None
 
     def predict(self, texel, wi, wo) -> np.ndarray:
         """Reflectance ``f_r cos theta_i`` (N, C), 1/sr, of texels ``texel`` (N,) for local unit
@@ -174,8 +227,9 @@ class SpatialFit:
 
     def report(self) -> str:
         parts = "; ".join(f"{k}: {f.report()}" for k, f in self.fits.items())
+        on = "" if self.fit_texels is None else f", RBFs fitted on {self.fit_texels} of {len(self.texel_xy)} texels"
         return (f"spatial RBF ({self.mode}) over {len(self.texel_xy)} texels from {self.n_used} "
-                f"samples ({self.n_dropped} dropped). {parts}")
+                f"samples ({self.n_dropped} dropped{on}). {parts}")
 
 
 def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
@@ -256,28 +310,21 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
         texel_xy = np.zeros((texel.max() + 1, 2))
         texel_xy[texel] = xy
     if dichromatic:
-        dif = _values("diffuse", diffuse, n, s.keep, channels=(3,))
-        spec = _values("specular", specular, n, s.keep).mean(axis=1, keepdims=True)
+        dif, spec = _separated(s, diffuse, specular)
     elif fit_normals:
         raise SharingError("fit_normals needs diffuse and specular: the normals come from the "
                            "diffuse (Lambertian) samples")
     normals = None
     if fit_normals:
-        normals = photometric_normals(texel, s.wi, dif * s.cos_i[:, None], len(texel_xy),
-                                      valid=s.keep)
-        wi2, wo2 = reframe(texel, normals.normals, s.wi, s.wo)
-        # the samples are f_r = measured / cos theta_i: the same measurement about the new normal
-        ratio = s.cos_i / np.maximum(wi2[:, 2], 1e-9)
-        dif, spec = dif * ratio[:, None], spec * ratio[:, None]
-        s = _Samples(wi2, wo2, s.keep & (wi2[:, 2] >= max(min_cos, 1e-9)) & (wo2[:, 2] > 0), wi2[:, 2])
+        normals = _texel_normals(texel, s, dif, len(texel_xy))
+        s, dif, spec = _about_normals(texel, s, dif, spec, normals.normals, min_cos)
         if not s.keep.any():
             raise SharingError("wi: no sample is lit and seen about the fitted normals")
     w = _weight(s, weight)
     uvw = uvw_from_directions(s.wi, s.wo)
     if single_image is None:
         single_image = not _w_varies(uvw[s.keep])
-    q = np.hstack([xy, uvw[:, :2] if single_image else uvw])
-    scale = (m_xy, m_xy, 1.0, 1.0) + (() if single_image else (m_w,))
+    q, scale = _rbf_space(xy, uvw, single_image, m_xy, m_w)
     k = s.keep
     opts = dict(scale=scale, max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
                 progress=progress)
@@ -287,13 +334,7 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
         fit = fit_rbf(q[k], values[k], weight=w[k], **opts)
         return SpatialFit("single-image" if single_image else "5d", texel_xy, None,
                           {"brdf": fit}, n_used, n - n_used)
-    albedo = group_median(dif[k], texel[k], len(texel_xy))
-    albedo = np.where(np.isfinite(albedo), np.maximum(albedo, 0.0), 0.0)
-    fits = {"specular": fit_rbf(q[k], spec[k], weight=w[k], **opts)}
-    if single_image:
-        return SpatialFit("dichromatic single-image", texel_xy, albedo, fits, n_used, n - n_used,
-                          normals)
-    a = albedo[texel]
-    lit = k & (a.min(axis=1) > 0)  # a black texel's normalised diffuse is undefined
-    fits["diffuse"] = fit_rbf(q[lit], dif[lit] / a[lit], weight=w[lit], **opts)
-    return SpatialFit("dichromatic", texel_xy, albedo, fits, n_used, n - n_used, normals)
+    albedo = _texel_albedo(dif, texel, k, len(texel_xy))
+    fits = _dichromatic_rbfs(q, s, dif, spec, w, albedo[texel], single_image, opts)
+    mode = "dichromatic single-image" if single_image else "dichromatic"
+    return SpatialFit(mode, texel_xy, albedo, fits, n_used, n - n_used, normals)

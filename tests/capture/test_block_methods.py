@@ -5,18 +5,21 @@ capture) is written in the pipeline's Zarr layout and read back block by block.
 """
 from __future__ import annotations
 
+import dataclasses
 import pickle
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from capture.pipeline.block_scoring import ErrorSums, score_blocks
 from capture.pipeline.lumitexel_arrays import store_lumitexels
-from capture.pipeline.methods import BlockRoute, fit_method
+from capture.pipeline.methods import BlockRoute, _surface_xy, fit_method
 from capture.pipeline.stored_blocks import StoredBlocks
-from reconstruct.lensch import fit_svbrdf_blocks, fit_svbrdf_lumitexels
+from reconstruct.lensch import ArrayBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.metrics import relative_rms, trimmed_relative_rms
+from reconstruct.sharing import SharingError, fit_spatial, fit_spatial_blocks, reframe
 from sims.reflectance_samples import paper_phong_materials, synthetic_samples
 
 N_TRAIN = 11   # views 11.. (of up to 15 samples a texel) are held out
@@ -154,3 +157,77 @@ def test_lensch_material_discovery_honours_and_states_its_subsample(stored):
     # every texel still labelled, projected and scored: the materials of 160 texels serve all 240
     assert len(fit.labels) == len(fit.weights) == train.n_texels and fit.n_materials >= 2
     assert relative_rms(fit.predict(held.texel, held.wi, held.wo), held.reflectance) < 0.2
+
+
+# -- reflectance sharing (Zickler et al.): per-texel steps per block, the RBFs on a subsample --------
+SHARING = {"max_centers": 120, "fit_normals": True, "m_xy": 1.0}
+
+
+@pytest.fixture(scope="module")
+def separated(tmp_path_factory):
+    """The synthetic texels with polarization-separated parts (diffuse = rho_d / pi cos theta_i,
+    noisy; specular the rest), seen about mesh normals tilted 8 deg from the true ones (so the
+    normal refit has work), stored in chunks of 37 and of all texels."""
+    lt = synthetic_lumitexels()
+    g = np.random.default_rng(7)
+    tilt = np.radians(8.0)
+    phi = g.uniform(0, 2 * np.pi, lt.n_texels)
+    mesh = np.stack([np.sin(tilt) * np.cos(phi), np.sin(tilt) * np.sin(phi), np.full(lt.n_texels, np.cos(tilt))], 1)
+    wi, wo = reframe(lt.texel, mesh, lt.wi, lt.wo)
+    diffuse = np.asarray([0.15, 0.3, 0.1]) / np.pi * lt.wi[:, 2:3] * (1 + g.uniform(-0.05, 0.05, (lt.n_samples, 3)))
+    f32 = lambda a: np.asarray(a, np.float32)   # noqa: E731
+    lt = dataclasses.replace(lt, wi=f32(wi), wo=f32(wo), diffuse=f32(diffuse),
+                             specular=f32(np.maximum(lt.reflectance - diffuse, 0.0)))
+    root = tmp_path_factory.mktemp("separated")
+    return {b: store_lumitexels(lt, N_TRAIN, root / f"b{b}.zarr", block_texels=b) for b in BLOCKS}
+
+
+def _sharing_prediction(fit, lt):
+    return fit.predict(lt.texel, np.asarray(lt.wi, float), np.asarray(lt.wo, float))
+
+
+def test_sharing_over_blocks_of_any_size_equals_the_whole_array_fit(separated):
+    """The per-texel steps (normal refit, albedo) over blocks of 37 and of all texels (parts of
+    50), pickled and run in reverse order as on a cluster, and the RBFs on a 150-texel subsample:
+    the whole-array fit's (one block, the same subsample) to 1e-9; with every texel, today's
+    in-memory ``fit_spatial`` on the gathered samples."""
+    train, held = separated[BLOCKS[0]].gather()
+    xy = _surface_xy(train.position)
+    whole_blocks = ArrayBlocks(train.texel, train.wi, train.wo, train.reflectance, train.weight,
+                               n_texels=train.n_texels, block_texels=train.n_texels,
+                               diffuse=train.diffuse, specular=train.specular)
+    cos = np.maximum(train.wi[:, 2:3], 1e-6)
+    today = fit_spatial(xy[train.texel], train.wi, train.wo, None, texel=train.texel, diffuse=train.diffuse / cos,
+                        specular=train.specular / cos, rng=0, **SHARING)
+    assert today.normals.fitted.sum() > train.n_texels // 2   # the tilted mesh normals are refitted
+    wholes = {}
+    for fit_texels in (150, train.n_texels):
+        whole = wholes[fit_texels] = fit_spatial_blocks(whole_blocks, xy, fit_texels=fit_texels, rng=0, **SHARING)
+        assert whole.fit_texels == fit_texels and f"RBFs fitted on {fit_texels} of 240 texels" in whole.report()
+        want = _sharing_prediction(today if fit_texels == train.n_texels else whole, held)
+        for blocks, n_blocks in ((StoredBlocks(separated[BLOCKS[0]]), 7), (StoredBlocks(separated[BLOCKS[1]], max_texels=50), 5)):
+            assert len(blocks.ranges) == n_blocks
+            fit = fit_spatial_blocks(blocks, xy, fit_texels=fit_texels, rng=0, map_blocks=_as_on_a_cluster, **SHARING)
+            np.testing.assert_allclose(_sharing_prediction(fit, held), want, rtol=1e-9, atol=1e-12)
+            # the per-texel steps do not depend on the subsample
+            np.testing.assert_allclose(fit.albedo, today.albedo, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(fit.normals.normals, today.normals.normals, rtol=1e-9, atol=1e-12)
+            assert (fit.n_used, fit.n_dropped) == (today.n_used, today.n_dropped)
+    # the subsample is honoured: the RBFs saw 150 texels' samples, and still predict the other 90
+    sub, every = wholes[150].fits["specular"], today.fits["specular"]
+    assert len(wholes[train.n_texels].fits["specular"].points) == len(every.points)
+    assert len(sub.points) < 0.7 * len(every.points)
+    assert relative_rms(_sharing_prediction(wholes[150], held), held.reflectance) < 1.5 * relative_rms(
+        _sharing_prediction(today, held), held.reflectance)
+
+
+def test_sharing_through_the_block_route_equals_the_in_memory_method(separated):
+    train, held = separated[BLOCKS[0]].gather()
+    inputs = SimpleNamespace()   # sharing reads only the lumitexels
+    whole = fit_method("sharing", train, inputs, **SHARING)
+    fit = fit_method("sharing", train, inputs, route=BlockRoute(StoredBlocks(separated[BLOCKS[0]]), _as_on_a_cluster),
+                     **SHARING)
+    np.testing.assert_allclose(fit.predict(held), whole.predict(held), rtol=1e-9, atol=1e-12)
+    assert whole.figures["rbf_texels"] == "RBFs fitted on 240 of 240 texels" == fit.figures["rbf_texels"]
+    with pytest.raises(SharingError, match="fit_texels must be a positive integer"):
+        fit_method("sharing", train, inputs, fit_texels=0)

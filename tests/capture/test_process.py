@@ -36,6 +36,7 @@ from capture.rigs import open_rig
 from capture.runner import Runner, create_session
 from capture.store import Store
 from reconstruct.envmap import EnvironmentMap
+from reconstruct.sharing import FIT_TEXELS
 from sims.ptp_sim import placeholder_frame
 
 PLAN = {
@@ -661,14 +662,16 @@ def test_cli_rejects_a_scheduler_that_is_not_an_address(captured):
 
 
 def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_with_the_same_figures(
-        captured, calibrated, tmp_path, monkeypatch):
+        captured, calibrated, processed, tmp_path, monkeypatch):
     """Issue 21: where the gathered lumitexels would exceed ``--memory-limit``, ``gonio process``
     does not gather them: the inputs' truth figures, the floor, Lambertian, its scores and the
-    pictures come from texel blocks, equal to the gathered route's to 1e-9; sharing (a fit of
-    every sample at once) is skipped with the limit named. (Lensch over blocks equals its
-    gathered fit in test_block_methods; here it would add 25 s.)"""
+    pictures come from texel blocks, equal to the gathered route's to 1e-9; sharing runs over
+    the blocks too, its RBFs on every texel here (the lab's option), with the gathered run's
+    figures (``processed``) to 1e-9. (Lensch over blocks equals its gathered fit in
+    test_block_methods; here it would add 25 s.)"""
     _, lab, _ = captured
-    session_lab = lab.session_lab("proc")
+    session_lab = replace(lab.session_lab("proc"), method_options={"sharing": {"max_centers": 200,
+                                                                               "fit_texels": FIT_TEXELS}})
     # a limit that holds one 320 x 240 view's images; each sample counted at 100x its size, so
     # the gathered samples' bound exceeds it (this session's real bound is a few MiB)
     limit = 16 * 2**20
@@ -702,5 +705,19 @@ def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_w
     assert set(pictures[0].files) == set(pictures[1].files) and "heldout_predicted" in pictures[0].files
     for name in pictures[0].files:   # one view's samples drawn: the same pictures
         np.testing.assert_allclose(pictures[1][name], pictures[0][name], rtol=1e-6, err_msg=name)
-    skipped = blocks.method("sharing")
-    assert skipped.status == "skipped" and "--memory-limit 16 MiB" in skipped.reason
+    g, b = processed[0].method("sharing"), blocks.method("sharing")
+    assert g.status == b.status == "ok", (g.reason, b.reason)
+    assert b.figures["rbf_texels"] == g.figures["rbf_texels"] == f"RBFs fitted on {blocks.inputs['texels']} of " \
+        f"{blocks.inputs['texels']} texels"
+    # the same model: per-texel albedo and refitted normals, RBF centres
+    models = [np.load(io.BytesIO(s.read_object(next(r for r in s.results(s.session("proc").id)
+                                                    if r.id == rid).artifacts["model.npz"])))
+              for s, rid in ((captured[0], g.result_id), (bstore, b.result_id))]
+    for name in ("albedo", "normals", "xy"):
+        np.testing.assert_array_equal(models[1][name], models[0][name], err_msg=name)
+    assert b.figures["centres"] == g.figures["centres"]
+    numbers = [k for k, v in g.figures.items() if isinstance(v, (int, float))]
+    assert {"held_out_rel_rms", "normals_fitted", "normal_error_fitted_deg"} <= set(numbers)
+    for key in numbers:   # scored over blocks of another size: the RBF evaluates its distances and
+        # sums its ~200 centres in float32 GEMMs, whose rounding depends on a row's batch (1e-6 a sample)
+        assert b.figures[key] == pytest.approx(g.figures[key], rel=1e-7), key
