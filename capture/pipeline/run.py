@@ -396,7 +396,7 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
         else:
             release_freed_memory()   # scoring's and the pictures' blocks
             artifacts["appearance.npz"], figures["export_texels"] = _appearance_on_subsample(
-                name, fit, arrays, train.n_texels, inputs, arrays.gatherable_texels(refused // 4), rng, block_texels)
+                name, fit, arrays, train.n_texels, inputs, arrays.gatherable_texels(refused // 8), rng, block_texels)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
@@ -435,6 +435,7 @@ def _object_figures(fit: Fitted, arrays: LumitexelArrays, block_texels: int, tra
         if true_n is not None:   # detail the mesh lacks: the fitted normals should recover it
             figures["normal_error_mesh_deg"] = _median_angle_deg(train.normal, true_n)
             figures["normal_error_fitted_deg"] = _median_angle_deg(fit.normals, true_n)
+    release_freed_memory()   # the fit's and scoring's blocks, before the pictures' full-size images
     return figures, method_pictures(fit, train, held, inputs, truth)
 
 
@@ -442,8 +443,10 @@ def _appearance_on_subsample(name: str, fit: Fitted, arrays: LumitexelArrays, n_
                              n_pick: int, rng: int, block_texels: int) -> tuple[bytes, str]:
     """:func:`capture.export.appearance.appearance_npz` of ``n_pick`` of the ``n_texels`` texels
     drawn at random (all their samples gathered), and the figure that says so. (Gathered samples
-    a quarter of the limit: the GGX fit and Lensch's predictions about as much again; 23 301
-    texels of 36 views took 165 MiB at 9x pixels.)"""
+    an eighth of the limit, ``n_pick`` from :meth:`LumitexelArrays.gatherable_texels`: the GGX
+    fit and Lensch's predictions take about as much again, a quarter of the limit in all, what
+    the limit leaves beside the pictures' full-size images; 11 650 texels of 36 views took
+    113 MiB at 9x pixels.)"""
     pick = np.sort(np.random.default_rng(rng).choice(n_texels, min(n_pick, n_texels), replace=False))
     train, held = arrays.gather(pick, max_texels=block_texels)
     sub = dataclasses.replace(fit, arrays={k: np.asarray(v)[pick] for k, v in fit.arrays.items() if k == "labels"},
