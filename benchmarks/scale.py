@@ -29,6 +29,9 @@ Parts (each prints its figures):
   1-vs-2 ratio, and the figures against in-process (1e-9 relative);
 - ``resume``: a streamed run SIGKILLed after a third of its views, then run again: the views
   reused and the result compared;
+- ``resume_methods``: ``gonio process --methods lensch`` beyond ``--memory-limit`` SIGKILLed mid-Lensch
+  and run again: the block tasks the re-run computed, and its figures, ``model.npz`` and stored
+  per-block results against an uninterrupted run's (:mod:`capture.pipeline.block_results`);
 - ``kill_worker``: a 2-worker run in which one worker process is SIGKILLed mid-run;
 - ``scheduler``: ``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1 over TCP,
   ``gonio process --scheduler`` on the session (lambertian), figures compared with in-process.
@@ -316,6 +319,60 @@ def resume(store_path: str) -> None:
           f"and took {dt:.1f} s; identical to an uninterrupted run: {_same(lt, ref)}")
 
 
+def _method_run(store: str, args: list[str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "capture.cli", "process", SESSION, "--store", store, "--json", "-q",
+                             *args], env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+
+
+def _stored_model(store: str, method: str) -> dict[str, np.ndarray]:
+    s = Store(store, durable=False)
+    rec = next(r for r in s.results(s.session(SESSION).id, "reconstruction") if r.kind == method)
+    with np.load(io.BytesIO(s.read_object(rec.artifacts["model.npz"]))) as z:
+        return {k: z[k] for k in z.files}
+
+
+def resume_methods(store_path: str, limit_mib: float) -> None:
+    """``gonio process --methods lensch --memory-limit`` (over blocks, each block task's result
+    stored in ``block_results.zarr``) SIGKILLed once a third of an uninterrupted run's block
+    tasks are stored, then run again: the tasks it computed, and its figures, ``model.npz`` and
+    stored block arrays against the uninterrupted run's."""
+    args = ["--methods", "lensch", "--memory-limit", str(limit_mib)]
+    runs = {}
+    for how in ("whole", "killed"):
+        copy = _without_reconstructions(store_path)
+        scratch = f"{copy}-{how}"
+        shutil.rmtree(scratch, ignore_errors=True)
+        os.rename(copy, scratch)
+        done = Path(scratch) / "arrays" / SESSION / "block_results.zarr" / "done"
+        t = time.perf_counter()
+        proc = _method_run(scratch, args)
+        if how == "killed":
+            while proc.poll() is None and len(list(done.glob("[0-9a-f]*"))) < runs["whole"]["tasks"] // 3:
+                time.sleep(0.02)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+            killed_at = len(list(done.glob("[0-9a-f]*")))
+            proc = _method_run(scratch, args)
+        out, _ = proc.communicate()
+        summary = json.loads(out[out.index("{"):])
+        runs[how] = {"figures": summary["methods"][0]["figures"], "model": _stored_model(scratch, "lensch"),
+                     "tasks": len(list(done.glob("[0-9a-f]*"))), "dt": time.perf_counter() - t,
+                     "blocks": zarr.open_group(str(done.parent), mode="r"), "path": scratch}
+    whole, again = runs["whole"], runs["killed"]
+    same_model = whole["model"].keys() == again["model"].keys() and all(
+        np.array_equal(whole["model"][k], again["model"][k]) for k in whole["model"])
+    same_blocks = sorted(whole["blocks"].group_keys()) == sorted(again["blocks"].group_keys()) and all(
+        np.array_equal(a[...], again["blocks"][key][name][...])
+        for key, g in whole["blocks"].groups() for name, a in g.arrays())
+    print(f"resume_methods  SIGKILLed with {killed_at} of {whole['tasks']} block tasks stored; the re-run computed "
+          f"{again['tasks'] - killed_at} ({whole['dt']:.1f} s uninterrupted, {again['dt']:.1f} s killed + resumed); "
+          f"figures identical: {whole['figures'] == again['figures']} (held-out {again['figures'].get('held_out_rel_rms')}), "
+          f"model.npz identical: {same_model}, stored block arrays identical: {same_blocks}")
+    for r in runs.values():
+        shutil.rmtree(r["path"], ignore_errors=True)
+
+
 def kill_worker(store_path: str) -> None:
     store, mesh, cal = _setup(store_path)
     ref, _, _ = _stream(store, mesh, cal, 0)
@@ -445,9 +502,9 @@ def scheduler(store_path: str) -> None:
 
 
 PARTS = {"memory": memory, "process_memory": process_memory, "growth": growth, "today": today, "executors": executors,
-         "method_workers": method_workers, "resume": resume, "kill_worker": kill_worker, "scheduler": scheduler}
+         "method_workers": method_workers, "resume": resume, "resume_methods": resume_methods, "kill_worker": kill_worker, "scheduler": scheduler}
 #: the parts that take the memory limit
-_LIMITED = {"memory", "process_memory", "growth", "today"}
+_LIMITED = {"memory", "process_memory", "growth", "today", "resume_methods"}
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -58,7 +58,7 @@ from .stage_records import (DarkRecord, EnvironmentRecord, GrayCardRecord, Intri
 __all__ = ["ProcessError", "MissingCalibration", "GrayCardPose", "SessionCalibration",
            "PassiveInput", "SampleSphereGeometry", "sample_sphere_of", "sphere_passive_input", "ProcessInputs",
            "read_calibration", "session_images", "session_inputs",
-           "PoseSpec", "ViewPlan", "view_plan", "pose_view", "merge_pose", "plan_inputs",
+           "PoseSpec", "ViewPlan", "view_plan", "pose_view", "merge_pose", "plan_inputs", "passive_input", "picture_radiance",
            "lumitexels_with_held_out", "split_samples", "select_samples", "object_pose"]
 
 R = TypeVar("R", bound=StageRecord)
@@ -487,35 +487,54 @@ def session_inputs(store: Store, session: str, *, calibration: SessionCalibratio
 
 
 def plan_inputs(images: SessionImages, plan: ViewPlan, cal: SessionCalibration, mesh: trimesh.Trimesh | None, *,
-                images_of: Sequence[int] = (), progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
+                images_of: Sequence[int] = (), passive: bool = True, picture_only: bool = False,
+                progress: Callable[[int, int], None] | None = None) -> ProcessInputs:
     """The method inputs of ``plan``: the views ``images_of`` (indices in
     :attr:`ViewPlan.ordered`) merged from their raw frames, the others geometry only (camera,
     light, pose; ``radiance`` None: a streamed run, whose samples
     :mod:`capture.pipeline.lumitexel_arrays` holds, merges just the view the report draws); the
-    passive input merged from its one image. ``progress(done, total)`` after each merged view."""
+    passive input merged from its one image (:func:`passive_input`; ``passive`` False: left
+    None, for a run that makes it when passive reflectometry runs). ``picture_only``: a merged
+    view keeps only its radiance, as float32 (what the report's picture draws: a quarter of the
+    view's images). ``progress(done, total)`` after each merged view."""
     views, held, vsteps, hsteps, frame_ids = [], [], [], [], []
     wanted = set(images_of)
     for k, pose in enumerate(plan.ordered):
-        if k in wanted:
+        if k in wanted and not picture_only:
             view = merge_pose(images, pose, cal)
-            if progress is not None:
-                progress(len(views) + len(held) + 1, len(plan.poses))
         else:
-            view = View(camera=cal.camera, radiance=None, light_position=pose.light_mm,
-                        light_intensity=cal.light_intensity, object_to_world=cal.object_pose(pose.reading))
+            view = View(camera=cal.camera, radiance=picture_radiance(images, pose) if k in wanted else None,
+                        light_position=pose.light_mm, light_intensity=cal.light_intensity,
+                        object_to_world=cal.object_pose(pose.reading))
+        if k in wanted and progress is not None:
+            progress(len(views) + len(held) + 1, len(plan.poses))
         (held if pose.held_out else views).append(view)
         (hsteps if pose.held_out else vsteps).append(pose.steps)
     for pose in plan.poses:
         frame_ids += pose.frame_ids
-    if plan.passive is None:
-        p_input = None
-    elif plan.sample_sphere is not None:
-        p_input = sphere_passive_input(_merge(images, plan.passive), cal, plan.sample_sphere)
-    else:
-        p_input = _passive_input(_merge(images, plan.passive), cal, mesh)
     return ProcessInputs(calibration=cal, views=views, held_out=held, view_steps=vsteps, held_out_steps=hsteps,
-                         view_frames=frame_ids, passive=p_input, separated=all(p.separated for p in plan.poses),
-                         notes=list(plan.notes))
+                         view_frames=frame_ids, passive=passive_input(images, plan, cal, mesh) if passive else None,
+                         separated=all(p.separated for p in plan.poses), notes=list(plan.notes))
+
+
+def picture_radiance(images: SessionImages, pose: PoseSpec) -> np.ndarray:
+    """The radiance (H, W, 3) float32, DN/s, of one pose as :func:`merge_pose` makes it (parallel
+    + crossed), its steps merged one at a time and nothing else kept: the same values, cast."""
+    radiance = None
+    for i in pose.used:
+        r = _merge(images, pose.steps_all[i]).radiance
+        radiance = r if radiance is None else radiance + r
+    return np.asarray(radiance, np.float32)
+
+
+def passive_input(images: SessionImages, plan: ViewPlan, cal: SessionCalibration,
+                  mesh: trimesh.Trimesh | None) -> PassiveInput | None:
+    """The passive input of ``plan`` merged from its one image (None: the plan has none)."""
+    if plan.passive is None:
+        return None
+    if plan.sample_sphere is not None:
+        return sphere_passive_input(_merge(images, plan.passive), cal, plan.sample_sphere)
+    return _passive_input(_merge(images, plan.passive), cal, mesh)
 
 
 def session_images(store: Store, session: str) -> SessionImages:

@@ -44,18 +44,21 @@ from .calibration_record import stored_calibration
 from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
-from .methods import DEFAULT_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method, sharing_texels_for
+from .methods import (BLOCK_METHODS, DEFAULT_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method,
+                      sharing_texels_for)
 from .passive_sample import SampleTruth, score_sample_sphere
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
 from .block_inputs import inputs_over_blocks
+from .block_results import BlockResults
+from .heap import release_freed_memory
 from .block_scoring import score_blocks
 from .lumitexel_arrays import (LumitexelArrays, block_texels_for, default_memory_limit, discovery_texels_for,
                                method_texels_for, stream_lumitexels)
 from .stored_blocks import StoredBlocks
 from .progress import Progress, ProgressSink, counter
-from .process import (MissingCalibration, ProcessInputs, SessionCalibration, plan_inputs,
-                      read_calibration, sample_sphere_of, select_samples, session_images, view_plan)
+from .process import (MissingCalibration, PassiveInput, ProcessInputs, SessionCalibration, ViewPlan, passive_input,
+                      plan_inputs, read_calibration, sample_sphere_of, select_samples, session_images, view_plan)
 from .process_report import Floor, MethodOutcome, ProcessReport
 from .report_html import write_html_report
 from ..outputs import session_file, write_atomically
@@ -76,6 +79,7 @@ class _Clock:
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
         crash.point(f"stage {name}")   # the crash test kills here (GONIO_CRASH_AFTER)
+        release_freed_memory()   # each stage starts from what is live, not the last one's high-water mark
         if self.progress is not None:
             self.progress(Progress(name, 0, 1))
         started = time.perf_counter()
@@ -217,21 +221,23 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                     if refused is None:
                         train, held = arrays.gather()
                         n_samples = (train.n_samples, held.n_samples)
-                        route = None if cluster.in_process else BlockRoute(StoredBlocks(arrays, method_block), executor.map)
+                        blocks = None if cluster.in_process else StoredBlocks(arrays, method_block)
                     else:   # gathering would exceed the limit: one pass over blocks, every block method over them
                         over = inputs_over_blocks(arrays, max_texels=method_block, truth_of=None if truth is None
                                                   else functools.partial(_truth_of, truth))
                         train, held = over.train, over.held   # every texel, one view's samples each
                         n_samples = (over.n_training_samples, over.n_held_samples)
-                        route = BlockRoute(StoredBlocks(arrays, method_block), executor.map)
+                        blocks = StoredBlocks(arrays, method_block)
                 with clock.stage("inputs"):
-                    inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [])
+                    # the held-out view for its picture alone; the passive input when passive runs
+                    inputs = plan_inputs(images, plan, cal, mesh, images_of=[int(held.view.min())] if held.n_samples else [],
+                                         passive=False, picture_only=True)
                 rep.inputs = {"views": len(inputs.views), "held_out_views": len(inputs.held_out),
                               "polarization_separated": inputs.separated, "texels": train.n_texels,
                               "training_samples": n_samples[0], "held_out_samples": n_samples[1],
                               "light_source": cal.light_source, "absolute_units": cal.absolute,
-                              "passive_capture": inputs.passive is not None,
-                              "passive_on": _passive_subject(inputs), "notes": inputs.notes,
+                              "passive_capture": plan.passive is not None,
+                              "passive_on": _passive_subject(plan), "notes": inputs.notes,
                               "lumitexel_arrays": {"path": str(arrays.path.resolve().relative_to(Path(store.root).resolve())),
                                                    "digest": arrays.digest, "block_texels": arrays.block_texels,
                                                    "reused_views": arrays.reused_views}}
@@ -246,11 +252,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                         if held.n_samples:
                             rep.floor = Floor(relative_rms(truth_r[1], held.reflectance),
                                               trimmed_relative_rms(truth_r[1], held.reflectance))
-                else:   # and what the methods to run never read is let go: the held-out view's
-                    # diffuse/specular images, the passive input unless passive runs (+135 MiB at 9x)
-                    inputs = dataclasses.replace(inputs, passive=inputs.passive if "passive" in todo else None,
-                                                 held_out=[dataclasses.replace(v, diffuse=None, specular=None)
-                                                           for v in inputs.held_out])
+                else:
                     rep.inputs["over_blocks"] = (
                         f"the gathered lumitexels ({arrays.gathered_bytes() / 2**20:.0f} MiB at most) exceed --memory-limit "
                         f"{limit / 2**20:.0f} MiB: scoring, Lambertian, Lensch and sharing over blocks of {method_block} texels "
@@ -261,15 +263,23 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                         rep.inputs["measured_vs_truth_rel_rms"] = over.truth.measured_vs_truth_rel_rms
                         rep.inputs["measured_vs_truth_median_ratio"] = over.truth.measured_vs_truth_median_ratio
                         rep.floor = over.truth.floor
-                on_object = inputs.passive is None or inputs.passive.sample_sphere is None
+                on_object = plan.passive is None or plan.sample_sphere is None
+                make_passive = functools.partial(passive_input, images, plan, cal, mesh)
                 assumption = {"passive": _passive_assumption(truth, train)} if truth is not None and on_object else {}
                 for name in todo:
                     started = time.perf_counter()
+                    options = _options(name, method_options, limit, arrays)
+                    # the block methods' per-block results stored as each block finishes: a re-run resumes
+                    stored_blocks = None if blocks is None or name not in BLOCK_METHODS else \
+                        BlockResults(blocks, {"method": name, "options": options, "rng": rng})
                     with clock.stage(name):
-                        outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, truth, scored_truth,
-                                                     rng, rep.inputs, counter(progress, name),
-                                                     _options(name, method_options, limit, arrays), rep.floor,
-                                                     assumption.get(name, ""), route, method_block, refused)
+                        outcomes[name] = _run_method(store, info.id, name, arrays, train, held, inputs, make_passive,
+                                                     truth, scored_truth, rng, rep.inputs, counter(progress, name),
+                                                     options, rep.floor, assumption.get(name, ""), executor.map,
+                                                     stored_blocks, method_block, refused)
+                    if stored_blocks is not None:
+                        say(f"{name}: {stored_blocks.computed} block tasks computed, {stored_blocks.reused} read back "
+                            f"from {stored_blocks.group.path}")
                     outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
         if rep.floor is not None:
@@ -288,11 +298,11 @@ def _ratio(score: float | None, floor: float) -> float | None:
     return None if score is None or not floor > 0 else float(score) / floor
 
 
-def _passive_subject(inputs: ProcessInputs) -> str:
+def _passive_subject(plan: ViewPlan) -> str:
     """What passive reflectometry's image shows ("" when there is none)."""
-    if inputs.passive is None:
+    if plan.passive is None:
         return ""
-    return "the object" if inputs.passive.sample_sphere is None else "the sample sphere"
+    return "the object" if plan.sample_sphere is None else "the sample sphere"
 
 
 def _passive_assumption(truth, train: Lumitexels) -> str:
@@ -346,12 +356,20 @@ def _options(name: str, method_options, memory_limit: int, arrays: LumitexelArra
 
 
 def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArrays, train: Lumitexels,
-                held: Lumitexels, inputs: ProcessInputs, truth, scored_truth: bool, rng: int, summary: dict,
-                progress, options: dict[str, Any], floor: Floor | None, assumption: str,
-                route: BlockRoute | None, block_texels: int, refused: int | None) -> MethodOutcome:
-    """Fit, score and store one method. ``refused``: the memory limit (bytes) when the
-    lumitexels were not gathered (``train`` and ``held`` then hold every texel but one view's
-    samples each): the export is fitted on a subsample of texels."""
+                held: Lumitexels, inputs: ProcessInputs, make_passive: Callable[[], PassiveInput | None], truth,
+                scored_truth: bool, rng: int, summary: dict, progress, options: dict[str, Any], floor: Floor | None,
+                assumption: str, run_blocks: Callable | None, stored_blocks: BlockResults | None, block_texels: int,
+                refused: int | None) -> MethodOutcome:
+    """Fit, score and store one method. ``make_passive`` makes the passive input (passive
+    reflectometry's alone: made here, let go when the method is stored). ``stored_blocks``: a
+    block method's tasks run on ``run_blocks`` (an executor's ``map``) over the stored blocks,
+    their results over texel blocks stored and reused (:mod:`capture.pipeline.block_results`);
+    None: the method fits ``train``. ``refused``: the memory limit (bytes) when the lumitexels
+    were not gathered (``train`` and ``held`` then hold every texel but one view's samples each):
+    the export is fitted on a subsample of texels."""
+    if name == "passive":
+        inputs = dataclasses.replace(inputs, passive=make_passive())
+    route = None if stored_blocks is None else BlockRoute(stored_blocks.blocks, stored_blocks.map(run_blocks))
     try:
         fit = fit_method(name, train, inputs, rng=rng, progress=progress, route=route, **options)
     except MethodSkipped as exc:
@@ -374,8 +392,9 @@ def _run_method(store: Store, session_id: int, name: str, arrays: LumitexelArray
             artifacts["appearance.npz"] = appearance_npz(name, fit, train, held, inputs.views, inputs.held_out,
                                                           fit.predict(train), fit.predict(held))
         else:
+            release_freed_memory()   # scoring's and the pictures' blocks
             artifacts["appearance.npz"], figures["export_texels"] = _appearance_on_subsample(
-                name, fit, arrays, train.n_texels, inputs, arrays.gatherable_texels(refused // 4), rng, block_texels)
+                name, fit, arrays, train.n_texels, inputs, arrays.gatherable_texels(refused // 8), rng, block_texels)
     rid = store.add_reconstruction(session_id, name, result=result, params=fit.params,
                                    input_frames=inputs.view_frames, artifacts=artifacts)
     return MethodOutcome(name, "ok", "", figures, rid, warnings=fit.warnings, outside_assumption=assumption)
@@ -414,6 +433,7 @@ def _object_figures(fit: Fitted, arrays: LumitexelArrays, block_texels: int, tra
         if true_n is not None:   # detail the mesh lacks: the fitted normals should recover it
             figures["normal_error_mesh_deg"] = _median_angle_deg(train.normal, true_n)
             figures["normal_error_fitted_deg"] = _median_angle_deg(fit.normals, true_n)
+    release_freed_memory()   # the fit's and scoring's blocks, before the pictures' full-size images
     return figures, method_pictures(fit, train, held, inputs, truth)
 
 
@@ -421,8 +441,10 @@ def _appearance_on_subsample(name: str, fit: Fitted, arrays: LumitexelArrays, n_
                              n_pick: int, rng: int, block_texels: int) -> tuple[bytes, str]:
     """:func:`capture.export.appearance.appearance_npz` of ``n_pick`` of the ``n_texels`` texels
     drawn at random (all their samples gathered), and the figure that says so. (Gathered samples
-    a quarter of the limit: the GGX fit and Lensch's predictions about as much again; 23 301
-    texels of 36 views took 165 MiB at 9x pixels.)"""
+    an eighth of the limit, ``n_pick`` from :meth:`LumitexelArrays.gatherable_texels`: the GGX
+    fit and Lensch's predictions take about as much again, a quarter of the limit in all, what
+    the limit leaves beside the pictures' full-size images; 11 650 texels of 36 views took
+    113 MiB at 9x pixels.)"""
     pick = np.sort(np.random.default_rng(rng).choice(n_texels, min(n_pick, n_texels), replace=False))
     train, held = arrays.gather(pick, max_texels=block_texels)
     sub = dataclasses.replace(fit, arrays={k: np.asarray(v)[pick] for k, v in fit.arrays.items() if k == "labels"},

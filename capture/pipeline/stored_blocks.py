@@ -25,7 +25,7 @@ __all__ = ["StoredBlocks"]
 class StoredBlocks(TexelBlocks):
     """The training samples of ``arrays``, block by block, at most ``max_texels`` texels a block
     (default: the arrays' chunk); one pass over the training views' sample flags when made, to
-    number the texels."""
+    number the texels. ``parts`` are the blocks' texel ranges ``(t0, t1)`` in the arrays."""
 
     def __init__(self, arrays: LumitexelArrays, max_texels: int | None = None) -> None:
         self.arrays = arrays
@@ -33,11 +33,11 @@ class StoredBlocks(TexelBlocks):
         kept = arrays.training_texels_per_block(parts)
         firsts = np.concatenate([[0], np.cumsum(kept)])
         self.n_texels = int(firsts[-1])
-        self._parts = [parts[c] for c in range(len(parts)) if kept[c]]   # a part without such texels is no block
+        self.parts = [parts[c] for c in range(len(parts)) if kept[c]]   # a part without such texels is no block
         self.ranges = [(int(firsts[c]), int(firsts[c + 1])) for c in range(len(parts)) if kept[c]]
 
     def read(self, i: int) -> SampleBlock:
-        lt, held = self.arrays.block(*self._parts[i])
+        lt, held = self.arrays.block(*self.parts[i])
         train = ~held
         separated = (lt.diffuse[train], lt.specular[train]) if lt.diffuse is not None else ()   # stored precision
         return SampleBlock(lt.n_texels, lt.texel[train], *(np.asarray(getattr(lt, name)[train], np.float64)

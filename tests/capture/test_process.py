@@ -264,6 +264,22 @@ def test_uncalibrated_session_says_which_stage_is_missing(tmp_path):
     assert issubclass(MissingCalibration, ProcessError)
 
 
+def test_a_streamed_run_merges_the_held_out_view_for_its_picture_alone(captured, inputs):
+    """``gonio process`` (issue 21, bounded memory) merges the held-out view the report draws as
+    its radiance alone, float32 (what the picture stores), and the passive input only when
+    passive runs: the picture equals the merged view's radiance, bit for bit."""
+    store, lab, _ = captured
+    cal, whole, _, _ = inputs
+    images = session_images(store, "proc")
+    plan = view_plan(images, "proc", cal, mesh=fitter_mesh(lab.object))
+    k = len(plan.ordered) - 1   # the last held-out view
+    slim = plan_inputs(images, plan, cal, None, images_of=[k], passive=False, picture_only=True)
+    view = slim.held_out[-1]
+    assert slim.passive is None and view.diffuse is None and view.valid is None and view.radiance.dtype == np.float32
+    np.testing.assert_array_equal(view.radiance, np.asarray(whole.held_out[-1].radiance, np.float32))
+    assert all(v.radiance is None for v in [*slim.views, *slim.held_out[:-1]])
+
+
 def test_an_old_plan_runs_passive_on_the_object_labelled_outside_its_assumption(captured, inputs):
     """A plan without the sample sphere's ``passive_sphere`` capture, with the object's ``passive``
     one (and, stated here, a probe map: a uniform room): passive reflectometry runs on the object,
