@@ -26,7 +26,7 @@ from .lights import (Highlight, PointLight, PositionerModel, SphereImage, detect
 from .polarization import PolarizationFit, Separation, fit_polarization, separate_parallel_crossed
 from .probe import (Probe, latlong_directions, merge_probes, mirror_sphere_to_latlong,
                     mirror_sphere_to_latlong_perspective)
-from .raw import RawMosaic, cfa_channels, demosaic_bilinear, read_raw
+from .raw import RawMosaic, cfa_channels, demosaic_bilinear, demosaic_smooth_hue, read_raw
 from .radiometry import (GrayCard, VignettingModel, apply_flat, find_gray_card, fit_vignetting, flat_field_gain,
                          gray_card_scale, normalize_irradiance)
 from .targets import (TargetDetection, as_points2d, chessboard_object_points, detect_charuco,
@@ -47,7 +47,7 @@ __all__ = [
     "SphereLights", "LampSpot", "light_directions_from_sphere", "find_mirror_sphere", "sphere_silhouettes",
     "project_spheres", "lamp_spots", "pick_lamp_highlights",
     "Separation", "PolarizationFit", "separate_parallel_crossed", "fit_polarization",
-    "RawMosaic", "read_raw", "cfa_channels", "demosaic_bilinear",
+    "RawMosaic", "read_raw", "cfa_channels", "demosaic_bilinear", "demosaic_smooth_hue",
     "HDRImage", "master_frame", "merge_raw_brackets", "recover_response", "merge_ldr", "write_hdr",
     "VignettingModel", "GrayCard", "flat_field_gain", "fit_vignetting", "apply_flat", "find_gray_card",
     "gray_card_scale", "normalize_irradiance",

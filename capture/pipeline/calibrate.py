@@ -64,6 +64,7 @@ from calibration.lights import (PositionerModel, detect_sphere, fit_positioner_m
                                 triangulate_point_light)
 from calibration.polarization import fit_polarization, separate_parallel_crossed
 from calibration.probe import merge_probes, mirror_sphere_to_latlong
+from calibration.raw import demosaic_smooth_hue
 from calibration.radiometry import find_gray_card, gray_card_scale
 from calibration.spheres import (find_mirror_sphere, lamp_spots, pick_lamp_highlights, project_spheres,
                                  sphere_silhouettes)
@@ -774,13 +775,24 @@ def _stage_gray_card(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     return StageOutput(result, figures, ctx.frame_ids(steps), params={"albedo": albedo})
 
 
+def _probe_image(ctx: _Context, step: int) -> np.ndarray:
+    """A mirror-probe step's radiance demosaiced for light sources smaller than a photosite
+    (:func:`calibration.raw.demosaic_smooth_hue`): the ball squeezes the room's windows into
+    single photosites, which the session's bilinear demosaic turns green. The mosaic is the
+    merged image's own channel at each photosite (bilinear interpolation keeps it)."""
+    channels = ctx.images.raw(ctx.frames[step][0]).channels
+    mosaic = np.take_along_axis(ctx.hdr[step], channels[..., None].astype(np.intp), axis=2)[..., 0]
+    return demosaic_smooth_hue(mosaic, channels)
+
+
 def _stage_mirror_probe(ctx: _Context, rep: CalibrationReport) -> StageOutput:
     steps = ctx.merged_steps("mirror_probe")
     # the room is fixed in the lab: map it in the lab frame when the turntable gave one
     R, frame = (ctx.lab.R, "lab") if ctx.lab is not None else (np.eye(3), "camera")
-    spheres = {s: find_mirror_sphere(ctx.hdr[s], frame=f"frame {ctx.frames[s][0].id} (step {s})") for s in steps}
+    images = {s: _probe_image(ctx, s) for s in steps}
+    spheres = {s: find_mirror_sphere(images[s], frame=f"frame {ctx.frames[s][0].id} (step {s})") for s in steps}
     height = max(MIN_PROBE_HEIGHT, int(np.ceil(max(sp.radius_px for sp in spheres.values()))))
-    probes = [mirror_sphere_to_latlong(ctx.hdr[s], sp.center_px, sp.radius_px, R, height=height)
+    probes = [mirror_sphere_to_latlong(images[s], sp.center_px, sp.radius_px, R, height=height)
               for s, sp in spheres.items()]
     rows = [ProbeView(s, sp.center_px, sp.radius_px) for s, sp in spheres.items()]
     probe = merge_probes(probes)

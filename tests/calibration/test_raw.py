@@ -6,7 +6,7 @@ import pytest
 
 from calibration.errors import InvalidInput
 from calibration.hdr import merge_raw_brackets
-from calibration.raw import cfa_channels, demosaic_bilinear, read_raw
+from calibration.raw import cfa_channels, demosaic_bilinear, demosaic_smooth_hue, read_raw
 from sims.dng import write_dng
 
 BLACKS = (200, 260, 330, 410)  # per 2x2 tile position, DN
@@ -66,6 +66,26 @@ def test_bilinear_demosaic_reproduces_a_linear_ramp(pattern):
     mosaic = np.take_along_axis(planes, ch[..., None].astype(int), axis=2)[..., 0]
     rgb = demosaic_bilinear(mosaic, ch)
     np.testing.assert_allclose(rgb[2:-2, 2:-2], planes[2:-2, 2:-2], atol=1e-4)
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
+def test_smooth_hue_demosaic_gives_a_one_photosite_source_its_surroundings_hue(pattern):
+    """A uniform colour comes back exactly; a source seen by one green photosite keeps that
+    reading and takes the hue around it (bilinear: green only, and twice its light in green)."""
+    hue = np.array([0.8, 1.0, 0.5])
+    ch = cfa_channels(pattern, (16, 16))
+    mosaic = hue[ch].astype(np.float32)
+    np.testing.assert_allclose(demosaic_smooth_hue(mosaic, ch), np.broadcast_to(hue, (16, 16, 3)), rtol=1e-6)
+    y, x = 8, (8 if ch[8, 8] == 1 else 9)
+    mosaic[y, x] = 1000.0  # a window of the room in one green photosite
+    smooth, bilinear = demosaic_smooth_hue(mosaic, ch), demosaic_bilinear(mosaic, ch)
+    np.testing.assert_allclose(smooth[y, x], 1000.0 * hue, rtol=1e-5)
+    assert bilinear[y, x, 0] < 2 and bilinear[y, x, 2] < 2
+    # the source's light per channel over the image: about its own (1000 x hue) with the smooth
+    # hue; bilinear interpolation puts twice it in green and none in red and blue
+    excess = lambda img: img.reshape(-1, 3).sum(axis=0) - 255 * hue  # noqa: E731 (255 other pixels)
+    np.testing.assert_allclose(excess(smooth), 1000.0 * hue, rtol=0.01)
+    assert excess(bilinear)[1] > 1900 and np.all(excess(bilinear)[[0, 2]] < 10)
 
 
 def test_merge_gain_in_either_unit_gives_one_result():

@@ -126,18 +126,19 @@ def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo
     f = methods["sharing"]["figures"]
     assert f["held_out_rel_rms"] < 0.75 * lam["held_out_rel_rms"], f
     assert f["held_out_rel_rms_trimmed"] < 0.75 * lam["held_out_rel_rms_trimmed"], f
-    # the 320 x 240 probe (a 20 px ball) cannot explain the image: the method must say so
-    # rather than return a confident answer (seen: relative residual 19-38 % on the sample sphere)
+    # the 320 x 240 probe (a 20 px ball) does not explain the image to 5 %: the method must say so
+    # rather than return a confident answer (seen: relative residual 10-18 % on the sample sphere)
     assert any("residual" in w for w in methods["passive"]["warnings"]), methods["passive"]["warnings"]
     # passive on the sample sphere is scored against the sphere's true material, not on the
-    # object's held-out lights. The probe map of a 20 px ball is what limits it here: the true
-    # BRDF rendered under that map is 0.85 off the photograph (the truth's own map: 0.09,
-    # tests/capture/test_passive_sample.py), so the recovered BRDF, which fits the photograph
-    # under that map, must explain it better than the truth does (seen 0.33 vs 0.85); its
-    # Eq. 1 error against the truth (seen 1.69; a matte BRDF's 1.62, the reduction's 0.07) is
-    # reported, not bounded (docs/measurements.md)
+    # object's held-out lights. The probe map of a 20 px ball limits it: the true BRDF rendered
+    # under that map is 0.15 off the photograph (0.85 before the probe's limb fit and smooth-hue
+    # demosaic; the truth's own map: 0.09, tests/capture/test_passive_sample.py); the recovered
+    # BRDF, which fits the photograph under that map, must explain it better than the truth
+    # does (seen 0.11 vs 0.15), and must beat a matte BRDF on Eq. 1 against the truth (seen
+    # 0.47 vs 0.68, the reduction's 0.07; before the probe fix 1.69 vs 1.62; docs/measurements.md)
     f = methods["passive"]["figures"]
-    assert f["render_rel_rms"] < f["floor_render_rel_rms"], f
+    assert f["render_rel_rms"] < f["floor_render_rel_rms"] < 0.3, f
+    assert f["eq1_error"] < 0.85 * f["eq1_error_lambertian"], f
     assert 0 < f["eq1_error_reduction"] < 0.1 and f["eq1_error_reduction"] < f["eq1_error"], f
     assert np.isfinite(f["eq1_error_lambertian"]) and np.isfinite(f["held_out_env_rel_rms"]), f
     assert "held_out_rel_rms" not in f and methods["passive"]["floor_ratio"] is None, f
