@@ -19,7 +19,7 @@ For each object of ``../shared/data/diligent`` (8-bit crops; every 4th light hel
 buys: frames from least squares with every sample; from the robust normals; plus robust sample
 selection; plus a second lobe; plus each texel's brightest 10 % of samples left out of normal
 fitting (ST14's low-intensity part); plus robust selection within 1.5 instead of 3 sigma; plus
-Tukey's biweight loss (cut off at 1.5 robust sigmas of each texel's residuals) in the normal fit.
+Tukey's biweight loss (cut off at 2 robust sigmas of each texel's residuals) in the normal fit.
 Timings are wall-clock and CPU on whatever machine runs it.
 """
 from __future__ import annotations
@@ -49,7 +49,7 @@ PUBLISHED = {"L2 (least squares)": {"pot1": 8.89, "bear": 8.39, "goblet": 18.50}
              "PS-FCN (learned)": {"pot1": 7.13, "bear": 7.55, "goblet": 8.60}}
 #: Lensch options of the final configuration (what ``gonio process`` runs on an imported set).
 FINAL = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2, "robust_spread": 1.5,
-         "brightest_dropped": 0.1, "tukey_cutoff": 1.5}
+         "brightest_dropped": 0.1, "tukey_cutoff": 2.0}
 _TWO_LOBES = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2}
 ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "robust_samples": False,
                                                "n_lobes": 1},
@@ -58,7 +58,7 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ second lobe": _TWO_LOBES,
             "+ brightest 10 % dropped": {**_TWO_LOBES, "brightest_dropped": 0.1},
             "+ samples within 1.5 sigma": {**_TWO_LOBES, "brightest_dropped": 0.1, "robust_spread": 1.5},
-            "+ Tukey loss (1.5 sigma) in the normal fit": FINAL}
+            "+ Tukey loss (2 sigma) in the normal fit": FINAL}
 
 
 def lambertian_relighting(inp: ImportedInputs, ps) -> float:

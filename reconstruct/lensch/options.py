@@ -87,7 +87,7 @@ class SvbrdfOptions:
         the texel's own normal cannot explain (inter-reflections, cast shadows the hard
         ``robust_samples`` cut kept) fade out as the normal moves, rather than being chosen once
         from the previous round's normal. 4.685 is the usual 95 %-efficiency constant; on
-        DiLiGenT 1.5 did better on pot1, bear and goblet (docs/diligent.md) and is what
+        DiLiGenT 2 did better on pot1, bear and goblet (docs/diligent.md) and is what
         ``gonio process`` runs on imported sets.
     max_footprint_spread_deg : float
         Texels whose normal turns by more than this across their pixel footprint (the
