@@ -18,7 +18,9 @@ For each object of ``../shared/data/diligent`` (8-bit crops; every 4th light hel
 ``--ablation`` also runs Lensch the paper's way and one step at a time, to say what each step
 buys: frames from least squares with every sample; from the robust normals; plus robust sample
 selection; plus a second lobe; plus each texel's brightest 10 % of samples left out of normal
-fitting (ST14's low-intensity part); plus robust selection within 1.5 instead of 3 sigma. Timings are wall-clock on whatever machine runs it.
+fitting (ST14's low-intensity part); plus robust selection within 1.5 instead of 3 sigma; plus
+Tukey's biweight loss (cut off at 2 robust sigmas of each texel's residuals) in the normal fit.
+Timings are wall-clock and CPU on whatever machine runs it.
 """
 from __future__ import annotations
 
@@ -47,7 +49,7 @@ PUBLISHED = {"L2 (least squares)": {"pot1": 8.89, "bear": 8.39, "goblet": 18.50}
              "PS-FCN (learned)": {"pot1": 7.13, "bear": 7.55, "goblet": 8.60}}
 #: Lensch options of the final configuration (what ``gonio process`` runs on an imported set).
 FINAL = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2, "robust_spread": 1.5,
-         "brightest_dropped": 0.1}
+         "brightest_dropped": 0.1, "tukey_cutoff": 2.0}
 _TWO_LOBES = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2}
 ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "robust_samples": False,
                                                "n_lobes": 1},
@@ -55,7 +57,8 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ robust samples": {"frames_from": "robust", "robust_samples": True, "n_lobes": 1},
             "+ second lobe": _TWO_LOBES,
             "+ brightest 10 % dropped": {**_TWO_LOBES, "brightest_dropped": 0.1},
-            "+ samples within 1.5 sigma": FINAL}
+            "+ samples within 1.5 sigma": {**_TWO_LOBES, "brightest_dropped": 0.1, "robust_spread": 1.5},
+            "+ Tukey loss (2 sigma) in the normal fit": FINAL}
 
 
 def lambertian_relighting(inp: ImportedInputs, ps) -> float:
@@ -118,7 +121,7 @@ def main(argv=None) -> None:
               f"{t_inputs:.1f} s ==", flush=True)
         for name, opts in configs.items():
             fit, secs, cpu, stage_s, rel = run_lensch(per_frames[opts["frames_from"]], opts, a.rng)
-            label = name if a.ablation else "Lensch (final: robust frames and samples, 2 lobes)"
+            label = name if a.ablation else "Lensch (final: robust frames, samples and loss, 2 lobes)"
             rows.setdefault(label, {})[obj] = inp.normal_errors(fit.normals)
             relight.setdefault(label, {})[obj] = rel
             print(f"  {label}: {fit.n_materials} material(s), normals "

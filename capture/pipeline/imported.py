@@ -59,9 +59,11 @@ SKIPPED_STAGES = {
 }
 #: Lensch options on real photographs: robust sample selection against cast shadows and
 #: inter-reflections before each normal-fitting round (within 1.5 robust sigma), each texel's
-#: brightest 10 % of samples left out of it (ST14's low-intensity part), two lobes per material
+#: brightest 10 % of samples left out of it (ST14's low-intensity part), Tukey's loss in the
+#: normal fit (cut off at 2 robust sigmas of each texel's residuals), two lobes per material
 #: (see benchmarks/diligent.py --ablation for what each buys).
-LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2, "robust_spread": 1.5, "brightest_dropped": 0.1}
+LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2, "robust_spread": 1.5, "brightest_dropped": 0.1,
+                  "tukey_cutoff": 2.0}
 
 
 def is_imported(store: Store, session: str) -> bool:

@@ -79,6 +79,16 @@ class SvbrdfOptions:
         glossy metal's brightest samples mix the highlight with inter-reflections the
         lobes cannot express (DiLiGenT's goblet: 16.5 -> 15.2 deg at 0.1; 0.2 and more cost
         pot1's painted pattern its highlight evidence: +0.2 deg).
+    tukey_cutoff : float, optional
+        Fit each texel's normal (Sec. 9) under Tukey's biweight loss on each sample's RGB
+        residual, cut off at this many robust standard deviations (1.4826 x the median residual
+        at the round's start normal) of the texel's own residuals, instead of least squares
+        (None, the paper's): a per-texel adaptive selection, so that the samples the lobe about
+        the texel's own normal cannot explain (inter-reflections, cast shadows the hard
+        ``robust_samples`` cut kept) fade out as the normal moves, rather than being chosen once
+        from the previous round's normal. 4.685 is the usual 95 %-efficiency constant; on
+        DiLiGenT 2 did better on pot1, bear and goblet (docs/diligent.md) and is what
+        ``gonio process`` runs on imported sets.
     max_footprint_spread_deg : float
         Texels whose normal turns by more than this across their pixel footprint (the
         ``footprint_spread`` given to :func:`~reconstruct.lensch.fit_svbrdf`, degrees) take no
@@ -115,6 +125,7 @@ class SvbrdfOptions:
     max_footprint_spread_deg: float = float("inf")
     robust_spread: float = 3.0
     brightest_dropped: float = 0.0
+    tukey_cutoff: float | None = None
     chunk_texels: int = 100_000
     discovery_texels: int = 200_000
 
@@ -134,6 +145,8 @@ class SvbrdfOptions:
             raise SvbrdfError(f"noise must be 'absolute' or 'relative', got {self.noise!r}")
         if not self.robust_spread > 0:
             raise SvbrdfError(f"robust_spread must be > 0, got {self.robust_spread!r}")
+        if self.tukey_cutoff is not None and not self.tukey_cutoff > 0:   # also refuses NaN
+            raise SvbrdfError(f"tukey_cutoff must be > 0 robust sigmas or None, got {self.tukey_cutoff!r}")
         if not 0 <= self.brightest_dropped < 1:
             raise SvbrdfError(f"brightest_dropped must be a share in [0, 1), got {self.brightest_dropped!r}")
         if not self.max_footprint_spread_deg > 0:   # also refuses NaN

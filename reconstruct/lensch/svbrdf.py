@@ -383,7 +383,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             if opt.robust_samples:   # the median over all texels of their median residual
                 floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
             tilt = np.concatenate(run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread,
-                                                        opt.brightest_dropped, opt.min_samples) for i in nb])) \
+                                                        opt.brightest_dropped, opt.min_samples, opt.tukey_cutoff)
+                                                       for i in nb])) \
                 if T else np.zeros((0, 3))   # relative to the current normals
             w_fit_d = data.w if floor is None else data.w * _inliers(
                 data.chunk(slice(0, data.n_texels)), labels[disc], weights[disc], basis, size, floor, opt.robust_spread)
@@ -588,16 +589,17 @@ def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, l
 
 
 def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, spread,
-                   brightest, min_samples):
+                   brightest, min_samples, tukey_cutoff):
     """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
     on the samples :func:`_inliers` keeps when ``floor`` is given, less each texel's
-    ``brightest`` share (:func:`_below_brightest`)."""
+    ``brightest`` share (:func:`_below_brightest`), under Tukey's loss with ``tukey_cutoff``."""
     b = blocks.read(i)
     wi, wo, ch, _ = _in_frames(b, normals)
     w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor, spread)
     if brightest > 0:
         w = w * _below_brightest(b.texel, b.reflectance, brightest)
-    return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples)[0]
+    return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples,
+                             tukey_c=tukey_cutoff)[0]
 
 
 def _block_no_highlight(blocks: TexelBlocks, i: int, normals, labels, mats):
