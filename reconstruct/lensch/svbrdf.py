@@ -38,7 +38,8 @@ class SvbrdfFit:
     ----------
     labels : ndarray (T,) int
         Material (cluster) index of every texel: the cluster whose BRDF fits its samples best
-        (Eq. 10); also a best guess for flagged texels.
+        (Eq. 10; with ``relabel_normals``, each about its own fitted normal); also a best guess
+        for flagged texels.
     materials : tuple of Lafortune
         The cluster BRDFs, ``materials[k]`` for label k (``rho_d`` = pi x the paper's rho_d).
     material_covariance : tuple of ndarray (P, P)
