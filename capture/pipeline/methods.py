@@ -121,10 +121,11 @@ def _lambertian(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress,
 #: them under the lab's own options; imported sets have their own):
 #: photographs hold cast shadows and inter-reflections the paper's data lacked
 #: (``robust_samples``), and relief the mesh lacks, which misplaces the highlights Eq. 10 labels
-#: by (``relabel_normals``). Quick demo, clusterings 0 / 1 / 2, held-out rel. RMS over the floor:
-#: 2.17 / 2.46 / 2.21x with neither, 1.90 / 1.85 / 1.88x robust, 1.85 / 1.73 / 1.83x both
+#: by (``relabel_normals``) and keeps the texels that pin a sharp lobe out of its refits
+#: (``refresh_confidence``). Held-out rel. RMS over the floor, quick demo clusterings 0 / 1 / 2:
+#: 2.17 / 2.46 / 2.21x before, 1.79 / 1.73 / 1.84x with these; full demo 2.48 -> 1.51x
 #: (docs/measurements.md).
-CAPTURED_LENSCH = {"robust_samples": True, "relabel_normals": True}
+CAPTURED_LENSCH = {"robust_samples": True, "relabel_normals": True, "refresh_confidence": True}
 
 
 def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, route: BlockRoute | None = None,

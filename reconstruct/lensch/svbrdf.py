@@ -401,13 +401,20 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             tick()
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             data, visible = _sorted(found, normals_local[disc], opt.chunk_texels)
-            fits = _refit(dataclasses.replace(data, w=w_fit_d), mats, labels[disc], opt, rng, max_albedo,
-                          keep=visible, texels=_confident(errors_d) & ~mixed[disc])
-            mats = np.stack([f.channel_params for f in fits])
-            basis, size = make_bases(mats, similar)
-            if opt.pfa:
-                basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
-            weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
+            trusted = [_confident(errors_d) & ~mixed[disc]]   # which texels the refits trust
+            if opt.refresh_confidence:   # judged about the new normals first; if that raises the error, the mesh's
+                trusted.insert(0, _confident(_label(data, mats)[1]) & ~mixed[disc])
+            start = mats
+            for trust in trusted:
+                fits = _refit(dataclasses.replace(data, w=w_fit_d), start, labels[disc], opt, rng, max_albedo,
+                              keep=visible, texels=trust)
+                mats = np.stack([f.channel_params for f in fits])
+                basis, size = make_bases(mats, similar)
+                if opt.pfa:
+                    basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
+                weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
+                if sse.sum() <= 1.05 * before[7].sum():
+                    break
             tick()
             if sse.sum() > 1.05 * before[7].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
