@@ -44,8 +44,8 @@ from .calibration_record import stored_calibration
 from .calibrate import NothingToCalibrate, calibrate_session
 from .imported import is_imported, process_imported_session
 from .mesh_checks import check_mesh_placement
-from .methods import (BLOCK_METHODS, DEFAULT_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped, fit_method,
-                      sharing_texels_for)
+from .methods import (BLOCK_METHODS, CAPTURED_LENSCH, DEFAULT_METHODS, METHODS, BlockRoute, Fitted, MethodSkipped,
+                      fit_method, sharing_texels_for)
 from .passive_sample import SampleTruth, score_sample_sphere
 from .pictures import method_pictures
 from .cluster import ClusterOptions, Executor
@@ -345,10 +345,12 @@ def _calibration(store: Store, session: str, targets, force: bool,
 
 # -- one method ---------------------------------------------------------------------------------
 def _options(name: str, method_options, memory_limit: int, arrays: LumitexelArrays) -> dict[str, Any]:
-    """The method's options for this lab, and for Lensch a material-discovery subsample, for
-    sharing an RBF subsample, the memory limit holds (unless the lab sets one)."""
+    """The method's options for this lab, and for Lensch the settings for captured sessions
+    (:data:`~capture.pipeline.methods.CAPTURED_LENSCH`) and a material-discovery subsample, for
+    sharing an RBF subsample, the memory limit holds (unless the lab sets them)."""
     options = dict((method_options or {}).get(name, {}))
     if name == "lensch":
+        options = {**CAPTURED_LENSCH, **options}
         options.setdefault("discovery_texels", discovery_texels_for(memory_limit, arrays.n_train))
     if name == "sharing":
         options.setdefault("fit_texels", sharing_texels_for(memory_limit, arrays.n_train))

@@ -38,7 +38,8 @@ class SvbrdfFit:
     ----------
     labels : ndarray (T,) int
         Material (cluster) index of every texel: the cluster whose BRDF fits its samples best
-        (Eq. 10); also a best guess for flagged texels.
+        (Eq. 10; with ``relabel_normals``, each about its own fitted normal); also a best guess
+        for flagged texels.
     materials : tuple of Lafortune
         The cluster BRDFs, ``materials[k]`` for label k (``rho_d`` = pi x the paper's rho_d).
     material_covariance : tuple of ndarray (P, P)
@@ -377,7 +378,14 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         for round_ in range(opt.normal_rounds):
             # a round that raises the total error is undone and ends the fitting (on some
             # clusterings of the demo object a round's refit blew the training error up 10x)
-            before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data)
+            before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels)
+            if opt.relabel_normals and len(mats) > 1:   # Eq. 10, each material about its own normal
+                parts = run(_block_relabel, [(blocks, i, _part(seen_in, r), mats, opt.min_samples)
+                                             for i, r in enumerate(blocks.ranges)])
+                labels = np.concatenate([p[0] for p in parts])
+                normals_local = seen_in = normalize(to_world(np.concatenate([p[1] for p in parts]),
+                                                             tangent_frames(normals_local)))
+                weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
             model = [(_part(seen_in, r), basis, size, labels[r[0]:r[1]], weights[r[0]:r[1]]) for r in blocks.ranges]
             floor = None
             if opt.robust_samples:   # the median over all texels of their median residual
@@ -394,18 +402,25 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             tick()
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             data, visible = _sorted(found, normals_local[disc], opt.chunk_texels)
-            fits = _refit(dataclasses.replace(data, w=w_fit_d), mats, labels[disc], opt, rng, max_albedo,
-                          keep=visible, texels=_confident(errors_d) & ~mixed[disc])
-            mats = np.stack([f.channel_params for f in fits])
-            basis, size = make_bases(mats, similar)
-            if opt.pfa:
-                basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
-            weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
+            trusted = [_confident(errors_d) & ~mixed[disc]]   # which texels the refits trust
+            if opt.refresh_confidence:   # judged about the new normals first; if that raises the error, the mesh's
+                trusted.insert(0, _confident(_label(data, mats)[1]) & ~mixed[disc])
+            start = mats
+            for trust in trusted:
+                fits = _refit(dataclasses.replace(data, w=w_fit_d), start, labels[disc], opt, rng, max_albedo,
+                              keep=visible, texels=trust)
+                mats = np.stack([f.channel_params for f in fits])
+                basis, size = make_bases(mats, similar)
+                if opt.pfa:
+                    basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
+                weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
+                if sse.sum() <= 1.05 * before[7].sum():
+                    break
             tick()
             if sse.sum() > 1.05 * before[7].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
                               f"{sse.sum() / before[7].sum():.2f}x: undone")
-                normals_local, seen_in, fits, mats, basis, size, weights, sse, data = before
+                normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels = before
                 break
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
@@ -600,6 +615,32 @@ def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, we
         w = w * _below_brightest(b.texel, b.reflectance, brightest)
     return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples,
                              tukey_c=tukey_cutoff)[0]
+
+
+def _block_relabel(blocks: TexelBlocks, i: int, normals, mats, min_samples: int):
+    """Eq. 10 with the normal free: for each material the block's texels' normal and scale that
+    fit their samples best under it alone (:func:`fit_normals_chunk`), then the material of
+    least residual; returns the labels (n,) and that material's normals (n, 3), relative to
+    ``normals`` (a texel on relief its mesh lacks shows its highlight where no material's lobe
+    about the mesh normal puts it, and a wrong material wins)."""
+    b = blocks.read(i)
+    wi, wo, _, _ = _in_frames(b, normals)
+    n = b.n_texels
+    zeros, ones, one = np.zeros(n, np.int64), np.ones((n, 1)), np.ones(1, np.int64)
+    sse, tilts = np.empty((len(mats), n)), np.empty((len(mats), n, 3))
+    for k, m in enumerate(mats):
+        basis = m[None, None]
+        tilts[k], scale, _, _ = fit_normals_chunk(b.texel, wi, wo, b.reflectance, b.weight, zeros, ones, basis, one,
+                                                  min_samples=min_samples)
+        frames = tangent_frames(tilts[k])[b.texel]
+        wik, wok = normalize(to_local(wi, frames)), normalize(to_local(wo, frames))
+        visible = (wik[:, 2] > 0) & (wok[:, 2] > 0)
+        t, z = lobe_geometry(wik, wok)
+        pred = basis_values(t, z, np.where(visible, wik[:, 2], 0.0), b.texel, zeros, basis, one)[:, 0]
+        sse[k] = np.bincount(b.texel, np.sum((pred * scale[b.texel] - b.reflectance) ** 2, axis=1) * b.weight,
+                             minlength=n)
+    best = np.argmin(sse, axis=0)
+    return best, tilts[best, np.arange(n)]
 
 
 def _block_no_highlight(blocks: TexelBlocks, i: int, normals, labels, mats):

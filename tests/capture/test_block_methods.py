@@ -14,7 +14,7 @@ import pytest
 
 from capture.pipeline.block_scoring import ErrorSums, score_blocks
 from capture.pipeline.lumitexel_arrays import store_lumitexels
-from capture.pipeline.methods import BlockRoute, _surface_xy, fit_method
+from capture.pipeline.methods import CAPTURED_LENSCH, BlockRoute, _surface_xy, fit_method
 from capture.pipeline.stored_blocks import StoredBlocks
 from reconstruct.lensch import ArrayBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
@@ -58,7 +58,8 @@ def test_error_sums_over_any_split_equal_the_metrics():
         sums.add(p[:3], m[:2])
 
 
-LENSCH = {"fit_normals": True, "normal_rounds": 1}
+#: the pipeline's Lensch for captured sessions (its relabelling is a per-block task too), one normal round
+LENSCH = {"fit_normals": True, "normal_rounds": 1, **CAPTURED_LENSCH}
 
 
 @pytest.fixture(scope="module")
