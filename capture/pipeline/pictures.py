@@ -14,7 +14,12 @@ from reconstruct.lumitexels import Lumitexels, View
 from .methods import Fitted
 from .process import ProcessInputs, select_samples
 
-__all__ = ["SLICE_THETA_I_DEG", "SLICE_TEXELS", "method_pictures", "splat"]
+__all__ = ["PICTURE_MAX_PX", "SLICE_THETA_I_DEG", "SLICE_TEXELS", "method_pictures", "picture_scale", "splat"]
+
+#: longest side of the report's view pictures, pixels: a camera's larger frames are drawn scaled
+#: down (a 45 MP frame splatted at full size would hold ~1.5 GB of float64 accumulators, more than
+#: any --memory-limit, for a picture a browser shows at a few hundred pixels)
+PICTURE_MAX_PX = 1024
 
 #: incidence angle of the BRDF slices the report draws (in the plane of incidence), degrees
 SLICE_THETA_I_DEG = 30.0
@@ -45,11 +50,28 @@ def splat(px: np.ndarray, values: np.ndarray, size: tuple[int, int]) -> np.ndarr
     return out.astype(np.float32)
 
 
+def picture_scale(height: int, width: int) -> tuple[float, tuple[int, int]]:
+    """The factor a (height, width) view is drawn at in the report (1, or less so that its
+    longest side is :data:`PICTURE_MAX_PX`) and the picture's (height, width)."""
+    s = min(1.0, PICTURE_MAX_PX / max(height, width))
+    return s, (max(1, round(height * s)), max(1, round(width * s)))
+
+
 def _splat(lt: Lumitexels, values: np.ndarray, view: View) -> np.ndarray:
-    """Per-sample values drawn at their texels' pixels in ``view`` (:func:`splat`)."""
+    """Per-sample values drawn at their texels' pixels in ``view`` (:func:`splat`), at the
+    picture's scale (:func:`picture_scale`: texels sharing a scaled pixel are averaged)."""
     cam = view.camera
     pw = lt.position[lt.texel] @ view.object_to_world[:3, :3].T + view.object_to_world[:3, 3]
-    return splat(cam.project(pw), values, (cam.height, cam.width))
+    s, size = picture_scale(cam.height, cam.width)
+    px = cam.project(pw)
+    return splat(px if s == 1 else (px + 0.5) * s - 0.5, values, size)   # pixel centres kept
+
+
+def _picture(image: np.ndarray) -> np.ndarray:
+    """A captured view (H, W, 3) at the picture's scale, float32 (area-averaged when smaller)."""
+    image = np.asarray(image, np.float32)
+    s, (h, w) = picture_scale(*image.shape[:2])
+    return image if s == 1 else cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
 
 
 def _radiance(lt: Lumitexels, r: np.ndarray, view: View) -> np.ndarray:
@@ -63,13 +85,14 @@ def _radiance(lt: Lumitexels, r: np.ndarray, view: View) -> np.ndarray:
 def method_pictures(fit: Fitted, train: Lumitexels, held: Lumitexels, inputs: ProcessInputs,
                     truth) -> dict[str, np.ndarray]:
     """Arrays the report draws: the first held-out view captured / predicted (radiance), BRDF
-    slices (recovered, and true per material with truth) and the normal map."""
+    slices (recovered, and true per material with truth) and the normal map; the view pictures
+    at most :data:`PICTURE_MAX_PX` on their longest side."""
     out: dict[str, np.ndarray] = {}
     if held.n_samples:
         k0 = int(held.view.min())
         view = inputs.held_out[k0 - len(inputs.views)]
         sub = select_samples(held, held.view == k0)
-        out["heldout_captured"] = np.asarray(view.radiance, np.float32)   # the capture itself
+        out["heldout_captured"] = _picture(view.radiance)   # the capture itself
         out["heldout_predicted"] = _splat(sub, _radiance(sub, fit.predict(sub), view), view)
     theta = np.radians(np.linspace(-85, 85, 69))
     ti = np.radians(SLICE_THETA_I_DEG)
