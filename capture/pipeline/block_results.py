@@ -8,26 +8,30 @@ runs (here or on a worker), writes what it returns to its own Zarr group
 ``<store>/arrays/<session>/block_results.zarr/<key>/`` (one array per returned array, the block
 being the chunk; the return's shape, e.g. a tuple of arrays and sums, in the group's
 ``structure`` attribute) and then its marker ``done/<key>``; a task whose marker exists is read
-back instead of run. ``key`` is the task's provenance digest: the code version, the method, its
-options and seed, the task's function and every argument after the blocks (the model so far,
-so a task after a changed step is a new task), and the group's own provenance is the stored
-lumitexels' digest and the block layout (a new lumitexel set or block size wipes the group).
-Read back, a result is bit for bit what the task returned, so a resumed run gives the same
-figures and arrays as an uninterrupted one.
+back instead of run. ``key`` is the method's name and the task's provenance digest: the code
+(a digest of the ``reconstruct`` and ``capture`` sources, so an uncommitted edit is new code),
+the method, its options and seed, the task's function and every argument after the blocks (the
+model so far, so a task after a changed step is a new task), and the group's own provenance is
+the stored lumitexels' digest and the block layout (a new lumitexel set or block size wipes the
+group). Read back, a result is bit for bit what the task returned, so a resumed run gives the
+same figures and arrays as an uninterrupted one. Once a method has run to the end,
+:meth:`BlockResults.prune` deletes that method's results no task of the run asked for (earlier
+options or code), so the folder holds one run's results per method, not every run's.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import pickle
+import shutil
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import zarr
 
-from ..store import code_version
 from .chunks import ChunkGroup, mark_done
 from .stored_blocks import StoredBlocks
 
@@ -42,15 +46,17 @@ class BlockResults:
 
     ``provenance`` (JSON-able: the method, its options, the seed) keys every task with the
     function and arguments; :attr:`computed` and :attr:`reused` count the tasks this run
-    computed and read back."""
+    computed and read back, :attr:`used` holds their keys."""
 
     def __init__(self, blocks: StoredBlocks, provenance: dict[str, Any]) -> None:
         arrays = blocks.arrays
         self.group = ChunkGroup(arrays.path.parent / "block_results.zarr",
                                 {"lumitexels": arrays.digest, "blocks": [list(p) for p in blocks.parts]})
         self.blocks = blocks
-        self.prefix = json.dumps({"code": code_version(), **provenance}, sort_keys=True, default=str).encode()
+        self.method = str(provenance.get("method", "task"))
+        self.prefix = json.dumps({"code": sources_digest(), **provenance}, sort_keys=True, default=str).encode()
         self.computed = self.reused = 0
+        self.used: set[str] = set()
 
     def key(self, fn: Callable, args: tuple) -> str:
         """The provenance digest of the task ``fn(*args)`` (``args[0]`` these blocks)."""
@@ -60,7 +66,18 @@ class BlockResults:
         h.update(f"{fn.__module__}.{fn.__qualname__}".encode())
         for a in args[1:]:
             _digest(a, h)
-        return h.hexdigest()
+        return f"{self.method}-{h.hexdigest()}"
+
+    def prune(self) -> int:
+        """Delete this method's stored results that no task of this run asked for (results of
+        earlier options or code, which no run will read again); return how many. Call it only
+        after the method ran to the end: an interrupted run's keys are not all known yet."""
+        done = self.group.path / "done"
+        stale = [p.name for p in done.glob(f"{self.method}-*") if p.name not in self.used]
+        for key in stale:
+            (done / key).unlink()   # the marker first: a half-deleted group is then never read
+            shutil.rmtree(self.group.path / key, ignore_errors=True)
+        return len(stale)
 
     def map(self, run: Callable[[Callable, list], list]) -> Callable[[Callable, list], list]:
         """``map_blocks`` for a :class:`capture.pipeline.methods.BlockRoute`: the tasks of ``fn``
@@ -72,6 +89,7 @@ class BlockResults:
             if not all(a and a[0] is self.blocks for a in args):
                 return run(fn, args)
             keys = [self.key(fn, a) for a in args]
+            self.used.update(keys)
             todo = [k for k, key in enumerate(keys) if not self.group.done(key)]
             fresh = run(_stored_task, [(str(self.group.path), keys[k], fn, *args[k]) for k in todo]) if todo else []
             self.computed += len(todo)
@@ -79,6 +97,21 @@ class BlockResults:
             out = dict(zip(todo, fresh))
             return [out[k] if k in out else read_result(self.group.path, key) for k, key in enumerate(keys)]
         return map_blocks
+
+
+@functools.cache
+def sources_digest() -> str:
+    """SHA-256 of the ``reconstruct`` and ``capture`` packages' Python sources (paths and bytes),
+    the code a block task runs: unlike the git commit it changes with an uncommitted edit, and it
+    is the same for an installed copy of the same code. ~30 ms, once a process."""
+    import reconstruct
+    import capture
+    h = hashlib.sha256()
+    for package in (reconstruct, capture):
+        root = Path(package.__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            h.update(path.relative_to(root.parent).as_posix().encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
 
 
 def _stored_task(path: str, key: str, fn: Callable, *args: Any) -> Any:

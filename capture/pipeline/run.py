@@ -278,8 +278,10 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
                                                      options, rep.floor, assumption.get(name, ""), executor.map,
                                                      stored_blocks, method_block, refused)
                     if stored_blocks is not None:
+                        # a finished run's results are all it reads again: earlier options' go
+                        pruned = stored_blocks.prune() if outcomes[name].status == "ok" else 0
                         say(f"{name}: {stored_blocks.computed} block tasks computed, {stored_blocks.reused} read back "
-                            f"from {stored_blocks.group.path}")
+                            f"from {stored_blocks.group.path}" + (f", {pruned} stale ones deleted" if pruned else ""))
                     outcomes[name].seconds = round(time.perf_counter() - started, 3)
         rep.methods = [outcomes[m] for m in methods]
         if rep.floor is not None:

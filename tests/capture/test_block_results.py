@@ -97,6 +97,13 @@ def test_an_interrupted_lensch_run_resumes_from_the_stored_blocks(tmp_path, lumi
     assert same.group.done(same.key(_block_stats, (blocks, 0)))
     assert not other.group.done(other.key(_block_stats, (blocks, 0)))
 
+    # a finished run keeps what it read; a run with other options makes the first run's stale
+    assert third.prune() == 0 and len(_stored(third)) == n_tasks
+    other.map(_serial())(_block_stats, [(blocks, 0)])
+    assert other.prune() == n_tasks
+    assert set(_stored(other)) == other.used and len(other.used) == 1
+    assert sorted(p.name for p in other.group.path.iterdir() if p.name.startswith("lensch-")) == sorted(other.used)
+
 
 @dataclasses.dataclass
 class _Sums:
