@@ -1,7 +1,7 @@
 """Homogeneous isotropic reflectance sharing (Zickler et al. 2005, Sect. 5, Eq. 5): f(u, v, w)
 by greedy linear-RBF interpolation of reflectance samples.
 
-Two choices the paper leaves open decide whether sharp lobes survive (measured on its sphere
+Three choices the paper leaves open decide whether sharp lobes survive (measured on its sphere
 experiment, 10 images of 100 x 100 px, 21 held out; ``benchmarks/zoo.py``):
 
 - **Values: log(f_r + offset), not f_r.** A sharp lobe is a spike of 100-1000 x the diffuse
@@ -21,6 +21,19 @@ experiment, 10 images of 100 x 100 px, 21 held out; ``benchmarks/zoo.py``):
   serves all, so ``m_w="auto"`` chooses it from ``M_W_CANDIDATES`` by holding out whole theta_d
   groups of the input (images), as the paper's held-out images are, and keeping the lowest
   error.
+- **The metric in (u, v): polar, phi_d weighed less than theta_h** (``ANGULAR_WEIGHT``,
+  ``models.polar_points``). An image samples a highlight narrower than its pixels at one to
+  three pixels, at theta_h and phi_d that change from image to image (the pixel grid slides
+  under the highlight as theta_d changes). Near theta_h = 0 an isotropic BRDF hardly depends on
+  phi_d, but (u, v) = sin theta_h (cos 2 phi_d, sin 2 phi_d) puts two samples of equal theta_h
+  up to 2 sin theta_h apart, as far as samples of different theta_h: the images' peak samples
+  cannot pool into one profile along theta_h, and between the images' planes the peak came out
+  low and broad, and not round (specular-red-phenolic, held-out theta_d 49 deg: 0.18 x the
+  truth at theta_h = 0, 1.3 and 0.53 x at 0.8 deg for phi_d 90 and 0 deg, 4.9 x at the foot,
+  1.2 deg; ``benchmarks/zoo.py --profile``). With distances around the disc weighed 0.1 x those
+  along it the same fit is within 0.78-1.12 x over 0.4-1 deg at both phi_d (2.2 x at the foot)
+  and the held-out median falls 9.4 -> 4.7 %; every other zoo row improves too (docs/zoo.md).
+  A sqrt(theta_h) warp of u, v does the opposite (it weighs phi_d 2 x theta_h) and made it worse.
 """
 from __future__ import annotations
 
