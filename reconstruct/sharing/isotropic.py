@@ -193,7 +193,7 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         Centre budget (the paper: < 1000 suffice for 10 sphere images).
     m_w : float or "auto"
         Scale of the w = 2 theta_d / pi axis, M = diag(1, 1, m_w) (Eq. 4; the paper's typical
-        values 0.1-0.5). "auto": chosen from ``M_W_CANDIDATES`` by held-out theta_d groups
+        values 0.1-0.5), diag(1, 1, 1, m_w) over the polar points. "auto": chosen from ``M_W_CANDIDATES`` by held-out theta_d groups
         (module docstring; costs ``M_W_FOLDS`` x 7 fits of half the budget). Needs at least
         three groups (images) and ``MIN_SAMPLES_FOR_CHOICE`` samples; with fewer, 0.5.
     log_values : bool
