@@ -28,7 +28,7 @@ experiment, 10 images of 100 x 100 px, 21 held out; ``benchmarks/zoo.py``):
   phi_d, but (u, v) = sin theta_h (cos 2 phi_d, sin 2 phi_d) puts two samples of equal theta_h
   up to 2 sin theta_h apart, as far as samples of different theta_h: the images' peak samples
   cannot pool into one profile along theta_h, and between the images' planes the peak came out
-  low and broad, and not round (specular-red-phenolic, held-out theta_d 49 deg: 0.18 x the
+  low and broad, and not round (specular-red-phenolic, held-out theta_d 49.3 deg: 0.18 x the
   truth at theta_h = 0, 1.3 and 0.53 x at 0.8 deg for phi_d 90 and 0 deg, 4.9 x at the foot,
   1.2 deg; ``benchmarks/zoo.py --profile``). With distances around the disc weighed 0.1 x those
   along it the same fit is within 0.78-1.12 x over 0.4-1 deg at both phi_d (2.2 x at the foot)
@@ -178,8 +178,8 @@ def _choose_m_w(points, target, weight, cos_i, f, decode, groups, max_centers,
 
 
 def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_values: bool = True,
-                  angular_weight: float | None = ANGULAR_WEIGHT, groups=None, weight=None, valid=None, min_cos: float = MIN_COS, tol=None,
-                  smoothing: float = 0.0, rng=0,
+                  angular_weight: float | None = ANGULAR_WEIGHT, groups=None, weight=None,
+                  valid=None, min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
                   progress: Callable[[int, int], None] | None = None) -> IsotropicFit:
     """Homogeneous isotropic BRDF f(u, v, w) by greedy linear-RBF interpolation (Sect. 5, Eq. 5).
 
@@ -193,9 +193,10 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         Centre budget (the paper: < 1000 suffice for 10 sphere images).
     m_w : float or "auto"
         Scale of the w = 2 theta_d / pi axis, M = diag(1, 1, m_w) (Eq. 4; the paper's typical
-        values 0.1-0.5), diag(1, 1, 1, m_w) over the polar points. "auto": chosen from ``M_W_CANDIDATES`` by held-out theta_d groups
-        (module docstring; costs ``M_W_FOLDS`` x 7 fits of half the budget). Needs at least
-        three groups (images) and ``MIN_SAMPLES_FOR_CHOICE`` samples; with fewer, 0.5.
+        values 0.1-0.5), diag(1, 1, 1, m_w) over the polar points. "auto": chosen from
+        ``M_W_CANDIDATES`` by held-out theta_d groups (module docstring; costs ``M_W_FOLDS`` x 7
+        fits of half the budget). Needs at least three groups (images) and
+        ``MIN_SAMPLES_FOR_CHOICE`` samples; with fewer, 0.5.
     log_values : bool
         Interpolate log(f_r + offset) (module docstring); False: f_r as the paper wrote it.
     angular_weight : float in (0, 1) or None
