@@ -5,12 +5,15 @@ Prints, in one run:
 1. Reflectance sharing, Zickler et al. Sect. 5.1: per material, 10 orthographic sphere images
    (``--size`` px, theta_d stratified over [0, pi/2]) in, 21 held out; the median and pooled
    relative RMS radiance error over the held-out images of
-   - the homogeneous RBF fit as it is (log values, m_w chosen on held-out inputs) and as it was
-     (f_r values, m_w = 0.5: ``log_values=False, m_w=0.5``),
+   - the homogeneous RBF fit as it is (log values over the polar form of (u, v, w), m_w chosen
+     on held-out inputs; ``--angular-weight none``: over (u, v, w) itself) and as the paper
+     wrote it (f_r values, m_w = 0.5: ``log_values=False, m_w=0.5, angular_weight=None``),
    - the best of 1, 2 and 3-lobe Lafortune fits and the best Ward fit of the same samples,
    - the floor: a perfect 90 x 90 x 180 table of the truth (``TabulatedIsotropic.from_brdf``);
    for the analytic zoo (sharp: Ashikhmin-Shirley, GGX over Oren-Nayar; smooth: retro, sheen)
-   and measured materials (NBRDF fits of MERL / Nielsen, RGL files).
+   and measured materials (NBRDF fits of MERL / Nielsen, RGL files). ``--profile NAME``
+   instead prints one material's highlight along theta_h at held-out theta_d (truth, and the
+   fit's ratio to it with and without the polar form, at phi_d 90 and 0 deg).
 2. Passive reflectometry, Romeiro et al. Fig. 6: per MERL material (every ``--every``-th from
    ``--offset``), one ``--sphere`` px image of a sphere under Grace Cathedral (``--env-height``
    rows), the prior learned from the *other* MERL materials (leave-one-out, as the paper did):
@@ -51,6 +54,7 @@ from reconstruct.passive import PassiveWarning, bivariate_error, passive_reflect
 from reconstruct.passive_modes import learn_modes  # noqa: E402
 from reconstruct.passive_prior import learn_prior  # noqa: E402
 from reconstruct.sharing import fit_isotropic, samples_from_images  # noqa: E402
+from reconstruct.sharing.isotropic import ANGULAR_WEIGHT  # noqa: E402
 from reconstruct.sharing.baselines import fit_ward  # noqa: E402
 from sims.distant_scenes import render_distant, stratified, theta_d_lights  # noqa: E402
 
@@ -79,7 +83,7 @@ def held_out_errors(pred, truth):
         float(np.median(per[lit]))
 
 
-def sharing_row(truth, size: int):
+def sharing_row(truth, size: int, angular_weight):
     """Held-out (pooled, median) errors of each method on one material, and the fit's m_w."""
     train = render_distant(truth, size, theta_d_lights(stratified(10)))
     test = render_distant(truth, size, theta_d_lights(stratified(21)))
@@ -90,9 +94,11 @@ def sharing_row(truth, size: int):
                                test.radiance)
 
     t0 = time.perf_counter()
-    fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
+    fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image,
+                        angular_weight=angular_weight)
     t_fit = time.perf_counter() - t0
-    old = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, log_values=False, m_w=0.5)
+    old = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, log_values=False, m_w=0.5,
+                        angular_weight=None)
     k = s.valid & (s.wi[:, 2] > 0.05)
     laf = min((err(fit_lafortune(s.wi[k], s.wo[k], s.brdf[k] * s.wi[k, 2:3], n_lobes=n).model)
                for n in (1, 2, 3)), key=lambda e: e[1])
@@ -102,20 +108,52 @@ def sharing_row(truth, size: int):
             "ward": ward, "table": table}, fit.m_w, t_fit
 
 
-def sharing_section(names, size: int) -> None:
+def load_truth(name: str):
+    zoo = analytic_zoo()
+    return zoo[name] if name in zoo else load_measured(measured_files(DATA / "brdfs")[name])
+
+
+def sharing_section(names, size: int, angular_weight) -> None:
     print(f"== reflectance sharing, Sect. 5.1: {size} x {size} sphere, 10 images in (theta_d "
-          f"stratified), 21 held out; relative RMS radiance error, median / pooled ==")
+          f"stratified), 21 held out; angular weight {angular_weight}; relative RMS radiance "
+          f"error, median / pooled ==")
     cols = ("rbf", "rbf (before)", "lafortune", "ward", "table")
     print(f"{'material':34s}" + "".join(f"{c:>17s}" for c in cols) + f"{'m_w':>6s}{'fit':>7s}")
-    zoo = analytic_zoo()
     for name in names:
-        truth = zoo[name] if name in zoo else load_measured(measured_files(DATA / "brdfs")[name])
-        row, m_w, t_fit = sharing_row(truth, size)
+        row, m_w, t_fit = sharing_row(load_truth(name), size, angular_weight)
         kind = "sharp" if name in SHARP else ("matte" if "paper" in name or "colodur" in name
                                               else "")
         print(f"{name[:27] + (' ' + kind if kind else ''):34s}"
               + "".join(f"{100 * row[c][1]:8.2f}/{100 * row[c][0]:7.2f}" for c in cols)
               + f"{m_w:6.2g}{t_fit:6.1f}s", flush=True)
+
+
+def highlight_profile(name: str, size: int, held_out=(10, 11, 12, 14)) -> None:
+    """The truth's f_r (1/sr, red) along theta_h at the held-out images' theta_d, and the ratio
+    of the fit's (the m_w chosen with the polar form) to it, with and without the polar form,
+    for light and view across (phi_d 90 deg) and in (0 deg) the plane of the normal and h."""
+    truth = load_truth(name)
+    train = render_distant(truth, size, theta_d_lights(stratified(10)))
+    s = samples_from_images(train.normals, train.radiance, train.directions)
+    polar = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
+    plain = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, m_w=polar.m_w, angular_weight=None)
+    theta_h = np.radians([0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.5, 2.0, 3.0])
+    h = np.stack([np.sin(theta_h), 0 * theta_h, np.cos(theta_h)], axis=1)
+    across = {90: np.broadcast_to([0.0, 1.0, 0.0], h.shape),
+              0: np.stack([np.cos(theta_h), 0 * theta_h, -np.sin(theta_h)], axis=1)}
+    print(f"== {name}: f_r along theta_h (deg) " + " ".join(f"{v:6.2f}" for v in
+                                                          np.degrees(theta_h))
+          + f"; m_w {polar.m_w:g} ==")
+    for theta_d in stratified(21)[list(held_out)]:
+        for phi_d, t in across.items():
+            wi = np.cos(theta_d) * h + np.sin(theta_d) * t
+            wo = np.cos(theta_d) * h - np.sin(theta_d) * t
+            f = truth.evaluate(wi, wo)[:, 0]
+            print(f"theta_d {np.degrees(theta_d):4.1f} phi_d {phi_d:2d} truth        "
+                  + " ".join(f"{v:6.3g}" for v in f))
+            for label, fit in (("polar form", polar), ("(u, v, w)", plain)):
+                print(f"{'':20s} {label:12s} " + " ".join(
+                    f"{v:6.3f}" for v in fit.brdf.evaluate(wi, wo)[:, 0] / f))
 
 
 def sphere_image(truth, env, size):
@@ -223,6 +261,10 @@ def main():
     ap.add_argument("--offset", type=int, default=0,
                     help="passive: first MERL material (with --every: a second subset)")
     ap.add_argument("--only", choices=["sharing", "passive"])
+    ap.add_argument("--angular-weight", default=str(ANGULAR_WEIGHT),
+                    help="sharing: the polar form's angular weight, or 'none' for (u, v, w)")
+    ap.add_argument("--profile", metavar="NAME",
+                    help="sharing: print NAME's highlight profile at held-out theta_d instead")
     ap.add_argument("--quick", action="store_true", help="small sizes, few materials")
     args = ap.parse_args()
     if not (DATA / "brdfs").is_dir() or not (DATA / "probes").is_dir():
@@ -230,8 +272,12 @@ def main():
     if args.quick:
         args.size, args.every = 48, 10
     names = list(analytic_zoo()) + list(SHARING_MEASURED)
+    if args.profile:
+        highlight_profile(args.profile, args.size)
+        return
     if args.only != "passive":
-        sharing_section(names[:3] if args.quick else names, args.size)
+        sharing_section(names[:3] if args.quick else names, args.size,
+                        None if args.angular_weight == "none" else float(args.angular_weight))
     if args.only != "sharing":
         grid = tuple(int(v) for v in args.error_grid.split(","))
         passive_section(args.out, args.sphere, args.env_height, args.every,

@@ -5,8 +5,9 @@ Both are ``reconstruct.brdf.BRDF`` models, so the renderer, ``reconstruct.distan
 report use them unchanged. Directions are local unit vectors (normal = +z); the angular
 coordinates are Zickler et al.'s (u, v, w) of Eq. 1 (``reconstruct.coords.uvw_from_directions``).
 A linear RBF can undershoot below zero between samples; the models clamp f_r at 0. A homogeneous
-model may interpolate log(f_r + offset) instead of f_r (``RbfBRDF.log_offset``, see
-``fits.fit_isotropic``).
+model may interpolate log(f_r + offset) instead of f_r (``RbfBRDF.log_offset``) and over the
+polar points of :func:`polar_points` instead of (u, v, w) (``RbfBRDF.angular_weight``), see
+``isotropic.fit_isotropic``.
 """
 from __future__ import annotations
 
@@ -19,6 +20,19 @@ from ..coords import uvw_from_directions
 from .rbf import RbfModel, SharingError
 
 
+def polar_points(uvw: np.ndarray, angular_weight: float) -> np.ndarray:
+    """(u, v, w) (N, 3) -> (a u, a v, sqrt(1 - a^2) r, w) (N, 4), r = sqrt(u^2 + v^2) = sin theta_h.
+
+    The (u, v) disc embedded on a cone in 3-D: a step along theta_h keeps its length, a step
+    around the disc (phi_d at fixed theta_h) is scaled by ``a`` = ``angular_weight`` in (0, 1).
+    A linear RBF over these points is the paper's M of Eq. 4 written in polar form: distances in
+    phi_d weigh ``a`` x those in sin theta_h (``isotropic`` module docstring for why).
+    """
+    a = float(angular_weight)
+    r = np.hypot(uvw[:, 0], uvw[:, 1])
+    return np.column_stack([a * uvw[:, 0], a * uvw[:, 1], np.sqrt(1.0 - a * a) * r, uvw[:, 2]])
+
+
 @dataclass(frozen=True, eq=False)
 class RbfBRDF(BRDF):
     """A homogeneous isotropic BRDF f_r(u, v, w) in 1/sr (Zickler et al. Eq. 5).
@@ -26,23 +40,33 @@ class RbfBRDF(BRDF):
     Parameters
     ----------
     model : RbfModel
-        Interpolant over (u, v, w), D = 3, with 1 (grey) or 3 (RGB) channels.
+        Interpolant over (u, v, w), D = 3, or over :func:`polar_points` of them, D = 4; with 1
+        (grey) or 3 (RGB) channels.
     log_offset : float, optional
         When set, the interpolant is of g = log(f_r + log_offset) (1/sr inside the log), and
         f_r = exp(g) - log_offset; None: of f_r itself.
+    angular_weight : float, optional
+        Set (in (0, 1)) when the model is over ``polar_points(uvw, angular_weight)``.
     """
 
     model: RbfModel
     log_offset: float | None = None
+    angular_weight: float | None = None
 
     def __post_init__(self):
-        if self.model.dim != 3:
-            raise SharingError(f"model must be 3-D (u, v, w), got {self.model.dim}-D")
+        if self.angular_weight is not None and not 0.0 < self.angular_weight < 1.0:
+            raise SharingError(f"angular_weight must be in (0, 1) or None, got "
+                               f"{self.angular_weight!r}")
+        dim, over = (3, "(u, v, w)") if self.angular_weight is None else (4, "polar points")
+        if self.model.dim != dim:
+            raise SharingError(f"model must be {dim}-D (over {over}), got {self.model.dim}-D")
         if self.log_offset is not None and not self.log_offset > 0:
             raise SharingError(f"log_offset must be > 0 or None, got {self.log_offset!r}")
 
     def _evaluate(self, wi, wo):
-        g = self.model(uvw_from_directions(wi, wo))
+        uvw = uvw_from_directions(wi, wo)
+        g = self.model(uvw if self.angular_weight is None
+                       else polar_points(uvw, self.angular_weight))
         if self.log_offset is not None:
             g = np.exp(np.minimum(g, 700.0)) - self.log_offset
         return np.maximum(g, 0.0)

@@ -11,12 +11,14 @@ import pytest
 
 from calibration.polarization import separate_parallel_crossed
 from reconstruct.brdf import CookTorrance, Lambertian, OrenNayar
+from reconstruct.coords import zickler_uvw
 from reconstruct.distant import shade_distant
 from reconstruct.lensch import fit_lafortune
 from reconstruct.metrics import relative_rms
 from reconstruct.sharing import (SharingError, fit_isotropic, fit_spatial, group_median,
                                  samples_from_images)
 from reconstruct.sharing.baselines import fit_per_point, fit_ward
+from reconstruct.sharing.models import polar_points
 from sims.distant_scenes import (RingHighlight, hemisphere_lights, ramp_material, render_distant,
                                  stratified, theta_d_lights, visible_points)
 
@@ -177,6 +179,21 @@ def test_group_median_matches_numpy():
     assert np.isnan(got[7]).all()
 
 
+def test_polar_points_weigh_phi_d_less_than_theta_h():
+    """Around the (u, v) disc (phi_d at fixed theta_h) distances shrink by the angular weight,
+    along it (theta_h at fixed phi_d) they are kept; w is untouched."""
+    theta_h = np.radians([5.0, 5.0, 9.0])
+    phi_d = np.radians([10.0, 70.0, 10.0])
+    uvw = zickler_uvw(theta_h, np.radians(30.0), phi_d)
+    p = polar_points(uvw, 0.1)
+    assert p.shape == (3, 4)
+    np.testing.assert_allclose(np.linalg.norm(p[1] - p[0]), 0.1 * np.linalg.norm(uvw[1] - uvw[0]),
+                               rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(p[2] - p[0]), np.linalg.norm(uvw[2] - uvw[0]),
+                               rtol=1e-12)
+    np.testing.assert_array_equal(p[:, 3], uvw[:, 2])
+
+
 def test_bad_input_is_named():
     samples, _ = _sphere_problem(OrenNayar(albedo=0.5, sigma=0.3))
     one = samples.image == 0
@@ -192,6 +209,9 @@ def test_bad_input_is_named():
         fit_isotropic(samples.wi[k], samples.wo[k], samples.brdf[k])
     with pytest.raises(SharingError, match="wi must have shape"):
         fit_isotropic(samples.wi[:, :2], samples.wo, samples.brdf)
+    with pytest.raises(SharingError, match=r"angular_weight must be in \(0, 1\) or None, got 1.0"):
+        fit_isotropic(samples.wi, samples.wo, samples.brdf, valid=samples.valid,
+                      angular_weight=1.0)
     xy = np.zeros((len(samples.wi), 2))
     with pytest.raises(SharingError, match="diffuse and specular must be given together"):
         fit_spatial(xy, samples.wi, samples.wo, None, diffuse=samples.brdf, valid=samples.valid)
