@@ -132,23 +132,25 @@ def driver(fw: GrblFirmware, **kw) -> GrblPositioner:
 
 
 def report(p: GrblPositioner):
-    """A status report, retried like the driver's own polls (``_poll``): the harness runs GRBL's
-    main loop and its serial interrupt on two threads, and now and then the interrupt sends a
-    byte of the ring buffer before the main loop's store of it lands (seen under load:
-    ``<Ho8d:1|MPos:...>``, ``<Ala1m|...>``; a race the single-core AVR cannot have)."""
+    """A status report, retried like the driver's own polls (``_poll``), as a real serial line
+    needs. The harness's own garbling (the TX interrupt thread sending a ring-buffer slot before
+    the main loop's byte landed: ``<Ho8d:1|...>``, ``-l.000``) is gone with
+    ``sims/grbl_sim_interrupts.c``: 0 garbled in 2000 polls, 2-3 before
+    (``benchmarks/grbl_firmware.py --race``)."""
     return p._poll(p.status)
 
 
 def home(p: GrblPositioner) -> None:
-    """``home()``, repeated on ALARM:9: on a loaded host the harness's stepper thread can drain
-    GRBL's segment buffer while the main loop waits for a CPU, which ends a homing approach early
-    (third_party/grbl/README.md). The driver's own recovery is tested strictly below."""
+    """``home()``, repeated on ALARM:9 (approach) or 8 (pull-off) ended early: on a loaded host the
+    harness's stepper thread can drain GRBL's segment buffer while the main loop waits for a CPU,
+    which ends that motion short (third_party/grbl/README.md; seen: ALARM:8 from a second homing
+    at a load of 17 on 2 cores). The driver's own recovery is tested strictly below."""
     for attempt in range(3):
         try:
             p.home().wait(30)
             return
         except GrblAlarm as exc:
-            if exc.alarm != 9 or attempt == 2:
+            if exc.alarm not in (8, 9) or attempt == 2:
                 raise
 
 
@@ -170,6 +172,12 @@ def test_connect_home_and_moves_by_status_polling(arm, homed):
 def test_feed_hold_resume_and_stop_keep_position(arm, homed):
     p, firmware = homed, arm.firmware
     mark = len(firmware.replies)
+    # from the far end, whatever the test before left: the hold lands while cruising. This hold
+    # stayed "Hold:1" for over 2 s in 1 run of this file in 3 before sims/grbl_sim_interrupts.c:
+    # the harness's TX thread could clear its interrupt-enable bit over the main loop's fresh
+    # setting of it (a read-modify-write race), stranding a reply's last bytes until GRBL next
+    # wrote, so the driver read that report 2 s late (and a '$H' whose 'ok' stranded, never)
+    p.move_to(LightTarget(azimuth_deg=9.0, elevation_deg=0.0)).wait(15)
     status = p.move_to(LightTarget(azimuth_deg=-9.0, elevation_deg=0.0))  # 18 deg: ~0.5 s
     time.sleep(0.15)
     p.feed_hold()
