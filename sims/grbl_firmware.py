@@ -13,6 +13,12 @@ The firmware keeps its settings in ``EEPROM.DAT`` in its working directory (``wo
 :func:`write_eeprom` boots it once to store settings, :func:`build_firmware` runs the build. The
 harness models the limit switches from the step pulses (``limits``, ``start``; see
 ``harness_limits.c``). GPL sources, used for testing only: nothing of gonio links them.
+
+:func:`build_firmware` links gonio's ``grbl_sim_interrupts.c`` into the build: grbl-sim runs the
+AVR's interrupts on a second thread beside GRBL's main loop, and without it the firmware sent
+stale ring-buffer bytes in its replies (2-3 per 2000 status polls at a load of 10-15 on 2 cores),
+read stale bytes of commands, lost real-time flags and could strand a reply's last bytes
+(docs/vendor-clients.md; ``benchmarks/grbl_firmware.py --race`` measures both builds).
 """
 from __future__ import annotations
 

@@ -135,8 +135,8 @@ def report(p: GrblPositioner):
     """A status report, retried like the driver's own polls (``_poll``), as a real serial line
     needs. The harness's own garbling (the TX interrupt thread sending a ring-buffer slot before
     the main loop's byte landed: ``<Ho8d:1|...>``, ``-l.000``) is gone with
-    ``sims/grbl_sim_interrupts.c``: 0 garbled in 2000 polls, 2-3 before
-    (``benchmarks/grbl_firmware.py --race``)."""
+    ``sims/grbl_sim_interrupts.c``: 0 garbled or late in 2000 polls, 3 before (``Fr:0,0``; a
+    report stranded until the next one; ``benchmarks/grbl_firmware.py --race``)."""
     return p._poll(p.status)
 
 
@@ -172,11 +172,11 @@ def test_connect_home_and_moves_by_status_polling(arm, homed):
 def test_feed_hold_resume_and_stop_keep_position(arm, homed):
     p, firmware = homed, arm.firmware
     mark = len(firmware.replies)
-    # from the far end, whatever the test before left: the hold lands while cruising. This hold
-    # stayed "Hold:1" for over 2 s in 1 run of this file in 3 before sims/grbl_sim_interrupts.c:
-    # the harness's TX thread could clear its interrupt-enable bit over the main loop's fresh
-    # setting of it (a read-modify-write race), stranding a reply's last bytes until GRBL next
-    # wrote, so the driver read that report 2 s late (and a '$H' whose 'ok' stranded, never)
+    # from the far end, whatever the test before left: the hold lands while cruising. Before
+    # sims/grbl_sim_interrupts.c this hold read "Hold:1" for over 2 s in 2 of 60 (--race) and
+    # failed this file about 1 run in 3: the harness's TX thread could clear its interrupt-enable
+    # bit over the main loop's fresh setting of it, stranding a report in the ring until GRBL next
+    # wrote, so the driver read it after its 2 s timeout (and a '$H' whose 'ok' stranded, never)
     p.move_to(LightTarget(azimuth_deg=9.0, elevation_deg=0.0)).wait(15)
     status = p.move_to(LightTarget(azimuth_deg=-9.0, elevation_deg=0.0))  # 18 deg: ~0.5 s
     time.sleep(0.15)
