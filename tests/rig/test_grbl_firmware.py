@@ -22,7 +22,9 @@ hard or soft limit errors send this".
 """
 from __future__ import annotations
 
+import re
 import shutil
+import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +34,8 @@ import pytest
 from rig import DeviceBusy, LightTarget
 from rig.grbl import GrblAlarm, GrblPositioner
 from rig.rig import ConfigError
-from sims.grbl_firmware import FAST_SETTINGS, FAST_SWITCHES, GrblFirmware, build_firmware, write_eeprom
+from sims.grbl_firmware import (FAST_SETTINGS, FAST_SWITCHES, WRAPPED, GrblFirmware, build_firmware,
+                                write_eeprom)
 from sims.grbl_sim import GrblSim
 
 GRBL_DIR = Path(__file__).resolve().parents[3] / "shared" / "third_party" / "grbl"
@@ -152,6 +155,22 @@ def home(p: GrblPositioner) -> None:
         except GrblAlarm as exc:
             if exc.alarm not in (8, 9) or attempt == 2:
                 raise
+
+
+def test_build_links_the_interrupt_exclusion(grbl_build):
+    """GRBL's printing and grbl-sim's interrupt thread reach the serial ring only through gonio's
+    wrappers (``sims/grbl_sim_interrupts.c``, ``ld --wrap``): without them the two threads race
+    (``benchmarks/grbl_firmware.py --race``: 3 bad replies in 2000 polls)."""
+    if shutil.which("objdump") is None:
+        pytest.skip("no objdump (binutils): cannot read the firmware's call sites")
+    code = subprocess.run(["objdump", "-d", str(grbl_build / "grbl_sim.exe")], capture_output=True,
+                          text=True, check=True).stdout
+    def calls(function: str) -> set[str]:
+        body = code.split(f"<{function}>:\n", 1)[1].split("\n\n", 1)[0]
+        return set(re.findall(r"(?:call|jmp)\s+[0-9a-f]+ <([\w.]+)>", body))
+    assert "__wrap_serial_write" in calls("printString") and "serial_write" not in calls("printString")
+    assert "__wrap_interrupt_SERIAL_UDRE" in calls("simulate_serial")
+    assert {f"__wrap_{name}" for name in WRAPPED} <= set(re.findall(r"<(__wrap_\w+)>:", code))
 
 
 def test_connect_home_and_moves_by_status_polling(arm, homed):
