@@ -176,11 +176,17 @@ class GrblStatus:
 STATES = ("Idle", "Run", "Hold", "Jog", "Alarm", "Door", "Check", "Home", "Sleep")
 
 
-def _floats(text: str, raw: str) -> tuple[float, ...]:
+def _floats(text: str, raw: str, count: int) -> tuple[float, ...]:
+    """``count`` comma-separated numbers; a garbled byte ('-1,000' for '-1.000', '0.0' for
+    '0,0') changes the count or a number, and is a ``ProtocolError`` (retried by a poll)."""
     try:
-        return tuple(float(v) for v in text.split(","))
+        out = tuple(float(v) for v in text.split(","))
     except ValueError:
         raise ProtocolError("bad number list in status report", raw=raw.encode()) from None
+    if len(out) != count:
+        raise ProtocolError(f"{len(out)} numbers in {text!r} where the status report has {count}",
+                            raw=raw.encode())
+    return out
 
 
 def parse_status(line: str | bytes) -> GrblStatus:
@@ -201,14 +207,15 @@ def parse_status(line: str | bytes) -> GrblStatus:
         fields[key] = value
     feed = spindle = None
     if "FS" in fields:
-        feed, spindle = _floats(fields["FS"], text)[:2]
+        feed, spindle = _floats(fields["FS"], text, 2)
     elif "F" in fields:
-        feed = _floats(fields["F"], text)[0]
+        feed, = _floats(fields["F"], text, 1)
+    axes = len(AXES)
     return GrblStatus(
         state=state, substate=int(sub) if sub.isdigit() else None,
-        mpos=_floats(fields["MPos"], text) if "MPos" in fields else None,
-        wpos=_floats(fields["WPos"], text) if "WPos" in fields else None,
-        wco=_floats(fields["WCO"], text) if "WCO" in fields else None,
+        mpos=_floats(fields["MPos"], text, axes) if "MPos" in fields else None,
+        wpos=_floats(fields["WPos"], text, axes) if "WPos" in fields else None,
+        wco=_floats(fields["WCO"], text, axes) if "WCO" in fields else None,
         feed=feed, spindle=spindle, fields=fields)
 
 

@@ -13,11 +13,18 @@ The firmware keeps its settings in ``EEPROM.DAT`` in its working directory (``wo
 :func:`write_eeprom` boots it once to store settings, :func:`build_firmware` runs the build. The
 harness models the limit switches from the step pulses (``limits``, ``start``; see
 ``harness_limits.c``). GPL sources, used for testing only: nothing of gonio links them.
+
+:func:`build_firmware` links gonio's ``grbl_sim_interrupts.c`` into the build: grbl-sim runs the
+AVR's interrupts on a second thread beside GRBL's main loop, and without it the firmware sent
+stale ring-buffer bytes in its replies (2-3 per 2000 status polls at a load of 10-15 on 2 cores),
+read stale bytes of commands, lost real-time flags and could strand a reply's last bytes
+(docs/vendor-clients.md; ``benchmarks/grbl_firmware.py --race`` measures both builds).
 """
 from __future__ import annotations
 
 import os
 import select
+import shutil
 import subprocess
 import time
 import tty
@@ -39,13 +46,42 @@ FAST_SETTINGS: dict[int, float] = {
 FAST_SWITCHES = ((-22.0, -22.0, -4.0), (0.0, 0.0, 0.0))
 
 
-def build_firmware(grbl_dir: str | os.PathLike, out: str | os.PathLike) -> Path:
+#: gonio's own harness change, made to the tree ``build.sh`` leaves in ``OUT/tree/grbl/sim``:
+#: ``grbl_sim_interrupts.c`` (beside this file) runs grbl-sim's interrupt thread and GRBL's main
+#: loop under one mutex where the firmware relies on the AVR's exclusion (its header says why), by
+#: wrapping these functions at link time; GRBL's own code is not touched
+INTERRUPTS_C = Path(__file__).with_name("grbl_sim_interrupts.c")
+WRAPPED = ("serial_write", "orig_serial_read", "serial_reset_read_buffer", "interrupt_SERIAL_UDRE",
+           "interrupt_SERIAL_RX", "system_set_exec_state_flag", "system_clear_exec_state_flag",
+           "system_set_exec_alarm", "system_clear_exec_alarm", "system_set_exec_motion_override_flag",
+           "system_set_exec_accessory_override_flag", "system_clear_exec_motion_overrides",
+           "system_clear_exec_accessory_overrides")
+#: build.sh's compiler flags, for the relink
+_MAKE_FLAGS = "FLAGS=-g -O2 -fcommon"
+
+
+def build_firmware(grbl_dir: str | os.PathLike, out: str | os.PathLike, *, exclusive: bool = True) -> Path:
     """Compile ``grbl_dir/build.sh`` (GRBL 1.1h + grbl-sim, needs gcc and make) into ``out``;
-    return the path of ``grbl_sim.exe``. Raises ``subprocess.CalledProcessError`` with the
-    build's output on failure."""
+    return the path of ``grbl_sim.exe``. ``exclusive``: add :data:`INTERRUPTS_C` and relink
+    (False: the harness as ``build.sh`` makes it, whose two threads garble bytes and lose
+    real-time flags now and then; for ``benchmarks/grbl_firmware.py --race``). Raises
+    ``subprocess.CalledProcessError`` with the build's output on failure."""
     grbl_dir, out = Path(grbl_dir), Path(out)
     subprocess.run(["bash", str(grbl_dir / "build.sh"), str(grbl_dir / "grbl-1.1h"), str(grbl_dir / "grbl-sim"),
                     str(out)], check=True, capture_output=True, timeout=300)
+    if exclusive:
+        sim = out / "tree" / "grbl" / "sim"
+        shutil.copy(INTERRUPTS_C, sim / INTERRUPTS_C.name)
+        makefile = (sim / "Makefile").read_text()
+        objects, libraries = "SIM_OBJECTS = ", "LINUX_LIBRARIES = -lrt -pthread"
+        if objects not in makefile or libraries not in makefile:
+            raise RuntimeError(f"{sim / 'Makefile'} changed upstream: no {objects!r} or {libraries!r} to extend")
+        wraps = ",".join(f"--wrap={name}" for name in WRAPPED)
+        makefile = makefile.replace(objects, f"{objects}{INTERRUPTS_C.stem}.o ", 1)
+        makefile = makefile.replace(libraries, f"{libraries} -Wl,{wraps}", 1)
+        (sim / "Makefile").write_text(makefile)
+        subprocess.run(["make", "main", _MAKE_FLAGS], cwd=sim, check=True, capture_output=True, timeout=300)
+        shutil.copy(sim / "grbl_sim.exe", out / "grbl_sim.exe")
     return out / "grbl_sim.exe"
 
 

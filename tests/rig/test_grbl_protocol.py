@@ -59,8 +59,11 @@ def test_parse_status_wpos_with_wco_and_hold_substate():
         later.machine_position()
 
 
+# the last three: one byte garbled on the wire, as the host-built firmware's harness did before
+# sims/grbl_sim_interrupts.c ('.' for ',' and ',' for '.': a number list of another length)
 @pytest.mark.parametrize("bad", ["Idle|MPos:0,0,0", "<Dancing|MPos:0,0,0>", "<Idle|MPos:a,b,c>",
-                                 "<Idle|MPos>"])
+                                 "<Idle|MPos>", "<Idle|MPos:-1.000,-1.000,-1.000|FS:0.0>",
+                                 "<Idle|MPos:-1,000,-1.000,-1.000|FS:0,0>", "<Idle|MPos:0.000,0.000o0.000|FS:0,0>"])
 def test_parse_status_rejects_malformed(bad):
     with pytest.raises(ProtocolError):
         parse_status(bad)
