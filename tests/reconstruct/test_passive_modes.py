@@ -23,6 +23,28 @@ def test_learn_modes_is_the_log_library_principal_components():
     proj = (x - prior.mean) @ prior.modes.T
     assert np.allclose(prior.variances, proj.var(axis=0, ddof=1), rtol=1e-10)
     assert np.all(np.diff(prior.variances) <= 0)
+    rest = (x - prior.mean) - proj @ prior.modes
+    assert np.allclose(prior.residual_variances, np.maximum(
+        rest.var(axis=0, ddof=1), 1e-2 * rest.var(axis=0, ddof=1).mean()), rtol=1e-8)
+
+
+def test_modes_precision_is_the_inverse_covariance_with_the_shift_free():
+    """``ModesPrior.precision`` (Woodbury) against numpy's inverse of the full covariance
+    modes^T diag(var) modes + diag(remainder) + S 1 1^T with a shift variance S = 1e8 (to
+    1e-6 of its largest entry); the all-ones direction (a brightness shift) costs nothing;
+    with next to no remainder variance (1e-12) ``split`` returns the shift and coefficients a
+    table was made from."""
+    rng = np.random.default_rng(2)
+    tables = rng.uniform(0.01, 2.0, size=(8, 4, 5, 3))
+    prior = learn_modes([Bivariate(t) for t in tables], (4, 5), n_modes=5, offset=0.01)
+    C = prior.modes.T @ np.diag(prior.variances) @ prior.modes + np.diag(prior.residual_variances)
+    Q = prior.precision()
+    assert np.allclose(Q, np.linalg.inv(C + 1e8 * np.ones((20, 20))), atol=1e-6 * np.abs(Q).max())
+    assert np.abs(Q @ np.ones(20)).max() < 1e-9 * np.abs(Q).max()
+    c = rng.normal(0, 0.5, 5)
+    tight = ModesPrior(prior.mean, prior.modes, prior.variances, np.full(20, 1e-12), (4, 5), 0.01)
+    shift, coefficients = tight.split(prior.mean + 0.3 + c @ prior.modes)
+    assert shift == pytest.approx(0.3, abs=1e-9) and np.allclose(coefficients, c, atol=1e-9)
 
 
 @pytest.mark.parametrize("kwargs, match", [({"n_modes": 18}, "n_modes"),
@@ -35,12 +57,14 @@ def test_learn_modes_names_bad_arguments(kwargs, match):
 
 def test_solve_modes_recovers_known_coefficients():
     """Data made from known coefficients and a log-brightness shift of 0.7 through a random
-    full-rank A: with a negligible weight the solve returns them (1e-6) and f; with a strong
-    weight the coefficients shrink towards 0 but the shift, which is not penalised, stays."""
+    full-rank A (a remainder variance of 1e-9: next to none outside the modes): with a
+    negligible weight the solve returns them (1e-6) and f; with a strong weight the
+    coefficients shrink towards 0 but the shift, which is not penalised, stays."""
     rng = np.random.default_rng(4)
     n, k = 30, 5
     modes = np.linalg.qr(rng.normal(size=(n, k)))[0].T
-    prior = ModesPrior(rng.normal(-2, 0.3, n), modes, np.full(k, 0.2), (5, 6), 1e-3)
+    prior = ModesPrior(rng.normal(-2, 0.3, n), modes, np.full(k, 0.2), np.full(n, 1e-9), (5, 6),
+                       1e-3)
     c_true = rng.normal(0, 0.4, k)
     f_true = prior.values(c_true, 0.7)
     A = rng.uniform(0, 1, size=(80, n))
