@@ -59,7 +59,9 @@ CV_FOLDS = 4
 #: square (the bivariate approximation's, not the sensor's). Its weight is MODES_NOISE / the
 #: observations, so that more pixels weigh more, as they should: a weight fixed per unit of the
 #: data's mean square (1e-5 before) made the prior 4x stronger per pixel on a 96 px sphere
-#: than on a 48 px one. Chosen on every 10th MERL material under Grace (docs/zoo.md).
+#: than on a 48 px one. 5e-3 (a 7 % misfit per pixel; 2.8e-6 at the 1,764 pixels of a 48 px
+#: sphere) was chosen on every 10th MERL material under Grace: 1e-5 / 3e-6 / 1e-6 at 1,764
+#: pixels put 4 / 4 / 2 of 10 within the Fig. 6 target, 3e-6 with the lower errors (docs/zoo.md).
 #: Cross-validation over pixels cannot choose it: a weaker prior frees what only the
 #: unobserved nodes feel, so held-out pixels prefer the weakest weights, where those nodes run
 #: off by factors of 1e4 to 1e16.
