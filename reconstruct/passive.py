@@ -25,8 +25,10 @@ of a known curved object under a known distant environment (a light probe); no a
    warnings in words.
 
 The data term is divided by the mean irradiance and the number of observations, so the one
-regularisation weight ``lam`` serves environments of any brightness and any observation count
-(the paper also kept one weight for all its results).
+regularisation weight ``lam`` of Eq. 6 serves environments of any brightness and any
+observation count (the paper also kept one weight for all its results). A ``ModesPrior``'s
+weight is instead ``MODES_NOISE`` / observations: a fixed relative noise per pixel, so that
+more pixels weigh more against the prior, as in the paper's plain sum over pixels.
 """
 from __future__ import annotations
 
