@@ -25,8 +25,10 @@ of a known curved object under a known distant environment (a light probe); no a
    warnings in words.
 
 The data term is divided by the mean irradiance and the number of observations, so the one
-regularisation weight ``lam`` serves environments of any brightness and any observation count
-(the paper also kept one weight for all its results).
+regularisation weight ``lam`` of Eq. 6 serves environments of any brightness and any
+observation count (the paper also kept one weight for all its results). A ``ModesPrior``'s
+weight is instead ``MODES_NOISE`` / observations: a fixed relative noise per pixel, so that
+more pixels weigh more against the prior, as in the paper's plain sum over pixels.
 """
 from __future__ import annotations
 
@@ -55,13 +57,17 @@ LAMBDA = 1e-6
 #: Candidate weights of ``lam="cv"`` (one per decade) and its number of observation folds.
 CV_LAMBDAS = 10.0 ** np.arange(-11, -3)
 CV_FOLDS = 4
-#: Weight of a ``ModesPrior`` (the data's noise variance over its mean square, per unit of the
-#: prior's variance): chosen on every 10th MERL material under Grace (1e-4: 2 of 10 within the
-#: Fig. 6 target, 1e-5: 4, 1e-6: 1) and held on the materials between (docs/zoo.md).
-#: Cross-validation over pixels cannot choose it: a weaker prior frees modes that only the
-#: unobserved nodes feel, so held-out pixels prefer 1e-7 to 1e-8, where those nodes run off
-#: by factors of 1e4 to 1e16.
-MODES_LAMBDA = 1e-5
+#: Noise of a ``ModesPrior``'s data term: the variance of a pixel's misfit over the data's mean
+#: square (the bivariate approximation's, not the sensor's). Its weight is MODES_NOISE / the
+#: observations, so that more pixels weigh more, as they should: a weight fixed per unit of the
+#: data's mean square (1e-5 before) made the prior 4x stronger per pixel on a 96 px sphere
+#: than on a 48 px one. 5e-3 (a 7 % misfit per pixel; 2.8e-6 at the 1,764 pixels of a 48 px
+#: sphere) was chosen on every 10th MERL material under Grace: 1e-5 / 3e-6 / 1e-6 at 1,764
+#: pixels put 4 / 4 / 2 of 10 within the Fig. 6 target, 3e-6 with the lower errors (docs/zoo.md).
+#: Cross-validation over pixels cannot choose it: a weaker prior frees what only the
+#: unobserved nodes feel, so held-out pixels prefer the weakest weights, where those nodes run
+#: off by factors of 1e4 to 1e16.
+MODES_NOISE = 5e-3
 #: Maps with more texels are area-averaged to 2 x 181^2 (~65,000: the paper's 32,000 directions
 #: per visible hemisphere); the lighting matrix costs time linear in the texel count.
 MAX_TEXELS = 65536
@@ -342,7 +348,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
         the rest use the weighted radiance.
     lam : float or "cv", optional
         Regularisation weight of Eq. 6 (for the normalised data term), default ``LAMBDA``;
-        for a ``ModesPrior`` the prior's weight, default ``MODES_LAMBDA`` ("cv" is refused:
+        for a ``ModesPrior`` the prior's weight, default ``MODES_NOISE`` / observations ("cv" is refused:
         see there). ``"cv"`` (smoothness priors):
         chosen from ``CV_LAMBDAS`` by ``CV_FOLDS``-fold cross-validation over the observations
         (pixels): each candidate is fitted, per prior, to the green channel of all folds but one
@@ -394,7 +400,7 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     priors = _priors(prior, two_priors, (n_t, n_s))
     if isinstance(priors[0], ModesPrior) and isinstance(lam, str):
         raise PassiveInputError("lam='cv' is for smoothness priors: held-out pixels cannot see "
-                                "the nodes a ModesPrior extrapolates (MODES_LAMBDA)")
+                                "the nodes a ModesPrior extrapolates (MODES_NOISE)")
     gen = np.random.default_rng(rng)
 
     n, v, I = _observations(images, max_view_angle_deg, n_normals, gen)
@@ -419,8 +425,9 @@ def passive_reflectometry(image, normals, mask, environment, *, view_dirs=None, 
     bb = sums.value_sq * scale ** 2
     lamb = np.array([h[c].sum() / G[c].sum() for c in range(3)])  # best constant f
     if isinstance(priors[0], ModesPrior):
-        lam = MODES_LAMBDA if lam is None else lam
-        sols = [solve_modes(priors[0], G[c], h[c], bb[c], lam) for c in range(3)]
+        lam = MODES_NOISE / len(n) if lam is None else lam
+        Q = priors[0].precision()
+        sols = [solve_modes(priors[0], G[c], h[c], bb[c], lam, precision=Q) for c in range(3)]
         f = np.stack([s.f for s in sols], axis=1)
         res = _residuals(f, G, h, bb)
         priors, converged = priors[:1], all(s.converged for s in sols)

@@ -4,24 +4,31 @@ Romeiro et al. (2008, Sect. 3) regularise with independent zero-mean Gaussian pr
 bivariate BRDF's derivatives, and name the alternative: "a joint distribution over the entire
 bivariate domain ... in terms of a small number of modes of variation". This is that
 alternative, learned in log space: x = log(f + offset) on the (t, s) grid is Gaussian, with the
-library's mean and its leading principal components (variance = the library's along each),
-and a free log-brightness shift (an albedo outside the library's range costs nothing).
+library's mean, its leading principal components (variance = the library's along each), a
+per-node remainder (the library's variance the kept modes do not carry) and a free
+log-brightness shift (an albedo outside the library's range costs nothing).
 
 Why: one image under a real probe leaves a third of the nodes unobserved (retro, grazing, the
 exact mirror direction; ``Adequacy.constrained``). A derivative prior extrapolates them flat;
 the modes carry the library's correlations, so what the image sees of the highlight and the
 diffuse level sets the Fresnel rise and the dark tail too. In log space a metal's 1000:1
-range is a smooth surface, and the errors Eq. 1 measures are relative ones.
+range is a smooth surface, and the errors Eq. 1 measures are relative ones. The remainder
+matters: without it every estimate lies in the span of the modes, which does not hold a
+material's own reduction (yellow-paint's projection onto 40 modes of the other 99 explains its
+image 6x worse than the reduction does), so the fit bends the modes to explain what lies
+outside their span and moves the nodes the image does not see with them (docs/zoo.md).
 
-The solve is a maximum a posteriori estimate, Levenberg-Marquardt on the coefficients, with
-the data term through the normal equations (G = A^T A, h = A^T b), so an iteration costs
-O(modes x nodes^2), not O(pixels).
+The solve is a maximum a posteriori estimate, Levenberg-Marquardt on the node values x, with
+the data term through the normal equations (G = A^T A, h = A^T b) and the prior as its
+precision matrix (Woodbury: modes + remainder, the shift's direction left free), so an
+iteration costs one Cholesky factorisation of the node count, not O(pixels).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 from .passive_lighting import check_grid
 from .passive_prior import library_tables
@@ -33,12 +40,16 @@ LOG_OFFSET = 1e-3
 #: Modes kept: onto 40 modes of the other 99 a MERL material's own reduction projects to within
 #: 1-4 points of its Eq. 1 error on six of ten (20 modes: 1.4-3.4x its error; docs/zoo.md).
 N_MODES = 40
+#: The remainder's per-node variance is floored at this fraction of its mean, so that a node
+#: every library member agrees on is held strongly, not infinitely.
+REMAINDER_FLOOR = 1e-2
 
 
 @dataclass(frozen=True, eq=False)
 class ModesPrior:
     """Gaussian prior on x = log(f + ``offset``) over the flattened (t, s) grid (``i * n_s +
-    j``): x = ``mean`` + shift + c @ ``modes``, c_k ~ N(0, ``variances[k]``), shift free.
+    j``): x = ``mean`` + shift + c @ ``modes`` + e, c_k ~ N(0, ``variances[k]``), e_i ~ N(0,
+    ``residual_variances[i]``) independent per node, shift free.
 
     Attributes
     ----------
@@ -48,6 +59,8 @@ class ModesPrior:
         Orthonormal rows: the library's principal directions, by decreasing variance.
     variances : ndarray (k,)
         The library's variance along each mode.
+    residual_variances : ndarray (n_t n_s,)
+        Per node, the library's variance left after the kept modes (> 0).
     grid : (int, int)
         (n_t, n_s).
     offset : float
@@ -60,15 +73,39 @@ class ModesPrior:
     mean: np.ndarray
     modes: np.ndarray
     variances: np.ndarray
+    residual_variances: np.ndarray
     grid: tuple
     offset: float = LOG_OFFSET
     name: str = "modes"
     n_brdfs: int = 0
 
     def values(self, coefficients, shift: float = 0.0) -> np.ndarray:
-        """f (n_t n_s,) in 1/sr for coefficients (k,) and a log-brightness ``shift``; may dip
-        to -offset (clip for a BRDF)."""
+        """f (n_t n_s,) in 1/sr for coefficients (k,) and a log-brightness ``shift`` (no
+        remainder); may dip to -offset (clip for a BRDF)."""
         return np.exp(self.mean + shift + coefficients @ self.modes) - self.offset
+
+    def _woodbury(self):
+        """(shift and modes as rows V (1 + k, n), 1 / remainder D^-1 (n,), M = diag(1 / var) +
+        V D^-1 V^T with the shift's 1 / var = 0): the pieces of the precision and of the
+        split of a deviation into shift, coefficients and remainder."""
+        V = np.vstack([np.ones(len(self.mean)), self.modes])
+        d_inv = 1.0 / self.residual_variances
+        M = np.diag(np.concatenate([[0.0], 1.0 / self.variances])) + (V * d_inv) @ V.T
+        return V, d_inv, M
+
+    def precision(self) -> np.ndarray:
+        """(n, n) inverse covariance of x - mean with the shift free (its direction, all
+        ones, costs nothing)."""
+        V, d_inv, M = self._woodbury()
+        Q = np.diag(d_inv) - (d_inv[:, None] * V.T) @ np.linalg.solve(M, V * d_inv)
+        return (Q + Q.T) / 2
+
+    def split(self, x) -> tuple[float, np.ndarray]:
+        """The shift and coefficients (k,) of the most probable split of log values ``x``
+        (n,) into mean + shift + c @ modes + remainder."""
+        V, d_inv, M = self._woodbury()
+        z = np.linalg.solve(M, V @ (d_inv * (np.asarray(x, float) - self.mean)))
+        return float(z[0]), z[1:]
 
 
 def learn_modes(brdfs, grid=(32, 32), *, n_modes: int = N_MODES, offset: float = LOG_OFFSET,
@@ -103,14 +140,18 @@ def learn_modes(brdfs, grid=(32, 32), *, n_modes: int = N_MODES, offset: float =
     var, u = np.linalg.eigh((x - mean) @ (x - mean).T)
     var, u = var[::-1][:n_modes], u[:, ::-1][:, :n_modes]
     modes = u.T @ (x - mean) / np.sqrt(var)[:, None]
-    return ModesPrior(mean, modes, var / (len(x) - 1), check_grid(grid), float(offset), name,
-                      len(tables))
+    rest = (x - mean) - ((x - mean) @ modes.T) @ modes
+    rest_var = np.sum(rest ** 2, axis=0) / (len(x) - 1)
+    rest_var = np.maximum(rest_var, REMAINDER_FLOOR * np.mean(rest_var) + 1e-300)
+    return ModesPrior(mean, modes, var / (len(x) - 1), rest_var, check_grid(grid), float(offset),
+                      name, len(tables))
 
 
 @dataclass(frozen=True)
 class ModesSolution:
-    """One channel's MAP estimate: f (n_t n_s,) in 1/sr (>= 0), its coefficients (k,), the
-    log-brightness shift, and whether the iteration met its tolerance."""
+    """One channel's MAP estimate: f (n_t n_s,) in 1/sr (>= 0), the shift and coefficients (k,)
+    of its most probable split (``ModesPrior.split``), and whether the iteration met its
+    tolerance."""
 
     f: np.ndarray
     coefficients: np.ndarray
@@ -118,38 +159,40 @@ class ModesSolution:
     converged: bool
 
 
-def solve_modes(prior: ModesPrior, G, h, bb: float, lam: float, *, start=None,
-                max_iter: int = 100) -> ModesSolution:
-    """argmin over (c, shift) of (f^T G f - 2 h^T f + bb) / bb + lam sum c_k^2 / var_k with
-    f = ``prior.values(c, shift)``: the posterior mode for a data term ||A f - b||^2 given as
-    G = A^T A (n, n), h = A^T b (n,), bb = b^T b, with noise variance lam bb.
+def solve_modes(prior: ModesPrior, G, h, bb: float, lam: float, *, max_iter: int = 100,
+                precision=None) -> ModesSolution:
+    """argmin over x of (f^T G f - 2 h^T f + bb) / bb + lam (x - mean)^T Q (x - mean) with
+    f = exp(x) - offset and Q = ``prior.precision()`` (pass it as ``precision`` to reuse it
+    across channels): the posterior mode for a data term ||A f - b||^2 given as G = A^T A
+    (n, n), h = A^T b (n,), bb = b^T b, with noise variance lam bb.
 
-    Levenberg-Marquardt (Gauss-Newton steps, damping adapted to the cost), from ``start``
-    (a ``ModesSolution``, e.g. the solution for a neighbouring ``lam``) or from the library
+    Levenberg-Marquardt (Gauss-Newton steps, damping adapted to the cost) from the library
     mean at the brightness that fits the data best.
     """
-    P = np.concatenate([[0.0], lam / prior.variances])         # the shift is not penalised
-    V = np.vstack([np.ones(len(prior.mean)), prior.modes])     # (1 + k, n)
+    Q = lam * (prior.precision() if precision is None else precision)
+    mean, off = prior.mean, prior.offset
 
-    def cost(z):
-        f = np.exp(prior.mean + z @ V) - prior.offset
-        return (f @ (G @ f) - 2 * h @ f + bb) / bb + z @ (P * z), f
+    def cost(x):
+        f = np.exp(x) - off
+        y = x - mean
+        return (f @ (G @ f) - 2 * h @ f + bb) / bb + y @ (Q @ y), f
 
-    if start is None:
-        f0 = np.exp(prior.mean) - prior.offset
-        z = np.zeros(len(V))
-        z[0] = np.log(max(h @ f0 / max(f0 @ G @ f0, 1e-300), 1e-12))
-    else:
-        z = np.concatenate([[start.shift], start.coefficients])
-    c0, f = cost(z)
+    f0 = np.exp(mean) - off
+    x = mean + np.log(max(h @ f0 / max(f0 @ G @ f0, 1e-300), 1e-12))
+    c0, f = cost(x)
     damp, converged = 1e-3, False
     for _ in range(max_iter):
-        W = V * (f + prior.offset)                              # d f / d z, (1 + k, n)
-        grad = W @ (G @ f - h) / bb + P * z
-        H = W @ G @ W.T / bb + np.diag(P)
+        g = f + off                                             # d f / d x
+        grad = g * (G @ f - h) / bb + Q @ (x - mean)
+        H = g[:, None] * G * g[None, :] / bb + Q
+        scale = np.diag(H) + 1e-12
         while damp < 1e8:
-            step = np.linalg.solve(H + damp * np.diag(np.diag(H) + 1e-12), -grad)
-            c1, f1 = cost(z + step)
+            try:
+                step = -cho_solve(cho_factor(H + damp * np.diag(scale)), grad)
+            except np.linalg.LinAlgError:
+                damp *= 4
+                continue
+            c1, f1 = cost(x + step)
             if c1 <= c0:
                 break
             damp *= 4
@@ -157,8 +200,9 @@ def solve_modes(prior: ModesPrior, G, h, bb: float, lam: float, *, start=None,
             converged = True
             break
         gain = c0 - c1
-        z, c0, f, damp = z + step, c1, f1, max(damp / 4, 1e-9)
+        x, c0, f, damp = x + step, c1, f1, max(damp / 4, 1e-9)
         if gain <= 1e-10 * max(c0, 1e-300):
             converged = True
             break
-    return ModesSolution(np.maximum(f, 0.0), z[1:], float(z[0]), converged)
+    shift, coefficients = prior.split(x)
+    return ModesSolution(np.maximum(f, 0.0), coefficients, shift, converged)
