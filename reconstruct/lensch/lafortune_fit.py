@@ -70,25 +70,28 @@ def model_and_jacobian(params: np.ndarray, t: np.ndarray, z: np.ndarray, cos_i: 
     B, P = params.shape
     L = (P - 1) // 3
     f = np.broadcast_to(params[:, :1] / np.pi, (B, np.shape(t)[-1])).copy()
-    J = np.empty((B, f.shape[1], P)) if want_jac else None
+    # built parameter-major (each column written contiguously), returned as a (B, S, P) view
+    Jt = np.empty((B, P, f.shape[1])) if want_jac else None
     if want_jac:
-        J[:, :, 0] = 1.0 / np.pi
+        Jt[:, 0] = 1.0 / np.pi
     for l in range(L):  # few lobes; vectorised over items and samples
         cx, cz, n = (params[:, 1 + 3 * l + k, None] for k in range(3))
         b = cx * t + cz * z
         lit = b > 0
-        log_b = np.log(np.where(lit, b, 1.0))
+        safe = np.where(lit, b, 1.0)
+        log_b = np.log(safe)
         p = np.where(lit, np.exp(np.minimum(n * log_b, _LOG_CAP)), 0.0)
         f += p
         if want_jac:
-            dp_db = np.where(lit, n * p / np.where(lit, b, 1.0), 0.0)
-            J[:, :, 1 + 3 * l] = dp_db * t
-            J[:, :, 2 + 3 * l] = dp_db * z
-            J[:, :, 3 + 3 * l] = p * log_b
+            dp_db = n * p / safe   # 0 where unlit: p 0, safe 1
+            Jt[:, 1 + 3 * l] = dp_db * t
+            Jt[:, 2 + 3 * l] = dp_db * z
+            Jt[:, 3 + 3 * l] = p * log_b
     f *= cos_i
-    if want_jac:
-        J *= np.asarray(cos_i)[..., None]
-    return f, J
+    if not want_jac:
+        return f, None
+    Jt *= np.asarray(cos_i)[..., None, :]
+    return f, Jt.transpose(0, 2, 1)
 
 
 def params_of(model: Lafortune, n_lobes: int | None = None) -> np.ndarray:
@@ -319,8 +322,11 @@ def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_i
     def fun(x, items):
         f, J = model_and_jacobian(x, t, z, cos_i)
         pen, dpen = albedo_penalty(x, scale[items], max_albedo)
-        return (np.concatenate([f * sw - target[items], pen], axis=1),
-                np.concatenate([J * sw[:, None], dpen], axis=1))
+        S = len(sw)
+        jac = np.empty((len(items), S + dpen.shape[1], P))   # filled in place: no concatenated copy
+        np.multiply(J, sw[:, None], out=jac[:, :S])
+        jac[:, S:] = dpen
+        return np.concatenate([f * sw - target[items], pen], axis=1), jac
 
     lower = np.full(P, -np.inf)
     upper = np.full(P, np.inf)

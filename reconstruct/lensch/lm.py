@@ -27,8 +27,9 @@ class LMResult:
         Parameters at the end.
     cost : ndarray (B,)
         0.5 * sum of squared residuals at ``x``.
-    jac : ndarray (B, M, P)
-        Jacobian at ``x`` (for covariances).
+    jac : ndarray (B, M, P) or None
+        Jacobian at ``x`` (for covariances; ``fun`` evaluated there once more); None when
+        ``keep_jac`` is False.
     converged : ndarray (B,) bool
         The relative cost decrease or the step fell below tolerance (False: iteration cap).
     n_iter : ndarray (B,) int
@@ -37,14 +38,14 @@ class LMResult:
 
     x: np.ndarray
     cost: np.ndarray
-    jac: np.ndarray
+    jac: np.ndarray | None
     converged: np.ndarray
     n_iter: np.ndarray
 
 
 def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=None,
                         max_iter: int = 100, ftol: float = 1e-10, xtol: float = 1e-10,
-                        mu0: float = 1e-3) -> LMResult:
+                        mu0: float = 1e-3, keep_jac: bool = True) -> LMResult:
     """Minimise 0.5 * |r_b(x_b)|^2 for every item b independently (Marquardt's scaled damping).
 
     Parameters
@@ -63,6 +64,8 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
         it by less than ``xtol`` * (|x| + xtol), or when its damping exceeds 1e12 (no descent).
     mu0 : float
         Initial damping relative to diag(J^T J).
+    keep_jac : bool
+        Return the Jacobian at ``x``; False saves one evaluation of ``fun``.
     """
     x = np.array(x0, dtype=np.float64, copy=True)
     B, P = x.shape
@@ -72,12 +75,11 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
     everyone = np.arange(B)
     r, J = fun(x, everyone)
     cost = 0.5 * np.einsum("bm,bm->b", r, r)
-    jac = J.copy()
     mu = np.full(B, float(mu0))
     converged = np.zeros(B, bool)
     n_iter = np.zeros(B, np.int64)
     active = everyone.copy()
-    rA, JA = r.copy(), J.copy()
+    rA, JA = r, J   # updated in place below: fun returns fresh arrays
     for _ in range(max_iter):
         if len(active) == 0:
             break
@@ -97,7 +99,7 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
         small_step = np.all(moved <= xtol * (np.abs(x[active]) + xtol), axis=1)
         small_gain = better & (cost[active] - c_new <= ftol * cost[active])
         acc = active[better]
-        x[acc], cost[acc], jac[acc] = x_new[better], c_new[better], J_new[better]
+        x[acc], cost[acc] = x_new[better], c_new[better]
         mu[acc] = np.maximum(mu[acc] * 0.3, 1e-12)
         rej = active[~better]
         mu[rej] *= 10.0
@@ -105,9 +107,15 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
         converged[active[done]] = True
         keep = ~done
         # the next iteration linearises at the current point of the items still iterating
-        rA[better], JA[better] = r_new[better], J_new[better]
-        rA, JA = rA[keep], JA[keep]
+        if better.all():
+            rA, JA = r_new, J_new
+        else:
+            rA[better], JA[better] = r_new[better], J_new[better]
+        if not keep.all():
+            rA, JA = rA[keep], JA[keep]
         active = active[keep]
+    # the Jacobian at x evaluated once more rather than copied at every accepted step
+    jac = fun(x, everyone)[1] if keep_jac else None
     return LMResult(x=x, cost=cost, jac=jac, converged=converged, n_iter=n_iter)
 
 

@@ -49,18 +49,26 @@ def _mixture(x, U, V, R, W, basis_t):
     F = np.zeros((m, M, 3))
     dF = np.zeros((m, M, 3))
     fb_all = np.empty((m, M, B, 3))
+    bases = {}   # lobe l's (lit, base, log base) by slot: the variants share the material's C_x, C_z
     for b in range(B):
         par = basis_t[:, b]  # (m, 3, P)
         fb = np.broadcast_to((par[:, None, :, 0]) / np.pi, (m, M, 3)).copy()
         dfb = np.zeros((m, M, 3))
         for l in range((P - 1) // 3):
             cx, cz, N = (par[:, None, :, 1 + 3 * l + k] for k in range(3))
-            base = cx * (uv - zz)[..., None] + cz * zz[..., None]
-            lit = base > 0
-            safe = np.where(lit, base, 1.0)
-            lobe = np.where(lit, np.exp(np.minimum(N * np.log(safe), _LOG_CAP)), 0.0)
+            same = next((c for c in range(b) if np.array_equal(basis_t[:, c, :, 1 + 3 * l:3 + 3 * l],
+                                                               par[..., 1 + 3 * l:3 + 3 * l])), None)
+            if same is None:
+                base = cx * (uv - zz)[..., None] + cz * zz[..., None]
+                lit = base > 0
+                safe = np.where(lit, base, 1.0)
+                bases[b, l] = lit, safe, np.log(safe)
+            else:
+                bases[b, l] = bases[same, l]
+            lit, safe, log_base = bases[b, l]
+            lobe = np.where(lit, np.exp(np.minimum(N * log_base, _LOG_CAP)), 0.0)
             fb += lobe
-            dfb += np.where(lit, N * lobe / safe, 0.0) * (cz - cx)
+            dfb += N * lobe / safe * (cz - cx)   # 0 where unlit: lobe 0, safe 1
         fb_all[:, :, b] = fb
         F += x[:, None, None, 2 + b] * fb
         dF += x[:, None, None, 2 + b] * dfb
@@ -177,7 +185,7 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
             return (r, J) if scale is None else _tukey(r, J, scale[items])
         # a slope step of 1e-3 is 0.06 deg: below what a dozen noisy samples resolve
         res = levenberg_marquardt(fun, x0, lower=lower, upper=upper, max_iter=max_iter,
-                                  ftol=1e-5, xtol=1e-3)
+                                  ftol=1e-5, xtol=1e-3, keep_jac=False)
         p = np.concatenate([res.x[:, :2], np.ones((len(members), 1))], axis=1)
         normals[members] = p / np.linalg.norm(p, axis=1, keepdims=True)
         out_w[members] = res.x[:, 2:]
