@@ -60,7 +60,7 @@ def paper_experiment(seeds):
         acc = np.mean(match[fit.labels] == d.material) if len(set(match)) == 5 else np.nan
         acc_ref = np.mean(ref.labels == d.material)
         worst_all, gap_all = max(worst_all, worst), max(gap_all, 100 * (acc_ref - acc))
-        print(f"  seed {seed}: {fit.n_materials} materials ({dt:.1f} s CPU), worst kd / N error "
+        print(f"  seed {seed}: {fit.n_materials} materials in {len(fit.materials)} clusters ({dt:.1f} s CPU), worst kd / N error "
               f"{worst:.3f} % (true assignment's fit {ref_worst:.3f} %), labels {100 * acc:.2f} % "
               f"(true assignment's fit {100 * acc_ref:.2f} %)", flush=True)
     print(f"  over the seeds: worst kd / N error {worst_all:.3f} %, labels at most {gap_all:.2f} points "
@@ -87,10 +87,12 @@ def bumpy_object(width: int, png: str | None):
         print(f"    {k:11s} {v:.4f}   paper {PAPER_TABLE2[k]}")
     truth = obj.material_at(lt.position)
     for k, true in enumerate(BUMPY_MATERIALS):
-        main = np.bincount(fit.labels[truth == k], minlength=fit.n_materials).argmax()
+        main = np.bincount(fit.labels[truth == k]).argmax()
         m = fit.materials[main]
+        own = fit.cluster_material[main]
         print(f"  material {k}: {100 * np.mean(fit.labels[truth == k] == main):.1f} % of its texels in "
-              f"cluster {main}: rho_d {np.round(m.rho_d, 3)} (true {np.round(true.rho_d, 3)}), "
+              f"cluster {main}, {100 * np.mean(fit.cluster_material[fit.labels[truth == k]] == own):.1f} % "
+              f"in its material {own}: rho_d {np.round(m.rho_d, 3)} (true {np.round(true.rho_d, 3)}), "
               f"N {np.round(np.asarray(m.n)[0], 1)} (true {np.ravel(true.n)[0]})")
     tx, r = lt.texel[ho], lt.reflectance[ho]
     wi, wo = lt.wi[ho], lt.wo[ho]

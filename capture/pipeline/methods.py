@@ -139,7 +139,7 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
                                 rng=rng, progress=progress, map_blocks=route.map_blocks)
 
     flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight)),
-             "mixed_footprint": int(np.sum(fit.mixed_footprint))}
+             "mixed_footprint": int(np.sum(fit.mixed_footprint)), "material_variant": int(np.sum(fit.variant))}
     arrays = {"labels": np.asarray(fit.labels), "weights": np.asarray(fit.weights, np.float32)}
     if fit.normals is not None:
         arrays["normals"] = np.asarray(fit.normals, np.float32)
@@ -147,7 +147,7 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
                   params={"n_materials": "from the data", "fit_normals": True, "rng": rng,
                           "discovery_texels": opt.discovery_texels, "robust_samples": opt.robust_samples,
                           "relabel_normals": opt.relabel_normals},
-                  figures={"materials": fit.n_materials,
+                  figures={"materials": fit.n_materials, "clusters": len(fit.materials),
                            "material_discovery": f"materials found on {fit.discovery_texels} of {len(fit.labels)} texels", "table_ii_rms": dict(fit.rms),
                            "table_ii_relative_rms": dict(fit.relative_rms), "flagged_texels": flags},
                   normals=None if fit.normals is None else np.asarray(fit.normals, float),

@@ -21,8 +21,10 @@ class SvbrdfOptions:
     Attributes
     ----------
     n_materials : int, optional
-        Number of clusters; None: decided from the data (held-out split test, see
-        :mod:`reconstruct.lensch.clustering`), at most ``max_materials``.
+        Number of clusters, each its own material; None: clusters decided from the data
+        (held-out split test, see :mod:`reconstruct.lensch.clustering`), at most
+        ``max_materials``, and clusters that no held-out test tells apart counted as one
+        material (:attr:`~reconstruct.lensch.SvbrdfFit.cluster_material`).
     n_lobes : int
         Lafortune lobes per material.
     fit_normals : bool
@@ -32,7 +34,7 @@ class SvbrdfOptions:
     noise : {"absolute", "relative"}
         Noise model of the BRDF fits (see :func:`~reconstruct.lensch.fit_lafortune`).
     max_materials : int
-        Cap on clusters when ``n_materials`` is None.
+        Cap on clusters (so on materials) when ``n_materials`` is None.
     cluster_texels : int
         Texels used for clustering, chosen favouring likely highlights (Sec. 7.1). Not fewer
         where each has many samples: on DiLiGenT pot1 clustering ~720 texels (50,000 samples)

@@ -37,11 +37,16 @@ class SvbrdfFit:
     Attributes
     ----------
     labels : ndarray (T,) int
-        Material (cluster) index of every texel: the cluster whose BRDF fits its samples best
-        (Eq. 10; with ``relabel_normals``, each about its own fitted normal); also a best guess
-        for flagged texels.
+        Cluster index of every texel: the cluster whose BRDF fits its samples best (Eq. 10; with
+        ``relabel_normals``, each about its own fitted normal); also a best guess for flagged
+        texels. Its material is ``cluster_material[labels]``.
     materials : tuple of Lafortune
         The cluster BRDFs, ``materials[k]`` for label k (``rho_d`` = pi x the paper's rho_d).
+    cluster_material : ndarray (K,) int
+        The material of each cluster, 0 .. :attr:`n_materials` - 1: clusters that no held-out
+        test tells apart are one material (:meth:`~reconstruct.lensch.clustering._Clusterer.materials`;
+        each cluster is its own material where ``n_materials`` was given). A material's clusters
+        beyond its largest are its variants (:attr:`variant`).
     material_covariance : tuple of ndarray (P, P)
         Covariance of each material's flat parameters (layout of
         :class:`~reconstruct.lensch.LafortuneFit`).
@@ -69,6 +74,12 @@ class SvbrdfFit:
         extrapolated from the cluster, not measured (Sec. 11).
     n_samples : ndarray (T,) int
         Samples per texel.
+    variant : ndarray (T,) bool
+        Texels in a cluster that is not its material's largest: on relief the mesh lacks, the
+        texels that saw a highlight through a normal a few degrees off, which the clustering
+        grouped apart (a broader lobe about the mesh normal fits them) and the held-out test
+        found to be the same material. Their cluster's BRDF still serves them (Sec. 7.4: extra
+        clusters compensate for slightly wrong normals in the projection).
     mixed_footprint : ndarray (T,) bool
         Texels whose normal turns by more than ``max_footprint_spread_deg`` across their pixel
         footprint: left out of material discovery and the materials' fits, then labelled,
@@ -93,12 +104,22 @@ class SvbrdfFit:
     no_highlight: np.ndarray
     n_samples: np.ndarray
     mixed_footprint: np.ndarray
+    cluster_material: np.ndarray
     history: tuple = field(default=())
     discovery_texels: int = 0
 
     @property
     def n_materials(self) -> int:
-        return len(self.materials)
+        """Materials found (clusters that held-out tests tell apart), <= ``len(materials)``."""
+        return int(self.cluster_material.max()) + 1 if len(self.cluster_material) else 0
+
+    @property
+    def variant(self) -> np.ndarray:
+        """(T,) bool: texels outside their material's largest cluster (see the class's attributes)."""
+        main = np.array([max(np.flatnonzero(self.cluster_material == m),
+                             key=lambda k: np.count_nonzero(self.labels == k))
+                         for m in range(self.n_materials)], np.int64)
+        return main[self.cluster_material[self.labels]] != self.labels
 
     def brdf(self, texels=None) -> Lafortune:
         """The per-texel BRDFs as one Lafortune model with per-sample parameters (for the renderer).
@@ -147,12 +168,14 @@ class SvbrdfFit:
     def report(self) -> str:
         cols = "  ".join(f"{k}={'-' if v is None else f'{v:.4g}'}" for k, v in self.rms.items())
         rel = "  ".join(f"{k}={'-' if v is None else f'{v:.4f}'}" for k, v in self.relative_rms.items())
-        return (f"Lensch SVBRDF: {len(self.labels)} texels, {self.n_materials} materials, "
+        return (f"Lensch SVBRDF: {len(self.labels)} texels, {self.n_materials} materials in "
+                f"{len(self.materials)} clusters, "
                 f"{self.weights.shape[1]} basis slots (materials found on {self.discovery_texels} of "
                 f"{len(self.labels)} texels)\n  RMS (1/sr): {cols}\n  relative RMS: {rel}\n"
                 f"  flagged: {int(self.too_few_samples.sum())} with too few samples, "
                 f"{int(self.no_highlight.sum())} without a highlight, "
-                f"{int(self.mixed_footprint.sum())} whose footprint mixes normals (not in material discovery)")
+                f"{int(self.mixed_footprint.sum())} whose footprint mixes normals (not in material discovery), "
+                f"{int(self.variant.sum())} in a variant cluster of their material")
 
 
 def _check_texel(texel, S, normals):
@@ -437,7 +460,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         basis=tuple(tuple(model_of(basis[k, b]) for b in range(size[k])) for k in range(len(mats))),
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
         relative_rms=rel, too_few_samples=counts < opt.min_samples, no_highlight=no_highlight,
-        n_samples=counts, mixed_footprint=mixed, history=(*clus.history, *undone), discovery_texels=len(disc))
+        n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:

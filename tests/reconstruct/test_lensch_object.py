@@ -4,6 +4,8 @@ The fitter gets lumitexels of the *smooth* mesh; the bumps and the engraved ring
 rendered images. Reduced size here (80 x 60 pixels, 36 + 2 frames, ~9,000 texels); the
 benchmark (benchmarks/lensch.py) runs 256 x 192 pixels (~90,000 texels).
 """
+import warnings
+
 import numpy as np
 import pytest
 
@@ -30,7 +32,7 @@ def bumpy_fit():
     held_out = lt.view >= len(views)
     lt.weight = np.where(held_out, 0.0, 1.0).astype(np.float32)  # held-out samples: no weight
     lt.footprint_spread_deg = footprint_normal_spread(lt)        # from the training samples
-    fit = fit_svbrdf_lumitexels(lt, fit_normals=True, normal_rounds=1, max_materials=5, rng=0,
+    fit = fit_svbrdf_lumitexels(lt, fit_normals=True, max_materials=5, rng=0,
                                 max_footprint_spread_deg=FLAG_DEG)
     return obj, lt, held_out, fit
 
@@ -59,25 +61,33 @@ def test_each_material_goes_mostly_to_one_cluster_of_its_colour(bumpy_fit):
                                    rtol=0.1, atol=0.02)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 24, open: 5 materials, not 3. The two extra clusters (~270 texels each, bluish, z 48-69 "
-    "mm) are the blue texels that saw a highlight: with this camera and these lights the "
-    "highlights fall in a band (half-vector ~26 deg up, z ~58 mm) that the engraved ring "
-    "(z 55 mm) crosses, so the specular evidence comes from texels whose mesh normals are "
-    "4-7 deg off (86 % of the main blue cluster never saw a highlight). Leaving texels out by "
-    "the footprint spread, by the true neighbour spread or by the true tilt (all tried) does "
-    "not remove them. The blue main cluster's N is ~45 (70 true): the 2 x 2-pixel bilinear "
-    "footprint spans ~4 deg of the smooth sphere's normals alone, twice that in the mirror "
-    "direction, about the lobe's half width."))
 def test_exactly_the_three_materials_with_their_lobes(bumpy_fit):
+    """Three materials, each true material's texels mostly (> 75 %: 82-99 % here) in one, and the lobe of each
+    material's main cluster within 35 % of the true exponent.
+
+    The clustering makes 5 clusters here: blue texels that saw a highlight through a normal
+    4-7 deg off the mesh's (the highlight band crosses the engraved ring) are fitted apart by a
+    broader lobe. No held-out test tells those clusters from the rest of blue (gains -0.22 to
+    -0.02), so they are one material, and the texels outside its main cluster are flagged
+    (``variant``). Before the materials were judged after the splitting: 5 materials. Blue's N
+    (70 true) stays low because a texel 3-4 x wider than the bumps averages tilted normals, which
+    widens the lobe the data show (45-46 here, 64 on the capture of seed 1)."""
     obj, lt, _, fit = bumpy_fit
     truth = obj.material_at(lt.position)
-    assert fit.n_materials == 3
+    assert fit.n_materials == 3, fit.history
+    for k in range(len(BUMPY_MATERIALS)):
+        share = np.bincount(fit.cluster_material[fit.labels[truth == k]], minlength=3)
+        assert share.max() / share.sum() > 0.75
+    assert len(set(fit.cluster_material[[m for m, _ in _main_clusters(fit, truth)]])) == 3
     for (main, _), true in zip(_main_clusters(fit, truth), BUMPY_MATERIALS):
-        # exponents: a texel 3-4 x wider than the bumps averages tilted normals, which widens
-        # the lobe the data show (sharpest material, N = 70, is hit most)
         np.testing.assert_allclose(np.asarray(fit.materials[main].n)[0],
                                    np.broadcast_to(np.asarray(true.n)[0], (3,)), rtol=0.35)
+    # the flagged texels are mostly blue ones outside its main cluster, and most saw a highlight
+    # (here 79 % against 41 % of the others)
+    variant = fit.variant
+    assert 0.02 < variant.mean() < 0.1
+    assert np.mean(truth[variant] == 1) > 0.6
+    assert np.mean(~fit.no_highlight[variant]) > 1.5 * np.mean(~fit.no_highlight[~variant])
 
 
 def test_footprint_spread_follows_the_relief_and_stays_low_on_a_smooth_sphere(bumpy_fit):
@@ -87,14 +97,21 @@ def test_footprint_spread_follows_the_relief_and_stays_low_on_a_smooth_sphere(bu
     is flagged."""
     obj, lt, _, fit = bumpy_fit
     true_n = obj.normal_at(lt.position)
-    px = np.rint(lt.pixel).astype(int)
-    where = {(int(v), int(x), int(y)): i for i, (v, (x, y)) in enumerate(zip(lt.best_view, px))}
-    true_turn = np.full(lt.n_texels, np.nan)
-    for i, (v, (x, y)) in enumerate(zip(lt.best_view, px)):   # the reference, plainly
-        nb = [where.get((int(v), x + dx, y + dy)) for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1))]
-        ang = [_angle(true_n[i:i + 1], true_n[j:j + 1])[0] for j in nb if j is not None]
-        if ang:
-            true_turn[i] = np.median(ang)
+    # the reference: the median true turn to the texels on the 4 neighbouring pixels of the same
+    # best view (of texels sharing a pixel, the last), looked up in the sorted pixel keys
+    px = np.rint(lt.pixel).astype(np.int64) + 1
+    W, H = px[:, 0].max() + 2, px[:, 1].max() + 2
+    key = (lt.best_view.astype(np.int64) * H + px[:, 1]) * W + px[:, 0]
+    order = np.argsort(key, kind="stable")
+    turns = np.full((lt.n_texels, 4), np.nan)
+    for c, (dx, dy) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1))):
+        want = key + dy * W + dx
+        at = np.maximum(np.searchsorted(key[order], want, side="right") - 1, 0)
+        found = key[order][at] == want
+        turns[found, c] = _angle(true_n[found], true_n[order[at[found]]])
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)   # texels without neighbours: NaN
+        true_turn = np.nanmedian(turns, axis=1)
     flagged = fit.mixed_footprint
     assert np.nanmean(true_turn[flagged]) > 1.5 * np.nanmean(true_turn[~flagged])
     sphere = make_object("sphere")
