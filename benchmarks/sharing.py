@@ -134,7 +134,8 @@ def spatial(out: Path, size: int, counts, max_centers: int) -> None:
     curve = []
     used = [c for c in counts if c <= len(fit.fits["brdf"].order)]
     for c in used:
-        pred = render_distant(SpatialRbfBRDF(fit.fits["brdf"].refit(c), xy), size,
+        pred = render_distant(SpatialRbfBRDF(fit.fits["brdf"].refit(c), xy,
+                                            angular_weight=fit.angular_weight), size,
                               test.directions).radiance
         curve.append(rel_errors(pred, test.radiance))
     print(f"10 inputs, fit to {len(fit.fits['brdf'].order)} centres in {t_fit:.1f} s")
