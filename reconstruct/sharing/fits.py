@@ -282,7 +282,7 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
         Fit over (x, y) and ``models.polar_points(uvw, angular_weight)``: distances in phi_d at
         fixed theta_h weigh this much of those in sin theta_h, so that the images' highlight
         samples at scattered phi_d pool along theta_h (``isotropic`` module docstring; the
-        Sect. 6.1 ramp at 48 px from 10 images: held-out median 0.44 -> 0.29 %; the quick
+        Sect. 6.1 ramp at 64 px from 10 images: held-out median 0.35 -> 0.25 %; the quick
         demo's dichromatic fit: 1.46 -> 1.25 x the floor, docs/zoo.md); None: over (u, v, w)
         as the paper wrote it.
     fit_normals : bool
