@@ -13,7 +13,8 @@ Prints, in one run:
   centres (a render's worth); the same evaluation by scipy's ``RBFInterpolator.__call__``.
 
 PNG plots go to ``--out`` (default ``out/sharing``). ``--quick`` shrinks everything for a smoke
-run. Run with ``OPENBLAS_NUM_THREADS=1`` on a shared machine: the evaluation threads its blocks
+run. ``--angular-weight none`` fits the spatial cases over (x, y, u, v, w) as the paper wrote
+them, not in the polar form. Run with ``OPENBLAS_NUM_THREADS=1`` on a shared machine: the evaluation threads its blocks
 itself and multi-threaded BLAS inside each block oversubscribes the cores.
 """
 from __future__ import annotations
@@ -34,8 +35,8 @@ from reconstruct.brdf import CookTorrance, OrenNayar  # noqa: E402
 from reconstruct.distant import shade_distant  # noqa: E402
 from reconstruct.lensch import fit_lafortune  # noqa: E402
 from reconstruct.metrics import relative_rms  # noqa: E402
-from reconstruct.sharing import (RbfModel, SpatialRbfBRDF, fit_isotropic, fit_rbf,  # noqa: E402
-                                 fit_spatial, samples_from_images)
+from reconstruct.sharing import (ANGULAR_WEIGHT, RbfModel, SpatialRbfBRDF,  # noqa: E402
+                                 fit_isotropic, fit_rbf, fit_spatial, samples_from_images)
 from reconstruct.sharing.baselines import fit_per_point, fit_ward  # noqa: E402
 from sims.distant_scenes import (RingHighlight, hemisphere_lights, ramp_material,  # noqa: E402
                                  render_distant, stratified, theta_d_lights, visible_points)
@@ -115,7 +116,7 @@ def homogeneous(out: Path, size: int, counts, n_lobes: int) -> None:
                ("Ward (median)", e_ward[1], ":")])
 
 
-def spatial(out: Path, size: int, counts, max_centers: int) -> None:
+def spatial(out: Path, size: int, counts, max_centers: int, angular_weight) -> None:
     print(f"== Sect. 6.1: {size}x{size} hemisphere, roughness ramp; 40 held-out lights ==")
     _, xy, _ = visible_points(size)
     material = ramp_material(xy)
@@ -127,14 +128,15 @@ def spatial(out: Path, size: int, counts, max_centers: int) -> None:
         s = samples_from_images(tr.normals, tr.radiance, tr.directions)
         t0 = time.perf_counter()
         fit = fit_spatial(xy[s.point], s.wi, s.wo, s.brdf, texel=s.point, valid=s.valid,
-                          max_centers=centres)
+                          max_centers=centres, angular_weight=angular_weight)
         return fit, time.perf_counter() - t0
 
     fit, t_fit = sharing(10, max_centers)
     curve = []
     used = [c for c in counts if c <= len(fit.fits["brdf"].order)]
     for c in used:
-        pred = render_distant(SpatialRbfBRDF(fit.fits["brdf"].refit(c), xy), size,
+        pred = render_distant(SpatialRbfBRDF(fit.fits["brdf"].refit(c), xy,
+                                            angular_weight=fit.angular_weight), size,
                               test.directions).radiance
         curve.append(rel_errors(pred, test.radiance))
     print(f"10 inputs, fit to {len(fit.fits['brdf'].order)} centres in {t_fit:.1f} s")
@@ -160,14 +162,14 @@ def spatial(out: Path, size: int, counts, max_centers: int) -> None:
           [(k, v[0], "--" if "no" in k else ":") for k, v in rows.items()])
 
 
-def view_and_single_image(size: int, max_centers: int) -> None:
+def view_and_single_image(size: int, max_centers: int, angular_weight) -> None:
     print("== Fig. 7 / Eq. 8: single viewpoint ==")
     normals, xy, _ = visible_points(size)
     material = ramp_material(xy)
     tr = render_distant(material, size, hemisphere_lights(5))
     s = samples_from_images(tr.normals, tr.radiance, tr.directions)
     fit = fit_spatial(xy[s.point], s.wi, s.wo, s.brdf, texel=s.point, valid=s.valid,
-                      max_centers=max_centers)
+                      max_centers=max_centers, angular_weight=angular_weight)
     light = hemisphere_lights(5)[2:3]
     for deg in (10, 20, 30):
         view = np.array([np.sin(np.radians(deg)), 0.0, -np.cos(np.radians(deg))])
@@ -182,7 +184,7 @@ def view_and_single_image(size: int, max_centers: int) -> None:
     one = render_distant(material, size, theta_d_lights([0.3]))
     s1 = samples_from_images(one.normals, one.radiance, one.directions)
     fit1 = fit_spatial(xy[s1.point], s1.wi, s1.wo, s1.brdf, texel=s1.point, valid=s1.valid,
-                       max_centers=max_centers)
+                       max_centers=max_centers, angular_weight=angular_weight)
     near = render_distant(material, size, theta_d_lights([0.25, 0.35]))
     pred = render_distant(fit1.brdf, size, near.directions).radiance
     again = rel_errors(render_distant(fit1.brdf, size, one.directions).radiance, one.radiance)[0]
@@ -190,7 +192,7 @@ def view_and_single_image(size: int, max_centers: int) -> None:
           f"theta_d +-0.05 rad: {100 * rel_errors(pred, near.radiance)[0]:.2f} %")
 
 
-def dichromatic(size: int, max_centers: int) -> None:
+def dichromatic(size: int, max_centers: int, angular_weight) -> None:
     print("== Sect. 7: dichromatic fit, 4 polarized captures, one view (paper's face: 9.5 %) ==")
     _, xy, _ = visible_points(size)
     material = ramp_material(xy, texture=True)
@@ -202,7 +204,8 @@ def dichromatic(size: int, max_centers: int) -> None:
     ss = samples_from_images(dif.normals, sep.specular, lights)
     t0 = time.perf_counter()
     fit = fit_spatial(xy[sd.point], sd.wi, sd.wo, None, texel=sd.point, diffuse=sd.brdf,
-                      specular=ss.brdf, valid=sd.valid, max_centers=max_centers)
+                      specular=ss.brdf, valid=sd.valid, max_centers=max_centers,
+                      angular_weight=angular_weight)
     t_fit = time.perf_counter() - t0
     novel = hemisphere_lights(6, max_angle_deg=30, offset=0.8)
     truth = render_distant(material, size, novel).radiance
@@ -254,16 +257,20 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("out/sharing"))
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke run)")
     ap.add_argument("--only", choices=["homogeneous", "spatial", "view", "dichromatic", "speed"])
+    ap.add_argument("--angular-weight", default=str(ANGULAR_WEIGHT),
+                    help="spatial, view, dichromatic: the polar form's angular weight, or 'none' "
+                         "for (x, y, u, v, w) as the paper")
     a = ap.parse_args()
+    aw = None if a.angular_weight.lower() == "none" else float(a.angular_weight)
     a.out.mkdir(parents=True, exist_ok=True)
     q = a.quick
     counts = (50, 100, 200) if q else (50, 100, 200, 300, 500, 700, 1000)
     parts = {
         "homogeneous": lambda: homogeneous(a.out, 32 if q else 100, counts, 2 if q else 6),
         "spatial": lambda: spatial(a.out, 24 if q else 64, (100, 200, 400) if q else
-                                   (200, 500, 1000, 1500, 2000), 400 if q else 2000),
-        "view": lambda: view_and_single_image(24 if q else 64, 400 if q else 2000),
-        "dichromatic": lambda: dichromatic(24 if q else 64, 400 if q else 2000),
+                                   (200, 500, 1000, 1500, 2000), 400 if q else 2000, aw),
+        "view": lambda: view_and_single_image(24 if q else 64, 400 if q else 2000, aw),
+        "dichromatic": lambda: dichromatic(24 if q else 64, 400 if q else 2000, aw),
         "speed": lambda: speed(5000 if q else 100_000, 300 if q else 2000,
                                64 ** 2 if q else 512 ** 2),
     }

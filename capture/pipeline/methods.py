@@ -24,7 +24,7 @@ from reconstruct.frames import tangent_frames, to_world
 from reconstruct.lensch import ArrayBlocks, SvbrdfOptions, TexelBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.passive import passive_reflectometry
-from reconstruct.sharing import FIT_TEXELS, fit_spatial_blocks
+from reconstruct.sharing import ANGULAR_WEIGHT, FIT_TEXELS, fit_spatial_blocks
 
 from .process import ProcessInputs
 
@@ -156,7 +156,8 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
 
 # -- Zickler et al. 2005 ------------------------------------------------------------------------
 def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, route: BlockRoute | None = None,
-             max_centers: int = 1000, fit_normals: bool = True, m_xy: float = 1.0, fit_texels: int = FIT_TEXELS) -> Fitted:
+             max_centers: int = 1000, fit_normals: bool = True, m_xy: float = 1.0, fit_texels: int = FIT_TEXELS,
+             angular_weight: float | None = ANGULAR_WEIGHT) -> Fitted:
     if train.diffuse is None or train.specular is None:
         raise MethodSkipped("sharing: no polarized frames (the dichromatic model needs parallel and "
                             "crossed captures of each pose)")
@@ -166,7 +167,8 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, ro
         block_texels=max(train.n_texels, 1), diffuse=train.diffuse, specular=train.specular)
     # the per-texel steps per block, the RBFs on at most fit_texels texels' samples
     fit = fit_spatial_blocks(blocks, xy, fit_texels=fit_texels, max_centers=max_centers, fit_normals=fit_normals,
-                             m_xy=m_xy, rng=rng, progress=progress, map_blocks=None if route is None else route.map_blocks)
+                             m_xy=m_xy, angular_weight=angular_weight, rng=rng, progress=progress,
+                             map_blocks=None if route is None else route.map_blocks)
 
     def per_texel(t: np.ndarray) -> BRDF:   # about the fitted normals, where there are
         t = np.asarray(t)
@@ -184,7 +186,7 @@ def _sharing(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, ro
     return Fitted(fit.predict, per_texel, arrays=arrays,
                   params={"surface_xy": "azimuth about the turntable axis and height, scaled to [0, 1]",
                           "max_centers": max_centers, "fit_normals": fit_normals, "m_xy": m_xy, "rng": rng,
-                          "fit_texels": fit_texels},
+                          "fit_texels": fit_texels, "angular_weight": angular_weight},
                   figures=figures, normals=normals)
 
 
@@ -270,7 +272,8 @@ def fit_method(name: str, train: Lumitexels, inputs: ProcessInputs, *, rng: int 
     for a face's [0, 1]^2 blends the materials' lobes: held out 0.42 / 0.51 at 0.3, 0.39 / 0.46
     at 0.6, 0.37 / 0.47 at 1, 0.39 at 2 on the quick demo's bumpy sphere / four-material bunny;
     ``fit_texels``, default :data:`reconstruct.sharing.FIT_TEXELS`: the RBFs' random subsample of
-    texels).
+    texels; ``angular_weight``, default :data:`reconstruct.sharing.ANGULAR_WEIGHT`: (u, v) in
+    polar form, None: as the paper).
     With a ``route``, the :data:`BLOCK_METHODS` read their samples block by block from it and run
     their per-block tasks on its executor (the same figures to 1e-9; passive only runs its
     lighting matrix's blocks of pixels there); the others fit ``train``.

@@ -15,13 +15,13 @@ as linear-RBF interpolants in the joint spatial/angular domain (x, y, u, v, w).
 from .blocks import FIT_TEXELS, fit_spatial_blocks
 from .fits import SpatialFit, fit_spatial, group_median
 from .isotropic import IsotropicFit, ScaleChoice, fit_isotropic
-from .models import RbfBRDF, SpatialRbfBRDF
+from .models import ANGULAR_WEIGHT, RbfBRDF, SpatialRbfBRDF, polar_points
 from .normals import PhotometricNormals, photometric_normals, reframe
 from .rbf import RbfFit, RbfModel, SharingError, fit_rbf
 from .samples import ImageSamples, samples_from_images
 
 __all__ = ["RbfFit", "RbfModel", "SharingError", "fit_rbf", "IsotropicFit", "SpatialFit",
            "fit_isotropic", "ScaleChoice", "fit_spatial", "fit_spatial_blocks", "FIT_TEXELS", "group_median", "RbfBRDF",
-           "SpatialRbfBRDF",
+           "SpatialRbfBRDF", "ANGULAR_WEIGHT", "polar_points",
            "ImageSamples", "samples_from_images", "PhotometricNormals", "photometric_normals",
            "reframe"]

@@ -26,6 +26,7 @@ from ..coords import uvw_from_directions
 from ..lensch.texel_blocks import SampleBlock, TexelBlocks
 from .fits import (MIN_COS, SINGLE_IMAGE_W_SPREAD, SpatialFit, _about_normals, _dichromatic_rbfs, _rbf_space,
                    _samples, _separated, _texel_albedo, _texel_normals, _weight)
+from .models import ANGULAR_WEIGHT, _check_angular_weight
 from .normals import PhotometricNormals
 from .rbf import SharingError
 
@@ -86,7 +87,8 @@ def _serial(fn, args):
 
 
 def fit_spatial_blocks(blocks: TexelBlocks, xy, *, fit_texels: int = FIT_TEXELS, m_xy: float = 0.3,
-                       m_w: float = 0.5, max_centers: int = 2000, fit_normals: bool = False,
+                       m_w: float = 0.5, max_centers: int = 2000,
+                       angular_weight: float | None = ANGULAR_WEIGHT, fit_normals: bool = False,
                        min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
                        progress: Callable[[int, int], None] | None = None,
                        map_blocks: Callable[[Callable, list], list] | None = None) -> SpatialFit:
@@ -103,7 +105,7 @@ def fit_spatial_blocks(blocks: TexelBlocks, xy, *, fit_texels: int = FIT_TEXELS,
     fit_texels : int
         The RBFs are fitted on the samples of at most this many texels, drawn at random among
         those with a used sample (every texel when there are no more).
-    m_xy, m_w, max_centers, fit_normals, min_cos, tol, smoothing, rng, progress
+    m_xy, m_w, max_centers, angular_weight, fit_normals, min_cos, tol, smoothing, rng, progress
         As :func:`~reconstruct.sharing.fit_spatial`'s; ``rng`` also draws the subsample.
     map_blocks : callable(fn, list of argument tuples) -> list, optional
         Runs the per-block tasks (results in order): default one after the other here; the
@@ -130,6 +132,7 @@ def fit_spatial_blocks(blocks: TexelBlocks, xy, *, fit_texels: int = FIT_TEXELS,
     for name, v in (("m_xy", m_xy), ("m_w", m_w)):
         if not v > 0:
             raise SharingError(f"{name} must be > 0, got {v!r}")
+    _check_angular_weight(angular_weight)
     parts = (map_blocks or _serial)(_block_texels, [(blocks, i, fit_normals, min_cos) for i in range(len(blocks.ranges))])
     used = np.concatenate([p.used for p in parts]) if parts else np.zeros(0, np.int64)
     n_used, n_samples = int(used.sum()), sum(p.n_samples for p in parts)
@@ -151,9 +154,10 @@ def fit_spatial_blocks(blocks: TexelBlocks, xy, *, fit_texels: int = FIT_TEXELS,
     if not s.keep.any():
         raise SharingError("wi: no sample of the fitted texels is lit and seen about the fitted normals")
     uvw = uvw_from_directions(s.wi, s.wo)
-    q, scale = _rbf_space(xy[sub][g.texel], uvw, single_image, m_xy, m_w)
+    q, scale = _rbf_space(xy[sub][g.texel], uvw, single_image, m_xy, m_w, angular_weight)
     fits = _dichromatic_rbfs(q, s, dif, spec, _weight(s, None), albedo[sub][g.texel], single_image,
                              dict(scale=scale, max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
                                   progress=progress))
     mode = "dichromatic single-image" if single_image else "dichromatic"
-    return SpatialFit(mode, xy, albedo, fits, n_used, n_samples - n_used, normals, fit_texels=len(sub))
+    return SpatialFit(mode, xy, albedo, fits, n_used, n_samples - n_used, normals, fit_texels=len(sub),
+                      angular_weight=angular_weight)

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from ..brdf import BRDF, Dichromatic, Lambertian
 from ..coords import uvw_from_directions
-from .models import SpatialRbfBRDF
+from .models import ANGULAR_WEIGHT, SpatialRbfBRDF, _check_angular_weight, angular_points
 from .normals import PhotometricNormals, photometric_normals, reframe
 from .rbf import SharingError, fit_rbf
 
@@ -110,10 +110,14 @@ def _texel_albedo(dif: np.ndarray, texel, keep: np.ndarray, n_texels: int) -> np
     return np.where(np.isfinite(albedo), np.maximum(albedo, 0.0), 0.0)
 
 
-def _rbf_space(xy: np.ndarray, uvw: np.ndarray, single_image: bool, m_xy: float, m_w: float):
-    """The RBF's points q = (x, y, u, v[, w]) (S, 4 or 5) and the diagonal of M (Eq. 6)."""
-    q = np.hstack([xy, uvw[:, :2] if single_image else uvw])
-    return q, (m_xy, m_xy, 1.0, 1.0) + (() if single_image else (m_w,))
+def _rbf_space(xy: np.ndarray, uvw: np.ndarray, single_image: bool, m_xy: float, m_w: float,
+               angular_weight: float | None):
+    """The RBF's points q = (x, y, u, v[, w]) (S, 4 or 5), or (x, y) and the polar points
+    (S, 5 or 6) with ``angular_weight``, and the diagonal of M (Eq. 6)."""
+    angular = angular_points(uvw, angular_weight, with_w=not single_image)
+    n_uv = angular.shape[1] - (0 if single_image else 1)
+    return (np.hstack([xy, angular]),
+            (m_xy, m_xy) + (1.0,) * n_uv + (() if single_image else (m_w,)))
 
 
 def _dichromatic_rbfs(q, s: _Samples, dif, spec, w, albedo: np.ndarray, single_image: bool, opts) -> dict:
@@ -184,6 +188,8 @@ class SpatialFit:
         How many texels' samples the RBFs were fitted on (:func:`fit_spatial_blocks`' random
         subsample, every texel when there are no more); None: every sample given. ``n_used``
         and ``n_dropped`` count every texel's samples (the albedo and normals use them all).
+    angular_weight : float or None
+        The RBFs' angular coordinates are ``polar_points`` with this weight; None: (u, v, w).
     """
 
     mode: str
@@ -194,6 +200,7 @@ class SpatialFit:
     n_dropped: int
     normals: PhotometricNormals | None = None
     fit_texels: int | None = None
+    angular_weight: float | None = None
 
     def predict(self, texel, wi, wo) -> np.ndarray:
         """Reflectance ``f_r cos theta_i`` (N, C), 1/sr, of texels ``texel`` (N,) for local unit
@@ -213,11 +220,12 @@ class SpatialFit:
             if texel is None:
                 texel = cKDTree(self.texel_xy).query(xy)[1]
             albedo = self.albedo[np.asarray(texel)]
+        a = self.angular_weight
         if self.mode in ("5d", "single-image"):
-            return SpatialRbfBRDF(self.fits["brdf"].model, xy)
-        spec = SpatialRbfBRDF(self.fits["specular"].model, xy)
+            return SpatialRbfBRDF(self.fits["brdf"].model, xy, angular_weight=a)
+        spec = SpatialRbfBRDF(self.fits["specular"].model, xy, angular_weight=a)
         if self.mode == "dichromatic":
-            return Dichromatic(SpatialRbfBRDF(self.fits["diffuse"].model, xy, albedo), spec)
+            return Dichromatic(SpatialRbfBRDF(self.fits["diffuse"].model, xy, albedo, a), spec)
         return Dichromatic(Lambertian(np.pi * albedo), spec)
 
     @property
@@ -228,18 +236,21 @@ class SpatialFit:
     def report(self) -> str:
         parts = "; ".join(f"{k}: {f.report()}" for k, f in self.fits.items())
         on = "" if self.fit_texels is None else f", RBFs fitted on {self.fit_texels} of {len(self.texel_xy)} texels"
+        if self.angular_weight is not None:
+            on += f", (u, v, w) in polar form, angular weight {self.angular_weight:g}"
         return (f"spatial RBF ({self.mode}) over {len(self.texel_xy)} texels from {self.n_used} "
                 f"samples ({self.n_dropped} dropped{on}). {parts}")
 
 
 def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
                 m_xy: float = 0.3, m_w: float = 0.5, max_centers: int = 2000,
-                fit_normals: bool = False, single_image: bool | None = None, weight=None, valid=None,
+                angular_weight: float | None = ANGULAR_WEIGHT, fit_normals: bool = False, single_image: bool | None = None, weight=None, valid=None,
                 min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
                 progress: Callable[[int, int], None] | None = None) -> SpatialFit:
     """Spatially varying BRDF by reflectance sharing (Zickler et al. Sects. 6-7).
 
-    The samples live in q = (x, y, u, v, w) with M = diag(m_xy, m_xy, 1, 1, m_w) (Eq. 6). When
+    The samples live in q = (x, y, u, v, w) with M = diag(m_xy, m_xy, 1, 1, m_w) (Eq. 6),
+    (u, v) in the polar form of the homogeneous fit (``angular_weight``). When
     every sample has the same theta_d (one image: one distant light and an orthographic view),
     w is constant and dropped: q = (x, y, u, v) (Eq. 8). With ``diffuse`` and ``specular``
     (polarization-separated f_r) the dichromatic model of Eq. 7 is fitted instead:
@@ -267,6 +278,13 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
         Spatial and w scales of M (the paper: m_xy 0.2-0.4, m_w 0.1-0.5).
     max_centers : int
         Centre budget of each RBF.
+    angular_weight : float in (0, 1) or None
+        Fit over (x, y) and ``models.polar_points(uvw, angular_weight)``: distances in phi_d at
+        fixed theta_h weigh this much of those in sin theta_h, so that the images' highlight
+        samples at scattered phi_d pool along theta_h (``isotropic`` module docstring; the
+        Sect. 6.1 ramp at 64 px from 10 images: held-out median 0.35 -> 0.25 %; the quick
+        demo's dichromatic fit: 1.46 -> 1.25 x the floor, docs/zoo.md); None: over (u, v, w)
+        as the paper wrote it.
     fit_normals : bool
         Dichromatic only: first fit each texel's normal to its diffuse samples (Lambertian
         photometric stereo, :func:`reconstruct.sharing.photometric_normals`; Sect. 7.1) and fit
@@ -295,6 +313,7 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
     for name, v in (("m_xy", m_xy), ("m_w", m_w)):
         if not v > 0:
             raise SharingError(f"{name} must be > 0, got {v!r}")
+    _check_angular_weight(angular_weight)
     dichromatic = diffuse is not None or specular is not None
     if dichromatic and (diffuse is None or specular is None):
         raise SharingError("diffuse and specular must be given together (Eq. 7)")
@@ -324,7 +343,7 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
     uvw = uvw_from_directions(s.wi, s.wo)
     if single_image is None:
         single_image = not _w_varies(uvw[s.keep])
-    q, scale = _rbf_space(xy, uvw, single_image, m_xy, m_w)
+    q, scale = _rbf_space(xy, uvw, single_image, m_xy, m_w, angular_weight)
     k = s.keep
     opts = dict(scale=scale, max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
                 progress=progress)
@@ -333,8 +352,9 @@ def fit_spatial(xy, wi, wo, brdf, *, texel=None, diffuse=None, specular=None,
         values = _values("brdf", brdf, n, k)
         fit = fit_rbf(q[k], values[k], weight=w[k], **opts)
         return SpatialFit("single-image" if single_image else "5d", texel_xy, None,
-                          {"brdf": fit}, n_used, n - n_used)
+                          {"brdf": fit}, n_used, n - n_used, angular_weight=angular_weight)
     albedo = _texel_albedo(dif, texel, k, len(texel_xy))
     fits = _dichromatic_rbfs(q, s, dif, spec, w, albedo[texel], single_image, opts)
     mode = "dichromatic single-image" if single_image else "dichromatic"
-    return SpatialFit(mode, texel_xy, albedo, fits, n_used, n - n_used, normals)
+    return SpatialFit(mode, texel_xy, albedo, fits, n_used, n - n_used, normals,
+                      angular_weight=angular_weight)

@@ -44,17 +44,13 @@ import numpy as np
 
 from ..coords import uvw_from_directions
 from .fits import MIN_COS, _samples, _values, _w_varies, _weight
-from .models import RbfBRDF, polar_points
+from .models import ANGULAR_WEIGHT, RbfBRDF, _check_angular_weight, angular_points
 from .rbf import RbfFit, SharingError, fit_rbf
 
 #: log(f_r + offset) is interpolated with offset = LOG_OFFSET x the median f_r of the samples:
 #: small enough that highlights are compressed, large enough that a nearly black channel's
 #: noise is not blown up (0.01 and 0.1 gave the same held-out errors on the sharp lobes).
 LOG_OFFSET = 0.01
-#: Distances around the (u, v) disc (phi_d at fixed theta_h) weigh this much of those along it
-#: (``polar_points``; module docstring). Held-out medians on the zoo at 0.25 / 0.1 / 0.03:
-#: phenolic 5.9 / 4.7 / 4.8 %, gold-metallic-paint 1.4 (0.1) / 2.1 (0.03) %, the others flat.
-ANGULAR_WEIGHT = 0.1
 #: w scales ``m_w="auto"`` chooses from (module docstring; 0.0625 and 0.125 for the narrowest
 #: highlights).
 M_W_CANDIDATES = (0.0625, 0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
@@ -237,8 +233,7 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
                            "least two theta_d (use fit_spatial for the single-image case)")
     if not (m_w == "auto" or (isinstance(m_w, (int, float)) and m_w > 0)):
         raise SharingError(f"m_w must be > 0 or 'auto', got {m_w!r}")
-    if angular_weight is not None and not 0.0 < angular_weight < 1.0:
-        raise SharingError(f"angular_weight must be in (0, 1) or None, got {angular_weight!r}")
+    _check_angular_weight(angular_weight)
     if groups is not None and np.shape(groups) != (len(s.wi),):
         raise SharingError(f"groups must have shape ({len(s.wi)},), got {np.shape(groups)}")
     f = values[k]
@@ -256,7 +251,7 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
 
         def decode(g):
             return np.maximum(g, 0.0)
-    points = uvw if angular_weight is None else polar_points(uvw, angular_weight)
+    points = angular_points(uvw, angular_weight)
     choice = None
     if m_w == "auto":
         labels = _groups(uvw, None if groups is None else np.asarray(groups)[k])

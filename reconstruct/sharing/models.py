@@ -7,7 +7,8 @@ coordinates are Zickler et al.'s (u, v, w) of Eq. 1 (``reconstruct.coords.uvw_fr
 A linear RBF can undershoot below zero between samples; the models clamp f_r at 0. A homogeneous
 model may interpolate log(f_r + offset) instead of f_r (``RbfBRDF.log_offset``) and over the
 polar points of :func:`polar_points` instead of (u, v, w) (``RbfBRDF.angular_weight``), see
-``isotropic.fit_isotropic``.
+``isotropic.fit_isotropic``; a spatial model likewise over (x, y) and the polar points
+(``SpatialRbfBRDF.angular_weight``, ``fits.fit_spatial``).
 """
 from __future__ import annotations
 
@@ -18,6 +19,26 @@ import numpy as np
 from ..brdf.base import BRDF, rgb
 from ..coords import uvw_from_directions
 from .rbf import RbfModel, SharingError
+
+
+#: Distances around the (u, v) disc (phi_d at fixed theta_h) weigh this much of those along it
+#: (:func:`polar_points`; ``isotropic`` module docstring). Held-out medians on the zoo at
+#: 0.25 / 0.1 / 0.03: phenolic 5.9 / 4.7 / 4.8 %, gold-metallic-paint 1.4 (0.1) / 2.1 (0.03) %,
+#: the others flat.
+ANGULAR_WEIGHT = 0.1
+
+
+def _check_angular_weight(angular_weight) -> None:
+    if angular_weight is not None and not 0.0 < angular_weight < 1.0:
+        raise SharingError(f"angular_weight must be in (0, 1) or None, got {angular_weight!r}")
+
+
+def angular_points(uvw: np.ndarray, angular_weight: float | None, with_w: bool = True) -> np.ndarray:
+    """The angular coordinates an RBF is fitted over: (u, v, w) (N, 3), or their
+    :func:`polar_points` (N, 4) when ``angular_weight`` is set; without the last column (w) when
+    not ``with_w`` (one theta_d: Eq. 8)."""
+    points = uvw if angular_weight is None else polar_points(uvw, angular_weight)
+    return points if with_w else points[:, :-1]
 
 
 def polar_points(uvw: np.ndarray, angular_weight: float) -> np.ndarray:
@@ -54,9 +75,7 @@ class RbfBRDF(BRDF):
     angular_weight: float | None = None
 
     def __post_init__(self):
-        if self.angular_weight is not None and not 0.0 < self.angular_weight < 1.0:
-            raise SharingError(f"angular_weight must be in (0, 1) or None, got "
-                               f"{self.angular_weight!r}")
+        _check_angular_weight(self.angular_weight)
         dim, over = (3, "(u, v, w)") if self.angular_weight is None else (4, "polar points")
         if self.model.dim != dim:
             raise SharingError(f"model must be {dim}-D (over {over}), got {self.model.dim}-D")
@@ -65,8 +84,7 @@ class RbfBRDF(BRDF):
 
     def _evaluate(self, wi, wo):
         uvw = uvw_from_directions(wi, wo)
-        g = self.model(uvw if self.angular_weight is None
-                       else polar_points(uvw, self.angular_weight))
+        g = self.model(angular_points(uvw, self.angular_weight))
         if self.log_offset is not None:
             g = np.exp(np.minimum(g, 700.0)) - self.log_offset
         return np.maximum(g, 0.0)
@@ -83,21 +101,29 @@ class SpatialRbfBRDF(BRDF):
     ----------
     model : RbfModel
         Interpolant over (x, y, u, v, w) (D = 5) or, for the single-image case of Eq. 8,
-        (x, y, u, v) (D = 4); 1 or 3 channels.
+        (x, y, u, v) (D = 4); over (x, y) and the :func:`polar_points` (D = 6, or 5 without w)
+        when ``angular_weight`` is set; 1 or 3 channels.
     xy : ndarray, (N, 2) or (2,)
         Surface coordinates of the points the BRDF describes (row i goes with sample row i of
         ``evaluate``), in the units the model was fitted in.
     albedo : ndarray, (N, 3), (3,) or None
         Multiplicative texture a(x) (the dichromatic model's diffuse albedo); None = 1.
+    angular_weight : float, optional
+        Set (in (0, 1)) when the model's angular coordinates are ``polar_points``.
     """
 
     model: RbfModel
     xy: object
     albedo: object = None
+    angular_weight: float | None = None
 
     def __post_init__(self):
-        if self.model.dim not in (4, 5):
-            raise SharingError(f"model must be 4-D or 5-D, got {self.model.dim}-D")
+        _check_angular_weight(self.angular_weight)
+        dims = (4, 5) if self.angular_weight is None else (5, 6)
+        if self.model.dim not in dims:
+            raise SharingError(f"model must be {dims[0]}-D or {dims[1]}-D (over (x, y) and "
+                               f"{'(u, v, w)' if self.angular_weight is None else 'polar points'})"
+                               f", got {self.model.dim}-D")
         xy = np.asarray(self.xy, dtype=np.float64).reshape(-1, 2)
         if not np.all(np.isfinite(xy)):
             raise SharingError("xy contains NaN or infinite values")
@@ -105,7 +131,8 @@ class SpatialRbfBRDF(BRDF):
 
     def _evaluate(self, wi, wo):
         xy = np.broadcast_to(self.xy, (len(wi), 2))
-        q = np.hstack([xy, uvw_from_directions(wi, wo)[:, :self.model.dim - 2]])
+        angular = angular_points(uvw_from_directions(wi, wo), self.angular_weight)
+        q = np.hstack([xy, angular[:, :self.model.dim - 2]])
         f = np.maximum(self.model(q), 0.0)
         return f if self.albedo is None else f * rgb(self.albedo)
 
@@ -115,4 +142,4 @@ class SpatialRbfBRDF(BRDF):
         albedo = self.albedo
         if albedo is not None and np.ndim(albedo) == 2 and len(albedo) > 1:
             albedo = np.asarray(albedo)[index]
-        return SpatialRbfBRDF(self.model, xy, albedo)
+        return SpatialRbfBRDF(self.model, xy, albedo, self.angular_weight)
