@@ -274,3 +274,52 @@ class Bivariate(BRDF):
     def take(self, index) -> "Bivariate":
         """A table is one material: the same model for every sample."""
         return self
+
+
+@dataclass(frozen=True, eq=False)
+class TabulatedCosine(BRDF):
+    """f_r cos theta_i on a (theta_h, theta_d, phi_d) grid over the whole phi_d circle, trilinear:
+    what a point light's image records per unit irradiance.
+
+    Unlike :class:`TabulatedIsotropic` it assumes no reciprocity (phi_d is not folded, so
+    f(wi, wo) and f(wo, wi) are different nodes) and it holds the product a renderer needs: the
+    radiance it renders, f_r cos theta_i, is the interpolated value itself, never a node's f_r
+    divided by a cosine near the horizon and multiplied by another. It is the perfect table of
+    data stored as f_r cos theta (RGL ``.bsdf`` files, ``rgl.py``). Node (i, j, k) of
+    ``table`` (n_h, n_d, n_p, 3), 1/sr RGB, holds f_r cos theta_i at theta_h = (i / n_h)^2 pi/2,
+    theta_d = (j / n_d) pi/2, phi_d = 2 pi k / n_p; NaN marks a node with a direction below the
+    horizon (skipped as in :class:`TabulatedIsotropic`).
+    """
+
+    table: np.ndarray
+
+    def __post_init__(self):
+        t = _check_table("TabulatedCosine", self.table, 3)
+        object.__setattr__(self, "table", t)
+        object.__setattr__(self, "_nodes", _Nodes(t))
+
+    @classmethod
+    def from_brdf(cls, brdf: BRDF, shape=(90, 90, 360)) -> "TabulatedCosine":
+        """Tabulate ``brdf`` (isotropic) times cos theta_i at the nodes (phi_h = 0)."""
+        if len(shape) != 3 or min(shape) < 1:
+            raise ValueError(f"shape must be three positive node counts, got {shape}")
+        n_h, n_d, n_p = shape
+        th, td, pd = np.meshgrid((np.arange(n_h) / n_h) ** 2 * HALF_PI,
+                                 np.arange(n_d) / n_d * HALF_PI,
+                                 np.arange(n_p) / n_p * 2.0 * np.pi, indexing="ij")
+        wi, wo = from_halfway_difference(th, 0.0, td, pd)
+        g = brdf.evaluate(wi, wo) * wi[:, 2:3]
+        g[(wi[:, 2] <= 0) | (wo[:, 2] <= 0)] = np.nan
+        return cls(g.reshape(tuple(shape) + (3,)))
+
+    def _evaluate(self, wi, wo):
+        theta_h, _, theta_d, phi_d = halfway_difference(wi, wo)
+        n_h, n_d, n_p = self.table.shape[:3]
+        coords = (np.sqrt(theta_h / HALF_PI) * n_h, theta_d / HALF_PI * n_d,
+                  np.mod(phi_d, 2.0 * np.pi) / (2.0 * np.pi) * n_p)
+        return self._nodes.interpolate(coords, (n_h, n_d, n_p), (False, False, True)) \
+            / wi[:, 2:3]
+
+    def take(self, index) -> "TabulatedCosine":
+        """A table is one material: the same model for every sample."""
+        return self

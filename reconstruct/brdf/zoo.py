@@ -5,11 +5,14 @@ method on data it was not designed around.
   masking and Schlick Fresnel over an Oren-Nayar body);
 - :func:`measured_zoo`: the measured materials of a ``brdfs`` data folder (NBRDF fits of the
   MERL 100 and Nielsen 8 in ``nbrdf-merl/``, ``nbrdf-nielsen/``; RGL ``.bsdf`` files in
-  ``rgl/``; MERL ``.binary`` files anywhere below), loaded on first use.
+  ``rgl/``; MERL ``.binary`` files anywhere below), loaded on first use;
+- :class:`NearestReciprocal`: how close any reciprocal model can come to a measured material
+  that is not reciprocal (the RGL files are not, as Mitsuba evaluates them: docs/zoo.md).
 """
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..merl import read_merl
@@ -81,3 +84,28 @@ def measured_zoo(root: str | os.PathLike, names=None) -> dict[str, BRDF]:
             raise ValueError(f"{root}: no measured material named {unknown}")
         files = {n: files[n] for n in names}
     return {n: load_measured(p) for n, p in files.items()}
+
+
+@dataclass(frozen=True, eq=False)
+class NearestReciprocal(BRDF):
+    """The reciprocal BRDF nearest to ``brdf`` in point-light radiance.
+
+    At each direction pair (local frame, normal +z) it takes the value g minimising
+    (cos theta_i (g - f(wi, wo)))^2 + (cos theta_o (g - f(wo, wi)))^2, the radiance errors of
+    the pair lit from either side under unit irradiance:
+
+        g = (cos^2 theta_i f(wi, wo) + cos^2 theta_o f(wo, wi)) / (cos^2 theta_i + cos^2 theta_o).
+
+    A reciprocal model (a (theta_h, theta_d, phi_d mod pi) table, reflectance sharing's
+    (u, v, w)) cannot tell the two orderings apart, so its images of a non-reciprocal material
+    are this far off at best: the floor of such models. f_r in 1/sr, RGB.
+    """
+
+    brdf: BRDF
+
+    def _evaluate(self, wi, wo):
+        ci, co = wi[:, 2:3] ** 2, wo[:, 2:3] ** 2
+        return (ci * self.brdf.evaluate(wi, wo) + co * self.brdf.evaluate(wo, wi)) / (ci + co)
+
+    def take(self, index) -> "NearestReciprocal":
+        return NearestReciprocal(self.brdf.take(index))
