@@ -18,7 +18,9 @@ Prints, in one run:
    for the analytic zoo (sharp: Ashikhmin-Shirley, GGX over Oren-Nayar; smooth: retro, sheen)
    and measured materials (NBRDF fits of MERL / Nielsen, RGL files). ``--profile NAME``
    instead prints one material's highlight along theta_h at held-out theta_d (truth, and the
-   fit's ratio to it with and without the polar form, at phi_d 90 and 0 deg).
+   fit's ratio to it with and without the polar form, at phi_d 90 and 0 deg); ``--rgl``
+   prints why the two RGL rows miss (their asymmetry, floors, where the held-out error lies,
+   the fit fed the nearest reciprocal BRDF's images).
 2. Passive reflectometry, Romeiro et al. Fig. 6: per MERL material (every ``--every``-th from
    ``--offset``), one ``--sphere`` px image of a sphere under Grace Cathedral (``--env-height``
    rows), the prior learned from the *other* MERL materials (leave-one-out, as the paper did):
@@ -53,6 +55,7 @@ import numpy as np  # noqa: E402
 from reconstruct.brdf import Bivariate, TabulatedIsotropic  # noqa: E402
 from reconstruct.brdf.rgl import RglBRDF  # noqa: E402
 from reconstruct.brdf.tabulated import TabulatedCosine  # noqa: E402
+from reconstruct.coords import halfway_difference  # noqa: E402
 from reconstruct.brdf.zoo import (NearestReciprocal, analytic_zoo, load_measured,  # noqa: E402
                                   measured_files)
 from reconstruct.distant import shade_distant, sphere_normals  # noqa: E402
@@ -64,7 +67,7 @@ from reconstruct.passive_prior import learn_prior  # noqa: E402
 from reconstruct.sharing import fit_isotropic, samples_from_images  # noqa: E402
 from reconstruct.sharing.isotropic import ANGULAR_WEIGHT  # noqa: E402
 from reconstruct.sharing.baselines import fit_ward  # noqa: E402
-from sims.distant_scenes import render_distant, stratified, theta_d_lights  # noqa: E402
+from sims.distant_scenes import VIEW, render_distant, stratified, theta_d_lights  # noqa: E402
 
 DATA = Path(os.environ.get("GONIO_SHARED_DATA",
                            Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -144,6 +147,75 @@ def sharing_section(names, size: int, angular_weight) -> None:
         print(f"{name[:27] + (' ' + kind if kind else ''):34s}"
               + "".join(f"{100 * row[c][1]:8.2f}/{100 * row[c][0]:7.2f}" for c in cols)
               + f"{m_w:6.2g}{t_fit:6.1f}s", flush=True)
+
+
+def rgl_section(size: int) -> None:
+    """Why the RGL rows miss their targets: per file, how far f(a, b) and f(b, a) differ
+    (median over random pairs, by the larger elevation and by theta_h), the floors (the f_r
+    table folded by reciprocity, the f_r cos theta_i table, the nearest reciprocal BRDF), where
+    in the five median held-out images the RBF's and the reciprocal floor's squared error lies
+    (light or view beyond 80 deg; theta_h < 10 deg), and the RBF fed the nearest reciprocal
+    BRDF's images instead (no conflicting orderings)."""
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(2, 200_000, 3))
+    a[:, 2], b[:, 2] = np.abs(a[:, 2]), np.abs(b[:, 2])
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    elevation = np.degrees(np.arccos(np.minimum(a[:, 2], b[:, 2])))
+    theta_h = np.degrees(halfway_difference(a, b)[0])
+    for name in [n for n in SHARING_MEASURED if n.startswith("rgl/")]:
+        truth = load_truth(name)
+        f, g = truth.evaluate(a, b).mean(axis=1), truth.evaluate(b, a).mean(axis=1)
+        asym = np.abs(f - g) / (0.5 * (f + g) + 1e-12)
+        print(f"== {name}: |f(a, b) - f(b, a)| / mean, median over 200,000 random pairs: "
+              f"{100 * np.median(asym):.1f} % ==")
+        print("  by the larger elevation (deg): " + ", ".join(
+            f"{lo}-{hi}: {100 * np.median(asym[(elevation >= lo) & (elevation < hi)]):.1f} %"
+            for lo, hi in ((0, 30), (30, 50), (50, 65), (65, 75), (75, 85), (85, 90))))
+        low, th_low = asym[elevation < 65], theta_h[elevation < 65]
+        print("  both within 65 deg, by theta_h (deg): " + ", ".join(
+            f"{lo}-{hi}: {100 * np.median(low[(th_low >= lo) & (th_low < hi)]):.1f} %"
+            for lo, hi in ((0, 2), (2, 5), (5, 10), (10, 20), (20, 40), (40, 90))))
+        train = render_distant(truth, size, theta_d_lights(stratified(10)))
+        test = render_distant(truth, size, theta_d_lights(stratified(21)))
+        nearest = NearestReciprocal(truth)
+        rec = render_distant(nearest, size, test.directions).radiance
+        floors = {"f_r table 90x90x180": TabulatedIsotropic.from_brdf(truth),
+                  "f_r cos table 90x90x360": TabulatedCosine.from_brdf(truth)}
+        for label, model in floors.items():
+            pooled, median = held_out_errors(
+                render_distant(model, size, test.directions).radiance, test.radiance)
+            print(f"  floor, {label}: {100 * median:.2f} / {100 * pooled:.3g} %")
+        pooled, median = held_out_errors(rec, test.radiance)
+        print(f"  floor, nearest reciprocal: {100 * median:.2f} / {100 * pooled:.2f} %")
+        s = samples_from_images(train.normals, train.radiance, train.directions)
+        fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
+        pred = render_distant(fit.brdf, size, test.directions).radiance
+        per = np.sqrt(((pred - test.radiance) ** 2).sum(axis=(1, 2))
+                      / np.maximum((test.radiance ** 2).sum(axis=(1, 2)), 1e-300))
+        lit = np.flatnonzero(test.radiance.max(axis=(1, 2)) > 0)
+        middle = lit[np.argsort(per[lit])][len(lit) // 2 - 2:len(lit) // 2 + 3]
+        view = np.asarray(VIEW, float)  # towards the camera, as the light directions
+        cos_v = test.normals @ view
+        for label, image in (("RBF", pred), ("reciprocal floor", rec)):
+            sq = ((image[middle] - test.radiance[middle]) ** 2).sum(axis=2)
+            cos_l = test.normals @ test.directions[middle].T  # (P, 5)
+            half = test.directions[middle] + view
+            half /= np.linalg.norm(half, axis=1, keepdims=True)
+            grazing = (cos_l.T > 0) & ((cos_l.T < np.cos(np.radians(80)))
+                                       | (cos_v < np.cos(np.radians(80)))[None])
+            peak = (test.normals @ half.T).T > np.cos(np.radians(10))
+            print(f"  {label}: the five median held-out images' squared error: "
+                  f"{sq[grazing].sum() / sq.sum():.0%} at pixels with light or view beyond "
+                  f"80 deg, {sq[peak].sum() / sq.sum():.0%} at theta_h < 10 deg")
+        print(f"  RBF (m_w {fit.m_w:g}): {100 * np.median(per[lit]):.2f} % median")
+        train_rec = render_distant(nearest, size, theta_d_lights(stratified(10)))
+        s = samples_from_images(train_rec.normals, train_rec.radiance, train_rec.directions)
+        fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
+        pred = render_distant(fit.brdf, size, test.directions).radiance
+        print(f"  RBF fed the nearest reciprocal BRDF's images (m_w {fit.m_w:g}): "
+              f"{100 * held_out_errors(pred, test.radiance)[1]:.2f} % median off the truth, "
+              f"{100 * held_out_errors(pred, rec)[1]:.2f} % off the reciprocal images", flush=True)
 
 
 def highlight_profile(name: str, size: int, held_out=(10, 11, 12, 14)) -> None:
@@ -283,6 +355,8 @@ def main():
                     help="sharing: the polar form's angular weight, or 'none' for (u, v, w)")
     ap.add_argument("--profile", metavar="NAME",
                     help="sharing: print NAME's highlight profile at held-out theta_d instead")
+    ap.add_argument("--rgl", action="store_true",
+                    help="sharing: why the RGL rows miss (asymmetry, floors, where the error is)")
     ap.add_argument("--quick", action="store_true", help="small sizes, few materials")
     args = ap.parse_args()
     if not (DATA / "brdfs").is_dir() or not (DATA / "probes").is_dir():
@@ -292,6 +366,9 @@ def main():
     names = list(analytic_zoo()) + list(SHARING_MEASURED)
     if args.profile:
         highlight_profile(args.profile, args.size)
+        return
+    if args.rgl:
+        rgl_section(args.size)
         return
     if args.only != "passive":
         sharing_section(names[:3] if args.quick else names, args.size,
