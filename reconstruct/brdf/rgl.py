@@ -29,7 +29,7 @@ does, and kept by Mitsuba. The two files' directional albedos at normal view mat
 independent evaluator's to 1-2 % (matte paint 0.240 0.057 0.061, glossy vinyl 0.518 0.308
 0.032). The data are not reciprocal, in Mitsuba as here: over random pairs f(a, b) and f(b, a)
 differ by 4 % (matte paint) and 18 % (vinyl) median, most where a direction is beyond 75 deg
-and, on the vinyl, on the highlight's flank (theta_h 5-20 deg: 12-23 %); the cosine on the
+and, on the vinyl, on the highlight's flank (theta_h 5-20 deg: 13-23 %); the cosine on the
 other direction, or none, would make that 49-93 % (docs/zoo.md).
 
 References
