@@ -25,6 +25,7 @@ Timings are wall-clock and CPU on whatever machine runs it.
 from __future__ import annotations
 
 import argparse
+import ast
 import sys
 import time
 from pathlib import Path
@@ -92,13 +93,20 @@ def main(argv=None) -> None:
     ap.add_argument("--objects", default="pot1,bear,goblet")
     ap.add_argument("--ablation", action="store_true")
     ap.add_argument("--rng", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="an SvbrdfOptions setting over the final configuration (a Python literal), "
+                         "e.g. --set peak_ratio=1.5 --set lobes_alone=True")
     a = ap.parse_args(argv)
+    final = {**FINAL}
+    for item in a.set:
+        name, _, value = item.partition("=")
+        final[name] = ast.literal_eval(value)
     if not DATA.is_dir():
         sys.exit(f"{DATA} is absent (it ships beside the repository)")
     objects = [o for o in a.objects.split(",") if o]
     rows: dict[str, dict[str, float]] = {}
     relight: dict[str, dict[str, float]] = {}
-    configs = ABLATION if a.ablation else {"lensch": FINAL}
+    configs = ABLATION if a.ablation else {"lensch": final}
     for obj in objects:
         t = time.perf_counter()
         data = read_diligent(DATA / obj)
@@ -127,6 +135,9 @@ def main(argv=None) -> None:
             print(f"  {label}: {fit.n_materials} material(s), normals "
                   f"{rows[label][obj]:.2f} deg, held-out rel. RMS {rel:.4f}, {secs:.1f} s wall, {cpu:.1f} s CPU "
                   f"(stages' CPU: {', '.join(f'{s:.1f}' for s in stage_s)} s; clustering first)", flush=True)
+            for line in fit.history:
+                if line.startswith("normal-fitting"):
+                    print(f"    {line}", flush=True)
     print("\n== mean angular error of the normals (deg); published rows: 16-bit, all pixels ==")
     head = f"{'method':40s}" + "".join(f"{o:>9s}" for o in objects) + f"{'mean':>9s}"
     print(head)
