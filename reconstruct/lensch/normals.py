@@ -8,6 +8,10 @@ zenith). Because the model is isotropic, only n.wi, n.wo and wi.wo enter, so no 
 
 All texels are solved together by the batched Levenberg-Marquardt (texels grouped by sample
 count, samples padded within a group); :func:`fit_normals_chunk` is a pure function of a chunk.
+On real photographs the fit can lose a texel's highlight (its brightest samples left out,
+light the object reflects onto itself pulling the lobe elsewhere): the optional peak test finds
+such texels by their brightest sample, far above the fitted model, and holds their normals near
+that sample's half vector (docs/diligent.md, round lensch7).
 """
 from __future__ import annotations
 
@@ -175,7 +179,8 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
         ``tukey_c`` x 1.4826 x the texel's median residual at the start (+z, the given weights)
         instead of the squared residuals (None).
     peak_weight : ndarray (S,), optional
-        Weights of all the texels' samples (before any robust selection) for the peak test.
+        Weights of all the texels' samples (before any robust selection) for the peak test and
+        the refit of the texels it flags (default ``weight``).
     peak_ratio : float, optional
         The peak test (None: none): where a texel's brightest sample (among ``peak_weight`` > 0)
         exceeds ``peak_ratio`` x what the fitted model predicts there, the fit has lost the
@@ -232,7 +237,7 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
                                   ftol=1e-5, xtol=1e-3, keep_jac=False)
         x = res.x
         if peak_ratio is not None:
-            Pw = _padded(texel, peak_weight, n, counts, members, width)[0] * valid
+            Pw = _padded(texel, weight if peak_weight is None else peak_weight, n, counts, members, width)[0] * valid
             lost, slopes = _peak_test(x, U, V, R, Pw, basis_t, peak_ratio)
             if lost.any():
                 x = x.copy()
