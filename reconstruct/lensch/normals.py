@@ -185,7 +185,9 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
         The peak test (None: none): where a texel's brightest sample (among ``peak_weight`` > 0)
         exceeds ``peak_ratio`` x what the fitted model predicts there, the fit has lost the
         texel's highlight; its normal is fitted again from the half vector of that sample, on
-        all its samples, its slopes held within ``peak_hold`` of the half vector's.
+        all its samples, its slopes held within ``peak_hold`` of the half vector's, and kept
+        where it fits all those samples at least as well as the free fit's (under Tukey's loss
+        with ``tukey_c``: light no lobe about either normal explains counts little).
 
     Returns
     -------
@@ -241,8 +243,10 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
             lost, slopes = _peak_test(x, U, V, R, Pw, basis_t, peak_ratio)
             if lost.any():
                 x = x.copy()
-                x[lost] = _held_at_peak(x[lost], slopes[lost], peak_hold, U[lost], V[lost], R[lost], Pw[lost],
-                                        basis_t[lost], lower[lost], upper[lost], tukey_c, max_iter)
+                held, better = _held_at_peak(x[lost], slopes[lost], peak_hold, U[lost], V[lost], R[lost],
+                                             Pw[lost], basis_t[lost], lower[lost], upper[lost], tukey_c, max_iter)
+                keep = np.flatnonzero(lost)[better]
+                x[keep] = held[better]
         p = np.concatenate([x[:, :2], np.ones((len(members), 1))], axis=1)
         normals[members] = p / np.linalg.norm(p, axis=1, keepdims=True)
         out_w[members] = x[:, 2:]
@@ -252,7 +256,9 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
 
 def _held_at_peak(x, slopes, hold, U, V, R, W, basis_t, lower, upper, tukey_c, max_iter):
     """Parameters (m, 2 + B) of texels refitted from the peak's half-vector ``slopes`` (m, 2) with
-    the slopes held within ``hold`` of them, on the samples ``W``."""
+    the slopes held within ``hold`` of them, on the samples ``W``; and whether they fit those
+    samples at least as well as the free fit's parameters ``x`` (m,) bool, under Tukey's loss
+    (``tukey_c``, its scale the texel's robust sigma about the peak) or least squares."""
     x0 = np.concatenate([slopes, x[:, 2:]], axis=1)
     lo, hi = lower.copy(), upper.copy()
     lo[:, :2] = np.maximum(slopes - hold, -MAX_SLOPE)
@@ -263,5 +269,8 @@ def _held_at_peak(x, slopes, hold, U, V, R, W, basis_t, lower, upper, tukey_c, m
     def fun(xx, items):
         r, J = _mixture(xx, U[items], V[items], R[items], W[items], basis_t[items])
         return (r, J) if scale is None else _tukey(r, J, scale[items])
-    return levenberg_marquardt(fun, x0, lower=lo, upper=hi, max_iter=max_iter, ftol=1e-5, xtol=1e-3,
-                               keep_jac=False).x
+    res = levenberg_marquardt(fun, x0, lower=lo, upper=hi, max_iter=max_iter, ftol=1e-5, xtol=1e-3,
+                              keep_jac=False)
+    everyone = np.arange(len(x))
+    free = fun(x, everyone)[0]
+    return res.x, res.cost <= 0.5 * np.einsum("mk,mk->m", free, free)
