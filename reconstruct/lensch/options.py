@@ -186,9 +186,12 @@ class SvbrdfOptions:
             raise SvbrdfError(f"tukey_cutoff must be > 0 robust sigmas or None, got {self.tukey_cutoff!r}")
         if self.peak_ratio is not None and not self.peak_ratio > 0:
             raise SvbrdfError(f"peak_ratio must be > 0 or None, got {self.peak_ratio!r}")
-        if self.lm_stall is not None and not (len(self.lm_stall) == 2 and int(self.lm_stall[0]) >= 1
-                                              and 0 < self.lm_stall[1] < 1):
-            raise SvbrdfError(f"lm_stall must be (window >= 1, 0 < rtol < 1) or None, got {self.lm_stall!r}")
+        stall = self.lm_stall
+        if stall is not None and not (isinstance(stall, (tuple, list)) and len(stall) == 2
+                                      and isinstance(stall[0], (int, np.integer)) and not isinstance(stall[0], bool)
+                                      and stall[0] >= 1 and isinstance(stall[1], (int, float, np.floating))
+                                      and 0 < stall[1] < 1):
+            raise SvbrdfError(f"lm_stall must be (window: an integer >= 1, rtol in (0, 1)) or None, got {stall!r}")
         if not 0 <= self.brightest_dropped < 1:
             raise SvbrdfError(f"brightest_dropped must be a share in [0, 1), got {self.brightest_dropped!r}")
         if not self.max_footprint_spread_deg > 0:   # also refuses NaN

@@ -2,9 +2,11 @@
 ``peak_ratio``) and the basis slot of a material's lobes alone (``make_bases(lobes_alone=True)``),
 on synthetic lumitexels of a sharp lobe whose true normals are known."""
 import numpy as np
+import pytest
 
 from reconstruct.brdf import Lafortune
 from reconstruct.frames import tangent_frames, to_local, to_world
+from reconstruct.lensch import SvbrdfError, SvbrdfOptions
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.normals import fit_normals_chunk
 from reconstruct.lensch.projection import make_bases, project_chunk
@@ -95,3 +97,15 @@ def test_the_lobes_alone_slot_frees_a_texels_highlight_from_its_diffuse():
         w, sse[alone] = project_chunk(texel, t, z, wi[:, 2], refl, np.ones(len(t)), labels, basis, size)
         assert w.shape == (T, basis.shape[1])
     assert sse[True].sum() < 1e-6 * sse[False].sum(), (sse[True].sum(), sse[False].sum())
+
+
+@pytest.mark.parametrize("setting, message", [
+    ({"peak_ratio": 0.0}, "peak_ratio must be > 0 or None, got 0.0"),
+    ({"peak_ratio": float("nan")}, "peak_ratio must be > 0"),
+    ({"lm_stall": (0, 1e-4)}, r"lm_stall must be \(window: an integer >= 1, rtol in \(0, 1\)\) or None, got \(0, 0.0001\)"),
+    ({"lm_stall": (20, 1.5)}, "lm_stall must be"),
+    ({"lm_stall": 20}, "lm_stall must be .* got 20"),
+])
+def test_bad_settings_name_themselves(setting, message):
+    with pytest.raises(SvbrdfError, match=message):
+        SvbrdfOptions(**setting)
