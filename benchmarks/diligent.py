@@ -19,12 +19,15 @@ For each object of ``../shared/data/diligent`` (8-bit crops; every 4th light hel
 buys: frames from least squares with every sample; from the robust normals; plus robust sample
 selection; plus a second lobe; plus each texel's brightest 10 % of samples left out of normal
 fitting (ST14's low-intensity part); plus robust selection within 1.5 instead of 3 sigma; plus
-Tukey's biweight loss (cut off at 2 robust sigmas of each texel's residuals) in the normal fit.
+Tukey's biweight loss (cut off at 2 robust sigmas of each texel's residuals) in the normal fit;
+plus each material's lobes alone in its projection basis; plus the peak test; plus the
+Lafortune fits stopped where they crawl (the final configuration, ``LENSCH_OPTIONS``).
 Timings are wall-clock and CPU on whatever machine runs it.
 """
 from __future__ import annotations
 
 import argparse
+import ast
 import sys
 import time
 from pathlib import Path
@@ -35,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from capture.importers import read_diligent  # noqa: E402
-from capture.pipeline.imported import ImportedInputs  # noqa: E402
+from capture.pipeline.imported import LENSCH_OPTIONS, ImportedInputs  # noqa: E402
 from reconstruct.lensch import SvbrdfOptions, fit_svbrdf_lumitexels  # noqa: E402
 from reconstruct.metrics import relative_rms  # noqa: E402
 from reconstruct.photometric_stereo import angular_error_deg  # noqa: E402
@@ -48,8 +51,9 @@ PUBLISHED = {"L2 (least squares)": {"pot1": 8.89, "bear": 8.39, "goblet": 18.50}
              "ST14": {"pot1": 6.51, "bear": 6.12, "goblet": 10.09},
              "PS-FCN (learned)": {"pot1": 7.13, "bear": 7.55, "goblet": 8.60}}
 #: Lensch options of the final configuration (what ``gonio process`` runs on an imported set).
-FINAL = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2, "robust_spread": 1.5,
-         "brightest_dropped": 0.1, "tukey_cutoff": 2.0}
+FINAL = {"frames_from": "robust", **LENSCH_OPTIONS}
+_TUKEY = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2, "robust_spread": 1.5,
+          "brightest_dropped": 0.1, "tukey_cutoff": 2.0}
 _TWO_LOBES = {"frames_from": "robust", "robust_samples": True, "n_lobes": 2}
 ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "robust_samples": False,
                                                "n_lobes": 1},
@@ -58,7 +62,10 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ second lobe": _TWO_LOBES,
             "+ brightest 10 % dropped": {**_TWO_LOBES, "brightest_dropped": 0.1},
             "+ samples within 1.5 sigma": {**_TWO_LOBES, "brightest_dropped": 0.1, "robust_spread": 1.5},
-            "+ Tukey loss (2 sigma) in the normal fit": FINAL}
+            "+ Tukey loss (2 sigma) in the normal fit": _TUKEY,
+            "+ each material's lobes alone in the basis": {**_TUKEY, "lobes_alone": True},
+            "+ the peak test (3x)": {**_TUKEY, "lobes_alone": True, "peak_ratio": 3.0},
+            "+ Lafortune fits stopped where they crawl (final)": FINAL}
 
 
 def lambertian_relighting(inp: ImportedInputs, ps) -> float:
@@ -92,13 +99,20 @@ def main(argv=None) -> None:
     ap.add_argument("--objects", default="pot1,bear,goblet")
     ap.add_argument("--ablation", action="store_true")
     ap.add_argument("--rng", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="an SvbrdfOptions setting over the final configuration (a Python literal), "
+                         "e.g. --set peak_ratio=1.5 --set lobes_alone=True")
     a = ap.parse_args(argv)
+    final = {**FINAL}
+    for item in a.set:
+        name, _, value = item.partition("=")
+        final[name] = ast.literal_eval(value)
     if not DATA.is_dir():
         sys.exit(f"{DATA} is absent (it ships beside the repository)")
     objects = [o for o in a.objects.split(",") if o]
     rows: dict[str, dict[str, float]] = {}
     relight: dict[str, dict[str, float]] = {}
-    configs = ABLATION if a.ablation else {"lensch": FINAL}
+    configs = ABLATION if a.ablation else {"lensch": final}
     for obj in objects:
         t = time.perf_counter()
         data = read_diligent(DATA / obj)
@@ -121,12 +135,15 @@ def main(argv=None) -> None:
               f"{t_inputs:.1f} s ==", flush=True)
         for name, opts in configs.items():
             fit, secs, cpu, stage_s, rel = run_lensch(per_frames[opts["frames_from"]], opts, a.rng)
-            label = name if a.ablation else "Lensch (final: robust frames, samples and loss, 2 lobes)"
+            label = name if a.ablation else "Lensch (final: LENSCH_OPTIONS)"
             rows.setdefault(label, {})[obj] = inp.normal_errors(fit.normals)
             relight.setdefault(label, {})[obj] = rel
             print(f"  {label}: {fit.n_materials} material(s), normals "
                   f"{rows[label][obj]:.2f} deg, held-out rel. RMS {rel:.4f}, {secs:.1f} s wall, {cpu:.1f} s CPU "
                   f"(stages' CPU: {', '.join(f'{s:.1f}' for s in stage_s)} s; clustering first)", flush=True)
+            for line in fit.history:
+                if line.startswith("normal-fitting"):
+                    print(f"    {line}", flush=True)
     print("\n== mean angular error of the normals (deg); published rows: 16-bit, all pixels ==")
     head = f"{'method':40s}" + "".join(f"{o:>9s}" for o in objects) + f"{'mean':>9s}"
     print(head)

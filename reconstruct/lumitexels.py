@@ -31,6 +31,7 @@ import trimesh
 
 from .camera import CameraModel
 from .frames import tangent_frames, to_local, to_world
+from .photometric_stereo import texel_normal_equations
 from .raycast import Mesh, Surface, first_hits, occluded
 
 
@@ -180,13 +181,9 @@ def _photometric_normals(lt: Lumitexels) -> tuple[np.ndarray, np.ndarray]:
     r = lt.reflectance.sum(axis=1, dtype=np.float64)
     wi = lt.wi.astype(np.float64)
     w0 = (lt.weight > 0).astype(np.float64)
-    pairs = [(i, j) for i in range(3) for j in range(i, 3)]
 
     def solve(w):
-        A = np.zeros((P, 3, 3))
-        for i, j in pairs:
-            A[:, i, j] = A[:, j, i] = np.bincount(tx, w * wi[:, i] * wi[:, j], P)
-        b = np.stack([np.bincount(tx, w * r * wi[:, i], P) for i in range(3)], axis=1)
+        A, b = texel_normal_equations(tx, wi, r, w, P)
         return A, np.linalg.solve(A + 1e-12 * np.eye(3), b[..., None])[..., 0]
 
     w = w0

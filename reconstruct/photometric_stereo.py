@@ -208,3 +208,21 @@ def angular_error_deg(n_est: np.ndarray, n_true: np.ndarray) -> np.ndarray:
     """Angle between unit normals (..., 3) in degrees."""
     dot = np.sum(np.asarray(n_est, float) * np.asarray(n_true, float), axis=-1)
     return np.degrees(np.arccos(np.clip(dot, -1.0, 1.0)))
+
+
+def texel_normal_equations(texel: np.ndarray, wi: np.ndarray, value: np.ndarray, weight: np.ndarray,
+                           n_texels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-texel normal equations of the Lambertian least squares ``value = g . wi`` over samples
+    scattered across texels: ``A = sum w wi wi^T`` (T, 3, 3) and ``b = sum w value wi`` (T, 3).
+
+    ``texel`` (S,) int in [0, ``n_texels``); ``wi`` (S, 3) unit directions to the light in the
+    frame ``g`` is wanted in; ``value`` (S,) the channel-summed reflectance; ``weight`` (S,).
+    Solving ``A g = b`` gives ``g = rho n / pi`` in ``wi``'s frame (lumitexels' photometric
+    normals, reflectance sharing's diffuse normals).
+    """
+    A = np.empty((n_texels, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            A[:, i, j] = A[:, j, i] = np.bincount(texel, weight * (wi[:, i] * wi[:, j]), minlength=n_texels)
+    b = np.stack([np.bincount(texel, weight * value * wi[:, i], minlength=n_texels) for i in range(3)], axis=1)
+    return A, b

@@ -190,6 +190,7 @@ class _Clusterer:
         self.min_gain = min_gain
         self.z_min = z_min
         self.lo, self.hi = _bounds(1 + 3 * n_lobes)
+        self.stall = None
 
     def fit(self, members: np.ndarray, init=None, rng=None) -> LafortuneFit:
         """The cluster's BRDF on (at most :data:`FIT_SAMPLES` samples of) its ``members``, drawn
@@ -200,7 +201,7 @@ class _Clusterer:
             np.ones(len(self.smp.texel), bool)
         t, z, c, r, w = self.smp.take(keep)
         return fit_geometry(t, z, c, r, w, n_lobes=self.n_lobes, init=init, noise=self.noise,
-                            max_albedo=CLUSTERING_ALBEDO)
+                            max_albedo=CLUSTERING_ALBEDO, stall=self.stall)
 
     def _clip(self, params):
         return np.clip(params, self.lo, self.hi)
@@ -345,7 +346,8 @@ class _Clusterer:
 def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int = 1,
                         max_materials: int = 12, intensity_weight: float = 1.0,
                         min_texels: int = 10, min_gain: float = 0.05, z_min: float = 4.0,
-                        noise: str = "absolute", rng=0, progress=None) -> Clustering:
+                        noise: str = "absolute", rng=0, progress=None,
+                        stall: tuple[int, float] | None = None) -> Clustering:
     """Cluster the texels of ``smp`` into materials (Sec. 7, Fig. 7).
 
     Start from one cluster holding everything; repeatedly split the cluster with the largest
@@ -354,11 +356,13 @@ def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int 
     with None, keep a split only when its held-out gain passes ``min_gain`` and ``z_min`` (see the
     module docstring) and stop when no cluster's split passes, or at ``max_materials`` clusters;
     then the final clusters that no held-out test tells apart are one material
-    (:meth:`_Clusterer.materials`).
+    (:meth:`_Clusterer.materials`). ``stall`` ends each Lafortune fit early where it crawls
+    (:func:`~reconstruct.lensch.lafortune_fit.fit_geometry`).
     """
     cl = _Clusterer(smp, n_lobes=n_lobes, intensity_weight=intensity_weight,
                     min_texels=min_texels, min_gain=min_gain, z_min=z_min, noise=noise,
                     rng=np.random.default_rng(rng))
+    cl.stall = stall
     everyone = np.arange(smp.n_texels)
     single = cl.fit(everyone)
     fits = [single]

@@ -307,11 +307,12 @@ def albedo_penalty(params: np.ndarray, scale: np.ndarray, limit: float = MAX_LOB
 
 
 def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_iter: int = 200,
-                 max_albedo: float = MAX_LOBE_ALBEDO):
+                 max_albedo: float = MAX_LOBE_ALBEDO, stall: tuple[int, float] | None = None):
     """Levenberg-Marquardt of the per-channel parameters (3, P) on given samples.
 
     Returns the :class:`~reconstruct.lensch.lm.LMResult` (items = channels). Bounds keep
-    rho_d >= 0 and N in [N_MIN, N_MAX]; a penalty keeps each lobe's albedo <= ``max_albedo``.
+    rho_d >= 0 and N in [N_MIN, N_MAX]; a penalty keeps each lobe's albedo <= ``max_albedo``;
+    ``stall`` as :func:`~reconstruct.lensch.lm.levenberg_marquardt`'s.
     """
     P = params0.shape[1]
     sw = np.sqrt(weight)
@@ -334,7 +335,7 @@ def lafortune_lm(params0: np.ndarray, t, z, cos_i, reflectance, weight, *, max_i
     lower[3::3], upper[3::3] = N_MIN, N_MAX
     # a relative cost change of 1e-8 per step is far below any noise; multi-lobe fits crawl
     # along flat valleys (lobes trading energy) long after that
-    return levenberg_marquardt(fun, params0, lower=lower, upper=upper, max_iter=max_iter, ftol=1e-8)
+    return levenberg_marquardt(fun, params0, lower=lower, upper=upper, max_iter=max_iter, ftol=1e-8, stall=stall)
 
 
 def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
@@ -397,15 +398,18 @@ def fit_lafortune(wi, wo, reflectance, *, weight=None, n_lobes: int = 1,
 
 def fit_geometry(t, z, cos_i, reflectance, weight, *, n_lobes: int = 1, init: np.ndarray | None = None,
                  noise: str = "absolute", max_iter: int = 200,
-                 max_albedo: float | None = None) -> LafortuneFit:
+                 max_albedo: float | None = None, stall: tuple[int, float] | None = None) -> LafortuneFit:
     """:func:`fit_lafortune` on validated samples given by their :func:`lobe_geometry` (t, z),
-    cos(theta_i) (S,), ``reflectance`` (S, 3) and ``weight`` (S,); ``init`` (3, 1 + 3L) or None."""
+    cos(theta_i) (S,), ``reflectance`` (S, 3) and ``weight`` (S,); ``init`` (3, 1 + 3L) or None;
+    ``stall`` (window, rtol): stop where the cost fell by less than rtol over window iterations
+    (:func:`~reconstruct.lensch.lm.levenberg_marquardt`; None: ``ftol`` or ``max_iter`` only)."""
     P = 1 + 3 * n_lobes
     if max_albedo is None:
         max_albedo = MAX_LOBE_ALBEDO * albedo_unit(reflectance, weight)
     n_used = int(np.count_nonzero(weight))
     p0 = initial_params(t, z, cos_i, reflectance, weight, n_lobes) if init is None else init
-    res = lafortune_lm(p0, t, z, cos_i, reflectance, weight, max_iter=max_iter, max_albedo=max_albedo)
+    res = lafortune_lm(p0, t, z, cos_i, reflectance, weight, max_iter=max_iter, max_albedo=max_albedo,
+                       stall=stall)
     if noise == "relative":
         # multiplicative noise: weight by 1 / model^2 of the previous round (iteratively
         # reweighted; the model, not the noisy sample, sets the weight, so no bias toward low values)
@@ -414,7 +418,7 @@ def fit_geometry(t, z, cos_i, reflectance, weight, *, n_lobes: int = 1, init: np
             floor = 0.01 * max(float(np.median(f)), 1e-12)
             weight_rel = weight / np.maximum(f, floor) ** 2
             res = lafortune_lm(res.x, t, z, cos_i, reflectance, weight_rel, max_iter=max_iter,
-                               max_albedo=max_albedo)
+                               max_albedo=max_albedo, stall=stall)
         weight = weight_rel
     elif noise != "absolute":
         raise LafortuneFitError(f"noise must be 'absolute' or 'relative', got {noise!r}")

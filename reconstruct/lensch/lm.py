@@ -45,7 +45,8 @@ class LMResult:
 
 def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=None,
                         max_iter: int = 100, ftol: float = 1e-10, xtol: float = 1e-10,
-                        mu0: float = 1e-3, keep_jac: bool = True) -> LMResult:
+                        mu0: float = 1e-3, keep_jac: bool = True,
+                        stall: tuple[int, float] | None = None) -> LMResult:
     """Minimise 0.5 * |r_b(x_b)|^2 for every item b independently (Marquardt's scaled damping).
 
     Parameters
@@ -66,6 +67,10 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
         Initial damping relative to diag(J^T J).
     keep_jac : bool
         Return the Jacobian at ``x``; False saves one evaluation of ``fun``.
+    stall : (int, float), optional
+        ``(window, rtol)``: an item also stops (counted converged) when its cost fell by less
+        than ``rtol`` x its cost over its last ``window`` iterations, however small each step's
+        gain: two-lobe fits crawl along flat valleys (lobes trading energy), ``ftol`` never met.
     """
     x = np.array(x0, dtype=np.float64, copy=True)
     B, P = x.shape
@@ -80,7 +85,9 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
     n_iter = np.zeros(B, np.int64)
     active = everyone.copy()
     rA, JA = r, J   # updated in place below: fun returns fresh arrays
-    for _ in range(max_iter):
+    window = 0 if stall is None else int(stall[0])
+    ring = np.repeat(cost[:, None], max(window, 1), axis=1)   # cost after iteration k at k % window
+    for it in range(1, max_iter + 1):
         if len(active) == 0:
             break
         JT = JA.transpose(0, 2, 1)
@@ -104,6 +111,9 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, *, lower=None, upper=No
         rej = active[~better]
         mu[rej] *= 10.0
         done = small_gain | small_step | (mu[active] > 1e12)
+        if window:   # active items iterate in step: iteration ``it`` for all of them
+            done |= (it >= window) & (cost[active] > (1.0 - stall[1]) * ring[active, it % window])
+            ring[active, it % window] = cost[active]
         converged[active[done]] = True
         keep = ~done
         # the next iteration linearises at the current point of the items still iterating

@@ -8,6 +8,10 @@ zenith). Because the model is isotropic, only n.wi, n.wo and wi.wo enter, so no 
 
 All texels are solved together by the batched Levenberg-Marquardt (texels grouped by sample
 count, samples padded within a group); :func:`fit_normals_chunk` is a pure function of a chunk.
+On real photographs the fit can lose a texel's highlight (its brightest samples left out,
+light the object reflects onto itself pulling the lobe elsewhere): the optional peak test finds
+such texels by their brightest sample, far above the fitted model, and holds their normals near
+that sample's half vector (docs/diligent.md, round lensch7).
 """
 from __future__ import annotations
 
@@ -49,26 +53,41 @@ def _mixture(x, U, V, R, W, basis_t):
     F = np.zeros((m, M, 3))
     dF = np.zeros((m, M, 3))
     fb_all = np.empty((m, M, B, 3))
+    L = (P - 1) // 3
+    # a slot repeating an earlier slot's lobe (one material's 4th slot its 1st, the lobes-alone
+    # slot the material's) takes its value and derivative from there
+    twins = {(b, l): next((c for c in range(b) if np.array_equal(basis_t[:, c, :, 1 + 3 * l:4 + 3 * l],
+                                                                 basis_t[:, b, :, 1 + 3 * l:4 + 3 * l])), None)
+             for b in range(B) for l in range(L)}
+    repeated = {(c, l) for (_, l), c in twins.items() if c is not None}
     bases = {}   # lobe l's (lit, base, log base) by slot: the variants share the material's C_x, C_z
+    lobes = {}   # lobe l's value and d value / d(n.wi n.wo), kept for the slots a twin repeats
     for b in range(B):
         par = basis_t[:, b]  # (m, 3, P)
         fb = np.broadcast_to((par[:, None, :, 0]) / np.pi, (m, M, 3)).copy()
         dfb = np.zeros((m, M, 3))
-        for l in range((P - 1) // 3):
+        for l in range(L):
             cx, cz, N = (par[:, None, :, 1 + 3 * l + k] for k in range(3))
-            same = next((c for c in range(b) if np.array_equal(basis_t[:, c, :, 1 + 3 * l:3 + 3 * l],
-                                                               par[..., 1 + 3 * l:3 + 3 * l])), None)
-            if same is None:
-                base = cx * (uv - zz)[..., None] + cz * zz[..., None]
-                lit = base > 0
-                safe = np.where(lit, base, 1.0)
-                bases[b, l] = lit, safe, np.log(safe)
+            twin = twins[b, l]
+            if twin is None:
+                same = next((c for c in range(b) if np.array_equal(basis_t[:, c, :, 1 + 3 * l:3 + 3 * l],
+                                                                   par[..., 1 + 3 * l:3 + 3 * l])), None)
+                if same is None:
+                    base = cx * (uv - zz)[..., None] + cz * zz[..., None]
+                    lit = base > 0
+                    safe = np.where(lit, base, 1.0)
+                    bases[b, l] = lit, safe, np.log(safe)
+                else:
+                    bases[b, l] = bases[same, l]
+                lit, safe, log_base = bases[b, l]
+                lobe = np.where(lit, np.exp(np.minimum(N * log_base, _LOG_CAP)), 0.0)
+                value = lobe, N * lobe / safe * (cz - cx)   # 0 where unlit: lobe 0, safe 1
+                if (b, l) in repeated:
+                    lobes[b, l] = value
             else:
-                bases[b, l] = bases[same, l]
-            lit, safe, log_base = bases[b, l]
-            lobe = np.where(lit, np.exp(np.minimum(N * log_base, _LOG_CAP)), 0.0)
-            fb += lobe
-            dfb += N * lobe / safe * (cz - cx)   # 0 where unlit: lobe 0, safe 1
+                value = lobes[twin, l]
+            fb += value[0]
+            dfb += value[1]
         fb_all[:, :, b] = fb
         F += x[:, None, None, 2 + b] * fb
         dF += x[:, None, None, 2 + b] * dfb
@@ -113,8 +132,27 @@ def _tukey(r, J, scale):
     return r * k, J * w[..., None]
 
 
+def _peak_test(x, U, V, R, W, basis_t, ratio: float):
+    """Texels whose brightest sample (channel sum, weight > 0) the model at ``x`` underpredicts
+    by more than ``ratio``, (m,) bool, and the slopes (m, 2) of that sample's half vector in the
+    texels' local frames (a lobe about the texel's normal peaks near it)."""
+    m = len(x)
+    bright = np.where(W > 0, R.sum(axis=2), -np.inf)
+    j = np.argmax(bright, axis=1)
+    rows = np.arange(m)
+    r, _ = _mixture(x, U, V, R, W, basis_t)
+    sw = np.sqrt(W[rows, j])
+    model = r.reshape(m, -1, 3)[rows, j] / np.maximum(sw, 1e-300)[:, None] + R[rows, j]
+    h = U[rows, j] + V[rows, j]
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    ok = (sw > 0) & (h[:, 2] > 1.0 / np.sqrt(1.0 + MAX_SLOPE ** 2))
+    flagged = ok & (R[rows, j].sum(axis=1) > ratio * np.maximum(model.sum(axis=1), 0.0))
+    return flagged, h[:, :2] / np.where(ok, h[:, 2], 1.0)[:, None]
+
+
 def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis, basis_size, *,
-                      min_samples: int = 3, max_iter: int = 15, tukey_c: float | None = None):
+                      min_samples: int = 3, max_iter: int = 15, tukey_c: float | None = None,
+                      peak_weight=None, peak_ratio: float | None = None, peak_hold: float = 0.05):
     """Fit a normal and basis weights per texel of a chunk (Eq. 16), all texels at once.
 
     Parameters
@@ -140,6 +178,16 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
         Minimise Tukey's biweight loss of each sample's RGB residual (1/sr) cut off at
         ``tukey_c`` x 1.4826 x the texel's median residual at the start (+z, the given weights)
         instead of the squared residuals (None).
+    peak_weight : ndarray (S,), optional
+        Weights of all the texels' samples (before any robust selection) for the peak test and
+        the refit of the texels it flags (default ``weight``).
+    peak_ratio : float, optional
+        The peak test (None: none): where a texel's brightest sample (among ``peak_weight`` > 0)
+        exceeds ``peak_ratio`` x what the fitted model predicts there, the fit has lost the
+        texel's highlight; its normal is fitted again from the half vector of that sample, on
+        all its samples, its slopes held within ``peak_hold`` of the half vector's, and kept
+        where it fits all those samples at least as well as the free fit's (under Tukey's loss
+        with ``tukey_c``: light no lobe about either normal explains counts little).
 
     Returns
     -------
@@ -181,13 +229,48 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
         scale = None if tukey_c is None else tukey_c * _robust_sigma(x0, U, V, R, Wt, basis_t)
 
         def fun(x, items, U=U, V=V, R=R, Wt=Wt, basis_t=basis_t, scale=scale):
-            r, J = _mixture(x, U[items], V[items], R[items], Wt[items], basis_t[items])
-            return (r, J) if scale is None else _tukey(r, J, scale[items])
+            if len(items) < len(U):   # the items still iterating (all of them: no copies)
+                U, V, R, Wt, basis_t = U[items], V[items], R[items], Wt[items], basis_t[items]
+                scale = None if scale is None else scale[items]
+            r, J = _mixture(x, U, V, R, Wt, basis_t)
+            return (r, J) if scale is None else _tukey(r, J, scale)
         # a slope step of 1e-3 is 0.06 deg: below what a dozen noisy samples resolve
         res = levenberg_marquardt(fun, x0, lower=lower, upper=upper, max_iter=max_iter,
                                   ftol=1e-5, xtol=1e-3, keep_jac=False)
-        p = np.concatenate([res.x[:, :2], np.ones((len(members), 1))], axis=1)
+        x = res.x
+        if peak_ratio is not None:
+            Pw = _padded(texel, weight if peak_weight is None else peak_weight, n, counts, members, width)[0] * valid
+            lost, slopes = _peak_test(x, U, V, R, Pw, basis_t, peak_ratio)
+            if lost.any():
+                x = x.copy()
+                held, better = _held_at_peak(x[lost], slopes[lost], peak_hold, U[lost], V[lost], R[lost],
+                                             Pw[lost], basis_t[lost], lower[lost], upper[lost], tukey_c, max_iter)
+                keep = np.flatnonzero(lost)[better]
+                x[keep] = held[better]
+        p = np.concatenate([x[:, :2], np.ones((len(members), 1))], axis=1)
         normals[members] = p / np.linalg.norm(p, axis=1, keepdims=True)
-        out_w[members] = res.x[:, 2:]
+        out_w[members] = x[:, 2:]
         converged[members] = res.converged
     return normals, out_w, fitted, converged
+
+
+def _held_at_peak(x, slopes, hold, U, V, R, W, basis_t, lower, upper, tukey_c, max_iter):
+    """Parameters (m, 2 + B) of texels refitted from the peak's half-vector ``slopes`` (m, 2) with
+    the slopes held within ``hold`` of them, on the samples ``W``; and whether they fit those
+    samples at least as well as the free fit's parameters ``x`` (m,) bool, under Tukey's loss
+    (``tukey_c``, its scale the texel's robust sigma about the peak) or least squares."""
+    x0 = np.concatenate([slopes, x[:, 2:]], axis=1)
+    lo, hi = lower.copy(), upper.copy()
+    lo[:, :2] = np.maximum(slopes - hold, -MAX_SLOPE)
+    hi[:, :2] = np.minimum(slopes + hold, MAX_SLOPE)
+    x0 = np.clip(x0, lo, hi)
+    scale = None if tukey_c is None else tukey_c * _robust_sigma(x0, U, V, R, W, basis_t)
+
+    def fun(xx, items):
+        r, J = _mixture(xx, U[items], V[items], R[items], W[items], basis_t[items])
+        return (r, J) if scale is None else _tukey(r, J, scale[items])
+    res = levenberg_marquardt(fun, x0, lower=lo, upper=hi, max_iter=max_iter, ftol=1e-5, xtol=1e-3,
+                              keep_jac=False)
+    everyone = np.arange(len(x))
+    free = fun(x, everyone)[0]
+    return res.x, res.cost <= 0.5 * np.einsum("mk,mk->m", free, free)

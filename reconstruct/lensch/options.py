@@ -91,6 +91,20 @@ class SvbrdfOptions:
         from the previous round's normal. 4.685 is the usual 95 %-efficiency constant; on
         DiLiGenT 2 did better on pot1, bear and goblet (docs/diligent.md) and is what
         ``gonio process`` runs on imported sets.
+    peak_ratio : float, optional
+        The peak test of the normal fit (None: none; see
+        :func:`~reconstruct.lensch.normals.fit_normals_chunk`): a texel whose brightest sample
+        exceeds this many times what its fitted BRDF predicts about its fitted normal has lost
+        its highlight to the fit; its normal is held near that sample's half vector.
+    lobes_alone : bool
+        Add each material's lobes without its diffuse term to its projection basis (Sec. 8), so
+        that a texel's highlight strength is free of its diffuse albedo.
+    lm_stall : (int, float), optional
+        ``(window, rtol)``: each Lafortune fit of the clustering and of the materials' refits also
+        stops where its cost fell by less than ``rtol`` over its last ``window`` iterations (None:
+        only at a step's gain below 1e-8 or 200 iterations). On DiLiGenT's goblet 16 of 42
+        clustering fits ran all 200 iterations, crawling (two lobes trading energy) by 1e-6 to
+        1e-5 of the cost an iteration, 2/3 of the clustering's CPU (docs/diligent.md).
     relabel_normals : bool
         At the start of each round of normal fitting, label every texel again by Eq. 10 with its
         normal free: under each material alone (with a scale) the normal that fits its samples
@@ -146,6 +160,9 @@ class SvbrdfOptions:
     robust_spread: float = 3.0
     brightest_dropped: float = 0.0
     tukey_cutoff: float | None = None
+    peak_ratio: float | None = None
+    lobes_alone: bool = False
+    lm_stall: tuple[int, float] | None = None
     chunk_texels: int = 100_000
     discovery_texels: int = 200_000
 
@@ -167,6 +184,14 @@ class SvbrdfOptions:
             raise SvbrdfError(f"robust_spread must be > 0, got {self.robust_spread!r}")
         if self.tukey_cutoff is not None and not self.tukey_cutoff > 0:   # also refuses NaN
             raise SvbrdfError(f"tukey_cutoff must be > 0 robust sigmas or None, got {self.tukey_cutoff!r}")
+        if self.peak_ratio is not None and not self.peak_ratio > 0:
+            raise SvbrdfError(f"peak_ratio must be > 0 or None, got {self.peak_ratio!r}")
+        stall = self.lm_stall
+        if stall is not None and not (isinstance(stall, (tuple, list)) and len(stall) == 2
+                                      and isinstance(stall[0], (int, np.integer)) and not isinstance(stall[0], bool)
+                                      and stall[0] >= 1 and isinstance(stall[1], (int, float, np.floating))
+                                      and 0 < stall[1] < 1):
+            raise SvbrdfError(f"lm_stall must be (window: an integer >= 1, rtol in (0, 1)) or None, got {stall!r}")
         if not 0 <= self.brightest_dropped < 1:
             raise SvbrdfError(f"brightest_dropped must be a share in [0, 1), got {self.brightest_dropped!r}")
         if not self.max_footprint_spread_deg > 0:   # also refuses NaN

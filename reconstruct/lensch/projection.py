@@ -22,9 +22,13 @@ from .lm import levenberg_marquardt, nnls_batched
 VARIANT_STEP = 0.2
 
 
-def make_bases(materials: np.ndarray, similar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def make_bases(materials: np.ndarray, similar: np.ndarray, *, lobes_alone: bool = False
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Per-cluster bases (Sec. 8.1): the cluster's BRDF, two variants with rho_d and N raised and
-    lowered by :data:`VARIANT_STEP`, and the most similar other cluster's BRDF.
+    lowered by :data:`VARIANT_STEP`, and the most similar other cluster's BRDF; with
+    ``lobes_alone`` also (last slot) the cluster's lobes without its diffuse term, so that a
+    texel's highlight strength is free of its diffuse albedo (its own weighting of the
+    material's lobes, as Sec. 8 weights basis BRDFs).
 
     Parameters
     ----------
@@ -35,11 +39,13 @@ def make_bases(materials: np.ndarray, similar: np.ndarray) -> tuple[np.ndarray, 
 
     Returns
     -------
-    basis : ndarray (K, 4, 3, P)
+    basis : ndarray (K, 4, 3, P); with ``lobes_alone`` (K, 5, 3, P), (K, 4, 3, P) where no
+        cluster has a most similar other
     basis_size : ndarray (K,) int
     """
     K, _, P = materials.shape
-    basis = np.zeros((K, 4, 3, P))
+    B = 5 if lobes_alone else 4
+    basis = np.zeros((K, B, 3, P))
     size = np.full(K, 4)
     for sign, slot in ((1.0, 1), (-1.0, 2)):
         v = materials.copy()
@@ -51,6 +57,11 @@ def make_bases(materials: np.ndarray, similar: np.ndarray) -> tuple[np.ndarray, 
     basis[has, 3] = materials[similar[has]]
     basis[~has, 3] = materials[~has]
     size[~has] = 3
+    if lobes_alone:
+        basis[np.arange(K), size] = materials
+        basis[np.arange(K), size, :, 0] = 0.0
+        size += 1
+        basis = basis[:, :size.max()]   # no slot that no cluster uses
     return basis, size
 
 
@@ -113,9 +124,11 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         Weighted residual sum of squares over the texel's samples and channels.
     """
     n = len(labels)
-    A = basis_values(t, z, cos_i, texel, labels, basis, basis_size) * np.sqrt(weight)[:, None, None]
+    B_all = basis.shape[1]
+    # slots none of these texels uses are left out (every support with one is solved for nothing)
+    B = int(basis_size[labels].max()) if n else B_all
+    A = basis_values(t, z, cos_i, texel, labels, basis[:, :B], basis_size) * np.sqrt(weight)[:, None, None]
     r = reflectance * np.sqrt(weight)[:, None]
-    B = A.shape[1]
     G = np.empty((n, B, B))
     for i in range(B):
         for j in range(i, B):
@@ -125,7 +138,7 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
                   for i in range(B)], axis=1)
     rr = np.bincount(texel, np.einsum("sc,sc->s", r, r), minlength=n)
     if prior > 0:
-        lam = prior * np.einsum("nbb->n", G) / B
+        lam = prior * np.einsum("nbb->n", G) / B_all
         G = G + lam[:, None, None] * np.eye(B)
         h = h.copy()
         h[:, 0] += lam
@@ -139,11 +152,11 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         own = np.bincount(texel, np.sum((A[:, 0] - r) ** 2, axis=1), minlength=n)
         worse = loo_sse(A, r, texel, G, t_) > own if select else np.zeros(n, bool)
         if max_albedo is not None:
-            alone = texel_albedo(np.broadcast_to(np.eye(B)[0], (n, B)), labels, basis)
-            worse |= texel_albedo(t_, labels, basis) > np.maximum(max_albedo, alone) * (1 + 1e-9)
+            alone = texel_albedo(np.broadcast_to(np.eye(B)[0], (n, B)), labels, basis[:, :B])
+            worse |= texel_albedo(t_, labels, basis[:, :B]) > np.maximum(max_albedo, alone) * (1 + 1e-9)
         t_[worse] = np.eye(B)[0]
         sse[worse] = own[worse]
-    return t_, sse
+    return np.pad(t_, ((0, 0), (0, B_all - B))), sse
 
 
 def texel_albedo(weights, labels, basis) -> np.ndarray:

@@ -356,7 +356,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     # clustering fits in absolute units (cheaper); the final fits below use ``noise``
     clus = split_recluster_fit(data.subset(chosen, rng), n_materials=opt.n_materials,
                                n_lobes=opt.n_lobes, max_materials=opt.max_materials,
-                               min_texels=max(3, min(10, len(chosen) // 20)), rng=rng)
+                               min_texels=max(3, min(10, len(chosen) // 20)), rng=rng, stall=opt.lm_stall)
     tick()
 
     # Eq. 10 for the discovered texels, then each cluster's BRDF refit on (up to fit_texels of) them
@@ -381,7 +381,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
 
     # Sec. 8: bases and projection
     similar = _most_similar(similar_sums)
-    basis, size = make_bases(mats, similar)
+    basis, size = make_bases(mats, similar, lobes_alone=opt.lobes_alone)
     weights, sse = _project(run, blocks, None, basis, size, labels, opt, max_albedo)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
@@ -414,7 +414,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             if opt.robust_samples:   # the median over all texels of their median residual
                 floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
             tilt = np.concatenate(run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread,
-                                                        opt.brightest_dropped, opt.min_samples, opt.tukey_cutoff)
+                                                        opt.brightest_dropped, opt.min_samples, opt.tukey_cutoff,
+                                                        opt.peak_ratio)
                                                        for i in nb])) \
                 if T else np.zeros((0, 3))   # relative to the current normals
             w_fit_d = data.w if floor is None else data.w * _inliers(
@@ -433,7 +434,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 fits = _refit(dataclasses.replace(data, w=w_fit_d), start, labels[disc], opt, rng, max_albedo,
                               keep=visible, texels=trust)
                 mats = np.stack([f.channel_params for f in fits])
-                basis, size = make_bases(mats, similar)
+                basis, size = make_bases(mats, similar, lobes_alone=opt.lobes_alone)
                 if opt.pfa:
                     basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
                 weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
@@ -570,7 +571,8 @@ def _refit(data: _Sorted, mats, labels, opt: SvbrdfOptions, rng, max_albedo, kee
         if np.count_nonzero(data.w[idx]) < 1 + 3 * opt.n_lobes:
             idx = np.flatnonzero(data.w > 0) if keep is None else np.flatnonzero((data.w > 0) & keep)
         fits.append(fit_geometry(data.t[idx], data.z[idx], data.cos_i[idx], data.r[idx], data.w[idx],
-                                 n_lobes=opt.n_lobes, init=m, noise=opt.noise, max_albedo=max_albedo))
+                                 n_lobes=opt.n_lobes, init=m, noise=opt.noise, max_albedo=max_albedo,
+                                 stall=opt.lm_stall))
     return fits
 
 
@@ -627,17 +629,18 @@ def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, l
 
 
 def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, spread,
-                   brightest, min_samples, tukey_cutoff):
+                   brightest, min_samples, tukey_cutoff, peak_ratio=None):
     """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
     on the samples :func:`_inliers` keeps when ``floor`` is given, less each texel's
-    ``brightest`` share (:func:`_below_brightest`), under Tukey's loss with ``tukey_cutoff``."""
+    ``brightest`` share (:func:`_below_brightest`), under Tukey's loss with ``tukey_cutoff``;
+    with ``peak_ratio``, the texels whose highlight it lost held at their peak (normals.py)."""
     b = blocks.read(i)
     wi, wo, ch, _ = _in_frames(b, normals)
     w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor, spread)
     if brightest > 0:
         w = w * _below_brightest(b.texel, b.reflectance, brightest)
     return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples,
-                             tukey_c=tukey_cutoff)[0]
+                             tukey_c=tukey_cutoff, peak_weight=ch[5], peak_ratio=peak_ratio)[0]
 
 
 def _block_relabel(blocks: TexelBlocks, i: int, normals, mats, min_samples: int):

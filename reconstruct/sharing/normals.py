@@ -24,6 +24,7 @@ import numpy as np
 from scipy.stats import f as f_distribution
 
 from ..frames import tangent_frames, to_local
+from ..photometric_stereo import texel_normal_equations
 from .rbf import SharingError
 
 #: shading n . wi below which a sample counts as in attached shadow for the current normal
@@ -128,16 +129,13 @@ def photometric_normals(texel, wi, diffuse, n_texels: int, *, weight=None, valid
         raise SharingError(f"significance must be in (0, 1) or None, got {significance!r}")
     w = np.where(keep & (wi[:, 2] > 0), w, 0.0)   # only lit samples (as the mesh sees them)
     wi, d = np.where(keep[:, None], wi, 0.0), np.where(keep, d, 0.0)
-    pairs = wi[:, :, None] * wi[:, None, :]      # (S, 3, 3)
     prior = np.array([0.0, 0.0, 1.0])
     n = np.tile(prior, (n_texels, 1))
     ok = np.zeros(n_texels, bool)
     use = w
     for it in range(iterations + 1):
         cnt = np.bincount(texel, use > 0, n_texels)
-        A = np.stack([np.bincount(texel, use * pairs[:, i, j], n_texels)
-                      for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3)
-        b = np.stack([np.bincount(texel, use * d * wi[:, i], n_texels) for i in range(3)], axis=1)
+        A, b = texel_normal_equations(texel, wi, d, use, n_texels)
         wsum = np.bincount(texel, use, n_texels)
         # the lights must span 3-D: smallest eigenvalue of the weighted mean wi wi^T
         spread = np.linalg.eigvalsh(A / np.maximum(wsum, 1e-300)[:, None, None])[:, 0]

@@ -6,6 +6,7 @@ and C_z (rho_d and N raised / lowered): these checks use :func:`make_bases`' rea
 slot given another slot's lobe by mistake shows up as a wrong prediction.
 """
 import numpy as np
+import pytest
 
 from reconstruct.frames import tangent_frames, to_local
 from reconstruct.lensch.lafortune_fit import model_of
@@ -14,13 +15,18 @@ from reconstruct.lensch.normals import _mixture
 from reconstruct.lensch.projection import make_bases
 
 
-def _problem(seed=0, m=40, M=25):
-    """Two materials' bases (4 slots: material, rho_d and N up, down, the other material), m
-    texels of M samples about +z, slopes and weights."""
+def _problem(seed=0, m=40, M=25, bases="two"):
+    """Bases of 4 slots, m texels of M samples about +z, slopes and weights. ``bases``: "two"
+    materials (material, rho_d and N up, down, the other material), "one" (its 4th slot repeats
+    its 1st, as a lone material's does) or "alone" (one material, its lobes alone in the 4th)."""
     rng = np.random.default_rng(seed)
     mats = np.array([[[0.6, -0.9, 0.8, 18.0, -0.4, 0.5, 3.0]] * 3,
                      [[0.3, -1.1, 1.0, 40.0, -0.2, 0.3, 2.0]] * 3]) * rng.uniform(0.9, 1.1, (2, 3, 7))
-    basis, _ = make_bases(mats, np.array([1, 0]))
+    if bases == "two":
+        basis, _ = make_bases(mats, np.array([1, 0]))
+    else:
+        basis, _ = make_bases(mats[:1], np.array([-1]), lobes_alone=bases == "alone")
+        basis = np.concatenate([basis, basis])   # both labels: the one material
     basis_t = basis[rng.integers(0, 2, m)]
     U = rng.normal(size=(m, M, 3))
     U[..., 2] = np.abs(U[..., 2]) + 0.3
@@ -30,11 +36,13 @@ def _problem(seed=0, m=40, M=25):
     return U, V, basis_t, x
 
 
-def test_the_model_is_the_weighted_lafortune_brdfs_about_the_tilted_normal():
+@pytest.mark.parametrize("bases", ["two", "one", "alone"])
+def test_the_model_is_the_weighted_lafortune_brdfs_about_the_tilted_normal(bases):
     """Residuals with R = 0, W = 1 are the prediction sum_b w_b f_b(wi', wo') cos(theta_i'),
     wi', wo' the samples in the frame of n = (a, b, 1) / |.|; each f_b evaluated by
-    :class:`reconstruct.brdf.Lafortune` from the slot's parameters (to 1e-12, relative)."""
-    U, V, basis_t, x = _problem()
+    :class:`reconstruct.brdf.Lafortune` from the slot's parameters (to 1e-12, relative); also
+    where a slot repeats another's lobes (a lone material; its lobes alone)."""
+    U, V, basis_t, x = _problem(bases=bases)
     m, M, _ = U.shape
     r, _ = _mixture(x, U, V, np.zeros((m, M, 3)), np.ones((m, M)), basis_t)
     n = np.concatenate([x[:, :2], np.ones((m, 1))], axis=1)
@@ -52,10 +60,11 @@ def test_the_model_is_the_weighted_lafortune_brdfs_about_the_tilted_normal():
     assert np.allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
 
 
-def test_the_jacobian_matches_central_differences():
+@pytest.mark.parametrize("bases", ["two", "alone"])
+def test_the_jacobian_matches_central_differences(bases):
     """d residual / d (slopes, weights) against central differences (step 1e-6), to 1e-5 of the
-    largest entry: the slopes' columns go through the shared log-bases."""
-    U, V, basis_t, x = _problem(seed=1)
+    largest entry: the slopes' columns go through the shared log-bases and repeated lobes."""
+    U, V, basis_t, x = _problem(seed=1, bases=bases)
     m, M, _ = U.shape
     R = np.random.default_rng(2).uniform(0, 0.5, (m, M, 3))
     W = np.ones((m, M))

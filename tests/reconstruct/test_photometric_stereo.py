@@ -3,7 +3,7 @@ import pytest
 from PIL import Image
 
 from reconstruct.photometric_stereo import (PhotometricStereoError, angular_error_deg,
-                                            photometric_stereo)
+                                            photometric_stereo, texel_normal_equations)
 
 
 def sphere_normals(H=120, W=160, r=50.0):
@@ -126,3 +126,24 @@ def test_light_intensities_per_light_and_channel(seed):
         photometric_stereo(imgs, L, inside, light_intensities=e[:5])
     with pytest.raises(PhotometricStereoError, match="> 0"):
         photometric_stereo(imgs, L, inside, light_intensities=-e)
+
+
+def test_texel_normal_equations_match_each_texels_own_least_squares():
+    """The per-texel normal equations solve to what numpy's lstsq gives on each texel's weighted
+    samples alone (an exact Lambertian texel recovers its g = rho n to rounding)."""
+    rng = np.random.default_rng(3)
+    T, S = 7, 200
+    texel = rng.integers(0, T, S)
+    wi = rng.normal(size=(S, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    g_true = rng.normal(size=(T, 3))
+    value = np.sum(g_true[texel] * wi, axis=1) + (texel == 0) * rng.normal(0, 0.1, S)  # texel 0 noisy
+    weight = rng.uniform(0.2, 2.0, S)
+    A, b = texel_normal_equations(texel, wi, value, weight, T)
+    g = np.linalg.solve(A, b[..., None])[..., 0]
+    for t in range(T):
+        s = np.sqrt(weight[texel == t])
+        ref = np.linalg.lstsq(wi[texel == t] * s[:, None], value[texel == t] * s, rcond=None)[0]
+        assert np.allclose(g[t], ref, atol=1e-10), t
+    assert np.allclose(g[1:], g_true[1:], atol=1e-10)
