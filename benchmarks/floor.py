@@ -12,7 +12,9 @@ cause, against the simulation's truth:
   named by its majority), the footprint spread, and whether any training sample saw the
   highlight the held-out sample shows (its true reflectance within half the held-out one);
 - by held-out view, and by sample geometry: grazing view or light (cos < 0.2 about the mesh
-  normal) and texels whose footprint mixes normals.
+  normal) and texels whose footprint mixes normals;
+- an oracle: the truth's own materials rendered about the method's fitted normals (a method
+  that beats it hedges its normals' errors with its lobes).
 """
 from __future__ import annotations
 
@@ -120,6 +122,15 @@ def decompose(s: Session, name: str, fit) -> None:
                        ("label wrong", ~right[held.texel]),
                        ("footprint spread > 6 deg", (np.nan_to_num(spread) > 6)[held.texel])):
         print(f"  {what:<42} {mask.mean():6.2%} of samples: {share(mask)}")
+    # oracle: the truth's own materials (true labels) about the method's fitted normals. Worse
+    # than the method means its lobes hedge its normals' errors, so a truer lobe alone cannot help
+    if fit.normals is not None:
+        oracle = _truth_of(_TruthAbout(s.truth, np.asarray(fit.normals, float)), held)
+        eo = np.sum((oracle - meas) ** 2, axis=1)
+        off = (n_err > 2)[held.texel]
+        print(f"the true materials about the fitted normals: held-out {relative_rms(oracle, meas):.3f} "
+              f"({relative_rms(oracle, meas) / floor:.2f}x the floor); on texels whose fitted normal is > 2 deg "
+              f"off ({off.mean():.1%} of samples): {np.sum(eo[off]) / np.sum(eo):.1%} of its squared error")
     for v in np.unique(held.view):
         m = held.view == v
         print(f"  held-out view {v}: {m.sum()} samples, method {relative_rms(pred[m], meas[m]):.3f}, "
@@ -133,6 +144,21 @@ def decompose(s: Session, name: str, fit) -> None:
               f"true {s.true_held[hm].sum(1).max():.3f} predicted {pred[hm].sum(1).max():.3f}; normal "
               f"{n_err[t]:.1f} deg off (mesh {mesh_err[t]:.1f}), label {'right' if right[t] else 'wrong'}, "
               f"spread {spread[t]:.1f}")
+
+
+@dataclass(frozen=True)
+class _TruthAbout:
+    """The simulation's truth with its normals replaced by ``given`` (T, 3, object frame), for
+    :func:`capture.pipeline.run._truth_of`: the true materials seen about other normals."""
+
+    truth: object
+    given: np.ndarray
+
+    def materials(self, points):
+        return self.truth.materials(points)
+
+    def normals(self, points):
+        return self.given
 
 
 def main() -> None:

@@ -45,11 +45,15 @@ class Appearance:
     position : (T, 3) float   texel positions, object frame, mm
     mesh_normal : (T, 3)      the mesh's interpolated normal at the texel
     normal : (T, 3)           the normal the model uses (fitted where the method fits normals)
-    label : (T,) int          material label (0 for a method without materials)
+    label : (T,) int          material of the texel, 0 .. M - 1 (Lensch: clusters that no held-out
+                              test tells apart are one material; 0 for a method without materials)
+    cluster : (T,) int        the method's cluster of the texel (Lensch's Eq. 10 labels: a
+                              material's variant clusters, with their broader lobes, apart; the
+                              GGX roughness is fitted per cluster); ``label`` where it has none
     samples : (T,) int        training samples of the texel
     no_highlight : (T,) bool  no training sample's halfway vector within :data:`HIGHLIGHT_DEG`
     rho_d, ks : (T, 3); alpha : (T,)   the exported BRDF (:mod:`capture.export.ggx`)
-    fit_rel_rms : (M,)        per material, the exported BRDF against the method's predictions
+    fit_rel_rms : (M,)        per material (``label``), the exported BRDF against the method's predictions
                               at the training samples (relative RMS of f_r cos)
     held_texel, held_view : (H,) int; held_wi, held_wo : (H, 3) local (mesh-normal) frame;
     held_captured, held_predicted : (H, 3)   held-out samples: captured ``f_r cos`` and the
@@ -67,6 +71,7 @@ class Appearance:
     mesh_normal: np.ndarray
     normal: np.ndarray
     label: np.ndarray
+    cluster: np.ndarray
     samples: np.ndarray
     no_highlight: np.ndarray
     rho_d: np.ndarray
@@ -91,6 +96,10 @@ class Appearance:
         return len(self.position)
 
     @property
+    def n_materials(self) -> int:
+        return int(self.label.max()) + 1 if len(self.label) else 0
+
+    @property
     def maps(self) -> GgxMaps:
         return GgxMaps(self.rho_d, self.ks, self.alpha)
 
@@ -102,10 +111,12 @@ class Appearance:
     @classmethod
     def from_npz(cls, data: bytes) -> "Appearance":
         with np.load(io.BytesIO(data)) as z:
-            missing = [f.name for f in fields(cls) if f.name not in z]
-            if missing:
-                raise ValueError(f"appearance.npz lacks {', '.join(missing)}")
-            values = {f.name: z[f.name] for f in fields(cls)}
+            values = {f.name: z[f.name] for f in fields(cls) if f.name in z}
+        if "cluster" not in values and "label" in values:   # stored before materials: labels were clusters
+            values["cluster"] = values["label"]
+        missing = [f.name for f in fields(cls) if f.name not in values]
+        if missing:
+            raise ValueError(f"appearance.npz lacks {', '.join(missing)}")
         values["method"] = str(values["method"])
         return cls(**values)
 
@@ -117,14 +128,15 @@ def appearance_npz(method: str, fit, train: Lumitexels, held: Lumitexels, views:
     ``predicted_train`` / ``predicted_held`` are ``fit.predict`` of ``train`` / ``held`` (the
     pipeline computes them for its figures). The exported BRDF is fitted to the method's
     predictions at the training samples: roughness
-    per material, albedo and lobe scale per texel (:func:`capture.export.ggx.fit_ggx`); one fit
+    per cluster, albedo and lobe scale per texel (:func:`capture.export.ggx.fit_ggx`); one fit
     for a method of one BRDF (:data:`HOMOGENEOUS_METHODS`).
     """
     T = train.n_texels
     normal = train.normal if fit.normals is None else np.asarray(fit.normals, float)
     frames = tangent_frames(train.normal)
     n_local = to_local(normal, frames)
-    label = np.asarray(fit.arrays.get("labels", np.zeros(T)), np.int64)
+    cluster = np.asarray(fit.arrays.get("labels", np.zeros(T)), np.int64)
+    label = np.asarray(fit.arrays.get("materials", cluster), np.int64)
 
     # fitted where the data is: at the training samples, to the method's own predictions there
     # (away from them a recovered lobe may extrapolate to anything: Lafortune lobes reached
@@ -132,7 +144,7 @@ def appearance_npz(method: str, fit, train: Lumitexels, held: Lumitexels, views:
     homogeneous = method in HOMOGENEOUS_METHODS
     texel = np.zeros(train.n_samples, np.int64) if homogeneous else train.texel
     n, wi, wo, y = n_local[train.texel], train.wi, train.wo, np.asarray(predicted_train, float)
-    maps = fit_ggx(texel, n, wi, wo, y, 1 if homogeneous else T, group=None if homogeneous else label)
+    maps = fit_ggx(texel, n, wi, wo, y, 1 if homogeneous else T, group=None if homogeneous else cluster)
     if homogeneous:
         maps, texel = maps.take(np.zeros(T, np.int64)), train.texel
 
@@ -147,7 +159,7 @@ def appearance_npz(method: str, fit, train: Lumitexels, held: Lumitexels, views:
     seen = np.bincount(train.texel, cos_h > np.cos(np.radians(HIGHLIGHT_DEG)), T) > 0
     return Appearance(
         method=method, position=train.position.astype(np.float64), mesh_normal=train.normal.astype(np.float64),
-        normal=normal.astype(np.float64), label=label, samples=np.bincount(train.texel, minlength=T),
+        normal=normal.astype(np.float64), label=label, cluster=cluster, samples=np.bincount(train.texel, minlength=T),
         no_highlight=~seen, rho_d=maps.rho_d, ks=maps.ks, alpha=maps.alpha, fit_rel_rms=fit_rel,
         held_texel=held.texel.astype(np.int64), held_view=held.view.astype(np.int64),
         held_wi=held.wi.astype(np.float64), held_wo=held.wo.astype(np.float64),

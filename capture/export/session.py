@@ -6,7 +6,8 @@ requested format succeeds: the files go to a hidden sibling folder renamed to ``
 
 - ``maps``: ``textures/*.exr`` (32-bit float) and ``textures/*.png`` (16-bit) in the mesh's UV
   atlas (``mesh.ply`` with the UVs and tangents): diffuse albedo, GGX lobe scale and roughness,
-  the tangent-space normal map, material labels and the confidence maps;
+  the tangent-space normal map, the material of each texel (and, where a material has several,
+  the method's clusters) and the confidence maps;
 - ``gltf``: ``model.glb`` (:mod:`capture.export.gltf`);
 - ``mitsuba``: ``mitsuba/`` (:mod:`capture.export.mitsuba`), one scene per captured pose;
 - ``merl``: ``brdf.binary``, the tabulated BRDF in MERL's format (passive reflectometry's).
@@ -269,6 +270,7 @@ def _write(out: Path, session: str, method: str, formats: list[str], run: Result
     b = _bake(app, mesh) if spatial else None
     model: dict[str, Any] = {
         "session": session, "method": method, "result_id": run.id, "code_version": run.code_version,
+        "materials": app.n_materials,
         "frame": "object frame (the lab frame at turntable reading 0), millimetres; glTF in metres",
         "brdf": {"name": "Lambertian + GGX lobe (gonio export)", "formula": FORMULA,
                  "rho_d_convention": "rho_d is the diffuse albedo: the Lambertian term is rho_d / pi",
@@ -320,7 +322,13 @@ def _write_maps(out: Path, app: Appearance, b: _Baked, files: dict) -> list[str]
         "normal_tangent": ((b.normal_gltf + 1) / 2, "tangent-space normal (x, y, z) stored as (n + 1) / 2, "
                                                     "MikkTSpace convention (see tangent_space)"),
         "material_label": (np.where(t.covered, app.label[t.texel], -1).astype(float) + 1,
-                           "material label + 1 (0 = not on the mesh); PNG: code = label + 1"),
+                           f"material + 1 (0 = not on the mesh), {app.n_materials} materials; PNG: code = "
+                           "material + 1"),
+        **({"cluster_label": (np.where(t.covered, app.cluster[t.texel], -1).astype(float) + 1,
+                              "the method's cluster + 1 (0 = not on the mesh): a material's variant clusters "
+                              "apart (texels that saw their highlight through a normal the mesh lacks, fitted "
+                              "with a broader lobe); PNG: code = cluster + 1")}
+           if len(np.unique(app.cluster)) > len(np.unique(app.label)) else {}),
         "confidence_samples": (samples, "training samples of the texel shown (0 off the charts)"),
         "confidence_no_highlight": (no_hl, "1 where the texel never saw its highlight (no training "
                                            "sample's halfway vector within 10 deg of its normal)"),
@@ -330,7 +338,7 @@ def _write_maps(out: Path, app: Appearance, b: _Baked, files: dict) -> list[str]
     written = ["mesh.ply"]
     for name, (a, what) in maps.items():
         write_exr(tex / f"{name}.exr", a)
-        scale = 65535.0 if name in ("material_label", "confidence_samples") else _png_scale(a)
+        scale = 65535.0 if name in ("material_label", "cluster_label", "confidence_samples") else _png_scale(a)
         write_png16(tex / f"{name}.png", a, scale)
         files[f"textures/{name}.exr"] = {"what": what, "format": "OpenEXR, 32-bit float, linear"}
         files[f"textures/{name}.png"] = {"what": what, "format": "PNG, 16-bit, linear",

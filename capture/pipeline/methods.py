@@ -21,14 +21,15 @@ import numpy as np
 
 from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.frames import tangent_frames, to_world
-from reconstruct.lensch import ArrayBlocks, SvbrdfOptions, TexelBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
+from reconstruct.lensch import (ArrayBlocks, SvbrdfFit, SvbrdfOptions, TexelBlocks, fit_svbrdf_blocks,
+                              fit_svbrdf_lumitexels)
 from reconstruct.lumitexels import Lumitexels
 from reconstruct.passive import passive_reflectometry
 from reconstruct.sharing import ANGULAR_WEIGHT, FIT_TEXELS, fit_spatial_blocks
 
 from .process import ProcessInputs
 
-__all__ = ["CAPTURED_LENSCH", "METHODS", "DEFAULT_METHODS", "BLOCK_METHODS", "BlockRoute", "sharing_texels_for", "Fitted",
+__all__ = ["CAPTURED_LENSCH", "METHODS", "lensch_fitted", "DEFAULT_METHODS", "BLOCK_METHODS", "BlockRoute", "sharing_texels_for", "Fitted",
            "MethodSkipped", "fit_method"]
 
 
@@ -137,10 +138,18 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
     else:   # the same fit (to 1e-9), its per-texel steps over the stored blocks, on the executor
         fit = fit_svbrdf_blocks(route.blocks, opt, normals=train.normal, footprint_spread=train.footprint_spread_deg,
                                 rng=rng, progress=progress, map_blocks=route.map_blocks)
+    return lensch_fitted(fit, opt, rng)
 
+
+def lensch_fitted(fit: SvbrdfFit, opt: SvbrdfOptions, rng: int) -> Fitted:
+    """A Lensch fit as the pipeline stores it: ``arrays["labels"]`` the cluster of each texel (Eq. 10;
+    a material's variant clusters apart), ``arrays["materials"]`` its material
+    (``fit.cluster_material[labels]``: clusters no held-out test tells apart are one material),
+    the projection weights and the fitted normals (object frame)."""
     flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight)),
              "mixed_footprint": int(np.sum(fit.mixed_footprint)), "material_variant": int(np.sum(fit.variant))}
-    arrays = {"labels": np.asarray(fit.labels), "weights": np.asarray(fit.weights, np.float32)}
+    arrays = {"labels": np.asarray(fit.labels), "materials": np.asarray(fit.cluster_material[fit.labels], np.int64),
+              "weights": np.asarray(fit.weights, np.float32)}
     if fit.normals is not None:
         arrays["normals"] = np.asarray(fit.normals, np.float32)
     return Fitted(fit.predict, fit.brdf, arrays=arrays,   # fitted normals applied

@@ -451,7 +451,8 @@ def _appearance_on_subsample(name: str, fit: Fitted, arrays: LumitexelArrays, n_
     113 MiB at 9x pixels.)"""
     pick = np.sort(np.random.default_rng(rng).choice(n_texels, min(n_pick, n_texels), replace=False))
     train, held = arrays.gather(pick, max_texels=block_texels)
-    sub = dataclasses.replace(fit, arrays={k: np.asarray(v)[pick] for k, v in fit.arrays.items() if k == "labels"},
+    sub = dataclasses.replace(fit, arrays={k: np.asarray(v)[pick] for k, v in fit.arrays.items()
+                                                   if k in ("labels", "materials")},
                               normals=None if fit.normals is None else fit.normals[pick])
     npz = appearance_npz(name, sub, train, held, inputs.views, inputs.held_out,
                          fit.predict_samples(pick[train.texel], train.wi, train.wo),

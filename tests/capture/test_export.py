@@ -6,6 +6,7 @@ reuses that module's demo run).
 from __future__ import annotations
 
 import importlib.util
+import io
 import json
 import shutil
 import subprocess
@@ -19,11 +20,14 @@ from capture.export.appearance import Appearance
 from capture.export.ggx import ALPHA_GRID, GgxMaps, fit_ggx, ggx_reflectance
 from capture.export.images import read_exr
 from capture.export.session import export_session
+from capture.pipeline.methods import lensch_fitted
 from capture.pipeline.report_html import export_links, write_html_report
 from capture.pipeline.run import ProcessReport
 from reconstruct.metrics import relative_rms
 from capture.store import Store
+from reconstruct.brdf import Lafortune
 from reconstruct.frames import tangent_frames, to_local
+from reconstruct.lensch import SvbrdfFit, SvbrdfOptions
 
 REPO = Path(__file__).resolve().parents[2]
 RADIUS = 30.0
@@ -55,6 +59,7 @@ def _synthetic_appearance(mesh: trimesh.Trimesh) -> Appearance:
     normal = mesh_n + lean - np.sum(lean * mesh_n, axis=1, keepdims=True) * mesh_n
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     label = (p[:, 2] < 0).astype(np.int64)
+    cluster = np.where((label == 1) & (p[:, 0] > 10.0), 2, label)   # material 1's variant cluster
     maps = MATERIALS.take(label)
     cams = np.stack([_look_at([260.0, 40.0, 90.0]), _look_at([230.0, -120.0, 60.0])])
     lights = np.array([[150.0, 200.0, 250.0], [260.0, -40.0, 120.0]])
@@ -70,7 +75,7 @@ def _synthetic_appearance(mesh: trimesh.Trimesh) -> Appearance:
     wi, wo = to_local(wi_o[t], frames), to_local(wo_o[t], frames)
     pred = ggx_reflectance(maps.take(t), to_local(normal[t], frames), wi, wo)
     return Appearance(
-        method="lensch", position=p, mesh_normal=mesh_n, normal=normal, label=label,
+        method="lensch", position=p, mesh_normal=mesh_n, normal=normal, label=label, cluster=cluster,
         samples=rng.integers(5, 30, len(p)), no_highlight=rng.random(len(p)) < 0.2,
         rho_d=maps.rho_d, ks=maps.ks, alpha=maps.alpha, fit_rel_rms=np.zeros(2),
         held_texel=t, held_view=np.ones(len(t), np.int64), held_wi=wi, held_wo=wo,
@@ -135,6 +140,14 @@ def test_export_writes_every_map_with_its_description(synthetic):
         on = label == k + 1
         assert on.sum() > 100
         assert np.allclose(rho[on], MATERIALS.rho_d[k], atol=1e-6)
+    # the material map holds the appearance's materials, not its clusters: 2 materials (and 0
+    # off the mesh), each pixel's that of the texel it shows; the clusters in their own map,
+    # the variant cluster inside its material
+    assert model["materials"] == app.n_materials == 2
+    assert set(np.unique(label)) == {0.0, 1.0, 2.0}
+    cluster = read_exr(out / "textures" / "cluster_label.exr")
+    assert set(np.unique(cluster)) == {0.0, 1.0, 2.0, 3.0}
+    assert np.all(label[cluster == 3] == 2) and np.all((label == 0) == (cluster == 0))
     # 16-bit PNG: read by OpenCV (another decoder than the writer's), value = code / 65535 * scale
     import cv2
     png = cv2.imread(str(out / "textures" / "diffuse_albedo.png"), cv2.IMREAD_UNCHANGED)
@@ -390,3 +403,28 @@ def test_export_page_without_mitsuba_says_how_to_install_it(synthetic, tmp_path,
     text = page.read_text()
     assert "Mitsuba 3 is not installed" in text and "pip install mitsuba" in text and "<img" not in text
     assert {f for files in rep.files.values() for f in files} <= set(_links(page))
+
+
+def test_lensch_result_carries_materials_and_clusters_to_the_export():
+    """The Lensch adapter stores each texel's material (its cluster's, ``cluster_material``) beside
+    its cluster; the export takes materials for ``label``. An appearance stored before (no
+    ``cluster``) reads back with its labels as the clusters they were."""
+    lobe = Lafortune.phong(rho_d=0.3, rho_s=0.5, exponent=20.0)
+    labels = np.array([0, 1, 2, 2, 1, 0])
+    T, K = len(labels), 3
+    fit = SvbrdfFit(labels=labels, materials=(lobe,) * K, material_covariance=(np.eye(12),) * K,
+                    basis=((lobe,),) * K, weights=np.ones((T, 1)), normals=None, normals_local=None,
+                    rms={}, relative_rms={}, too_few_samples=np.zeros(T, bool), no_highlight=np.zeros(T, bool),
+                    n_samples=np.full(T, 9), mixed_footprint=np.zeros(T, bool), cluster_material=np.array([0, 1, 1]))
+    arrays = lensch_fitted(fit, SvbrdfOptions(), 0).arrays
+    np.testing.assert_array_equal(arrays["labels"], labels)
+    np.testing.assert_array_equal(arrays["materials"], [0, 1, 1, 1, 1, 0])
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=RADIUS)
+    app = _synthetic_appearance(mesh)
+    with np.load(io.BytesIO(app.to_npz())) as z:
+        old = {k: z[k] for k in z.files if k != "cluster"}
+    buf = io.BytesIO()
+    np.savez(buf, **old)
+    back = Appearance.from_npz(buf.getvalue())
+    np.testing.assert_array_equal(back.cluster, app.label)
+    np.testing.assert_array_equal(back.label, app.label)
