@@ -50,7 +50,8 @@ from reconstruct.brdf.zoo import analytic_zoo, load_measured, measured_files  # 
 from reconstruct.distant import shade_distant, sphere_normals  # noqa: E402
 from reconstruct.envmap import EnvironmentMap  # noqa: E402
 from reconstruct.lensch import fit_lafortune  # noqa: E402
-from reconstruct.passive import PassiveWarning, bivariate_error, passive_reflectometry  # noqa
+from reconstruct.passive import (PassiveWarning, bivariate_error, passive_reflectometry,  # noqa
+                                 visible_hemisphere_normals)
 from reconstruct.passive_modes import learn_modes  # noqa: E402
 from reconstruct.passive_prior import learn_prior  # noqa: E402
 from reconstruct.sharing import fit_isotropic, samples_from_images  # noqa: E402
@@ -163,30 +164,44 @@ def sphere_image(truth, env, size):
     return image, normals, mask
 
 
+def hemisphere_image(truth, env, count):
+    """The paper's observations: ``count`` normals uniform on the visible hemisphere, those
+    beyond 80 deg of the view dropped (``visible_hemisphere_normals``), shaded; as a (1, M, 3)
+    image with an all-True mask."""
+    normals = visible_hemisphere_normals(count)[None]
+    return shade_distant(truth, normals[0], *env.sources())[None], normals, \
+        np.ones(normals.shape[:2], bool)
+
+
 def passive_section(out: Path, sphere: int, env_height: int, every: int, error_grid,
-                    lam, prior_kind: str, offset: int = 0, n_modes: int = 40) -> None:
+                    lam, prior_kind: str, offset: int = 0, n_modes: int = 40,
+                    hemisphere: int = 0, reweight=None) -> None:
     env = EnvironmentMap.load(DATA / "probes" / "grace.hdr",
                               rotation=CAMERA_TO_PROBE).resized(env_height)
     files = {k: p for k, p in measured_files(DATA / "brdfs").items() if k.startswith("merl/")}
     models = {k: load_measured(p) for k, p in files.items()}
     t0 = time.perf_counter()
     reductions = {k: Bivariate.from_brdf(m, 32, 32) for k, m in models.items()}
-    print(f"\n== passive reflectometry, Fig. 6: one {sphere} x {sphere} sphere image under Grace "
+    observed = (f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
+                else f"one {sphere} x {sphere} sphere image")
+    print(f"\n== passive reflectometry, Fig. 6: {observed} under Grace "
           f"({env_height} x {2 * env_height} texels) per MERL material, prior learned from the "
-          f"other {len(models) - 1} (leave-one-out), lam {lam}; Eq. 1 error on a {error_grid} "
+          f"other {len(models) - 1} (leave-one-out), lam {lam}, reweight {reweight}; Eq. 1 error on a {error_grid} "
           f"grid, per-sample / pooled reading / per-sample where the environment constrains "
           f"the BRDF (reductions: {time.perf_counter() - t0:.0f} s) ==")
     rows = []
     for name in list(models)[offset::every]:
         truth = models[name]
-        image, normals, mask = sphere_image(truth, env, sphere)
+        image, normals, mask = (hemisphere_image(truth, env, hemisphere) if hemisphere else
+                                sphere_image(truth, env, sphere))
         library = [b for k, b in reductions.items() if k != name]
         prior = (learn_modes(library, (32, 32), n_modes=n_modes, name="merl-loo-modes")
                  if prior_kind == "modes" else learn_prior(library, (32, 32), name="merl-loo"))
         t1 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PassiveWarning)
-            fit = passive_reflectometry(image, normals, mask, env, prior=prior, lam=lam)
+            fit = passive_reflectometry(image, normals, mask, env, prior=prior, lam=lam,
+                                        reweight=reweight if prior_kind == "modes" else None)
         t_fit = time.perf_counter() - t1
         seen = fit.adequacy.constrained
         readings = ({}, {"pooled": True}, {"nodes": seen}, {"exclude_grazing_deg": GRAZING})
@@ -247,6 +262,9 @@ def main():
     ap.add_argument("--out", type=Path, default=Path("out/zoo"))
     ap.add_argument("--size", type=int, default=100, help="sharing sphere images (px)")
     ap.add_argument("--sphere", type=int, default=48, help="passive sphere image (px)")
+    ap.add_argument("--hemisphere", type=int, default=0, metavar="COUNT",
+                    help="passive: observe COUNT normals uniform on the visible hemisphere (the "
+                         "paper's 8000; 80 deg limit) instead of the --sphere image's pixels")
     ap.add_argument("--env-height", type=int, default=16, help="Grace probe rows (passive)")
     ap.add_argument("--every", type=int, default=1, help="passive: every k-th MERL material")
     ap.add_argument("--error-grid", default="90,90,180",
@@ -257,6 +275,9 @@ def main():
     ap.add_argument("--prior", choices=["modes", "smoothness"], default="modes",
                     help="passive: the library's modes of variation in log space (default), "
                          "or Eq. 6's derivative variances")
+    ap.add_argument("--reweight", type=int, default=None,
+                    help="passive, modes prior: reweighted solves (default MODES_REWEIGHT; 0: "
+                         "the plain solve)")
     ap.add_argument("--modes", type=int, default=40, help="passive: modes kept")
     ap.add_argument("--offset", type=int, default=0,
                     help="passive: first MERL material (with --every: a second subset)")
@@ -285,7 +306,7 @@ def main():
                         None if args.lam == "default" else
                         args.lam if args.lam == "cv" else float(args.lam),
                         args.prior,
-                        args.offset, args.modes)
+                        args.offset, args.modes, args.hemisphere, args.reweight)
 
 
 if __name__ == "__main__":
