@@ -24,7 +24,11 @@ Prints, in one run:
    environment constrains (``Adequacy.constrained``) and per-sample with both directions
    within 80 deg of the normal; materials sorted by the reduction's error (the paper's order);
    written as ``passive_fig6.png`` in ``--out``. ``--lam`` overrides the prior's weight
-   (``cv``: cross-validated, derivative prior only).
+   (``cv``: cross-validated, derivative prior only). ``--hemisphere N``: instead of the
+   image's pixels, the paper's observations (N normals uniform on the visible hemisphere, those
+   beyond 80 deg dropped); ``--reweight K``: K reweighted solves under the modes prior (each
+   pixel's noise grown by its misfit); ``--replot LOG...``: summarise and draw from the rows
+   earlier runs printed (the two halves of a run split by ``--every 2 --offset 0|1``).
 
 Needs ``../shared/data/brdfs`` and ``../shared/data/probes``. Run with
 ``OPENBLAS_NUM_THREADS=1`` on a shared machine. ``--quick``: small sizes, few materials.
@@ -40,6 +44,7 @@ sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).re
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import re  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 
@@ -175,7 +180,7 @@ def hemisphere_image(truth, env, count):
 
 def passive_section(out: Path, sphere: int, env_height: int, every: int, error_grid,
                     lam, prior_kind: str, offset: int = 0, n_modes: int = 40,
-                    hemisphere: int = 0, reweight=None) -> None:
+                    hemisphere: int = 0, reweight=None, reverse: bool = False) -> None:
     env = EnvironmentMap.load(DATA / "probes" / "grace.hdr",
                               rotation=CAMERA_TO_PROBE).resized(env_height)
     files = {k: p for k, p in measured_files(DATA / "brdfs").items() if k.startswith("merl/")}
@@ -190,7 +195,8 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
           f"grid, per-sample / pooled reading / per-sample where the environment constrains "
           f"the BRDF (reductions: {time.perf_counter() - t0:.0f} s) ==")
     rows = []
-    for name in list(models)[offset::every]:
+    names = list(models)[offset::every]
+    for name in names[::-1] if reverse else names:
         truth = models[name]
         image, normals, mask = (hemisphere_image(truth, env, hemisphere) if hemisphere else
                                 sphere_image(truth, env, sphere))
@@ -214,6 +220,35 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
               f"{r:7.1%} /{rp:6.1%} /{rc:6.1%} /{rg:6.1%}  lam {fit.lam:5.0e} residual "
               f"{fit.residual.mean():6.2%} unconstrained {np.mean(~seen):4.0%}  {t_fit:4.0f} s",
               flush=True)
+    summarise(rows)
+    plot_fig6(out / "passive_fig6.png", rows, env_height)
+
+
+ROW = re.compile(r"^(\S+)\s+recovered" + r"\s*/?\s*([\d.]+)%" * 4 + r"\s+reduction"
+                 + r"\s*/?\s*([\d.]+)%" * 4)
+
+
+def rows_from_logs(paths) -> list:
+    """The per-material rows ``passive_section`` printed, read back from its logs (e.g. the
+    two halves of ``--every 2 --offset 0|1``, each also run ``--reverse``), to 0.1 point, one
+    row per material: (name, e, r, ep, rp, ec, rc, eg,
+    rg) as fractions."""
+    rows, seen = [], set()
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            m = ROW.match(line)
+            if m and m[1] not in seen:   # a material two processes both reached: the same row
+                seen.add(m[1])
+                v = [float(x) / 100 for x in m.groups()[1:]]
+                rows.append(("merl/" + m[1], v[0], v[4], v[1], v[5], v[2], v[6], v[3], v[7]))
+    if not rows:
+        raise SystemExit(f"no passive rows in {', '.join(map(str, paths))}")
+    return rows
+
+
+def summarise(rows) -> None:
+    """Per reading: the median material by recovered - 2 x reduction and how many are within
+    the target (2x the reduction's error + 5 points)."""
     for label, i in (("per-sample", 1), ("pooled", 3), ("per-sample, constrained nodes", 5),
                      (f"per-sample, both directions within {90 - GRAZING} deg of the normal", 7)):
         rec, red = np.array([r[i] for r in rows]), np.array([r[i + 1] for r in rows])
@@ -223,7 +258,6 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
               f"recovered {rec[mid]:.1%} vs target {2 * red[mid] + 0.05:.1%}; {ok.sum()} of "
               f"{len(rows)} within 2x their reduction's error + 5 points; median recovered "
               f"{np.median(rec):.1%}, median reduction {np.median(red):.1%}")
-    plot_fig6(out / "passive_fig6.png", rows, env_height)
 
 
 def plot_fig6(path: Path, rows, env_height) -> None:
@@ -286,6 +320,12 @@ def main():
                     help="sharing: the polar form's angular weight, or 'none' for (u, v, w)")
     ap.add_argument("--profile", metavar="NAME",
                     help="sharing: print NAME's highlight profile at held-out theta_d instead")
+    ap.add_argument("--reverse", action="store_true",
+                    help="passive: the materials in reverse order (a second process on the same "
+                         "subset from its other end; --replot keeps each material's first row)")
+    ap.add_argument("--replot", nargs="+", type=Path, metavar="LOG",
+                    help="passive: summarise and draw Fig. 6 from the rows earlier runs printed "
+                         "(e.g. both halves' logs; --env-height as they ran) instead of running")
     ap.add_argument("--quick", action="store_true", help="small sizes, few materials")
     args = ap.parse_args()
     if not (DATA / "brdfs").is_dir() or not (DATA / "probes").is_dir():
@@ -293,6 +333,11 @@ def main():
     if args.quick:
         args.size, args.every = 48, 10
     names = list(analytic_zoo()) + list(SHARING_MEASURED)
+    if args.replot:
+        rows = rows_from_logs(args.replot)
+        summarise(rows)
+        plot_fig6(args.out / "passive_fig6.png", rows, args.env_height)
+        return
     if args.profile:
         highlight_profile(args.profile, args.size)
         return
@@ -306,7 +351,7 @@ def main():
                         None if args.lam == "default" else
                         args.lam if args.lam == "cv" else float(args.lam),
                         args.prior,
-                        args.offset, args.modes, args.hemisphere, args.reweight)
+                        args.offset, args.modes, args.hemisphere, args.reweight, args.reverse)
 
 
 if __name__ == "__main__":
