@@ -254,15 +254,16 @@ def block_sums(normals, values, directions, radiance, solid_angle, view_dirs, gr
     unweighted). A per-block task: a pure function of its arguments."""
     L = lighting_matrix(normals, directions, radiance, solid_angle, view_dirs=view_dirs, grid=grid)
     I = np.asarray(values, dtype=np.float64)
-    w = np.ones_like(I) if weights is None else np.asarray(weights, dtype=np.float64)
+    weights = None if weights is None else np.asarray(weights, dtype=np.float64)
     P = L.shape[2]
     gram, rhs = np.empty((3, P, P)), np.empty((3, P))
     for c in range(3):   # one channel's float64 copy at a time
         Lc = L[c].astype(np.float64)
-        gram[c] = (Lc * w[:, c, None]).T @ Lc
-        rhs[c] = Lc.T @ (w[:, c] * I[:, c])
-    return LightingSums(gram, rhs, L.sum(axis=1, dtype=np.float64), np.einsum("ij,ij,ij->j", w, I, I),
-                        len(I))
+        Wc = Lc if weights is None else Lc * weights[:, c, None]
+        gram[c] = Wc.T @ Lc
+        rhs[c] = Wc.T @ I[:, c]
+    wI = I if weights is None else I * weights
+    return LightingSums(gram, rhs, L.sum(axis=1, dtype=np.float64), np.einsum("ij,ij->j", wI, I), len(I))
 
 
 def block_predictions(normals, directions, radiance, solid_angle, view_dirs, grid, table) -> np.ndarray:
