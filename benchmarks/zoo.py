@@ -178,6 +178,12 @@ def hemisphere_image(truth, env, count):
         np.ones(normals.shape[:2], bool)
 
 
+def observations(sphere: int, hemisphere: int) -> str:
+    """What the passive section observes, in words."""
+    return (f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
+            else f"one {sphere} x {sphere} sphere image")
+
+
 def passive_section(out: Path, sphere: int, env_height: int, every: int, error_grid,
                     lam, prior_kind: str, offset: int = 0, n_modes: int = 40,
                     hemisphere: int = 0, reweight=None, reverse: bool = False) -> None:
@@ -187,8 +193,7 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
     models = {k: load_measured(p) for k, p in files.items()}
     t0 = time.perf_counter()
     reductions = {k: Bivariate.from_brdf(m, 32, 32) for k, m in models.items()}
-    observed = (f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
-                else f"one {sphere} x {sphere} sphere image")
+    observed = observations(sphere, hemisphere)
     print(f"\n== passive reflectometry, Fig. 6: {observed} under Grace "
           f"({env_height} x {2 * env_height} texels) per MERL material, prior learned from the "
           f"other {len(models) - 1} (leave-one-out), lam {lam}, reweight {reweight}; Eq. 1 error on a {error_grid} "
@@ -221,7 +226,7 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
               f"{fit.residual.mean():6.2%} unconstrained {np.mean(~seen):4.0%}  {t_fit:4.0f} s",
               flush=True)
     summarise(rows)
-    plot_fig6(out / "passive_fig6.png", rows, env_height)
+    plot_fig6(out / "passive_fig6.png", rows, env_height, observed)
 
 
 ROW = re.compile(r"^(\S+)\s+recovered" + r"\s*/?\s*([\d.]+)%" * 4 + r"\s+reduction"
@@ -260,7 +265,7 @@ def summarise(rows) -> None:
               f"{np.median(rec):.1%}, median reduction {np.median(red):.1%}")
 
 
-def plot_fig6(path: Path, rows, env_height) -> None:
+def plot_fig6(path: Path, rows, env_height, observed: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -268,7 +273,7 @@ def plot_fig6(path: Path, rows, env_height) -> None:
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(12, 4.5))
     ax.plot(x, [r[2] for r in rows], "g.-", label="bivariate reduction of the truth (Fig. 3)")
-    ax.plot(x, [r[1] for r in rows], "r.-", label=f"recovered from one image under Grace "
+    ax.plot(x, [r[1] for r in rows], "r.-", label=f"recovered from {observed} under Grace "
                                                    f"({env_height} x {2 * env_height})")
     ax.plot(x, [r[5] for r in rows], "r--", lw=1, label="recovered, where the environment "
                                                         "constrains the BRDF")
@@ -336,7 +341,8 @@ def main():
     if args.replot:
         rows = rows_from_logs(args.replot)
         summarise(rows)
-        plot_fig6(args.out / "passive_fig6.png", rows, args.env_height)
+        plot_fig6(args.out / "passive_fig6.png", rows, args.env_height,
+                  observations(args.sphere, args.hemisphere))
         return
     if args.profile:
         highlight_profile(args.profile, args.size)
