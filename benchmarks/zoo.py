@@ -31,7 +31,11 @@ Prints, in one run:
    environment constrains (``Adequacy.constrained``) and per-sample with both directions
    within 80 deg of the normal; materials sorted by the reduction's error (the paper's order);
    written as ``passive_fig6.png`` in ``--out``. ``--lam`` overrides the prior's weight
-   (``cv``: cross-validated, derivative prior only).
+   (``cv``: cross-validated, derivative prior only). ``--hemisphere N``: instead of the
+   image's pixels, the paper's observations (N normals uniform on the visible hemisphere, those
+   beyond 80 deg dropped); ``--reweight K``: K reweighted solves under the modes prior (each
+   pixel's noise grown by its misfit); ``--replot LOG...``: summarise and draw from the rows
+   earlier runs printed (the two halves of a run split by ``--every 2 --offset 0|1``).
 
 Needs ``../shared/data/brdfs`` and ``../shared/data/probes``. Run with
 ``OPENBLAS_NUM_THREADS=1`` on a shared machine. ``--quick``: small sizes, few materials.
@@ -47,6 +51,7 @@ sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).re
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import re  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 
@@ -61,7 +66,8 @@ from reconstruct.brdf.zoo import (NearestReciprocal, analytic_zoo, load_measured
 from reconstruct.distant import shade_distant, sphere_normals  # noqa: E402
 from reconstruct.envmap import EnvironmentMap  # noqa: E402
 from reconstruct.lensch import fit_lafortune  # noqa: E402
-from reconstruct.passive import PassiveWarning, bivariate_error, passive_reflectometry  # noqa
+from reconstruct.passive import (PassiveWarning, bivariate_error, passive_reflectometry,  # noqa
+                                 visible_hemisphere_normals)
 from reconstruct.passive_modes import learn_modes  # noqa: E402
 from reconstruct.passive_prior import learn_prior  # noqa: E402
 from reconstruct.sharing import fit_isotropic, samples_from_images  # noqa: E402
@@ -253,30 +259,50 @@ def sphere_image(truth, env, size):
     return image, normals, mask
 
 
+def hemisphere_image(truth, env, count):
+    """The paper's observations: ``count`` normals uniform on the visible hemisphere, those
+    beyond 80 deg of the view dropped (``visible_hemisphere_normals``), shaded; as a (1, M, 3)
+    image with an all-True mask."""
+    normals = visible_hemisphere_normals(count)[None]
+    return shade_distant(truth, normals[0], *env.sources())[None], normals, \
+        np.ones(normals.shape[:2], bool)
+
+
+def observations(sphere: int, hemisphere: int) -> str:
+    """What the passive section observes, in words."""
+    return (f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
+            else f"one {sphere} x {sphere} sphere image")
+
+
 def passive_section(out: Path, sphere: int, env_height: int, every: int, error_grid,
-                    lam, prior_kind: str, offset: int = 0, n_modes: int = 40) -> None:
+                    lam, prior_kind: str, offset: int = 0, n_modes: int = 40,
+                    hemisphere: int = 0, reweight=None, reverse: bool = False) -> None:
     env = EnvironmentMap.load(DATA / "probes" / "grace.hdr",
                               rotation=CAMERA_TO_PROBE).resized(env_height)
     files = {k: p for k, p in measured_files(DATA / "brdfs").items() if k.startswith("merl/")}
     models = {k: load_measured(p) for k, p in files.items()}
     t0 = time.perf_counter()
     reductions = {k: Bivariate.from_brdf(m, 32, 32) for k, m in models.items()}
-    print(f"\n== passive reflectometry, Fig. 6: one {sphere} x {sphere} sphere image under Grace "
+    observed = observations(sphere, hemisphere)
+    print(f"\n== passive reflectometry, Fig. 6: {observed} under Grace "
           f"({env_height} x {2 * env_height} texels) per MERL material, prior learned from the "
-          f"other {len(models) - 1} (leave-one-out), lam {lam}; Eq. 1 error on a {error_grid} "
+          f"other {len(models) - 1} (leave-one-out), lam {lam}, reweight {reweight}; Eq. 1 error on a {error_grid} "
           f"grid, per-sample / pooled reading / per-sample where the environment constrains "
           f"the BRDF (reductions: {time.perf_counter() - t0:.0f} s) ==")
     rows = []
-    for name in list(models)[offset::every]:
+    names = list(models)[offset::every]
+    for name in names[::-1] if reverse else names:
         truth = models[name]
-        image, normals, mask = sphere_image(truth, env, sphere)
+        image, normals, mask = (hemisphere_image(truth, env, hemisphere) if hemisphere else
+                                sphere_image(truth, env, sphere))
         library = [b for k, b in reductions.items() if k != name]
         prior = (learn_modes(library, (32, 32), n_modes=n_modes, name="merl-loo-modes")
                  if prior_kind == "modes" else learn_prior(library, (32, 32), name="merl-loo"))
         t1 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PassiveWarning)
-            fit = passive_reflectometry(image, normals, mask, env, prior=prior, lam=lam)
+            fit = passive_reflectometry(image, normals, mask, env, prior=prior, lam=lam,
+                                        reweight=reweight if prior_kind == "modes" else None)
         t_fit = time.perf_counter() - t1
         seen = fit.adequacy.constrained
         readings = ({}, {"pooled": True}, {"nodes": seen}, {"exclude_grazing_deg": GRAZING})
@@ -289,6 +315,35 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
               f"{r:7.1%} /{rp:6.1%} /{rc:6.1%} /{rg:6.1%}  lam {fit.lam:5.0e} residual "
               f"{fit.residual.mean():6.2%} unconstrained {np.mean(~seen):4.0%}  {t_fit:4.0f} s",
               flush=True)
+    summarise(rows)
+    plot_fig6(out / "passive_fig6.png", rows, env_height, observed)
+
+
+ROW = re.compile(r"^(\S+)\s+recovered" + r"\s*/?\s*([\d.]+)%" * 4 + r"\s+reduction"
+                 + r"\s*/?\s*([\d.]+)%" * 4)
+
+
+def rows_from_logs(paths) -> list:
+    """The per-material rows ``passive_section`` printed, read back from its logs (e.g. the
+    two halves of ``--every 2 --offset 0|1``, each also run ``--reverse``), to 0.1 point, one
+    row per material: (name, e, r, ep, rp, ec, rc, eg,
+    rg) as fractions."""
+    rows, seen = [], set()
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            m = ROW.match(line)
+            if m and m[1] not in seen:   # a material two processes both reached: the same row
+                seen.add(m[1])
+                v = [float(x) / 100 for x in m.groups()[1:]]
+                rows.append(("merl/" + m[1], v[0], v[4], v[1], v[5], v[2], v[6], v[3], v[7]))
+    if not rows:
+        raise SystemExit(f"no passive rows in {', '.join(map(str, paths))}")
+    return rows
+
+
+def summarise(rows) -> None:
+    """Per reading: the median material by recovered - 2 x reduction and how many are within
+    the target (2x the reduction's error + 5 points)."""
     for label, i in (("per-sample", 1), ("pooled", 3), ("per-sample, constrained nodes", 5),
                      (f"per-sample, both directions within {90 - GRAZING} deg of the normal", 7)):
         rec, red = np.array([r[i] for r in rows]), np.array([r[i + 1] for r in rows])
@@ -298,10 +353,9 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
               f"recovered {rec[mid]:.1%} vs target {2 * red[mid] + 0.05:.1%}; {ok.sum()} of "
               f"{len(rows)} within 2x their reduction's error + 5 points; median recovered "
               f"{np.median(rec):.1%}, median reduction {np.median(red):.1%}")
-    plot_fig6(out / "passive_fig6.png", rows, env_height)
 
 
-def plot_fig6(path: Path, rows, env_height) -> None:
+def plot_fig6(path: Path, rows, env_height, observed: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -309,7 +363,7 @@ def plot_fig6(path: Path, rows, env_height) -> None:
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(12, 4.5))
     ax.plot(x, [r[2] for r in rows], "g.-", label="bivariate reduction of the truth (Fig. 3)")
-    ax.plot(x, [r[1] for r in rows], "r.-", label=f"recovered from one image under Grace "
+    ax.plot(x, [r[1] for r in rows], "r.-", label=f"recovered from {observed} under Grace "
                                                    f"({env_height} x {2 * env_height})")
     ax.plot(x, [r[5] for r in rows], "r--", lw=1, label="recovered, where the environment "
                                                         "constrains the BRDF")
@@ -337,6 +391,9 @@ def main():
     ap.add_argument("--out", type=Path, default=Path("out/zoo"))
     ap.add_argument("--size", type=int, default=100, help="sharing sphere images (px)")
     ap.add_argument("--sphere", type=int, default=48, help="passive sphere image (px)")
+    ap.add_argument("--hemisphere", type=int, default=0, metavar="COUNT",
+                    help="passive: observe COUNT normals uniform on the visible hemisphere (the "
+                         "paper's 8000; 80 deg limit) instead of the --sphere image's pixels")
     ap.add_argument("--env-height", type=int, default=16, help="Grace probe rows (passive)")
     ap.add_argument("--every", type=int, default=1, help="passive: every k-th MERL material")
     ap.add_argument("--error-grid", default="90,90,180",
@@ -347,6 +404,9 @@ def main():
     ap.add_argument("--prior", choices=["modes", "smoothness"], default="modes",
                     help="passive: the library's modes of variation in log space (default), "
                          "or Eq. 6's derivative variances")
+    ap.add_argument("--reweight", type=int, default=None,
+                    help="passive, modes prior: reweighted solves (default MODES_REWEIGHT; 0: "
+                         "the plain solve)")
     ap.add_argument("--modes", type=int, default=40, help="passive: modes kept")
     ap.add_argument("--offset", type=int, default=0,
                     help="passive: first MERL material (with --every: a second subset)")
@@ -357,6 +417,12 @@ def main():
                     help="sharing: print NAME's highlight profile at held-out theta_d instead")
     ap.add_argument("--rgl", action="store_true",
                     help="sharing: why the RGL rows miss (asymmetry, floors, where the error is)")
+    ap.add_argument("--reverse", action="store_true",
+                    help="passive: the materials in reverse order (a second process on the same "
+                         "subset from its other end; --replot keeps each material's first row)")
+    ap.add_argument("--replot", nargs="+", type=Path, metavar="LOG",
+                    help="passive: summarise and draw Fig. 6 from the rows earlier runs printed "
+                         "(e.g. both halves' logs; --env-height as they ran) instead of running")
     ap.add_argument("--quick", action="store_true", help="small sizes, few materials")
     args = ap.parse_args()
     if not (DATA / "brdfs").is_dir() or not (DATA / "probes").is_dir():
@@ -364,6 +430,12 @@ def main():
     if args.quick:
         args.size, args.every = 48, 10
     names = list(analytic_zoo()) + list(SHARING_MEASURED)
+    if args.replot:
+        rows = rows_from_logs(args.replot)
+        summarise(rows)
+        plot_fig6(args.out / "passive_fig6.png", rows, args.env_height,
+                  observations(args.sphere, args.hemisphere))
+        return
     if args.profile:
         highlight_profile(args.profile, args.size)
         return
@@ -380,7 +452,7 @@ def main():
                         None if args.lam == "default" else
                         args.lam if args.lam == "cv" else float(args.lam),
                         args.prior,
-                        args.offset, args.modes)
+                        args.offset, args.modes, args.hemisphere, args.reweight, args.reverse)
 
 
 if __name__ == "__main__":

@@ -246,23 +246,35 @@ class LightingSums:
                             self.value_sq + other.value_sq, self.rows + other.rows)
 
 
-def block_sums(normals, values, directions, radiance, solid_angle, view_dirs, grid) -> LightingSums:
+def block_sums(normals, values, directions, radiance, solid_angle, view_dirs, grid,
+               weights=None) -> LightingSums:
     """:class:`LightingSums` of one block of observations: its rows (:func:`lighting_matrix`;
-    arguments as there, ``values`` (m, 3) the observed radiance) reduced at once. A per-block
-    task: a pure function of its arguments."""
+    arguments as there, ``values`` (m, 3) the observed radiance) reduced at once, each
+    observation's terms times its ``weights`` (m, 3) per channel if given (``column``
+    unweighted). A per-block task: a pure function of its arguments."""
     L = lighting_matrix(normals, directions, radiance, solid_angle, view_dirs=view_dirs, grid=grid)
     I = np.asarray(values, dtype=np.float64)
+    weights = None if weights is None else np.asarray(weights, dtype=np.float64)
     P = L.shape[2]
     gram, rhs = np.empty((3, P, P)), np.empty((3, P))
     for c in range(3):   # one channel's float64 copy at a time
         Lc = L[c].astype(np.float64)
-        gram[c] = Lc.T @ Lc
-        rhs[c] = Lc.T @ I[:, c]
-    return LightingSums(gram, rhs, L.sum(axis=1, dtype=np.float64), np.einsum("ij,ij->j", I, I), len(I))
+        Wc = Lc if weights is None else Lc * weights[:, c, None]
+        gram[c] = Wc.T @ Lc
+        rhs[c] = Wc.T @ I[:, c]
+    wI = I if weights is None else I * weights
+    return LightingSums(gram, rhs, L.sum(axis=1, dtype=np.float64), np.einsum("ij,ij->j", wI, I), len(I))
+
+
+def block_predictions(normals, directions, radiance, solid_angle, view_dirs, grid, table) -> np.ndarray:
+    """L f of one block of observations (m, 3) for a bivariate ``table`` (n_t n_s, 3), 1/sr:
+    the radiance the table predicts (arguments as :func:`lighting_matrix`'s). A per-block task."""
+    L = lighting_matrix(normals, directions, radiance, solid_angle, view_dirs=view_dirs, grid=grid)
+    return np.stack([L[c].astype(np.float64) @ table[:, c] for c in range(3)], axis=1)
 
 
 def lighting_sums(normals, values, directions, radiance, solid_angle, *, view_dirs=(0.0, 0.0, -1.0),
-                  grid=(32, 32), block_rows: int = BLOCK_ROWS,
+                  grid=(32, 32), block_rows: int = BLOCK_ROWS, weights=None,
                   map_blocks: Callable[[Callable, list], list] | None = None, progress=None) -> LightingSums:
     """The normal equations of the lighting matrix of ``normals`` against ``values``, built over
     blocks of ``block_rows`` observations (:func:`block_sums`): the same, to rounding, as
@@ -276,6 +288,9 @@ def lighting_sums(normals, values, directions, radiance, solid_angle, *, view_di
         Observed radiance of each normal, RGB (finite).
     block_rows : int
         Observations per block (>= 1).
+    weights : ndarray of shape (N, 3), optional
+        Each observation's weight per channel (>= 0; e.g. inverse noise variances) in the
+        Gram, right-hand side and value sums (not in ``column``); default 1.
     map_blocks : callable(fn, list of argument tuples) -> list, optional
         Runs the per-block tasks (:func:`block_sums`, :data:`MAP_BATCH` at a time; results in
         order): default one after the other here, each block's sums added before the next is
@@ -300,7 +315,13 @@ def lighting_sums(normals, values, directions, radiance, solid_angle, *, view_di
     v = np.asarray(view_dirs, dtype=np.float64)
     if v.shape != (3,) and v.shape != (len(n), 3):
         raise ValueError(f"view_dirs must have shape (3,) or ({len(n)}, 3), got {v.shape}")
-    tasks = [(n[a:a + block_rows], I[a:a + block_rows], d, E, omega, v if v.ndim == 1 else v[a:a + block_rows], grid)
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != I.shape or not np.all(np.isfinite(weights)) or weights.min() < 0:
+            raise ValueError(f"weights must be finite, >= 0, with shape {I.shape}, got shape "
+                             f"{weights.shape}")
+    tasks = [(n[a:a + block_rows], I[a:a + block_rows], d, E, omega, v if v.ndim == 1 else v[a:a + block_rows], grid,
+              None if weights is None else weights[a:a + block_rows])
              for a in range(0, len(n), block_rows)]
     P = grid[0] * grid[1]
     gram, rhs, column, value_sq = np.zeros((3, P, P)), np.zeros((3, P)), np.zeros((3, P)), np.zeros(3)
@@ -317,6 +338,30 @@ def lighting_sums(normals, values, directions, radiance, solid_angle, *, view_di
         if progress is not None:
             progress(done, len(n))
     return LightingSums(gram, rhs, column, value_sq, done)
+
+
+def lighting_predictions(normals, table, directions, radiance, solid_angle, *,
+                         view_dirs=(0.0, 0.0, -1.0), grid=(32, 32), block_rows: int = BLOCK_ROWS,
+                         map_blocks: Callable[[Callable, list], list] | None = None) -> np.ndarray:
+    """L f: the radiance (N, 3) a bivariate ``table`` (n_t, n_s, 3) or (n_t n_s, 3), 1/sr,
+    predicts at ``normals``, built over blocks of ``block_rows`` observations
+    (:func:`block_predictions`) like :func:`lighting_sums`, without holding L. Arguments as
+    :func:`lighting_sums`'s; ValueError names a table of the wrong size."""
+    n = _unit_rows("normals", normals)
+    grid = check_grid(grid)
+    f = np.asarray(table, dtype=np.float64).reshape(-1, 3) if np.size(table) == 3 * grid[0] * grid[1] \
+        else None
+    if f is None or not np.all(np.isfinite(f)):
+        raise ValueError(f"table must hold {grid[0]} x {grid[1]} x 3 finite values, got shape "
+                         f"{np.shape(table)}")
+    d, E, omega = check_sources(directions, radiance, solid_angle)
+    v = np.asarray(view_dirs, dtype=np.float64)
+    if v.shape != (3,) and v.shape != (len(n), 3):
+        raise ValueError(f"view_dirs must have shape (3,) or ({len(n)}, 3), got {v.shape}")
+    tasks = [(n[a:a + block_rows], d, E, omega, v if v.ndim == 1 else v[a:a + block_rows], grid, f)
+             for a in range(0, len(n), block_rows)]
+    run = map_blocks or (lambda fn, args: [fn(*a) for a in args])
+    return np.concatenate(run(block_predictions, tasks)) if tasks else np.zeros((0, 3))
 
 
 def _dot3(a, bT, plus=0.0):

@@ -160,14 +160,15 @@ class ModesSolution:
 
 
 def solve_modes(prior: ModesPrior, G, h, bb: float, lam: float, *, max_iter: int = 100,
-                precision=None) -> ModesSolution:
+                precision=None, start=None) -> ModesSolution:
     """argmin over x of (f^T G f - 2 h^T f + bb) / bb + lam (x - mean)^T Q (x - mean) with
     f = exp(x) - offset and Q = ``prior.precision()`` (pass it as ``precision`` to reuse it
     across channels): the posterior mode for a data term ||A f - b||^2 given as G = A^T A
     (n, n), h = A^T b (n,), bb = b^T b, with noise variance lam bb.
 
     Levenberg-Marquardt (Gauss-Newton steps, damping adapted to the cost) from the library
-    mean at the brightness that fits the data best.
+    mean at the brightness that fits the data best, or from ``start`` (n,) f values, 1/sr
+    (e.g. an earlier solve's).
     """
     Q = lam * (prior.precision() if precision is None else precision)
     mean, off = prior.mean, prior.offset
@@ -177,8 +178,11 @@ def solve_modes(prior: ModesPrior, G, h, bb: float, lam: float, *, max_iter: int
         y = x - mean
         return (f @ (G @ f) - 2 * h @ f + bb) / bb + y @ (Q @ y), f
 
-    f0 = np.exp(mean) - off
-    x = mean + np.log(max(h @ f0 / max(f0 @ G @ f0, 1e-300), 1e-12))
+    if start is None:
+        f0 = np.exp(mean) - off
+        x = mean + np.log(max(h @ f0 / max(f0 @ G @ f0, 1e-300), 1e-12))
+    else:
+        x = np.log(np.maximum(np.asarray(start, dtype=np.float64), 0.0) + off)
     c0, f = cost(x)
     damp, converged = 1e-3, False
     for _ in range(max_iter):

@@ -1,6 +1,7 @@
 """Passive reflectometry's lighting matrix over blocks of observations (issue 21): the rows of a
 block equal the whole build's rows, and the normal equations summed over blocks (run as on a
-cluster: pickled, in reverse order) equal those of the whole matrix to 1e-9. Random sources and
+cluster: pickled, in reverse order) equal those of the whole matrix to 1e-9, with and without
+per-observation weights, and so do the predicted radiances L f. Random sources and
 normals, an orthographic and a perspective (per-point view) camera."""
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import pickle
 import numpy as np
 import pytest
 
-from reconstruct.passive_lighting import block_sums, lighting_matrix, lighting_sums
+from reconstruct.passive_lighting import (block_sums, lighting_matrix, lighting_predictions,
+                                         lighting_sums)
 
 GRID = (12, 9)
 
@@ -67,3 +69,29 @@ def test_lighting_sums_name_bad_input():
     total = halves[0] + halves[1]
     assert total.rows == 20
     np.testing.assert_allclose(total.gram, whole.gram, rtol=1e-12, atol=1e-15 * np.abs(whole.gram).max())
+
+
+def test_weighted_sums_and_predictions_over_blocks_equal_the_whole_matrix():
+    """Per-observation, per-channel weights W: the blocks' sums are L^T W L, L^T W I and
+    I^T W I of the whole matrix (column sums unweighted) to 1e-9; ``lighting_predictions`` is
+    L f for a random table, over blocks run as on a cluster; bad weights and tables are named."""
+    n, values, d, E, omega, views = _problem()
+    w = np.random.default_rng(7).uniform(0, 2, values.shape)
+    L = lighting_matrix(n, d, E, omega, view_dirs=views, grid=GRID)
+    s = lighting_sums(n, values, d, E, omega, view_dirs=views, grid=GRID, block_rows=37, weights=w,
+                      map_blocks=_as_on_a_cluster)
+    table = np.random.default_rng(8).uniform(0, 1, (*GRID, 3))
+    pred = lighting_predictions(n, table, d, E, omega, view_dirs=views, grid=GRID, block_rows=37,
+                                map_blocks=_as_on_a_cluster)
+    for c in range(3):
+        Lc = L[c].astype(np.float64)
+        G = (Lc * w[:, c, None]).T @ Lc
+        np.testing.assert_allclose(s.gram[c], G, rtol=1e-9, atol=1e-12 * np.abs(G).max())
+        np.testing.assert_allclose(s.rhs[c], Lc.T @ (w[:, c] * values[:, c]), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(s.column[c], Lc.sum(axis=0), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(pred[:, c], Lc @ table[..., c].ravel(), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(s.value_sq, (w * values ** 2).sum(axis=0), rtol=1e-12)
+    with pytest.raises(ValueError, match=r"weights must be finite, >= 0, with shape \(300, 3\)"):
+        lighting_sums(n, values, d, E, omega, grid=GRID, weights=-w)
+    with pytest.raises(ValueError, match="table must hold 12 x 9 x 3"):
+        lighting_predictions(n, table[:5], d, E, omega, grid=GRID)
