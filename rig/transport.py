@@ -86,11 +86,36 @@ class SerialTransport:
     def write(self, data: bytes) -> None:
         log.debug("%s > %r", self.device, data)
         try:
-            self._port().write(data)
-            self._port().flush()
+            port = self._port()
+            self._send(port, data, time.monotonic() + self.timeout_s)
+            port.flush()
         except _PORT_ERRORS as exc:
             self.close()
             raise Disconnected(f"write to {self.port} failed: {exc}", device=self.device) from None
+
+    def _send(self, port: serial.Serial, data: bytes, deadline: float) -> None:
+        """Write every byte of ``data``, waiting for the port to take them until ``deadline``.
+
+        Not pyserial's ``write``: on POSIX it raises "Write timeout" whenever the call as a
+        whole outlasts ``write_timeout``, even after ``os.write`` took every byte (pyserial
+        issue #281, open). A thread descheduled on a loaded machine then reported a command it
+        had sent as a failed write and dropped the link. Here only bytes the port did not take
+        in time are a timeout. (The port is open non-blocking, so ``os.write`` never waits.)
+        """
+        fd = port.fileno()
+        left = memoryview(data)
+        while True:
+            try:
+                left = left[os.write(fd, left):]
+            except BlockingIOError:
+                pass
+            if not left:
+                return
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([], [fd], [], remaining)[1]:
+                raise serial.SerialTimeoutException(
+                    f"the port took {len(data) - len(left)} of {len(data)} bytes in "
+                    f"{self.timeout_s:g} s")
 
     def _fill(self, port: serial.Serial, deadline: float) -> bool:
         """Append what the port has to the receive buffer, waiting until ``deadline`` at most.
