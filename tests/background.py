@@ -13,6 +13,7 @@ the code its fixture ran before, and the tests read the same store, so no assert
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import pickle
@@ -70,7 +71,7 @@ class Background:
         self.root = root
         self.jobs = {job.name: job for job in jobs}
         self._done = {job.name: threading.Event() for job in jobs}
-        self._codes: dict[str, int] = {}
+        self._codes: dict[str, int | str] = {}   # exit status, or why it did not start
         #: per job: seconds it ran, and seconds the tests waited for it
         self.ran_s: dict[str, float] = {}
         self.waited_s: dict[str, float] = {}
@@ -82,11 +83,15 @@ class Background:
 
     def _run_all(self, jobs: list[Job]) -> None:
         for job in jobs:
-            if not self._stopping:
-                started = time.monotonic()
-                self._codes[job.name] = self._run(job)
-                self.ran_s[job.name] = time.monotonic() - started
-            self._done[job.name].set()
+            try:
+                if not self._stopping:
+                    started = time.monotonic()
+                    self._codes[job.name] = self._run(job)
+                    self.ran_s[job.name] = time.monotonic() - started
+            except OSError as exc:   # the child could not be started: its fixture says so
+                self._codes[job.name] = repr(exc)
+            finally:
+                self._done[job.name].set()
 
     def _run(self, job: Job) -> int:
         folder = self.root / job.name
@@ -97,19 +102,16 @@ class Background:
                                            cwd=REPO, env={**os.environ, "PYTHONPATH": path}, stdout=log,
                                            stderr=subprocess.STDOUT, start_new_session=True)
             # (before the child has started anything: it inherits the niceness)
-            os.setpriority(os.PRIO_PROCESS, self._child.pid, os.getpriority(os.PRIO_PROCESS, 0) + NICENESS)
+            with contextlib.suppress(ProcessLookupError):
+                os.setpriority(os.PRIO_PROCESS, self._child.pid, os.getpriority(os.PRIO_PROCESS, 0) + NICENESS)
             return self._child.wait()
 
     def folder(self, name: str) -> Path:
         """The folder job ``name`` wrote, once it has finished (waits; raises :class:`JobFailed`
-        if it failed). A job that was not scheduled (its fixture asked for outside a collected
-        test's needs) runs now, in the foreground."""
+        if it failed)."""
         if name not in self.jobs:
-            job = next(j for j in JOBS if j.name == name)
-            folder = self.root / "foreground" / name
-            folder.mkdir(parents=True)
-            run_job(job.module, job.function, folder)
-            return folder
+            raise KeyError(f"background job {name!r} was not started: no collected test uses its fixture "
+                           f"(tests/background.py JOBS: {', '.join(job.name for job in JOBS)})")
         started = time.monotonic()
         self._done[name].wait()
         self.waited_s[name] = time.monotonic() - started
@@ -117,8 +119,10 @@ class Background:
         if code != 0:
             log = self.root / name / LOG
             tail = log.read_text()[-4000:] if log.is_file() else ""
+            why = ("was stopped" if code is None else f"exited {code}" if isinstance(code, int)
+                   else f"did not start: {code}")
             raise JobFailed(f"background job {name} ({self.jobs[name].module}::{self.jobs[name].function}) "
-                            f"{'was stopped' if code is None else f'exited {code}'}; its log ends:\n{tail}")
+                            f"{why}; its log ends:\n{tail}")
         return self.root / name
 
     def summary(self) -> str:
