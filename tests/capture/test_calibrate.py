@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 
 import capture.pipeline.calibrate as calibrate_module
 from calibration.errors import TargetNotFound
-from capture.pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
+from capture.pipeline.calibrate import STAGES, CalibrationReport, LabTargets, NothingToCalibrate, calibrate_session
 from capture.pipeline.calibration_report import write_report
 from capture.pipeline.stage_records import read_record
 from capture.cli import app
@@ -112,6 +112,36 @@ def capture_and_calibrate(root: Path) -> None:
     save(root, report)
     save(root, write_report(report, root / "r" / "cal.png").read_bytes(), "png")
     save(root, _cli_calibrations(root), "cli")
+    with _copy(root, "silhouettes") as copy:
+        save(root, calibrate_session(copy, "cal", targets=TARGETS, measurement_hdr=False,
+                                     stages=("dark", "hdr", "intrinsics", "lights")), "silhouettes")
+    save(root, _first_spheres_step_hidden(_copy(root, "hidden")), "hidden")
+
+
+def _copy(root: Path, name: str) -> Store:
+    """A copy of the calibrated session's store, ``root / name / "store"``, opened."""
+    shutil.copytree(root / "store", root / name / "store")
+    return Store(root / name / "store", durable=False)
+
+
+def _first_spheres_step_hidden(copy: Store) -> tuple[CalibrationReport, str]:
+    """The calibration up to the lights on ``copy`` with the first spheres step's balls hidden
+    (fewer than two show whole): (its report, the frame named)."""
+    known, lost = calibrate_module._known_spheres, []
+
+    def first_step_hidden(ctx, K, dist, radius, shape, frame, reading):
+        if not lost:
+            lost.append(frame)
+            raise TargetNotFound("1 of the 3 configured spheres project whole and unoccluded", frame=frame)
+        return known(ctx, K, dist, radius, shape, frame, reading)
+    calibrate_module._known_spheres = first_step_hidden
+    try:
+        with copy:
+            report = calibrate_session(copy, "cal", targets=TARGETS, measurement_hdr=False,
+                                       stages=("dark", "hdr", "intrinsics", "turntable", "lights"))
+    finally:
+        calibrate_module._known_spheres = known
+    return report, lost[0]
 
 
 @dataclass(frozen=True)
@@ -266,13 +296,13 @@ def test_light_positions_match_the_sim(session):
 def test_lights_fall_back_to_silhouettes_without_a_lab_frame(session):
     """Known positions need the lab frame; without the turntable stage the spheres are found
     from their silhouettes against the backdrop (perspective cone fit, K from the session)."""
-    store, _, camera, _ = session
-    report = calibrate_session(store, "cal", targets=TARGETS, measurement_hdr=False,
-                               stages=("dark", "hdr", "intrinsics", "lights"))
+    _, _, camera, root = session
+    report = load(root, "silhouettes")   # the stages up to the lights, on a copy (the job's)
     assert report.stage("lights").status == "ok", report.stage("lights").reason
     assert report.stage("lights").figures["centres"] == "silhouettes"
-    r = read_record(next(x for x in store.results(store.session("cal").id)
-                         if x.id == report.stage("lights").calibration_id))
+    with Store(root / "silhouettes" / "store", readonly=True) as store:
+        r = read_record(next(x for x in store.results(store.session("cal").id)
+                             if x.id == report.stage("lights").calibration_id))
     truth = SPHERES.points_world(0.0) @ camera.R.T + camera.t
     # within 4 % of their distance (seen: 2.1-3.6 %, the silhouette's depth from a ~40 px disc)
     err = np.linalg.norm(r.sphere_centres_camera_mm - truth, axis=1)
@@ -478,24 +508,14 @@ def _bad_session(tmp_path) -> Store:
     return store
 
 
-def test_a_spheres_step_whose_balls_do_not_show_loses_only_its_step(session, tmp_path, monkeypatch):
+def test_a_spheres_step_whose_balls_do_not_show_loses_only_its_step(session):
     """A turntable angle at which fewer than two configured balls show whole (one left the
-    frame, one behind another): that step is named and left out, the other lights are located."""
+    frame, one behind another): that step is named and left out, the other lights are located
+    (:func:`_first_spheres_step_hidden`, on a copy of the store, by the job)."""
     _, before, _, root = session
-    shutil.copytree(root / "store", tmp_path / "store")   # the module's store stays as it is
-    known, lost = calibrate_module._known_spheres, []
-
-    def first_step_hidden(ctx, K, dist, radius, shape, frame, reading):
-        if not lost:
-            lost.append(frame)
-            raise TargetNotFound("1 of the 3 configured spheres project whole and unoccluded", frame=frame)
-        return known(ctx, K, dist, radius, shape, frame, reading)
-    monkeypatch.setattr(calibrate_module, "_known_spheres", first_step_hidden)
-    with Store(tmp_path / "store") as copy:
-        report = calibrate_session(copy, "cal", targets=TARGETS, measurement_hdr=False,
-                                   stages=("dark", "hdr", "intrinsics", "turntable", "lights"))
+    report, lost = load(root, "hidden")
     lights = report.stage("lights")
-    assert lights.status == "failed" and lost[0] in lights.reason and lights.calibration_id
+    assert lights.status == "failed" and lost in lights.reason and lights.calibration_id
     assert lights.figures["lights"] == before.stage("lights").figures["lights"] - 1
 
 
