@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +18,8 @@ from typer.testing import CliRunner
 
 import capture.pipeline.calibrate as calibrate_module
 from calibration.errors import TargetNotFound
-from capture.pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, calibrate_session
+from capture.pipeline.calibrate import STAGES, CalibrationReport, LabTargets, NothingToCalibrate, calibrate_session
+from capture.pipeline.calibration_report import write_report
 from capture.pipeline.stage_records import read_record
 from capture.cli import app
 from capture.plan import Plan
@@ -26,6 +29,7 @@ from capture.store import SessionNotFound, Store
 from reconstruct.brdf import Lambertian
 from reconstruct.raycast import Plane
 from reconstruct.render import SceneObject
+from background import load, save
 from sims.targets import CHROME_REFLECTANCE
 from sims.world import (CAPTURE_CHARUCO, SimWorld, Target, board_on_turntable, capture_targets, default_camera, light_position,
                         spheres_target)
@@ -95,17 +99,93 @@ class SceneSwitch:
             self.current.hold_board(BOARD, step)
 
 
-@pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    root = tmp_path_factory.mktemp("cal")
+def capture_and_calibrate(root: Path) -> None:
+    """The background job (tests/background.py) behind ``session``: PLAN captured in the
+    SceneSwitch's scenes into ``root / "store"`` and calibrated; the report kept beside it."""
     scenes = SceneSwitch()
-    with open_rig("sim", fast=True, home=True, frame_source=scenes) as opened:
-        store = Store(root / "store", durable=False)
+    with open_rig("sim", fast=True, home=True, frame_source=scenes) as opened, \
+            Store(root / "store", durable=False) as store:
         create_session(store, Plan.from_dict(PLAN), opened.rig, name="cal", reserve_bytes=0)
         runner = Runner(opened.rig, store, "cal", reserve_bytes=0, prepare_target=scenes.prepare)
         assert runner.run() == "done"
-    report = calibrate_session(store, "cal", targets=TARGETS)
-    yield store, report, scenes.camera, root
+        report = calibrate_session(store, "cal", targets=TARGETS)
+    save(root, report)
+    save(root, write_report(report, root / "r" / "cal.png").read_bytes(), "png")
+    save(root, _cli_calibrations(root), "cli")
+    with _copy(root, "silhouettes") as copy:
+        save(root, calibrate_session(copy, "cal", targets=TARGETS, measurement_hdr=False,
+                                     stages=("dark", "hdr", "intrinsics", "lights")), "silhouettes")
+    save(root, _first_spheres_step_hidden(_copy(root, "hidden")), "hidden")
+
+
+def _copy(root: Path, name: str) -> Store:
+    """A copy of the calibrated session's store, ``root / name / "store"``, opened."""
+    shutil.copytree(root / "store", root / name / "store")
+    return Store(root / name / "store", durable=False)
+
+
+def _first_spheres_step_hidden(copy: Store) -> tuple[CalibrationReport, str]:
+    """The calibration up to the lights on ``copy`` with the first spheres step's balls hidden
+    (fewer than two show whole): (its report, the frame named)."""
+    known, lost = calibrate_module._known_spheres, []
+
+    def first_step_hidden(ctx, K, dist, radius, shape, frame, reading):
+        if not lost:
+            lost.append(frame)
+            raise TargetNotFound("1 of the 3 configured spheres project whole and unoccluded", frame=frame)
+        return known(ctx, K, dist, radius, shape, frame, reading)
+    calibrate_module._known_spheres = first_step_hidden
+    try:
+        with copy:
+            report = calibrate_session(copy, "cal", targets=TARGETS, measurement_hdr=False,
+                                       stages=("dark", "hdr", "intrinsics", "turntable", "lights"))
+    finally:
+        calibrate_module._known_spheres = known
+    return report, lost[0]
+
+
+@dataclass(frozen=True)
+class CliCalibrations:
+    """``gonio calibrate`` twice on a copy of the calibrated session's store, with a --targets
+    file: (exit code, output) of the table run (``--quiet``) and of the ``--json`` run; the
+    results stored before and after the first; the size of the PNG report it wrote, bytes."""
+
+    table: tuple[int, str]
+    json: tuple[int, str]
+    results_before: int
+    results_after_table: int
+    png_bytes: int
+
+
+def _cli_calibrations(root: Path) -> CliCalibrations:
+    targets = root / "targets.toml"
+    targets.write_text(f"charuco_squares = [10, 7]\ncharuco_square_mm = 28.0\ncharuco_marker_mm = 21.0\n"
+                       f"sphere_radius_mm = {SPHERE_RADIUS_MM}\nsphere_reflectance = {CHROME_REFLECTANCE}\n"
+                       f"charuco_centre_height_mm = {BOARD_CENTRE_HEIGHT_MM}\n"
+                       f"sphere_centres_mm = {SPHERES.points_world(0.0).tolist()}\n")
+    copy = root / "cli" / "store"
+    shutil.copytree(root / "store", copy)
+
+    def results() -> int:
+        with Store(copy, readonly=True) as store:
+            return len(store.results(store.session("cal").id))
+
+    def calibrate(*flags: str) -> tuple[int, str]:
+        r = CliRunner().invoke(app, ["calibrate", "cal", "--store", str(copy), "--targets", str(targets),
+                                     "--out", str(root / "cli" / "out"), *flags])
+        return r.exit_code, r.output
+    before = results()
+    table = calibrate("--quiet")
+    after, png = results(), (root / "cli" / "out" / "cal-calibration.png").stat().st_size
+    return CliCalibrations(table, calibrate("-q", "--json"), before, after, png)
+
+
+@pytest.fixture(scope="module")
+def session(background):
+    """(store, calibration report, the scenes' camera, folder) of PLAN's session."""
+    root = background.folder("calibrate")
+    store = Store(root / "store", durable=False)
+    yield store, load(root), default_camera(W, H), root   # the SceneSwitch's camera
     store.close()
 
 
@@ -216,13 +296,13 @@ def test_light_positions_match_the_sim(session):
 def test_lights_fall_back_to_silhouettes_without_a_lab_frame(session):
     """Known positions need the lab frame; without the turntable stage the spheres are found
     from their silhouettes against the backdrop (perspective cone fit, K from the session)."""
-    store, _, camera, _ = session
-    report = calibrate_session(store, "cal", targets=TARGETS, measurement_hdr=False,
-                               stages=("dark", "hdr", "intrinsics", "lights"))
+    _, _, camera, root = session
+    report = load(root, "silhouettes")   # the stages up to the lights, on a copy (the job's)
     assert report.stage("lights").status == "ok", report.stage("lights").reason
     assert report.stage("lights").figures["centres"] == "silhouettes"
-    r = read_record(next(x for x in store.results(store.session("cal").id)
-                         if x.id == report.stage("lights").calibration_id))
+    with Store(root / "silhouettes" / "store", readonly=True) as store:
+        r = read_record(next(x for x in store.results(store.session("cal").id)
+                             if x.id == report.stage("lights").calibration_id))
     truth = SPHERES.points_world(0.0) @ camera.R.T + camera.t
     # within 4 % of their distance (seen: 2.1-3.6 %, the silhouette's depth from a ~40 px disc)
     err = np.linalg.norm(r.sphere_centres_camera_mm - truth, axis=1)
@@ -354,35 +434,25 @@ def test_polarization_gray_card_and_probe(session):
     assert seen == pytest.approx(1 - (1 - np.cos(np.radians(15))) / 2, abs=0.004)
 
 
-def test_report_png_written(session, tmp_path):
-    from capture.pipeline.calibration_report import write_report
-    _, report, _, _ = session
-    png = write_report(report, tmp_path / "r" / "cal.png")
-    data = png.read_bytes()
+def test_report_png_written(session):
+    """The report's PNG (``write_report`` of the session's calibration, by the job)."""
+    data = load(session[3], "png")
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 50_000
 
 
-def test_cli_calibrate_table_report_and_exit_code(session, tmp_path):
-    store, _, _, root = session
-    targets = tmp_path / "targets.toml"
-    targets.write_text(f"charuco_squares = [10, 7]\ncharuco_square_mm = 28.0\ncharuco_marker_mm = 21.0\n"
-                       f"sphere_radius_mm = {SPHERE_RADIUS_MM}\nsphere_reflectance = {CHROME_REFLECTANCE}\n"
-                       f"charuco_centre_height_mm = {BOARD_CENTRE_HEIGHT_MM}\n"
-                       f"sphere_centres_mm = {SPHERES.points_world(0.0).tolist()}\n")
-    before = len(store.results(store.session("cal").id))
-    r = CliRunner().invoke(app, ["calibrate", "cal", "--store", str(root / "store"),
-                                 "--targets", str(targets), "--out", str(tmp_path / "out"), "--quiet"])
-    assert r.exit_code == 0, r.output
+def test_cli_calibrate_table_report_and_exit_code(session):
+    cli = load(session[3], "cli")   # the job's CliCalibrations
+    code, output = cli.table
+    assert code == 0, output
     for stage in STAGES:
-        assert stage in r.output
-    assert "rms_px" in r.output and "axis" in r.output
-    assert (tmp_path / "out" / "cal-calibration.png").stat().st_size > 50_000
+        assert stage in output
+    assert "rms_px" in output and "axis" in output
+    assert cli.png_bytes > 50_000
     # every stage, and the record that closes a whole run (capture.pipeline.calibration_record)
-    assert len(store.results(store.session("cal").id)) == before + len(STAGES) + 1
-    r = CliRunner().invoke(app, ["calibrate", "cal", "--store", str(root / "store"),
-                                 "--targets", str(targets), "--out", str(tmp_path / "out"), "-q", "--json"])
-    assert r.exit_code == 0, r.output
-    out = json.loads(r.output)
+    assert cli.results_after_table == cli.results_before + len(STAGES) + 1
+    code, output = cli.json
+    assert code == 0, output
+    out = json.loads(output)
     assert [s["stage"] for s in out["stages"]] == list(STAGES)
     assert out["report"].endswith("cal-calibration.png")
     assert out["stages"][2]["figures"]["fx_px"] > 0
@@ -438,24 +508,14 @@ def _bad_session(tmp_path) -> Store:
     return store
 
 
-def test_a_spheres_step_whose_balls_do_not_show_loses_only_its_step(session, tmp_path, monkeypatch):
+def test_a_spheres_step_whose_balls_do_not_show_loses_only_its_step(session):
     """A turntable angle at which fewer than two configured balls show whole (one left the
-    frame, one behind another): that step is named and left out, the other lights are located."""
+    frame, one behind another): that step is named and left out, the other lights are located
+    (:func:`_first_spheres_step_hidden`, on a copy of the store, by the job)."""
     _, before, _, root = session
-    shutil.copytree(root / "store", tmp_path / "store")   # the module's store stays as it is
-    known, lost = calibrate_module._known_spheres, []
-
-    def first_step_hidden(ctx, K, dist, radius, shape, frame, reading):
-        if not lost:
-            lost.append(frame)
-            raise TargetNotFound("1 of the 3 configured spheres project whole and unoccluded", frame=frame)
-        return known(ctx, K, dist, radius, shape, frame, reading)
-    monkeypatch.setattr(calibrate_module, "_known_spheres", first_step_hidden)
-    with Store(tmp_path / "store") as copy:
-        report = calibrate_session(copy, "cal", targets=TARGETS, measurement_hdr=False,
-                                   stages=("dark", "hdr", "intrinsics", "turntable", "lights"))
+    report, lost = load(root, "hidden")
     lights = report.stage("lights")
-    assert lights.status == "failed" and lost[0] in lights.reason and lights.calibration_id
+    assert lights.status == "failed" and lost in lights.reason and lights.calibration_id
     assert lights.figures["lights"] == before.stage("lights").figures["lights"] - 1
 
 
@@ -524,16 +584,25 @@ DEFAULT_PLAN = {
 }
 
 
-def _default_session(root, world: SimWorld):
-    """Capture DEFAULT_PLAN on ``--rig sim`` with ``world`` (the sphere object and the
-    ``SimWorld.for_capture`` scenes) as the frame source and scene switcher, then calibrate it
-    with those scenes' targets."""
-    with open_rig("sim", fast=True, home=True, frame_source=world.frame_source) as opened:
-        store = Store(root, durable=False)
+def capture_and_calibrate_default(root: Path) -> None:
+    """The background job behind ``default_session``: DEFAULT_PLAN captured on ``--rig sim`` with
+    the sphere object and the ``SimWorld.for_capture`` scenes as the frame source and scene
+    switcher into ``root / "store"``, then calibrated with those scenes' targets."""
+    world = SimWorld("sphere", camera=default_camera(W, H))
+    with open_rig("sim", fast=True, home=True, frame_source=world.frame_source) as opened, \
+            Store(root / "store", durable=False) as store:
         create_session(store, Plan.from_dict(DEFAULT_PLAN), opened.rig, name="default", reserve_bytes=0)
         runner = Runner(opened.rig, store, "default", reserve_bytes=0, prepare_target=world.prepare_target)
         assert runner.run() == "done"
-    return store, calibrate_session(store, "default", targets=_scene_targets(), measurement_hdr=False), world.camera
+        save(root, calibrate_session(store, "default", targets=_scene_targets(), measurement_hdr=False))
+
+
+@pytest.fixture
+def default_session(background):
+    """(store, calibration report, camera) of DEFAULT_PLAN's session."""
+    root = background.folder("calibrate-default")
+    with Store(root / "store", durable=False) as store:
+        yield store, load(root), default_camera(W, H)
 
 
 def _located_lights(store, camera):
@@ -544,7 +613,7 @@ def _located_lights(store, camera):
     return lights, [_light_truth(camera, row.commanded) for row in lights.lights], truth_centres
 
 
-def test_default_sim_session_locates_lights_from_known_sphere_positions(tmp_path):
+def test_default_sim_session_locates_lights_from_known_sphere_positions(default_session):
     """The for_capture scenes at 320 x 240: their steel-ball row has no backdrop, so the sphere centres
     come from LabTargets' known positions through the lab frame. Each 1-inch ball is ~20 px
     wide and the 50 mm lamp's highlight on it ~1 px: a 0.1 px highlight error moves a light
@@ -552,7 +621,7 @@ def test_default_sim_session_locates_lights_from_known_sphere_positions(tmp_path
     scale the lab frame by ~3 % (seen: lights 12-22 % short, 1.6-4.8 deg). So this test holds
     the pipeline to honesty (each light within 3 sigma of its stated uncertainty, lights that
     fewer than 2 balls show reported unseen); the full-resolution test below holds accuracy."""
-    store, report, camera = _default_session(tmp_path / "store", SimWorld("sphere", camera=default_camera(W, H)))
+    store, report, camera = default_session
     for stage in ("intrinsics", "turntable", "lights"):
         assert report.stage(stage).status == "ok", (stage, report.stage(stage).reason)
     lights, truths, truth_centres = _located_lights(store, camera)

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from background import load, save
 from capture.store import Store
 
 REPO = Path(__file__).resolve().parents[2]
@@ -35,14 +36,48 @@ def _gonio(cwd: Path, *args: str) -> subprocess.CompletedProcess:
                           text=True, timeout=600)
 
 
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """``gonio demo --quick --out demo`` run once in a clean folder: (folder, run, wall seconds)."""
-    cwd = tmp_path_factory.mktemp("demo") / "clean"
+def run_demo(root: Path) -> None:
+    """The background job (tests/background.py) behind ``demo``: ``gonio demo --quick --out demo``
+    in the clean folder ``root / "clean"``; its run and wall seconds kept."""
+    cwd = root / "clean"
     cwd.mkdir()
     started = time.perf_counter()
     run = _gonio(cwd, "demo", "--quick", "--out", "demo", "-q")
-    return cwd, run, time.perf_counter() - started
+    save(root, (run, time.perf_counter() - started))
+
+
+@pytest.fixture(scope="module")
+def demo(background):
+    """``gonio demo --quick --out demo`` run once in a clean folder: (folder, run, wall seconds)."""
+    root = background.folder("demo")
+    return (root / "clean", *load(root))
+
+
+#: the methods ``gonio process`` runs again on the recaptured session. Two of the four, for the
+#: suite's time (Lensch and passive: ~17 s on 2 idle cores): the calibration, the lumitexels and
+#: the floor, which every method starts from, are compared whole, and each method is a
+#: deterministic function of them and the lab's options
+REPROCESSED = ["lambertian", "sharing"]
+
+
+def capture_then_process(root: Path) -> None:
+    """The background job behind ``recaptured``: ``gonio capture run examples/demo-quick.toml
+    --rig sim`` in the clean folder ``root``, then ``gonio process`` of that session with
+    :data:`REPROCESSED` (None when the capture failed); both runs kept."""
+    plan = REPO / "examples" / "demo-quick.toml"
+    capture = _gonio(root, "capture", "run", str(plan), "--rig", "sim", "--store", "store", "--session",
+                     "demo-quick", "-q")
+    process = None if capture.returncode != 0 else _gonio(
+        root, "process", "demo-quick", "--store", "store", "-q", "--json", "--out", "report.html",
+        "--methods", ",".join(REPROCESSED))
+    save(root, (capture, process))
+
+
+@pytest.fixture(scope="module")
+def recaptured(background):
+    """(folder, ``gonio capture run``, ``gonio process`` or None) of :func:`capture_then_process`."""
+    root = background.folder("recapture")
+    return (root, *load(root))
 
 
 def test_gonio_demo_quick_writes_a_self_contained_report_within_the_targets(demo):
@@ -203,7 +238,7 @@ def _frames(store_dir: Path, session: str) -> list[tuple[int, int, int, str]]:
         return [(f.step, f.bracket_index, f.repeat, f.sha256) for f in store.frames(store.session(session).id)]
 
 
-def test_capture_run_then_process_gives_the_demos_frames_and_figures(demo, tmp_path):
+def test_capture_run_then_process_gives_the_demos_frames_and_figures(demo, recaptured):
     """Issue 13: ``gonio process`` on a session captured with ``gonio capture run`` gives the same
     figures as the demo's own processing of the same plan. ``--rig sim`` renders the demo's lab
     with every scene's noise seeded and the DNG clock counting captures, so the frames are the
@@ -214,26 +249,18 @@ def test_capture_run_then_process_gives_the_demos_frames_and_figures(demo, tmp_p
     solvers on one thread)."""
     demo_cwd, demo_run, _ = demo
     assert demo_run.returncode == 0, demo_run.stdout + demo_run.stderr
-    cwd = tmp_path / "clean"
-    cwd.mkdir()
-    plan = REPO / "examples" / "demo-quick.toml"
-    run = _gonio(cwd, "capture", "run", str(plan), "--rig", "sim", "--store", "store", "--session", "demo-quick", "-q")
+    cwd, run, process = recaptured
     assert run.returncode == 0 and "session demo-quick done" in run.stdout, run.stdout + run.stderr
     captured, demoed = _frames(cwd / "store", "demo-quick"), _frames(demo_cwd / "demo" / "store", "demo-quick")
     assert len(captured) == len(demoed) > 100
     assert captured == demoed   # same steps, exposures, repeats and DNG bytes (sha256)
 
-    # two of the four methods, for the suite's time (Lensch and passive: ~17 s on 2 idle cores):
-    # the calibration, the lumitexels and the floor, which every method starts from, are compared
-    # whole, and each method is a deterministic function of them and the lab's options
-    methods = ["lambertian", "sharing"]
-    run = _gonio(cwd, "process", "demo-quick", "--store", "store", "-q", "--json", "--out", "report.html",
-                 "--methods", ",".join(methods))
+    run = process
     assert run.returncode == 0, run.stdout + run.stderr   # no --mesh, no targets: the lab states them
     got = json.loads(run.stdout)
     want = json.loads((demo_cwd / "demo" / "report.json").read_text())
-    want["methods"] = [m for m in want["methods"] if m["method"] in methods]
-    assert [m["method"] for m in got["methods"]] == methods
+    want["methods"] = [m for m in want["methods"] if m["method"] in REPROCESSED]
+    assert [m["method"] for m in got["methods"]] == REPROCESSED
     for part in ("calibration", "calibration_truth", "inputs", "methods", "floor"):
         mine, theirs = dict(_numbers(got[part])), dict(_numbers(want[part]))
         assert mine.keys() == theirs.keys(), part

@@ -21,8 +21,9 @@ import pytest
 import zarr
 from typer.testing import CliRunner
 
+from background import load, save
 from capture.cli import app
-from capture.pipeline.demo_lab import DemoLab, fitter_mesh
+from capture.pipeline.demo_lab import FAST_RESOLUTION, DemoLab, fitter_mesh
 from capture.pipeline.report_html import ExportLink, export_links, link_export
 from capture.pipeline.methods import fit_method
 from capture.pipeline.run import _passive_assumption, process_session
@@ -56,17 +57,38 @@ PLAN = {
 }
 
 
-@pytest.fixture(scope="module")
-def captured(tmp_path_factory):
-    root = tmp_path_factory.mktemp("proc")
-    store = Store(root / "store", durable=False)
-    with open_rig("sim", fast=True, home=True) as opened:   # the built-in lab: a DemoLab
+def capture_and_process(root: Path) -> None:
+    """The background job (tests/background.py) behind ``captured``, ``calibrated`` and
+    ``processed``: PLAN captured on ``--rig sim`` (the built-in lab: a DemoLab) into ``root /
+    "store"`` and calibrated; a copy of that store taken (``root / "calibrated"``); then
+    processed with :func:`_processing` (its ProcessReport kept)."""
+    from capture.pipeline.calibrate import calibrate_session
+    with open_rig("sim", fast=True, home=True) as opened, Store(root / "store", durable=False) as store:
         lab = opened.lab.frame_source
         create_session(store, Plan.from_dict(PLAN), opened.rig, name="proc", reserve_bytes=0)
         assert Runner(opened.rig, store, "proc", reserve_bytes=0, prepare_target=opened.prepare_target).run() == "done"
-    from capture.pipeline.calibrate import calibrate_session
-    calibrate_session(store, "proc", targets=lab.targets(), measurement_hdr=False)
-    yield store, lab, root
+        calibrate_session(store, "proc", targets=lab.targets(), measurement_hdr=False)
+    shutil.copytree(root / "store", root / "calibrated")
+    with Store(root / "store", durable=False) as store:
+        save(root, process_session(store, "proc", methods=["lambertian", "sharing"], **_processing(lab, root)))
+
+
+def _processing(lab: DemoLab, root: Path) -> dict:
+    """``process_session``'s lab and report path for ``processed``. (Lensch runs in the demo test;
+    here the reference and a small sharing fit keep it quick.)"""
+    (root / "report").mkdir(exist_ok=True)
+    return {"lab": replace(lab.session_lab("proc"), method_options={"sharing": {"max_centers": 200}}),
+            "report_path": root / "report" / "r.html"}
+
+
+@pytest.fixture(scope="module")
+def captured(background):
+    """(store, lab, folder) of PLAN's captured session, calibrated and then processed
+    (``processed``); the lab is the one it was recorded in (``open_rig("sim")``'s DemoLab at its
+    fast resolution)."""
+    root = background.folder("process")
+    store = Store(root / "store", durable=False)
+    yield store, DemoLab(*FAST_RESOLUTION), root
     store.close()
 
 
@@ -160,21 +182,16 @@ def test_held_out_samples_come_only_from_held_out_steps(inputs, captured):
 
 
 @pytest.fixture(scope="module")
-def calibrated(captured, tmp_path_factory):
-    """A copy of the store as captured and calibrated, before any method ran (``processed`` asks
-    for it, so it is always taken first)."""
-    copy = tmp_path_factory.mktemp("calibrated") / "store"
-    shutil.copytree(captured[2] / "store", copy)
-    return copy
+def calibrated(captured):
+    """A copy of the store as captured and calibrated, before any method ran."""
+    return captured[2] / "calibrated"
 
 
 @pytest.fixture(scope="module")
-def processed(captured, calibrated, tmp_path_factory):
-    store, lab, _ = captured
-    # (Lensch runs in the demo test; here the reference and a small sharing fit keep it quick)
-    session_lab = replace(lab.session_lab("proc"), method_options={"sharing": {"max_centers": 200}})
-    kw = {"lab": session_lab, "report_path": tmp_path_factory.mktemp("report") / "r.html"}
-    return process_session(store, "proc", methods=["lambertian", "sharing"], **kw), kw
+def processed(captured):
+    """(ProcessReport, the keywords it was run with) of the session's processing by the job."""
+    _, lab, root = captured
+    return load(root), _processing(lab, root)
 
 
 def test_process_stores_scored_results_with_provenance(processed, captured, inputs):
@@ -361,15 +378,17 @@ async def test_console_processes_the_selected_session(captured):
         assert "passive: skipped" in text
 
 
-def test_without_truth_the_report_leaves_the_truth_columns_out(processed, captured, tmp_path):
+def test_without_truth_the_report_leaves_the_truth_columns_out(calibrated, captured, tmp_path):
     """A real session has no ground truth: nothing about it is shown, nothing faked. (A copy of
-    the session resumed on a real rig: it no longer says it was all recorded in the built-in lab.)"""
-    _, lab, root = captured
-    shutil.copytree(root / "store", tmp_path / "store")
+    the calibrated session resumed on a real rig: it no longer says it was all recorded in the
+    built-in lab; no method stored yet, so Lambertian is fitted and scored here.)"""
+    _, lab, _ = captured
+    shutil.copytree(calibrated, tmp_path / "store")
     store = Store(tmp_path / "store", durable=False)
     store.add_rig_snapshot(store.session("proc").id, {"rig": {"name": "bench"}}, {})
-    rep = process_session(store, "proc", methods=["lambertian"], force=True, report_path=tmp_path / "real.html",
+    rep = process_session(store, "proc", methods=["lambertian"], report_path=tmp_path / "real.html",
                           lab=replace(lab.session_lab("proc"), truth=None, built_in=False))
+    assert rep.method("lambertian").status == "ok"   # fitted now, not read back
     text = rep.report_path.read_text()
     assert "ground truth" not in text and "vs truth" not in text and "true normals" not in text
     assert not rep.calibration_truth and "measured_vs_truth_rel_rms" not in rep.inputs
@@ -681,10 +700,10 @@ def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_w
         captured, calibrated, processed, tmp_path, monkeypatch):
     """Issue 21: where the gathered lumitexels would exceed ``--memory-limit``, ``gonio process``
     does not gather them: the inputs' truth figures, the floor, Lambertian, its scores and the
-    pictures come from texel blocks, equal to the gathered route's to 1e-9; sharing runs over
-    the blocks too, its RBFs on every texel here (the lab's option), with the gathered run's
-    figures (``processed``) to 1e-9. (Lensch over blocks equals its gathered fit in
-    test_block_methods; here it would add 25 s.)"""
+    pictures come from texel blocks, equal to the gathered route's (``processed``: the same
+    calibrated session, gathered) to 1e-9; sharing runs over the blocks too, its RBFs on every
+    texel here (the lab's option), with the gathered run's figures to 1e-9. (Lensch over blocks
+    equals its gathered fit in test_block_methods; here it would add 25 s.)"""
     _, lab, _ = captured
     session_lab = replace(lab.session_lab("proc"), method_options={"sharing": {"max_centers": 200,
                                                                                "fit_texels": FIT_TEXELS}})
@@ -692,16 +711,12 @@ def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_w
     # the gathered samples' bound exceeds it (this session's real bound is a few MiB)
     limit = 16 * 2**20
     monkeypatch.setattr(lumitexel_arrays, "_GATHERED_SAMPLE_BYTES", 8000)
-    runs = {}
-    for route, memory in (("gathered", None), ("blocks", limit)):
-        copy = tmp_path / route / "store"
-        shutil.copytree(calibrated, copy)
-        store = Store(copy, durable=False)
-        methods = ["lambertian"] + (["sharing"] if memory else [])
-        rep = process_session(store, "proc", methods=methods, lab=session_lab, memory_limit=memory,
-                              report_path=tmp_path / f"{route}.html")
-        runs[route] = (store, rep)
-    (gstore, gathered), (bstore, blocks) = runs["gathered"], runs["blocks"]
+    copy = tmp_path / "blocks" / "store"
+    shutil.copytree(calibrated, copy)
+    bstore = Store(copy, durable=False)
+    blocks = process_session(bstore, "proc", methods=["lambertian", "sharing"], lab=session_lab,
+                             memory_limit=limit, report_path=tmp_path / "blocks.html")
+    gstore, gathered = captured[0], processed[0]
     assert "over_blocks" not in gathered.inputs and "16 MiB" in blocks.inputs["over_blocks"]
     for key in ("texels", "training_samples", "held_out_samples", "measured_vs_truth_rel_rms",
                 "measured_vs_truth_median_ratio"):
@@ -721,14 +736,14 @@ def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_w
     assert set(pictures[0].files) == set(pictures[1].files) and "heldout_predicted" in pictures[0].files
     for name in pictures[0].files:   # one view's samples drawn: the same pictures
         np.testing.assert_allclose(pictures[1][name], pictures[0][name], rtol=1e-6, err_msg=name)
-    g, b = processed[0].method("sharing"), blocks.method("sharing")
+    g, b = gathered.method("sharing"), blocks.method("sharing")
     assert g.status == b.status == "ok", (g.reason, b.reason)
     assert b.figures["rbf_texels"] == g.figures["rbf_texels"] == f"RBFs fitted on {blocks.inputs['texels']} of " \
         f"{blocks.inputs['texels']} texels"
     # the same model: per-texel albedo and refitted normals, RBF centres
     models = [np.load(io.BytesIO(s.read_object(next(r for r in s.results(s.session("proc").id)
                                                     if r.id == rid).artifacts["model.npz"])))
-              for s, rid in ((captured[0], g.result_id), (bstore, b.result_id))]
+              for s, rid in ((gstore, g.result_id), (bstore, b.result_id))]
     for name in ("albedo", "normals", "xy"):
         np.testing.assert_array_equal(models[1][name], models[0][name], err_msg=name)
     assert b.figures["centres"] == g.figures["centres"]
