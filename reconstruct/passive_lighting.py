@@ -312,9 +312,7 @@ def lighting_sums(normals, values, directions, radiance, solid_angle, *, view_di
         raise ValueError(f"block_rows must be a positive integer, got {block_rows!r}")
     d, E, omega = check_sources(directions, radiance, solid_angle)
     grid = check_grid(grid)
-    v = np.asarray(view_dirs, dtype=np.float64)
-    if v.shape != (3,) and v.shape != (len(n), 3):
-        raise ValueError(f"view_dirs must have shape (3,) or ({len(n)}, 3), got {v.shape}")
+    v = _view_dirs(view_dirs, len(n))
     if weights is not None:
         weights = np.asarray(weights, dtype=np.float64)
         if weights.shape != I.shape or not np.all(np.isfinite(weights)) or weights.min() < 0:
@@ -355,13 +353,19 @@ def lighting_predictions(normals, table, directions, radiance, solid_angle, *,
         raise ValueError(f"table must hold {grid[0]} x {grid[1]} x 3 finite values, got shape "
                          f"{np.shape(table)}")
     d, E, omega = check_sources(directions, radiance, solid_angle)
-    v = np.asarray(view_dirs, dtype=np.float64)
-    if v.shape != (3,) and v.shape != (len(n), 3):
-        raise ValueError(f"view_dirs must have shape (3,) or ({len(n)}, 3), got {v.shape}")
+    v = _view_dirs(view_dirs, len(n))
     tasks = [(n[a:a + block_rows], d, E, omega, v if v.ndim == 1 else v[a:a + block_rows], grid, f)
              for a in range(0, len(n), block_rows)]
     run = map_blocks or (lambda fn, args: [fn(*a) for a in args])
     return np.concatenate(run(block_predictions, tasks)) if tasks else np.zeros((0, 3))
+
+
+def _view_dirs(view_dirs, n: int) -> np.ndarray:
+    """``view_dirs`` as float64, one (3,) for every observation or (n, 3); ValueError otherwise."""
+    v = np.asarray(view_dirs, dtype=np.float64)
+    if v.shape != (3,) and v.shape != (n, 3):
+        raise ValueError(f"view_dirs must have shape (3,) or ({n}, 3), got {v.shape}")
+    return v
 
 
 def _dot3(a, bT, plus=0.0):
