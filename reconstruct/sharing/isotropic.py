@@ -147,7 +147,7 @@ def _scale(points: np.ndarray, m_w: float) -> tuple:
 
 
 def _choose_m_w(points, target, weight, cos_i, f, decode, groups, max_centers,
-                rng) -> ScaleChoice:
+                rng, merge_radius) -> ScaleChoice:
     """Hold out interior theta_d groups one at a time; fit the rest with each m_w candidate
     (half the centre budget); score the relative radiance error on the held-out group.
     ``points``: the fit's points, w last."""
@@ -163,7 +163,8 @@ def _choose_m_w(points, target, weight, cos_i, f, decode, groups, max_centers,
         for g in held:
             test = groups == g
             model = fit_rbf(points[~test], target[~test], scale=_scale(points, m_w),
-                            weight=weight[~test], max_centers=budget, rng=rng).model
+                            weight=weight[~test], max_centers=budget, rng=rng,
+                            merge_radius=merge_radius).model
             pred = decode(model(points[test]))
             c = cos_i[test, None]
             per_group.append(np.sqrt(np.sum((c * (pred - f[test])) ** 2)
@@ -176,6 +177,7 @@ def _choose_m_w(points, target, weight, cos_i, f, decode, groups, max_centers,
 def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_values: bool = True,
                   angular_weight: float | None = ANGULAR_WEIGHT, groups=None, weight=None,
                   valid=None, min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
+                  merge_radius: float = 0.0,
                   progress: Callable[[int, int], None] | None = None) -> IsotropicFit:
     """Homogeneous isotropic BRDF f(u, v, w) by greedy linear-RBF interpolation (Sect. 5, Eq. 5).
 
@@ -208,8 +210,11 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         False drops a sample (it may hold NaN).
     min_cos : float
         Samples with cos theta_i below this are dropped (``fits`` module docstring).
-    tol, smoothing, rng, progress
-        As :func:`reconstruct.sharing.fit_rbf` (``tol`` in the fitted values' units).
+    tol, smoothing, rng, merge_radius, progress
+        As :func:`reconstruct.sharing.fit_rbf` (``tol`` in the fitted values' units,
+        ``merge_radius`` over the fit's scaled points; the held-out fits of ``m_w="auto"`` use
+        it too). ``merge_radius`` > 0 is not the default: on the zoo it trades one row for
+        another (docs/zoo.md, "The two RGL files").
 
     Returns
     -------
@@ -257,11 +262,11 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         labels = _groups(uvw, None if groups is None else np.asarray(groups)[k])
         if labels.max() >= 2 and len(uvw) >= MIN_SAMPLES_FOR_CHOICE:
             choice = _choose_m_w(points, target, fit_weight, s.cos_i[k], f, decode, labels,
-                                 max_centers, rng)
+                                 max_centers, rng, merge_radius)
         m_w = choice.m_w if choice is not None else 0.5
     fit = fit_rbf(points, target, scale=_scale(points, m_w), weight=fit_weight,
                   max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
-                  progress=progress)
+                  progress=progress, merge_radius=merge_radius)
     n_used = int(k.sum())
     return IsotropicFit(RbfBRDF(fit.model, offset, angular_weight), fit, n_used,
                         len(s.wi) - n_used, float(m_w), choice)

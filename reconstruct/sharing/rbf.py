@@ -25,6 +25,14 @@ of their values) before fitting, and a new centre must lie at least ``min_separa
 centre already chosen; a near-duplicate with a different value is therefore never a centre, the
 fit approximates it instead.
 
+Samples a little apart can still be repeated measurements of one value (the two orderings of a
+reciprocal pair that an image holds a pixel apart, whose measured values differ when the surface
+is not quite reciprocal): an interpolant goes through whichever becomes a centre, not their mean.
+With ``merge_radius`` > 0, samples that are each other's nearest neighbour within that scaled
+distance are merged into one first, at the weight^2-weighted mean of their positions and values
+(the least-squares estimate of one value from two weighted residuals), an estimate instead of an
+arbitrary pick (``reconstruct.sharing.isotropic`` chooses it on held-out images).
+
 Evaluation (``RbfModel.__call__``) runs in blocks: squared distances as one float32 GEMM per
 block, ``[a, |a|^2, 1] . [-2c, 1, |c|^2]^T`` into a reused buffer, square root in place, and a
 second GEMM with the coefficients: no loop over centres.
@@ -46,6 +54,7 @@ from typing import Callable
 
 import numpy as np
 import scipy.linalg
+from scipy.spatial import cKDTree
 
 #: evaluation block (points per GEMM): 1024 x 2000 centres of float32 (8 MB) stay in cache;
 #: 8192-row blocks (64 MB) ran ~1.5x slower (2026-11, 2 loaded cores)
@@ -186,6 +195,10 @@ class RbfFit:
         True when ``tol`` was reached (False when the centre budget ended the selection).
     n_merged : int
         How many input samples were merged into others as exact duplicates.
+    smoothing : float
+        rho of the solve.
+    n_paired : int
+        How many mutual-nearest pairs within ``merge_radius`` were merged into one sample each.
     """
 
     model: RbfModel
@@ -197,6 +210,7 @@ class RbfFit:
     converged: bool
     n_merged: int
     smoothing: float
+    n_paired: int = 0
 
     def refit(self, n_centers: int) -> RbfModel:
         """The interpolant on the first ``n_centers`` greedily chosen centres (error vs count)."""
@@ -208,8 +222,9 @@ class RbfFit:
     def report(self) -> str:
         m, rms, worst = self.history[-1]
         state = "converged" if self.converged else "centre budget reached"
+        paired = f", {self.n_paired} near pairs merged" if self.n_paired else ""
         return (f"RBF fit: {int(m)} centres of {len(self.points)} samples ({self.n_merged} "
-                f"duplicates merged), weighted residual RMS {rms:.4g}, max {worst:.4g} ({state})")
+                f"duplicates merged{paired}), weighted residual RMS {rms:.4g}, max {worst:.4g} ({state})")
 
 
 def _merge_duplicates(points, values, weight):
@@ -223,6 +238,26 @@ def _merge_duplicates(points, values, weight):
     merged = np.stack([np.bincount(inverse, weight * values[:, k], len(uniq))
                        for k in range(values.shape[1])], axis=1) / wsum[:, None]
     return uniq, merged, wsum, len(points) - len(uniq)
+
+
+def _merge_pairs(points, values, weight, scale, radius):
+    """Samples that are each other's nearest neighbour within ``radius`` (distance after
+    ``scale``) -> one sample at the weight^2-weighted mean position and value, weight the root
+    of the summed squares (so a residual there counts as both did). Pairs only, never chains:
+    a sample belongs to at most one merge. Returns the merged arrays and the pair count."""
+    dist, nearest = cKDTree(points * scale).query(points * scale, k=2)
+    dist, nearest = dist[:, 1], nearest[:, 1]
+    i = np.arange(len(points))
+    first = (nearest[nearest] == i) & (dist <= radius) & (i < nearest)
+    a, b = i[first], nearest[first]
+    wa, wb = weight[a, None] ** 2, weight[b, None] ** 2
+    points, values, weight = points.copy(), values.copy(), weight.copy()
+    points[a] = (wa * points[a] + wb * points[b]) / (wa + wb)
+    values[a] = (wa * values[a] + wb * values[b]) / (wa + wb)
+    weight[a] = np.sqrt(wa + wb)[:, 0]
+    keep = np.ones(len(points), dtype=bool)
+    keep[b] = False
+    return points[keep], values[keep], weight[keep], len(a)
 
 
 def _solve(points, values, idx, scale, shift, smoothing) -> RbfModel:
@@ -295,7 +330,7 @@ def _typical_spacing(x: np.ndarray, m: int) -> float:
 def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000, tol=None,
             smoothing: float = 0.0, rng=0, progress: Callable[[int, int], None] | None = None,
             initial_centers: int = 64, growth: float = 1.25, spread: float = 1.0,
-            min_separation: float = 1e-6) -> RbfFit:
+            min_separation: float = 1e-6, merge_radius: float = 0.0) -> RbfFit:
     """Greedy linear-RBF fit (Zickler et al. 2005 Eqs. 2-6; Carr et al. 2001 selection).
 
     Parameters
@@ -333,6 +368,9 @@ def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000,
         error regions (0: take the worst samples as they come).
     min_separation : float
         Smallest scaled distance between two centres (near-duplicates are never both centres).
+    merge_radius : float
+        Samples that are each other's nearest neighbour within this scaled distance are merged
+        into one (module docstring); 0: only exact duplicates are.
 
     Returns
     -------
@@ -366,11 +404,16 @@ def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000,
         raise SharingError(f"smoothing must be >= 0, got {smoothing!r}")
     if not spread >= 0:
         raise SharingError(f"spread must be >= 0, got {spread!r}")
+    if not merge_radius >= 0:
+        raise SharingError(f"merge_radius must be >= 0, got {merge_radius!r}")
     if not growth >= 1.05:
         raise SharingError(f"growth must be >= 1.05, got {growth!r}")
     keep = w > 0
     pts, vals, w = pts[keep], vals[keep], w[keep]
     pts, vals, w, n_merged = _merge_duplicates(pts, vals, w)
+    n_paired = 0
+    if merge_radius > 0 and len(pts) > 1:
+        pts, vals, w, n_paired = _merge_pairs(pts, vals, w, sc, merge_radius)
     if len(pts) < d + 2:
         raise SharingError(f"points: {len(pts)} distinct samples with weight > 0; the linear RBF "
                            f"with a degree-1 polynomial in {d} dimensions needs at least {d + 2}")
@@ -414,4 +457,4 @@ def fit_rbf(points, values, *, scale=None, weight=None, max_centers: int = 2000,
         order = np.concatenate([order, new])
         chosen[new] = True
     return RbfFit(model, order, pts, vals, w, np.asarray(history), converged, n_merged,
-                  float(smoothing))
+                  float(smoothing), n_paired)

@@ -109,6 +109,34 @@ def test_near_duplicates_never_both_centres():
     assert np.all((pred > y - 1e-3) & (pred < y + 0.2 + 1e-3))
 
 
+def test_near_pairs_are_merged_into_their_weighted_mean_and_chains_are_not():
+    """Two measurements of one value a little apart (a reciprocal pair's two orderings): with
+    ``merge_radius`` the interpolant goes through their weight^2-weighted mean at their
+    weighted mean position, the least-squares estimate, instead of whichever became a centre."""
+    rng = np.random.default_rng(10)
+    x = rng.random((200, 3))
+    y = _smooth(x)[:, :1]
+    step = 1e-3 * np.array([1.0, 0.0, 0.0])
+    w1, w2 = rng.uniform(0.5, 2.0, (2, 200))
+    xd = np.concatenate([x, x + step])
+    yd = np.concatenate([y, y + 0.2])
+    fit = fit_rbf(xd, yd, weight=np.concatenate([w1, w2]), max_centers=400, merge_radius=2e-3)
+    assert fit.n_paired == 200 and len(fit.points) == 200 and "200 near pairs" in fit.report()
+    a, b = w1[:, None] ** 2, w2[:, None] ** 2
+    mean_x = (a * x + b * (x + step)) / (a + b)
+    np.testing.assert_allclose(fit.model(mean_x), (a * y + b * (y + 0.2)) / (a + b),
+                               atol=1e-3)  # float32 distances; each ordering is >= 0.012 away
+    np.testing.assert_allclose(fit.weight, np.sqrt(w1 ** 2 + w2 ** 2))
+    # a chain a - b - c (spacings 1 and 1.5 x 1e-3 < radius): a and b are each other's nearest and
+    # merge; c's nearest (b) is taken, so c stays a sample of its own
+    chain = np.array([[0.5, 0.5, 0.5], [0.501, 0.5, 0.5], [0.5025, 0.5, 0.5]])
+    fit = fit_rbf(np.concatenate([x, chain]), np.concatenate([y, [[1.0], [2.0], [3.0]]]),
+                  max_centers=300, merge_radius=2e-3)
+    assert fit.n_paired == 1
+    np.testing.assert_allclose(fit.model(np.array([[0.5005, 0.5, 0.5], chain[2]])),
+                               [[1.5], [3.0]], atol=1e-2)  # a steep step: float32 distances
+
+
 @pytest.mark.parametrize("kwargs, name", [
     (dict(points=np.full((10, 3), np.nan), values=np.ones(10)), "points"),
     (dict(points=np.random.default_rng(0).random((10, 3)), values=[np.nan] * 10), "values"),
@@ -118,6 +146,8 @@ def test_near_duplicates_never_both_centres():
      "scale"),
     (dict(points=np.random.default_rng(0).random((10, 3)), values=np.ones(10), weight=-np.ones(10)),
      "weight"),
+    (dict(points=np.random.default_rng(0).random((10, 3)), values=np.ones(10), merge_radius=-1.0),
+     "merge_radius"),
 ])
 def test_bad_input_names_the_argument(kwargs, name):
     with pytest.raises(SharingError, match=name):
