@@ -20,7 +20,8 @@ Prints, in one run:
    instead prints one material's highlight along theta_h at held-out theta_d (truth, and the
    fit's ratio to it with and without the polar form, at phi_d 90 and 0 deg); ``--rgl``
    prints why the two RGL rows miss (their asymmetry, floors, where the held-out error lies,
-   the fit fed the nearest reciprocal BRDF's images).
+   the fit fed the nearest reciprocal BRDF's images, the fit with near pairs merged, each per
+   held-out image); ``--merge-radius R``: the table's RBF with near pairs merged.
 2. Passive reflectometry, Romeiro et al. Fig. 6: per MERL material (every ``--every``-th from
    ``--offset``), one ``--sphere`` px image of a sphere under Grace Cathedral (``--env-height``
    rows), the prior learned from the *other* MERL materials (leave-one-out, as the paper did):
@@ -84,17 +85,25 @@ SHARING_MEASURED = ("nielsen/yellowpaper", "rgl/colodur_napoli_4f_rgb", "merl/go
                     "merl/color-changing-paint2", "merl/specular-red-phenolic",
                     "rgl/vch_golden_yellow_rgb")
 SHARP = ("ashikhmin-shirley n=1000", "ggx a=0.08 over oren-nayar")
+#: ``--rgl``'s merged variant: near the best for the vinyl at m_w 0.25 (0.005 / 0.0075 / 0.01 /
+#: 0.015: 5.29 / 5.28 / 5.30 / 5.51 %, docs/zoo.md)
+RGL_MERGE_RADIUS = 0.0075
 #: The fourth reading of Eq. 1 leaves out samples with a direction within this many degrees of
 #: the horizon: where MERL has no data (the NBRDF fits fall to 1e-6 1/sr there) and beyond the
 #: paper's own 80 deg observation limit.
 GRAZING = 10
 
 
+def per_image_errors(pred, truth):
+    """Relative RMS error of each image of (K, P, 3) stacks: (K,)."""
+    return np.sqrt(((pred - truth) ** 2).sum(axis=(1, 2))
+                   / np.maximum((truth ** 2).sum(axis=(1, 2)), 1e-300))
+
+
 def held_out_errors(pred, truth):
     """(pooled, median of per-image) relative RMS errors of (K, P, 3) stacks; images with no
     lit pixel are left out of the median."""
-    per = np.sqrt(((pred - truth) ** 2).sum(axis=(1, 2))
-                  / np.maximum((truth ** 2).sum(axis=(1, 2)), 1e-300))
+    per = per_image_errors(pred, truth)
     lit = truth.max(axis=(1, 2)) > 0
     return float(np.sqrt(((pred - truth) ** 2).sum() / (truth ** 2).sum())), \
         float(np.median(per[lit]))
@@ -110,7 +119,7 @@ def perfect_table(truth):
     return TabulatedIsotropic.from_brdf(truth)
 
 
-def sharing_row(truth, size: int, angular_weight):
+def sharing_row(truth, size: int, angular_weight, merge_radius: float = 0.0):
     """Held-out (pooled, median) errors of each method on one material, and the fit's m_w."""
     train = render_distant(truth, size, theta_d_lights(stratified(10)))
     test = render_distant(truth, size, theta_d_lights(stratified(21)))
@@ -122,7 +131,7 @@ def sharing_row(truth, size: int, angular_weight):
 
     t0 = time.perf_counter()
     fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image,
-                        angular_weight=angular_weight)
+                        angular_weight=angular_weight, merge_radius=merge_radius)
     t_fit = time.perf_counter() - t0
     old = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, log_values=False, m_w=0.5,
                         angular_weight=None)
@@ -140,14 +149,14 @@ def load_truth(name: str):
     return zoo[name] if name in zoo else load_measured(measured_files(DATA / "brdfs")[name])
 
 
-def sharing_section(names, size: int, angular_weight) -> None:
+def sharing_section(names, size: int, angular_weight, merge_radius: float = 0.0) -> None:
     print(f"== reflectance sharing, Sect. 5.1: {size} x {size} sphere, 10 images in (theta_d "
-          f"stratified), 21 held out; angular weight {angular_weight}; relative RMS radiance "
-          f"error, median / pooled ==")
+          f"stratified), 21 held out; angular weight {angular_weight}; merge radius "
+          f"{merge_radius:g}; relative RMS radiance error, median / pooled ==")
     cols = ("rbf", "rbf (before)", "lafortune", "ward", "table", "reciprocal")
     print(f"{'material':34s}" + "".join(f"{c:>17s}" for c in cols) + f"{'m_w':>6s}{'fit':>7s}")
     for name in names:
-        row, m_w, t_fit = sharing_row(load_truth(name), size, angular_weight)
+        row, m_w, t_fit = sharing_row(load_truth(name), size, angular_weight, merge_radius)
         kind = "sharp" if name in SHARP else ("matte" if "paper" in name or "colodur" in name
                                               else "")
         print(f"{name[:27] + (' ' + kind if kind else ''):34s}"
@@ -155,13 +164,14 @@ def sharing_section(names, size: int, angular_weight) -> None:
               + f"{m_w:6.2g}{t_fit:6.1f}s", flush=True)
 
 
-def rgl_section(size: int) -> None:
+def rgl_section(size: int, merge_radius: float) -> None:
     """Why the RGL rows miss their targets: per file, how far f(a, b) and f(b, a) differ
     (median over random pairs, by the larger elevation and by theta_h), the floors (the f_r
     table folded by reciprocity, the f_r cos theta_i table, the nearest reciprocal BRDF), where
     in the five median held-out images the RBF's and the reciprocal floor's squared error lies
     (light or view beyond 80 deg; theta_h < 10 deg), and the RBF fed the nearest reciprocal
-    BRDF's images instead (no conflicting orderings)."""
+    BRDF's images instead (no conflicting orderings), the RBF with near pairs merged
+    (``merge_radius``), and each of these per held-out image (which image is the median)."""
     rng = np.random.default_rng(1)
     a, b = rng.normal(size=(2, 200_000, 3))
     a[:, 2], b[:, 2] = np.abs(a[:, 2]), np.abs(b[:, 2])
@@ -197,8 +207,7 @@ def rgl_section(size: int) -> None:
         s = samples_from_images(train.normals, train.radiance, train.directions)
         fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
         pred = render_distant(fit.brdf, size, test.directions).radiance
-        per = np.sqrt(((pred - test.radiance) ** 2).sum(axis=(1, 2))
-                      / np.maximum((test.radiance ** 2).sum(axis=(1, 2)), 1e-300))
+        per = per_image_errors(pred, test.radiance)
         lit = np.flatnonzero(test.radiance.max(axis=(1, 2)) > 0)
         middle = lit[np.argsort(per[lit])][len(lit) // 2 - 2:len(lit) // 2 + 3]
         view = np.asarray(VIEW, float)  # towards the camera, as the light directions
@@ -215,13 +224,36 @@ def rgl_section(size: int) -> None:
                   f"{sq[grazing].sum() / sq.sum():.0%} at pixels with light or view beyond "
                   f"80 deg, {sq[peak].sum() / sq.sum():.0%} at theta_h < 10 deg")
         print(f"  RBF (m_w {fit.m_w:g}): {100 * np.median(per[lit]):.2f} % median")
+        merged = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image,
+                               merge_radius=merge_radius)
         train_rec = render_distant(nearest, size, theta_d_lights(stratified(10)))
         s = samples_from_images(train_rec.normals, train_rec.radiance, train_rec.directions)
-        fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
-        pred = render_distant(fit.brdf, size, test.directions).radiance
-        print(f"  RBF fed the nearest reciprocal BRDF's images (m_w {fit.m_w:g}): "
-              f"{100 * held_out_errors(pred, test.radiance)[1]:.2f} % median off the truth, "
-              f"{100 * held_out_errors(pred, rec)[1]:.2f} % off the reciprocal images", flush=True)
+        fed = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
+        pred_fed = render_distant(fed.brdf, size, test.directions).radiance
+        print(f"  RBF fed the nearest reciprocal BRDF's images (m_w {fed.m_w:g}): "
+              f"{100 * held_out_errors(pred_fed, test.radiance)[1]:.2f} % median off the truth, "
+              f"{100 * held_out_errors(pred_fed, rec)[1]:.2f} % off the reciprocal images")
+        pred_merged = render_distant(merged.brdf, size, test.directions).radiance
+        print(f"  RBF with near pairs merged (merge_radius {merge_radius:g}, m_w {merged.m_w:g}): "
+              f"{100 * held_out_errors(pred_merged, test.radiance)[1]:.2f} % median off the "
+              f"truth, {100 * held_out_errors(pred_merged, rec)[1]:.2f} % off the reciprocal "
+              f"images")
+        rows = {"floor (nearest reciprocal)": rec, "RBF": pred, "RBF, near pairs merged":
+                pred_merged, "RBF fed reciprocal images": pred_fed}
+        print("  per held-out image (% off the truth; * the median image), theta_d (deg): "
+              + " ".join(f"{v:5.1f}" for v in np.degrees(stratified(21))))
+        for label, image in rows.items():
+            e = per_image_errors(image, test.radiance)
+            middle = lit[np.argsort(e[lit])][len(lit) // 2]
+            print(f"  {label:28s}" + " ".join(
+                f"{100 * v:5.2f}" + ("*" if i == middle else " ") for i, v in enumerate(e)))
+        e = per_image_errors(pred_fed, rec)
+        print(f"  {'RBF fed, off reciprocal':28s}" + " ".join(f"{100 * v:5.2f} " for v in e))
+        own = per_image_errors(render_distant(fed.brdf, size, train_rec.directions).radiance,
+                               train_rec.radiance)
+        print("  RBF fed the reciprocal images, off those input images, theta_d (deg): "
+              + ", ".join(f"{np.degrees(t):.1f}: {100 * v:.2f} %"
+                          for t, v in zip(stratified(10), own)), flush=True)
 
 
 def highlight_profile(name: str, size: int, held_out=(10, 11, 12, 14)) -> None:
@@ -413,6 +445,9 @@ def main():
     ap.add_argument("--only", choices=["sharing", "passive"])
     ap.add_argument("--angular-weight", default=str(ANGULAR_WEIGHT),
                     help="sharing: the polar form's angular weight, or 'none' for (u, v, w)")
+    ap.add_argument("--merge-radius", type=float, default=0.0,
+                    help="sharing: the RBF with near pairs merged (fit_isotropic's merge_radius; "
+                         "--rgl: the variant it prints, default 0.0075)")
     ap.add_argument("--profile", metavar="NAME",
                     help="sharing: print NAME's highlight profile at held-out theta_d instead")
     ap.add_argument("--rgl", action="store_true",
@@ -440,11 +475,12 @@ def main():
         highlight_profile(args.profile, args.size)
         return
     if args.rgl:
-        rgl_section(args.size)
+        rgl_section(args.size, args.merge_radius or RGL_MERGE_RADIUS)
         return
     if args.only != "passive":
         sharing_section(names[:3] if args.quick else names, args.size,
-                        None if args.angular_weight == "none" else float(args.angular_weight))
+                        None if args.angular_weight == "none" else float(args.angular_weight),
+                        args.merge_radius)
     if args.only != "sharing":
         grid = tuple(int(v) for v in args.error_grid.split(","))
         passive_section(args.out, args.sphere, args.env_height, args.every,
