@@ -31,7 +31,8 @@ is not quite reciprocal): an interpolant goes through whichever becomes a centre
 With ``merge_radius`` > 0, samples that are each other's nearest neighbour within that scaled
 distance are merged into one first, at the weight^2-weighted mean of their positions and values
 (the least-squares estimate of one value from two weighted residuals), an estimate instead of an
-arbitrary pick (``reconstruct.sharing.isotropic`` chooses it on held-out images).
+arbitrary pick. Off by default: on the zoo it brings the non-reciprocal RGL vinyl closer to the
+reciprocal BRDF nearest it, and flattens highlights about a pixel wide (docs/zoo.md).
 
 Evaluation (``RbfModel.__call__``) runs in blocks: squared distances as one float32 GEMM per
 block, ``[a, |a|^2, 1] . [-2c, 1, |c|^2]^T`` into a reused buffer, square root in place, and a
@@ -224,7 +225,8 @@ class RbfFit:
         state = "converged" if self.converged else "centre budget reached"
         paired = f", {self.n_paired} near pairs merged" if self.n_paired else ""
         return (f"RBF fit: {int(m)} centres of {len(self.points)} samples ({self.n_merged} "
-                f"duplicates merged{paired}), weighted residual RMS {rms:.4g}, max {worst:.4g} ({state})")
+                f"duplicates merged{paired}), weighted residual RMS {rms:.4g}, max {worst:.4g} "
+                f"({state})")
 
 
 def _merge_duplicates(points, values, weight):
