@@ -23,7 +23,7 @@ from reconstruct.brdf import BRDF, Lambertian
 from reconstruct.frames import tangent_frames, to_world
 from reconstruct.lensch import (ArrayBlocks, SvbrdfFit, SvbrdfOptions, TexelBlocks, fit_svbrdf_blocks,
                               fit_svbrdf_lumitexels)
-from reconstruct.lumitexels import Lumitexels
+from reconstruct.lumitexels import Lumitexels, pixel_neighbours
 from reconstruct.passive import passive_reflectometry
 from reconstruct.sharing import ANGULAR_WEIGHT, FIT_TEXELS, fit_spatial_blocks
 
@@ -137,6 +137,7 @@ def _lensch(train: Lumitexels, inputs: ProcessInputs, *, rng: int, progress, rou
         fit = fit_svbrdf_lumitexels(train, opt, rng=rng, progress=progress)
     else:   # the same fit (to 1e-9), its per-texel steps over the stored blocks, on the executor
         fit = fit_svbrdf_blocks(route.blocks, opt, normals=train.normal, footprint_spread=train.footprint_spread_deg,
+                                neighbours=None if opt.normal_broadening is None else pixel_neighbours(train),
                                 rng=rng, progress=progress, map_blocks=route.map_blocks)
     return lensch_fitted(fit, opt, rng)
 
@@ -155,7 +156,7 @@ def lensch_fitted(fit: SvbrdfFit, opt: SvbrdfOptions, rng: int) -> Fitted:
     return Fitted(fit.predict, fit.brdf, arrays=arrays,   # fitted normals applied
                   params={"n_materials": "from the data", "fit_normals": True, "rng": rng,
                           "discovery_texels": opt.discovery_texels, "robust_samples": opt.robust_samples,
-                          "relabel_normals": opt.relabel_normals},
+                          "relabel_normals": opt.relabel_normals, "normal_broadening": opt.normal_broadening},
                   figures={"materials": fit.n_materials, "clusters": len(fit.materials),
                            "material_discovery": f"materials found on {fit.discovery_texels} of {len(fit.labels)} texels", "table_ii_rms": dict(fit.rms),
                            "table_ii_relative_rms": dict(fit.relative_rms), "flagged_texels": flags},
