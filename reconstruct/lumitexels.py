@@ -202,6 +202,24 @@ def _photometric_normals(lt: Lumitexels) -> tuple[np.ndarray, np.ndarray]:
     return to_world(local, tangent_frames(lt.normal)), ok
 
 
+def pixel_neighbours(lt: Lumitexels) -> np.ndarray:
+    """Each texel's neighbours on the pixels right, left, below and above its own in its best
+    view (the texel that view made there), (4, P) int64; -1 where that pixel made none."""
+    P = lt.n_texels
+    out = np.full((4, P), -1, np.int64)
+    if P == 0:
+        return out
+    px = np.rint(lt.pixel).astype(np.int64)
+    key = (lt.best_view.astype(np.int64) << 42) | (px[:, 1] << 21) | px[:, 0]
+    order = np.argsort(key)
+    sorted_key = key[order]
+    for k, (dx, dy) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1))):
+        want = key + (dy << 21) + dx
+        at = np.minimum(np.searchsorted(sorted_key, want), P - 1)
+        out[k] = np.where(sorted_key[at] == want, order[at], -1)
+    return out
+
+
 def footprint_normal_spread(lt: Lumitexels) -> np.ndarray:
     """How much the surface normal turns across each texel's pixel footprint in its best view,
     (P,) float32, degrees; NaN where the samples cannot tell.
@@ -223,17 +241,10 @@ def footprint_normal_spread(lt: Lumitexels) -> np.ndarray:
     if P == 0:
         return np.zeros(0, np.float32)
     normal, ok = _photometric_normals(lt)
-    px = np.rint(lt.pixel).astype(np.int64)
-    key = (lt.best_view.astype(np.int64) << 42) | (px[:, 1] << 21) | px[:, 0]
-    order = np.argsort(key)
-    sorted_key = key[order]
     angles = np.full((4, P), np.nan)
-    for k, (dx, dy) in enumerate(((1, 0), (-1, 0), (0, 1), (0, -1))):
-        want = key + (dy << 21) + dx
-        at = np.minimum(np.searchsorted(sorted_key, want), P - 1)
-        j = order[at]
-        found = (sorted_key[at] == want) & ok & ok[j]
-        cos = np.clip(np.einsum("ij,ij->i", normal, normal[j]), -1.0, 1.0)
+    for k, j in enumerate(pixel_neighbours(lt)):
+        found = (j >= 0) & ok & ok[np.maximum(j, 0)]
+        cos = np.clip(np.einsum("ij,ij->i", normal, normal[np.maximum(j, 0)]), -1.0, 1.0)
         angles[k] = np.where(found, np.degrees(np.arccos(cos)), np.nan)
     spread = np.full(P, np.nan, np.float32)
     some = np.isfinite(angles).any(axis=0)

@@ -130,6 +130,16 @@ class SvbrdfOptions:
         Default inf (none left out): at 6 deg the bumpy object's blue material went 45 % -> 73 %
         into one cluster on one capture, but the material count did not fall anywhere and rose
         on two of three runs (quick demo 3 -> 4, another capture 4 -> 5; docs/methods.md).
+    normal_broadening : float, optional
+        Broaden each texel's lobes when it predicts by its fitted normal's uncertainty (None:
+        not; :mod:`~reconstruct.lensch.broadening`): the angular variance
+        ``normal_broadening`` x e^2 (rad^2) is added to each lobe's 1/N, e the fitted normals'
+        turn against the texel's pixel neighbours beyond the mesh normals' (needs
+        ``fit_normals``, the normals and the texels' ``neighbours``). A mirror lobe moves by
+        twice a normal's error: 2 spreads a texel's lobe over an error of RMS magnitude e. At 2
+        the full demo's held-out error went 1.515 -> 1.480x the floor (1.474x at 4, 1.487x at 8)
+        and the quick demo's 1.79 -> 1.70x; the bumpy test object (captured settings) 0.539 ->
+        0.527 held out, where 4 gave 0.539 (docs/measurements.md, round floor4).
     chunk_texels : int
         Texels per chunk of the per-texel steps.
     discovery_texels : int
@@ -163,6 +173,7 @@ class SvbrdfOptions:
     peak_ratio: float | None = None
     lobes_alone: bool = False
     lm_stall: tuple[int, float] | None = None
+    normal_broadening: float | None = None
     chunk_texels: int = 100_000
     discovery_texels: int = 200_000
 
@@ -184,6 +195,9 @@ class SvbrdfOptions:
             raise SvbrdfError(f"robust_spread must be > 0, got {self.robust_spread!r}")
         if self.tukey_cutoff is not None and not self.tukey_cutoff > 0:   # also refuses NaN
             raise SvbrdfError(f"tukey_cutoff must be > 0 robust sigmas or None, got {self.tukey_cutoff!r}")
+        if self.normal_broadening is not None and not (np.isfinite(self.normal_broadening)
+                                                       and self.normal_broadening > 0):
+            raise SvbrdfError(f"normal_broadening must be a finite factor > 0 or None, got {self.normal_broadening!r}")
         if self.peak_ratio is not None and not self.peak_ratio > 0:
             raise SvbrdfError(f"peak_ratio must be > 0 or None, got {self.peak_ratio!r}")
         stall = self.lm_stall

@@ -16,6 +16,8 @@ import numpy as np
 
 from ..brdf import Lafortune
 from ..frames import normalize, tangent_frames, to_local, to_world
+from ..lumitexels import pixel_neighbours
+from .broadening import broadened_lobes, normal_turn_excess
 from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
@@ -89,6 +91,11 @@ class SvbrdfFit:
     discovery_texels : int
         The texels material discovery (clustering, the materials' fits) worked on: all of them,
         or a random subsample of ``SvbrdfOptions.discovery_texels``.
+    lobe_variance : ndarray (T,) or None
+        With ``SvbrdfOptions.normal_broadening``: the angular variance (rad^2) added to each of
+        the texel's lobes when it predicts (:func:`~reconstruct.lensch.broadening.broadened_lobes`):
+        its fitted normal's uncertainty. The projection weights and the Table II columns are
+        those of the sharp lobes (the training samples pinned the normal they were fitted about).
     """
 
     labels: np.ndarray
@@ -107,6 +114,7 @@ class SvbrdfFit:
     cluster_material: np.ndarray
     history: tuple = field(default=())
     discovery_texels: int = 0
+    lobe_variance: np.ndarray | None = None
 
     @property
     def n_materials(self) -> int:
@@ -145,6 +153,8 @@ class SvbrdfFit:
         scale = np.where(w[:, :, None, None] > 0,
                          np.maximum(w, 1e-300)[:, :, None, None] ** (1.0 / N), 0.0)
         cx, cz = par[..., 1::3] * scale, par[..., 2::3] * scale
+        if self.lobe_variance is not None:
+            cx, cz, N = broadened_lobes(cx, cz, N, self.lobe_variance[texels][:, None, None, None])
 
         def lobes(a):  # (n, B, 3, L) -> (B L, n, 3)
             return a.transpose(1, 3, 0, 2).reshape(-1, len(texels), 3)
@@ -197,6 +207,24 @@ def _check_texel(texel, S, normals):
     return tx.astype(np.int64), T
 
 
+def _check_broadening(opt: SvbrdfOptions, neighbours, normals, T: int):
+    """``neighbours`` as a (K, T) int array when ``normal_broadening`` is set (else None), or an
+    :class:`SvbrdfError` saying what it lacks."""
+    if opt.normal_broadening is None:
+        return None
+    if not opt.fit_normals or normals is None:
+        raise SvbrdfError("normal_broadening needs fit_normals=True and the texels' normals (the fitted "
+                          "normals' turn is measured against theirs)")
+    if neighbours is None:
+        raise SvbrdfError("normal_broadening needs neighbours (reconstruct.lumitexels.pixel_neighbours of the texels)")
+    nb = np.asarray(neighbours)
+    if nb.ndim != 2 or nb.shape[1] != T or not np.issubdtype(nb.dtype, np.integer) or (nb.size and (
+            nb.min() < -1 or nb.max() >= T)):
+        raise SvbrdfError(f"neighbours must be (K, {T}) integers in [-1, {T - 1}] (one column per texel), "
+                          f"got shape {nb.shape}, dtype {nb.dtype}")
+    return nb.astype(np.int64)
+
+
 def _mixed_footprint(spread, T: int, limit: float) -> np.ndarray:
     """Texels whose footprint ``spread`` (T,) degrees exceeds ``limit``, (T,) bool (NaN: not)."""
     if spread is None:
@@ -240,7 +268,7 @@ def _no_highlight(t, z, wi, w, texel, T, labels, mats):
 
 
 def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None, *, normals=None,
-               weight=None, footprint_spread=None, rng=0, progress=None, **settings) -> SvbrdfFit:
+               weight=None, footprint_spread=None, neighbours=None, rng=0, progress=None, **settings) -> SvbrdfFit:
     """Fit a spatially varying BRDF (and optionally a normal map) to lumitexels after Lensch et al.
 
     Parameters
@@ -262,6 +290,9 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
         How much each texel's normal turns across its pixel footprint, degrees (NaN: unknown,
         kept); above ``max_footprint_spread_deg`` a texel takes no part in material discovery
         (:func:`reconstruct.lumitexels.footprint_normal_spread`).
+    neighbours : array_like (K, T) int, optional
+        Each texel's neighbour texels on the image (-1: none;
+        :func:`reconstruct.lumitexels.pixel_neighbours`); needed by ``normal_broadening``.
     rng : int or numpy.random.Generator
         Seed for texel selection and the held-out halves.
     progress : callable, optional
@@ -279,11 +310,13 @@ def fit_svbrdf(texel, wi, wo, reflectance, options: SvbrdfOptions | None = None,
     wi, wo, r, w = check_samples(wi, wo, reflectance, weight, error=SvbrdfError)
     tx, T = _check_texel(texel, len(wi), normals)
     return fit_svbrdf_blocks(ArrayBlocks(tx, wi, wo, r, w, n_texels=T, block_texels=opt.chunk_texels), opt,
-                             normals=normals, footprint_spread=footprint_spread, rng=rng, progress=progress)
+                             normals=normals, footprint_spread=footprint_spread, neighbours=neighbours, rng=rng,
+                             progress=progress)
 
 
 def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None, *, normals=None,
-                      footprint_spread=None, rng=0, progress=None, map_blocks=None, **settings) -> SvbrdfFit:
+                      footprint_spread=None, neighbours=None, rng=0, progress=None, map_blocks=None,
+                      **settings) -> SvbrdfFit:
     """:func:`fit_svbrdf` over texel blocks: the global steps on a bounded subsample, the
     per-texel steps one block at a time.
 
@@ -301,7 +334,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     ----------
     blocks : TexelBlocks
         The samples (validated: unit directions above the surface, finite values), in blocks.
-    options, normals, footprint_spread, rng, progress, settings
+    options, normals, footprint_spread, neighbours, rng, progress, settings
         As :func:`fit_svbrdf`'s.
     map_blocks : callable(fn, list of argument tuples) -> list, optional
         Runs the per-block tasks (module-level functions of ``blocks``, a block index and the
@@ -311,6 +344,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     opt = (options or SvbrdfOptions()).but(**settings)
     T = blocks.n_texels
     mixed = _mixed_footprint(footprint_spread, T, opt.max_footprint_spread_deg)
+    neighbours = _check_broadening(opt, neighbours, normals, T)
     P = 1 + 3 * opt.n_lobes
     run = map_blocks or _serial
     nb = range(len(blocks.ranges))
@@ -451,6 +485,9 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             normals_out = to_world(normals_local, tangent_frames(np.asarray(normals, float)))
         else:
             normals_out = normals_local
+    lobe_variance = None
+    if opt.normal_broadening is not None:
+        lobe_variance = opt.normal_broadening * normal_turn_excess(normals_out, normals, neighbours) ** 2
 
     no_highlight = np.concatenate(run(_block_no_highlight, [(blocks, i, _part(seen_in, r), labels[r[0]:r[1]], mats)
                                                             for i, r in enumerate(blocks.ranges)])) if T else np.zeros(0, bool)
@@ -461,15 +498,19 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         basis=tuple(tuple(model_of(basis[k, b]) for b in range(size[k])) for k in range(len(mats))),
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
         relative_rms=rel, too_few_samples=counts < opt.min_samples, no_highlight=no_highlight,
-        n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc))
+        n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc),
+        lobe_variance=lobe_variance)
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
     """:func:`fit_svbrdf` on a :class:`reconstruct.lumitexels.Lumitexels` (its sample weights,
-    normals and footprint spreads are used; fitted normals come back in the object frame)."""
+    normals and footprint spreads are used, and its pixel neighbours where ``normal_broadening``
+    needs them; fitted normals come back in the object frame)."""
     kw.setdefault("normals", lt.normal)
     kw.setdefault("weight", lt.weight)
     kw.setdefault("footprint_spread", lt.footprint_spread_deg)
+    if "neighbours" not in kw and kw.get("normal_broadening", getattr(options, "normal_broadening", None)) is not None:
+        kw["neighbours"] = pixel_neighbours(lt)
     return fit_svbrdf(lt.texel, lt.wi, lt.wo, lt.reflectance, options, **kw)
 
 

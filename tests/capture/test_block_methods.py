@@ -17,7 +17,7 @@ from capture.pipeline.lumitexel_arrays import store_lumitexels
 from capture.pipeline.methods import CAPTURED_LENSCH, BlockRoute, _surface_xy, fit_method
 from capture.pipeline.stored_blocks import StoredBlocks
 from reconstruct.lensch import ArrayBlocks, fit_svbrdf_blocks, fit_svbrdf_lumitexels
-from reconstruct.lumitexels import Lumitexels
+from reconstruct.lumitexels import Lumitexels, pixel_neighbours
 from reconstruct.metrics import relative_rms, trimmed_relative_rms
 from reconstruct.sharing import SharingError, fit_spatial, fit_spatial_blocks, reframe
 from sims.reflectance_samples import paper_phong_materials, synthetic_samples
@@ -140,9 +140,10 @@ def test_lensch_over_blocks_of_any_size_equals_the_whole_array_fit(stored, whole
     for b in BLOCKS:
         blocks = StoredBlocks(stored[b])
         assert len(blocks.ranges) == len(stored[b].blocks) and blocks.n_texels == train.n_texels
-        fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, map_blocks=_as_on_a_cluster, **LENSCH)
+        fit = fit_svbrdf_blocks(blocks, normals=train.normal, neighbours=pixel_neighbours(train), rng=0,
+                                map_blocks=_as_on_a_cluster, **LENSCH)
         np.testing.assert_array_equal(fit.labels, whole.labels)
-        for name in ("weights", "normals"):
+        for name in ("weights", "normals", "lobe_variance"):
             np.testing.assert_allclose(getattr(fit, name), getattr(whole, name), rtol=1e-9, atol=1e-12, err_msg=name)
         for k, v in whole.rms.items():
             assert (v is None and fit.rms[k] is None) or fit.rms[k] == pytest.approx(v, rel=1e-9), k
@@ -152,7 +153,8 @@ def test_lensch_over_blocks_of_any_size_equals_the_whole_array_fit(stored, whole
 def test_lensch_material_discovery_honours_and_states_its_subsample(stored):
     blocks = _Counting(stored[BLOCKS[0]])
     train, held = stored[BLOCKS[0]].gather()
-    fit = fit_svbrdf_blocks(blocks, normals=train.normal, rng=0, discovery_texels=160, **LENSCH)
+    fit = fit_svbrdf_blocks(blocks, normals=train.normal, neighbours=pixel_neighbours(train), rng=0,
+                            discovery_texels=160, **LENSCH)
     assert blocks.gathered == 160 == fit.discovery_texels < train.n_texels
     assert f"materials found on 160 of {train.n_texels} texels" in fit.report()
     # every texel still labelled, projected and scored: the materials of 160 texels serve all 240
