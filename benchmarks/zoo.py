@@ -274,10 +274,13 @@ def hemisphere_image(truth, env, count):
         np.ones(normals.shape[:2], bool)
 
 
-def observations(sphere: int, hemisphere: int) -> str:
-    """What the passive section observes, in words."""
-    return (f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
-            else f"one {sphere} x {sphere} sphere image")
+def observations(sphere: int, hemisphere: int, exemplars=None) -> str:
+    """What the passive section observes (and, with ``exemplars``, how it fills the
+    unconstrained nodes), in words."""
+    return ((f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
+             else f"one {sphere} x {sphere} sphere image")
+            + ("" if exemplars is None else ", unconstrained nodes from the nearest exemplars ("
+               + ("k by leave-one-out" if exemplars == "loo" else f"k = {exemplars}") + ")"))
 
 
 #: The oracle split's node groups (deg): the truth's reduction put in at all unconstrained
@@ -339,7 +342,7 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
     models = {k: load_measured(p) for k, p in files.items()}
     t0 = time.perf_counter()
     reductions = {k: Bivariate.from_brdf(m, 32, 32) for k, m in models.items()}
-    observed = observations(sphere, hemisphere)
+    observed = observations(sphere, hemisphere, exemplars)
     print(f"\n== passive reflectometry, Fig. 6: {observed} under Grace "
           f"({env_height} x {2 * env_height} texels) per MERL material, prior learned from the "
           f"other {len(models) - 1} (leave-one-out), lam {lam}, reweight {reweight}, exemplars "
@@ -508,7 +511,7 @@ def main():
         rows = rows_from_logs(args.replot)
         summarise(rows)
         plot_fig6(args.out / "passive_fig6.png", rows, args.env_height,
-                  observations(args.sphere, args.hemisphere))
+                  observations(args.sphere, args.hemisphere, args.exemplars))
         return
     if args.profile:
         highlight_profile(args.profile, args.size)
