@@ -38,7 +38,9 @@ Prints, in one run:
    from the K nearest library exemplars (``passive_exemplars``; ``loo``: K by leave-one-out on
    the library); ``--oracle``: per material also the oracle split (the recovered table with the
    truth's own reduction put in at node groups, and the best single library exemplar at the
-   unconstrained nodes, chosen with the truth); ``--replot LOG...``: summarise and draw from
+   unconstrained nodes, chosen with the truth); ``--exemplar-loo``: instead, each MERL material
+   left out, how well its own seen nodes predict its unseen ones through its nearest exemplars
+   and through the modes prior's conditional mean; ``--replot LOG...``: summarise and draw from
    the rows earlier runs printed (the two halves of a run split by ``--every 2 --offset
    0|1``).
 
@@ -391,6 +393,47 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
     plot_fig6(out / "passive_fig6.png", rows, env_height, observed)
 
 
+def exemplar_loo_section(env_height: int, sphere: int) -> None:
+    """Can a MERL material's seen nodes predict its unseen ones better through its nearest
+    exemplars than through the modes prior? Each of the 100 left out in turn, its own 32 x 32
+    reduction given at the nodes one ``sphere`` px image under Grace constrains: the RMS log
+    error (log(f + offset), the prior's space) at the other nodes of the mean of its k nearest
+    exemplars among the other 99 (``nearest_exemplars``) and of the modes prior's conditional
+    mean (``learn_modes`` of the other 99: mean_u - Q_uu^-1 Q_us (x_s - mean_s))."""
+    env = EnvironmentMap.load(DATA / "probes" / "grace.hdr",
+                              rotation=CAMERA_TO_PROBE).resized(env_height)
+    files = {k: p for k, p in measured_files(DATA / "brdfs").items() if k.startswith("merl/")}
+    reductions = [Bivariate.from_brdf(load_measured(p), 32, 32) for p in files.values()]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PassiveWarning)
+        probe = passive_reflectometry(*sphere_image(reductions[0], env, sphere), env,
+                                      prior=learn_modes(reductions[1:], (32, 32)))
+    w = node_weights(probe.adequacy.coverage, probe.adequacy.constrained)
+    seen, unseen = w > 0, w <= 0
+    x = ExemplarLibrary.from_brdfs(reductions, (32, 32)).x
+    ks = (1, 3, 5, 10, 20, 40)
+    knn, cond = np.zeros((len(x), len(ks))), np.zeros(len(x))
+    for j in range(len(x)):
+        others = np.delete(x, j, axis=0)
+        prior = learn_modes([b for i, b in enumerate(reductions) if i != j], (32, 32))
+        Q = prior.precision()
+        gain = np.linalg.solve(Q[np.ix_(unseen, unseen)], Q[np.ix_(unseen, seen)])
+        pred = prior.mean[unseen] - (x[j][:, seen] - prior.mean[seen]) @ gain.T
+        cond[j] = np.sqrt(np.mean((pred - x[j][:, unseen]) ** 2))
+        ex = nearest_exemplars(x[j], w, others, max(ks))
+        for i, k in enumerate(ks):
+            mean = np.einsum("k,kcn->cn", ex.weights[:k] / ex.weights[:k].sum(),
+                             ex.fitted[:k, :, unseen])
+            knn[j, i] = np.sqrt(np.mean((mean - x[j][:, unseen]) ** 2))
+    print(f"\n== the unseen nodes ({unseen.mean():.0%}) of each MERL material from its own seen "
+          f"ones, leave-one-out; RMS log error, median / mean over the 100 ==")
+    print(f"modes prior's conditional mean: {np.median(cond):.3f} / {cond.mean():.3f}")
+    for i, k in enumerate(ks):
+        print(f"mean of the {k:2d} nearest exemplars: {np.median(knn[:, i]):.3f} / "
+              f"{knn[:, i].mean():.3f}; better than the conditional on "
+              f"{np.sum(knn[:, i] < cond)} of 100", flush=True)
+
+
 ROW = re.compile(r"^(\S+)\s+recovered" + r"\s*/?\s*([\d.]+)%" * 4 + r"\s+reduction"
                  + r"\s*/?\s*([\d.]+)%" * 4)
 
@@ -483,6 +526,10 @@ def main():
     ap.add_argument("--exemplars", default=None, metavar="K|loo",
                     help="passive: fill the unconstrained nodes from the K nearest library "
                          "exemplars ('loo': K by leave-one-out on the library)")
+    ap.add_argument("--exemplar-loo", action="store_true",
+                    help="passive: the unseen nodes from the seen ones, exemplars against the "
+                         "modes prior's conditional, each MERL material left out (instead of "
+                         "Fig. 6)")
     ap.add_argument("--oracle", action="store_true",
                     help="passive: print each material's oracle split too")
     ap.add_argument("--offset", type=int, default=0,
@@ -515,6 +562,9 @@ def main():
         return
     if args.profile:
         highlight_profile(args.profile, args.size)
+        return
+    if args.exemplar_loo:
+        exemplar_loo_section(args.env_height, args.sphere)
         return
     if args.rgl:
         rgl_section(args.size)
