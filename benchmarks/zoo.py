@@ -35,8 +35,15 @@ Prints, in one run:
    (``cv``: cross-validated, derivative prior only). ``--hemisphere N``: instead of the
    image's pixels, the paper's observations (N normals uniform on the visible hemisphere, those
    beyond 80 deg dropped); ``--reweight K``: K reweighted solves under the modes prior (each
-   pixel's noise grown by its misfit); ``--replot LOG...``: summarise and draw from the rows
-   earlier runs printed (the two halves of a run split by ``--every 2 --offset 0|1``).
+   pixel's noise grown by its misfit); ``--exemplars K|loo``: the unconstrained nodes filled
+   from the K nearest library exemplars (``passive_exemplars``; ``loo``: K by leave-one-out on
+   the library); ``--oracle``: per material also the oracle split (the recovered table with the
+   truth's own reduction put in at node groups, and the best single library exemplar at the
+   unconstrained nodes, chosen with the truth); ``--exemplar-loo``: instead, each MERL material
+   left out, how well its own seen nodes predict its unseen ones through its nearest exemplars
+   and through the modes prior's conditional mean; ``--replot LOG...``: summarise and draw from
+   the rows earlier runs printed (the two halves of a run split by ``--every 2 --offset
+   0|1``).
 
 Needs ``../shared/data/brdfs`` and ``../shared/data/probes``. Run with
 ``OPENBLAS_NUM_THREADS=1`` on a shared machine. ``--quick``: small sizes, few materials.
@@ -69,6 +76,7 @@ from reconstruct.envmap import EnvironmentMap  # noqa: E402
 from reconstruct.lensch import fit_lafortune  # noqa: E402
 from reconstruct.passive import (PassiveWarning, bivariate_error, passive_reflectometry,  # noqa
                                  visible_hemisphere_normals)
+from reconstruct.passive_exemplars import ExemplarLibrary, nearest_exemplars, node_weights  # noqa
 from reconstruct.passive_modes import learn_modes  # noqa: E402
 from reconstruct.passive_prior import learn_prior  # noqa: E402
 from reconstruct.sharing import fit_isotropic, samples_from_images  # noqa: E402
@@ -300,25 +308,79 @@ def hemisphere_image(truth, env, count):
         np.ones(normals.shape[:2], bool)
 
 
-def observations(sphere: int, hemisphere: int) -> str:
-    """What the passive section observes, in words."""
-    return (f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
-            else f"one {sphere} x {sphere} sphere image")
+def observations(sphere: int, hemisphere: int, exemplars=None) -> str:
+    """What the passive section observes (and, with ``exemplars``, how it fills the
+    unconstrained nodes), in words."""
+    return ((f"{hemisphere} normals uniform on the visible hemisphere (80 deg)" if hemisphere
+             else f"one {sphere} x {sphere} sphere image")
+            + ("" if exemplars is None else ", unconstrained nodes from the nearest exemplars ("
+               + ("k by leave-one-out" if exemplars == "loo" else f"k = {exemplars}") + ")"))
+
+
+#: The oracle split's node groups (deg): the truth's reduction put in at all unconstrained
+#: nodes, at all constrained ones, and at the unconstrained ones of three bands.
+ORACLE_GROUPS = {
+    "truth at unseen": lambda seen, th, td: ~seen,
+    "at seen": lambda seen, th, td: seen,
+    "theta_h < 2": lambda seen, th, td: ~seen & (th < 2),
+    "theta_d > 80": lambda seen, th, td: ~seen & (td > 80),
+    "theta_d < 10": lambda seen, th, td: ~seen & (td < 10),
+}
+#: The best single exemplar is searched among this many library members nearest the truth at
+#: the unconstrained nodes (RMS log difference), each scored by Eq. 1.
+ORACLE_EXEMPLARS = 8
+
+
+def oracle_split(fit, reduction, truth, library: ExemplarLibrary, error_grid) -> dict:
+    """Eq. 1 per-sample (fraction) of the recovered table with the truth's own reduction put in
+    at each of ``ORACLE_GROUPS``, and with the unconstrained nodes taken from the one library
+    member (fitted at the constrained nodes as ``nearest_exemplars`` fits) that comes closest,
+    chosen with the truth: what no exemplar prior can beat."""
+    n_t, n_s = fit.brdf.table.shape[:2]
+    f = fit.brdf.table.reshape(-1, 3)
+    true = reduction.table.reshape(-1, 3)
+    seen = fit.adequacy.constrained.ravel()
+    t, s = np.meshgrid(np.linspace(0, 1, n_t), np.linspace(0, 1, n_s), indexing="ij")
+    th, td = (t ** 2 * 90).ravel(), (s * 90).ravel()
+
+    def err(table):
+        return bivariate_error(Bivariate(table.reshape(n_t, n_s, 3)), truth, shape=error_grid)
+
+    out = {}
+    for label, group in ORACLE_GROUPS.items():
+        g = f.copy()
+        at = group(seen, th, td)
+        g[at] = true[at]
+        out[label] = err(g)
+    x = np.log(np.maximum(f, 0).T + library.offset)
+    ex = nearest_exemplars(x, node_weights(fit.adequacy.coverage, fit.adequacy.constrained),
+                           library.x, len(library.x))
+    x_true = np.log(true.T + library.offset)
+    closeness = np.sqrt(np.mean((ex.fitted[:, :, ~seen] - x_true[:, ~seen]) ** 2, axis=(1, 2)))
+    best = np.inf
+    for m in np.argsort(closeness)[:ORACLE_EXEMPLARS]:
+        g = f.copy()
+        g[~seen] = np.maximum(np.exp(ex.fitted[m][:, ~seen].T) - library.offset, 0.0)
+        best = min(best, err(g))
+    out["best exemplar"] = best
+    return out
 
 
 def passive_section(out: Path, sphere: int, env_height: int, every: int, error_grid,
                     lam, prior_kind: str, offset: int = 0, n_modes: int = 40,
-                    hemisphere: int = 0, reweight=None, reverse: bool = False) -> None:
+                    hemisphere: int = 0, reweight=None, reverse: bool = False,
+                    exemplars=None, oracle: bool = False) -> None:
     env = EnvironmentMap.load(DATA / "probes" / "grace.hdr",
                               rotation=CAMERA_TO_PROBE).resized(env_height)
     files = {k: p for k, p in measured_files(DATA / "brdfs").items() if k.startswith("merl/")}
     models = {k: load_measured(p) for k, p in files.items()}
     t0 = time.perf_counter()
     reductions = {k: Bivariate.from_brdf(m, 32, 32) for k, m in models.items()}
-    observed = observations(sphere, hemisphere)
+    observed = observations(sphere, hemisphere, exemplars)
     print(f"\n== passive reflectometry, Fig. 6: {observed} under Grace "
           f"({env_height} x {2 * env_height} texels) per MERL material, prior learned from the "
-          f"other {len(models) - 1} (leave-one-out), lam {lam}, reweight {reweight}; Eq. 1 error on a {error_grid} "
+          f"other {len(models) - 1} (leave-one-out), lam {lam}, reweight {reweight}, exemplars "
+          f"{exemplars}; Eq. 1 error on a {error_grid} "
           f"grid, per-sample / pooled reading / per-sample where the environment constrains "
           f"the BRDF (reductions: {time.perf_counter() - t0:.0f} s) ==")
     rows = []
@@ -327,14 +389,19 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
         truth = models[name]
         image, normals, mask = (hemisphere_image(truth, env, hemisphere) if hemisphere else
                                 sphere_image(truth, env, sphere))
-        library = [b for k, b in reductions.items() if k != name]
+        names_lib = [k for k in reductions if k != name]
+        library = [reductions[k] for k in names_lib]
         prior = (learn_modes(library, (32, 32), n_modes=n_modes, name="merl-loo-modes")
                  if prior_kind == "modes" else learn_prior(library, (32, 32), name="merl-loo"))
+        nearest = (ExemplarLibrary.from_brdfs(library, (32, 32),
+                                              k=None if exemplars in (None, "loo") else exemplars)
+                   if exemplars is not None or oracle else None)
         t1 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PassiveWarning)
             fit = passive_reflectometry(image, normals, mask, env, prior=prior, lam=lam,
-                                        reweight=reweight if prior_kind == "modes" else None)
+                                        reweight=reweight if prior_kind == "modes" else None,
+                                        exemplars=nearest if exemplars is not None else None)
         t_fit = time.perf_counter() - t1
         seen = fit.adequacy.constrained
         readings = ({}, {"pooled": True}, {"nodes": seen}, {"exclude_grazing_deg": GRAZING})
@@ -345,10 +412,58 @@ def passive_section(out: Path, sphere: int, env_height: int, every: int, error_g
         rows.append((name, e, r, ep, rp, ec, rc, eg, rg))
         print(f"{name[5:]:26s} recovered {e:8.1%} /{ep:6.1%} /{ec:7.1%} /{eg:7.1%}  reduction "
               f"{r:7.1%} /{rp:6.1%} /{rc:6.1%} /{rg:6.1%}  lam {fit.lam:5.0e} residual "
-              f"{fit.residual.mean():6.2%} unconstrained {np.mean(~seen):4.0%}  {t_fit:4.0f} s",
+              f"{fit.residual.mean():6.2%} unconstrained {np.mean(~seen):4.0%}  {t_fit:4.0f} s"
+              + ("" if fit.exemplars is None else
+                 f"  k {len(fit.exemplars.index)}: " + ", ".join(
+                     names_lib[j][5:] for j in fit.exemplars.index[:3])),
               flush=True)
+        if oracle:
+            split = oracle_split(fit, reductions[name], truth, nearest, error_grid)
+            print("  oracle split: " + ", ".join(f"{k} {v:.1%}" for k, v in split.items()),
+                  flush=True)
     summarise(rows)
     plot_fig6(out / "passive_fig6.png", rows, env_height, observed)
+
+
+def exemplar_loo_section(env_height: int, sphere: int) -> None:
+    """Can a MERL material's seen nodes predict its unseen ones better through its nearest
+    exemplars than through the modes prior? Each of the 100 left out in turn, its own 32 x 32
+    reduction given at the nodes one ``sphere`` px image under Grace constrains: the RMS log
+    error (log(f + offset), the prior's space) at the other nodes of the mean of its k nearest
+    exemplars among the other 99 (``nearest_exemplars``) and of the modes prior's conditional
+    mean (``learn_modes`` of the other 99: mean_u - Q_uu^-1 Q_us (x_s - mean_s))."""
+    env = EnvironmentMap.load(DATA / "probes" / "grace.hdr",
+                              rotation=CAMERA_TO_PROBE).resized(env_height)
+    files = {k: p for k, p in measured_files(DATA / "brdfs").items() if k.startswith("merl/")}
+    reductions = [Bivariate.from_brdf(load_measured(p), 32, 32) for p in files.values()]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PassiveWarning)
+        probe = passive_reflectometry(*sphere_image(reductions[0], env, sphere), env,
+                                      prior=learn_modes(reductions[1:], (32, 32)))
+    w = node_weights(probe.adequacy.coverage, probe.adequacy.constrained)
+    seen, unseen = w > 0, w <= 0
+    x = ExemplarLibrary.from_brdfs(reductions, (32, 32)).x
+    ks = (1, 3, 5, 10, 20, 40)
+    knn, cond = np.zeros((len(x), len(ks))), np.zeros(len(x))
+    for j in range(len(x)):
+        others = np.delete(x, j, axis=0)
+        prior = learn_modes([b for i, b in enumerate(reductions) if i != j], (32, 32))
+        Q = prior.precision()
+        gain = np.linalg.solve(Q[np.ix_(unseen, unseen)], Q[np.ix_(unseen, seen)])
+        pred = prior.mean[unseen] - (x[j][:, seen] - prior.mean[seen]) @ gain.T
+        cond[j] = np.sqrt(np.mean((pred - x[j][:, unseen]) ** 2))
+        ex = nearest_exemplars(x[j], w, others, max(ks))
+        for i, k in enumerate(ks):
+            mean = np.einsum("k,kcn->cn", ex.weights[:k] / ex.weights[:k].sum(),
+                             ex.fitted[:k, :, unseen])
+            knn[j, i] = np.sqrt(np.mean((mean - x[j][:, unseen]) ** 2))
+    print(f"\n== the unseen nodes ({unseen.mean():.0%}) of each MERL material from its own seen "
+          f"ones, leave-one-out; RMS log error, median / mean over the 100 ==")
+    print(f"modes prior's conditional mean: {np.median(cond):.3f} / {cond.mean():.3f}")
+    for i, k in enumerate(ks):
+        print(f"mean of the {k:2d} nearest exemplars: {np.median(knn[:, i]):.3f} / "
+              f"{knn[:, i].mean():.3f}; better than the conditional on "
+              f"{np.sum(knn[:, i] < cond)} of 100", flush=True)
 
 
 ROW = re.compile(r"^(\S+)\s+recovered" + r"\s*/?\s*([\d.]+)%" * 4 + r"\s+reduction"
@@ -440,6 +555,15 @@ def main():
                     help="passive, modes prior: reweighted solves (default MODES_REWEIGHT; 0: "
                          "the plain solve)")
     ap.add_argument("--modes", type=int, default=40, help="passive: modes kept")
+    ap.add_argument("--exemplars", default=None, metavar="K|loo",
+                    help="passive: fill the unconstrained nodes from the K nearest library "
+                         "exemplars ('loo': K by leave-one-out on the library)")
+    ap.add_argument("--exemplar-loo", action="store_true",
+                    help="passive: the unseen nodes from the seen ones, exemplars against the "
+                         "modes prior's conditional, each MERL material left out (instead of "
+                         "Fig. 6)")
+    ap.add_argument("--oracle", action="store_true",
+                    help="passive: print each material's oracle split too")
     ap.add_argument("--offset", type=int, default=0,
                     help="passive: first MERL material (with --every: a second subset)")
     ap.add_argument("--only", choices=["sharing", "passive"])
@@ -469,10 +593,13 @@ def main():
         rows = rows_from_logs(args.replot)
         summarise(rows)
         plot_fig6(args.out / "passive_fig6.png", rows, args.env_height,
-                  observations(args.sphere, args.hemisphere))
+                  observations(args.sphere, args.hemisphere, args.exemplars))
         return
     if args.profile:
         highlight_profile(args.profile, args.size)
+        return
+    if args.exemplar_loo:
+        exemplar_loo_section(args.env_height, args.sphere)
         return
     if args.rgl:
         rgl_section(args.size, args.merge_radius or RGL_MERGE_RADIUS)
@@ -488,7 +615,10 @@ def main():
                         None if args.lam == "default" else
                         args.lam if args.lam == "cv" else float(args.lam),
                         args.prior,
-                        args.offset, args.modes, args.hemisphere, args.reweight, args.reverse)
+                        args.offset, args.modes, args.hemisphere, args.reweight, args.reverse,
+                        None if args.exemplars is None else
+                        args.exemplars if args.exemplars == "loo" else int(args.exemplars),
+                        args.oracle)
 
 
 if __name__ == "__main__":
