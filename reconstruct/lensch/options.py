@@ -108,6 +108,12 @@ class SvbrdfOptions:
         prediction. On a mirror-like object that reflects itself (DiLiGenT's goblet) a light's
         image in the object is a second highlight, as sharp as the first, about another axis:
         the one the free fit follows (docs/diligent.md). Needs ``lobes_alone``.
+    texel_undo : bool
+        After each round's projection, a texel the peak test held goes back to its free fit's
+        normal (its inter-reflection axis; no lobe) where that, projected into the same basis,
+        fits its samples better than the held normal with its inter-reflection lobe: the
+        round's undo per texel, before the round as a whole is judged (``undo_ratio``). Needs
+        ``interreflection_lobe``.
     undo_ratio : float
         A normal-fitting round that raises the projection's total error more than this many
         times is undone, and ends the fitting (inf: never undone).
@@ -179,6 +185,7 @@ class SvbrdfOptions:
     lobes_alone: bool = False
     peak_compare: bool = True
     interreflection_lobe: bool = False
+    texel_undo: bool = False
     undo_ratio: float = 1.05
     lm_stall: tuple[int, float] | None = None
     chunk_texels: int = 100_000
@@ -210,6 +217,9 @@ class SvbrdfOptions:
             raise SvbrdfError("interreflection_lobe needs lobes_alone=True (its lobe is that slot) and a "
                               f"peak_ratio (its axis is the free fit of a held texel), got lobes_alone="
                               f"{self.lobes_alone!r}, peak_ratio={self.peak_ratio!r}")
+        if self.texel_undo and not self.interreflection_lobe:
+            raise SvbrdfError("texel_undo needs interreflection_lobe=True (a held texel's alternative is its "
+                              "inter-reflection axis)")
         stall = self.lm_stall
         if stall is not None and not (isinstance(stall, (tuple, list)) and len(stall) == 2
                                       and isinstance(stall[0], (int, np.integer)) and not isinstance(stall[0], bool)

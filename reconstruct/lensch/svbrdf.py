@@ -482,6 +482,17 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 weights, sse, axis_w = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo, axes)
                 if sse.sum() <= opt.undo_ratio * before[7].sum():
                     break
+            if opt.texel_undo and np.isfinite(axes[:, 0]).any():
+                # per texel: a held texel (with its lobe) against its free fit's normal (its axis, no lobe)
+                has = np.isfinite(axes[:, 0])
+                alt = np.where(has[:, None], axes, normals_local)
+                w_alt, sse_alt, _ = _project(run, blocks, alt, basis, size, labels, opt, max_albedo)
+                free = has & (sse_alt < sse)
+                normals_local = seen_in = np.where(free[:, None], alt, normals_local)
+                axes = np.where(free[:, None], np.nan, axes)
+                weights, sse = np.where(free[:, None], w_alt, weights), np.where(free, sse_alt, sse)
+                axis_w = np.where(free, 0.0, axis_w)
+                data, _ = _sorted(found, normals_local[disc], opt.chunk_texels)
             tick()
             if sse.sum() > opt.undo_ratio * before[7].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "

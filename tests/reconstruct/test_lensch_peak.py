@@ -157,6 +157,7 @@ def test_a_held_texels_interreflection_lobe_predicts_lights_it_did_not_see():
     ({"lm_stall": 20}, "lm_stall must be .* got 20"),
     ({"undo_ratio": 0.9}, r"undo_ratio must be >= 1 \(inf: never undo\), got 0.9"),
     ({"interreflection_lobe": True, "peak_ratio": 3.0}, "interreflection_lobe needs lobes_alone=True"),
+    ({"texel_undo": True}, r"texel_undo needs interreflection_lobe=True"),
 ])
 def test_bad_settings_name_themselves(setting, message):
     with pytest.raises(SvbrdfError, match=message):
