@@ -64,9 +64,9 @@ SKIPPED_STAGES = {
 #: each material's lobes alone in its projection basis (a texel's own highlight strength), the
 #: peak test (a texel whose brightest sample is over 1.5x its fitted model there is held near
 #: that sample's half vector) with an inter-reflection lobe about the normal its free fit found
-#: (the object's image of the light in itself), each held texel going back to that free normal
-#: where it fits its samples better (the per-texel undo; a round as a whole undone only past
-#: 1.5x its error: goblet's first raised it 1.06x), and the Lafortune fits stopped where
+#: (the object's image of the light in itself), each held texel kept out of the BRDF refits and
+#: sent back to that free normal where it fits its samples better (the per-texel undo; a round
+#: as a whole undone only past 1.5x its error), and the Lafortune fits stopped where
 #: they crawl (20 iterations, 1e-4) (see benchmarks/diligent.py --ablation and docs/diligent.md
 #: for what each buys).
 LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2, "robust_spread": 1.5, "brightest_dropped": 0.1,

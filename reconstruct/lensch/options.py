@@ -109,10 +109,11 @@ class SvbrdfOptions:
         image in the object is a second highlight, as sharp as the first, about another axis:
         the one the free fit follows (docs/diligent.md). Needs ``lobes_alone``.
     texel_undo : bool
-        After each round's projection, a texel the peak test held goes back to its free fit's
-        normal (its inter-reflection axis; no lobe) where that, projected into the same basis,
-        fits its samples better than the held normal with its inter-reflection lobe: the
-        round's undo per texel, before the round as a whole is judged (``undo_ratio``). Needs
+        A texel the peak test held stays out of the round's BRDF refits where its free fit's
+        normal (its inter-reflection axis; no lobe), projected into the basis, fits its samples
+        better than the held normal with its inter-reflection lobe; after the refits, the same
+        test under the new basis sends it back to its free fit's normal: the round's undo per
+        texel, before the round as a whole is judged (``undo_ratio``). Needs
         ``interreflection_lobe``.
     undo_ratio : float
         A normal-fitting round that raises the projection's total error more than this many

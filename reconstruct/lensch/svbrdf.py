@@ -469,6 +469,9 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             data, visible = _sorted(found, normals_local[disc], opt.chunk_texels)
             trusted = [_confident(errors_d) & ~mixed[disc]]   # which texels the refits trust
+            if opt.texel_undo and np.isfinite(axes[:, 0]).any():   # not a held texel its free normal fits better
+                trusted = [trusted[0] & ~_free_fits_better(run, blocks, seen_in, axes, basis, size, labels, opt,
+                                                           max_albedo)[0][disc]]
             if opt.refresh_confidence:   # judged about the new normals first; if that raises the error, the mesh's
                 trusted.insert(0, _confident(_label(data, mats)[1]) & ~mixed[disc])
             start = mats
@@ -482,13 +485,10 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 weights, sse, axis_w = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo, axes)
                 if sse.sum() <= opt.undo_ratio * before[7].sum():
                     break
-            if opt.texel_undo and np.isfinite(axes[:, 0]).any():
-                # per texel: a held texel (with its lobe) against its free fit's normal (its axis, no lobe)
-                has = np.isfinite(axes[:, 0])
-                alt = np.where(has[:, None], axes, normals_local)
-                w_alt, sse_alt, _ = _project(run, blocks, alt, basis, size, labels, opt, max_albedo)
-                free = has & (sse_alt < sse)
-                normals_local = seen_in = np.where(free[:, None], alt, normals_local)
+            if opt.texel_undo and np.isfinite(axes[:, 0]).any():   # the same under the refitted BRDFs, per texel
+                free, w_alt, sse_alt = _free_fits_better(run, blocks, seen_in, axes, basis, size, labels, opt,
+                                                         max_albedo, sse)
+                normals_local = seen_in = np.where(free[:, None], axes, normals_local)
                 axes = np.where(free[:, None], np.nan, axes)
                 weights, sse = np.where(free[:, None], w_alt, weights), np.where(free, sse_alt, sse)
                 axis_w = np.where(free, 0.0, axis_w)
@@ -829,6 +829,20 @@ def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: Svbrdf
         return np.zeros((0, basis.shape[1])), np.zeros(0), None
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
             None if axes is None else np.concatenate([p[2] for p in parts]))
+
+
+def _free_fits_better(run, blocks: TexelBlocks, normals_local, axes, basis, size, labels, opt: SvbrdfOptions,
+                      max_albedo, sse_held=None):
+    """The held texels (finite ``axes``, (T, 3)) whose free fit's normal (the axis), projected
+    into ``basis`` without the inter-reflection lobe, fits their samples better than the held
+    normal (``normals_local``) with it (SSE ``sse_held``, (T,), projected here if None): (T,)
+    bool, and that projection's weights (T, B) and SSE (T,)."""
+    has = np.isfinite(axes[:, 0])
+    if sse_held is None:
+        sse_held = _project(run, blocks, normals_local, basis, size, labels, opt, max_albedo, axes)[1]
+    w_alt, sse_alt, _ = _project(run, blocks, np.where(has[:, None], axes, normals_local), basis, size, labels,
+                                 opt, max_albedo)
+    return has & (sse_alt < sse_held), w_alt, sse_alt
 
 
 def _pfa(data: _Sorted, basis, size, labels, limit, rng):
