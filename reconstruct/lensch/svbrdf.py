@@ -19,6 +19,7 @@ from ..frames import normalize, tangent_frames, to_local, to_world
 from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
+from .interreflection import Interreflection, axis_lobe
 from .normals import fit_normals_chunk
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
@@ -28,36 +29,6 @@ from .texel_blocks import ArrayBlocks, SampleBlock, TexelBlocks
 
 #: Keys of :attr:`SvbrdfFit.rms`, the columns of the paper's Table II.
 RMS_COLUMNS = ("single", "cluster", "projection", "pfa", "normal_fit")
-
-
-@dataclass(frozen=True)
-class Interreflection:
-    """Per-texel inter-reflection lobes (``SvbrdfOptions.interreflection_lobe``): for texel t
-    with a finite ``axes[t]`` (unit, its input local frame: the normal its free fit found before
-    the peak test held it), ``weight[t]`` x its material's ``lobes[labels[t]]`` (Lafortune
-    parameters (3, P) with rho_d 0) about that axis, f_r cos(theta_i) about the axis, 1/sr."""
-
-    axes: np.ndarray
-    weight: np.ndarray
-    labels: np.ndarray
-    lobes: np.ndarray
-
-    def predict(self, texel, wi, wo) -> np.ndarray:
-        """(S, 3) for samples ``texel`` (S,), ``wi`` / ``wo`` (S, 3) in the input local frames."""
-        return self.weight[texel, None] * axis_lobe(texel, wi, wo, self.axes, self.labels, self.lobes)
-
-
-def axis_lobe(texel, wi, wo, axes, labels, lobes) -> np.ndarray:
-    """f cos (S, 3) of each sample under its texel's lobe ``lobes[labels]`` ((K, 3, P)) about
-    its ``axes`` ((n, 3), input local frames; NaN: none, 0), 0 where either direction is below
-    the axis's horizon."""
-    has = np.isfinite(axes[:, 0])
-    frames = tangent_frames(np.where(has[:, None], axes, [0.0, 0.0, 1.0]))[texel]
-    u, v = normalize(to_local(wi, frames)), normalize(to_local(wo, frames))
-    seen = (u[:, 2] > 0) & (v[:, 2] > 0) & has[texel]
-    t, z = lobe_geometry(u, v)
-    K = len(lobes)
-    return basis_values(t, z, np.where(seen, u[:, 2], 0.0), texel, labels, lobes[:, None], np.ones(K, np.int64))[:, 0]
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ from reconstruct.lensch import SvbrdfError, SvbrdfOptions
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.normals import fit_normals_chunk
 from reconstruct.lensch.projection import basis_values, make_bases, project_chunk
-from reconstruct.lensch.svbrdf import _below_brightest, axis_lobe
+from reconstruct.lensch.interreflection import axis_lobe
+from reconstruct.lensch.svbrdf import _below_brightest
 
 
 def _sharp_texels(T=200, M=60, tilt_deg=20.0, seed=0, rho_d=0.2, exponent=300.0):
