@@ -21,7 +21,9 @@ selection; plus a second lobe; plus each texel's brightest 10 % of samples left 
 fitting (ST14's low-intensity part); plus robust selection within 1.5 instead of 3 sigma; plus
 Tukey's biweight loss (cut off at 2 robust sigmas of each texel's residuals) in the normal fit;
 plus each material's lobes alone in its projection basis; plus the peak test; plus the
-Lafortune fits stopped where they crawl (the final configuration, ``LENSCH_OPTIONS``).
+Lafortune fits stopped where they crawl (round lensch7); the peak test at 1.5 with every
+flagged texel held, an inter-reflection lobe about its free fit's normal and the per-texel undo
+(the final configuration, ``LENSCH_OPTIONS``).
 Timings are wall-clock and CPU on whatever machine runs it.
 """
 from __future__ import annotations
@@ -65,7 +67,9 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ Tukey loss (2 sigma) in the normal fit": _TUKEY,
             "+ each material's lobes alone in the basis": {**_TUKEY, "lobes_alone": True},
             "+ the peak test (3x)": {**_TUKEY, "lobes_alone": True, "peak_ratio": 3.0},
-            "+ Lafortune fits stopped where they crawl (final)": FINAL}
+            "+ Lafortune fits stopped where they crawl": {**_TUKEY, "lobes_alone": True, "peak_ratio": 3.0,
+                                                          "lm_stall": (20, 1e-4)},
+            "+ peak test 1.5, inter-reflection lobe, per-texel undo (final)": FINAL}
 
 
 def lambertian_relighting(inp: ImportedInputs, ps) -> float:

@@ -12,7 +12,7 @@ every method as on a captured session. Ground-truth normals, where the set has t
 only to score: least squares, the robust variant and each method's fitted normals.
 
 Methods: ``lambertian`` (the reference) and ``lensch`` (:data:`LENSCH_OPTIONS`: robust sample
-selection for its normal fitting, two lobes, the peak test) run; ``sharing`` needs polarization-separated
+selection for its normal fitting, two lobes, the peak test with an inter-reflection lobe) run; ``sharing`` needs polarization-separated
 diffuse and specular images, and
 ``passive`` a room-lit image with a mirror probe, which such a set does not have: both are
 reported skipped with that reason.
@@ -62,11 +62,16 @@ SKIPPED_STAGES = {
 #: brightest 10 % of samples left out of it (ST14's low-intensity part), Tukey's loss in the
 #: normal fit (cut off at 2 robust sigmas of each texel's residuals), two lobes per material,
 #: each material's lobes alone in its projection basis (a texel's own highlight strength), the
-#: peak test (a texel whose brightest sample is over 3x its fitted model there is held near that
-#: sample's half vector) and the Lafortune fits stopped where they crawl (20 iterations, 1e-4)
-#: (see benchmarks/diligent.py --ablation and docs/diligent.md for what each buys).
+#: peak test (a texel whose brightest sample is over 1.5x its fitted model there is held near
+#: that sample's half vector) with an inter-reflection lobe about the normal its free fit found
+#: (the object's image of the light in itself), each held texel kept out of the BRDF refits and
+#: sent back to that free normal where it fits its samples better (the per-texel undo; a round
+#: as a whole undone only past 1.5x its error), and the Lafortune fits stopped where
+#: they crawl (20 iterations, 1e-4) (see benchmarks/diligent.py --ablation and docs/diligent.md
+#: for what each buys).
 LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2, "robust_spread": 1.5, "brightest_dropped": 0.1,
-                  "tukey_cutoff": 2.0, "lobes_alone": True, "peak_ratio": 3.0, "lm_stall": (20, 1e-4)}
+                  "tukey_cutoff": 2.0, "lobes_alone": True, "peak_ratio": 1.5, "peak_compare": False,
+                  "interreflection_lobe": True, "texel_undo": True, "undo_ratio": 1.5, "lm_stall": (20, 1e-4)}
 
 
 def is_imported(store: Store, session: str) -> bool:

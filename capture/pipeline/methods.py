@@ -159,6 +159,9 @@ def lensch_fitted(fit: SvbrdfFit, opt: SvbrdfOptions, rng: int) -> Fitted:
         arrays["normals"] = np.asarray(fit.normals, np.float32)
     if fit.lobe_variance is not None:   # rad^2 added to each lobe's 1/N when it predicts
         arrays["lobe_variance"] = np.asarray(fit.lobe_variance, np.float32)
+    if fit.interreflection is not None:   # part of what predict() adds (not of the BRDFs)
+        arrays["interreflection_axes"] = np.asarray(fit.interreflection.axes, np.float32)
+        arrays["interreflection_weight"] = np.asarray(fit.interreflection.weight, np.float32)
     return Fitted(fit.predict, fit.brdf, arrays=arrays,   # fitted normals applied
                   params={"n_materials": "from the data", "fit_normals": True, "rng": rng,
                           "discovery_texels": opt.discovery_texels, "robust_samples": opt.robust_samples,

@@ -152,7 +152,8 @@ def _peak_test(x, U, V, R, W, basis_t, ratio: float):
 
 def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis, basis_size, *,
                       min_samples: int = 3, max_iter: int = 15, tukey_c: float | None = None,
-                      peak_weight=None, peak_ratio: float | None = None, peak_hold: float = 0.05):
+                      peak_weight=None, peak_ratio: float | None = None, peak_hold: float = 0.05,
+                      peak_compare: bool = True, return_axes: bool = False):
     """Fit a normal and basis weights per texel of a chunk (Eq. 16), all texels at once.
 
     Parameters
@@ -188,6 +189,11 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
         all its samples, its slopes held within ``peak_hold`` of the half vector's, and kept
         where it fits all those samples at least as well as the free fit's (under Tukey's loss
         with ``tukey_c``: light no lobe about either normal explains counts little).
+    peak_compare : bool
+        False: keep every held normal (no comparison with the free fit's).
+    return_axes : bool
+        Also return, for each texel whose held normal was kept, its free fit's normal (the
+        inter-reflection's axis, local frame; NaN for the others), (n, 3).
 
     Returns
     -------
@@ -198,12 +204,15 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
     fitted : ndarray (n,) bool
         Texels whose normal was fitted.
     converged : ndarray (n,) bool
+    axes : ndarray (n, 3)
+        Only with ``return_axes``.
     """
     n, B = weights.shape
     counts = np.bincount(texel, minlength=n)
     normals = np.tile([0.0, 0.0, 1.0], (n, 1))
     out_w = weights.copy()
     converged = np.zeros(n, bool)
+    axes = np.full((n, 3), np.nan)
     fitted = counts >= min_samples
     # groups of similar sample counts, each padded to its largest count
     edges = [min_samples, 5, 9, 17, 33, 65, np.inf]
@@ -245,13 +254,21 @@ def fit_normals_chunk(texel, wi, wo, reflectance, weight, labels, weights, basis
                 x = x.copy()
                 held, better = _held_at_peak(x[lost], slopes[lost], peak_hold, U[lost], V[lost], R[lost],
                                              Pw[lost], basis_t[lost], lower[lost], upper[lost], tukey_c, max_iter)
+                if not peak_compare:
+                    better[:] = True
                 keep = np.flatnonzero(lost)[better]
+                axes[members[keep]] = _unit(x[keep, :2])
                 x[keep] = held[better]
-        p = np.concatenate([x[:, :2], np.ones((len(members), 1))], axis=1)
-        normals[members] = p / np.linalg.norm(p, axis=1, keepdims=True)
+        normals[members] = _unit(x[:, :2])
         out_w[members] = x[:, 2:]
         converged[members] = res.converged
-    return normals, out_w, fitted, converged
+    return (normals, out_w, fitted, converged, axes) if return_axes else (normals, out_w, fitted, converged)
+
+
+def _unit(slopes) -> np.ndarray:
+    """Unit normals (m, 3) of slopes (m, 2): (a, b, 1) / |.|."""
+    p = np.concatenate([slopes, np.ones((len(slopes), 1))], axis=1)
+    return p / np.linalg.norm(p, axis=1, keepdims=True)
 
 
 def _held_at_peak(x, slopes, hold, U, V, R, W, basis_t, lower, upper, tukey_c, max_iter):

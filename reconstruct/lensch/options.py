@@ -96,6 +96,28 @@ class SvbrdfOptions:
         :func:`~reconstruct.lensch.normals.fit_normals_chunk`): a texel whose brightest sample
         exceeds this many times what its fitted BRDF predicts about its fitted normal has lost
         its highlight to the fit; its normal is held near that sample's half vector.
+    peak_compare : bool
+        With the peak test, keep a held normal only where it fits all the texel's samples at
+        least as well as the free fit's (True, under Tukey's loss); False: every texel the test
+        flags is held (with ``interreflection_lobe`` its free fit's normal becomes its
+        inter-reflection axis).
+    interreflection_lobe : bool
+        Give each texel the peak test holds a second, inter-reflection lobe: its material's
+        lobes alone (the ``lobes_alone`` slot) about the normal its free fit found, with a
+        non-negative weight of its own fitted with the projection (Sec. 8) and added to every
+        prediction. On a mirror-like object that reflects itself (DiLiGenT's goblet) a light's
+        image in the object is a second highlight, as sharp as the first, about another axis:
+        the one the free fit follows (docs/diligent.md). Needs ``lobes_alone``.
+    texel_undo : bool
+        A texel the peak test held stays out of the round's BRDF refits where its free fit's
+        normal (its inter-reflection axis; no lobe), projected into the basis, fits its samples
+        better than the held normal with its inter-reflection lobe; after the refits, the same
+        test under the new basis sends it back to its free fit's normal: the round's undo per
+        texel, before the round as a whole is judged (``undo_ratio``). Needs
+        ``interreflection_lobe``.
+    undo_ratio : float
+        A normal-fitting round that raises the projection's total error more than this many
+        times is undone, and ends the fitting (inf: never undone).
     lobes_alone : bool
         Add each material's lobes without its diffuse term to its projection basis (Sec. 8), so
         that a texel's highlight strength is free of its diffuse albedo.
@@ -172,6 +194,10 @@ class SvbrdfOptions:
     tukey_cutoff: float | None = None
     peak_ratio: float | None = None
     lobes_alone: bool = False
+    peak_compare: bool = True
+    interreflection_lobe: bool = False
+    texel_undo: bool = False
+    undo_ratio: float = 1.05
     lm_stall: tuple[int, float] | None = None
     normal_broadening: float | None = None
     chunk_texels: int = 100_000
@@ -200,6 +226,15 @@ class SvbrdfOptions:
             raise SvbrdfError(f"normal_broadening must be a finite factor > 0 or None, got {self.normal_broadening!r}")
         if self.peak_ratio is not None and not self.peak_ratio > 0:
             raise SvbrdfError(f"peak_ratio must be > 0 or None, got {self.peak_ratio!r}")
+        if not self.undo_ratio >= 1:   # also refuses NaN
+            raise SvbrdfError(f"undo_ratio must be >= 1 (inf: never undo), got {self.undo_ratio!r}")
+        if self.interreflection_lobe and not (self.lobes_alone and self.peak_ratio is not None):
+            raise SvbrdfError("interreflection_lobe needs lobes_alone=True (its lobe is that slot) and a "
+                              f"peak_ratio (its axis is the free fit of a held texel), got lobes_alone="
+                              f"{self.lobes_alone!r}, peak_ratio={self.peak_ratio!r}")
+        if self.texel_undo and not self.interreflection_lobe:
+            raise SvbrdfError("texel_undo needs interreflection_lobe=True (a held texel's alternative is its "
+                              "inter-reflection axis)")
         stall = self.lm_stall
         if stall is not None and not (isinstance(stall, (tuple, list)) and len(stall) == 2
                                       and isinstance(stall[0], (int, np.integer)) and not isinstance(stall[0], bool)

@@ -81,7 +81,7 @@ def basis_values(t, z, cos_i, texel, labels, basis, basis_size) -> np.ndarray:
 
 
 def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_size, *,
-                  prior: float = 0.0, select: bool = False, max_albedo: float | None = None):
+                  prior: float = 0.0, select: bool = False, max_albedo: float | None = None, extra=None):
     """Non-negative projection of a chunk of texels into their clusters' bases (Eqs. 11-12).
 
     Parameters
@@ -115,6 +115,11 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         upper bound of the mixture's albedo) and more than its cluster's BRDF alone, the weights
         become (1, 0, ..., 0): a large weight on a basis BRDF that is ~0 at the texel's samples
         (21.8 seen) fits them and predicts absurd values at other lights.
+    extra : ndarray (S, 3), optional
+        One more column, f cos of every sample under a texel's own extra BRDF (0 for texels
+        without one: an inter-reflection lobe, ``SvbrdfOptions.interreflection_lobe``), solved
+        with the basis weights under the same non-negativity; its weight is returned apart
+        (not a slot of the basis, so ``max_albedo`` does not count it).
 
     Returns
     -------
@@ -122,29 +127,34 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         Non-negative weights, the same for the three channels.
     sse : ndarray (n,)
         Weighted residual sum of squares over the texel's samples and channels.
+    extra_weight : ndarray (n,)
+        Only with ``extra``: its weight per texel.
     """
     n = len(labels)
     B_all = basis.shape[1]
     # slots none of these texels uses are left out (every support with one is solved for nothing)
     B = int(basis_size[labels].max()) if n else B_all
     A = basis_values(t, z, cos_i, texel, labels, basis[:, :B], basis_size) * np.sqrt(weight)[:, None, None]
+    if extra is not None:   # solved as a last slot
+        A = np.concatenate([A, extra[:, None] * np.sqrt(weight)[:, None, None]], axis=1)
     r = reflectance * np.sqrt(weight)[:, None]
-    G = np.empty((n, B, B))
-    for i in range(B):
-        for j in range(i, B):
+    Bx = B + (extra is not None)
+    G = np.empty((n, Bx, Bx))
+    for i in range(Bx):
+        for j in range(i, Bx):
             G[:, i, j] = G[:, j, i] = np.bincount(texel, np.einsum("sc,sc->s", A[:, i], A[:, j]),
                                                   minlength=n)
     h = np.stack([np.bincount(texel, np.einsum("sc,sc->s", A[:, i], r), minlength=n)
-                  for i in range(B)], axis=1)
+                  for i in range(Bx)], axis=1)
     rr = np.bincount(texel, np.einsum("sc,sc->s", r, r), minlength=n)
     if prior > 0:
         lam = prior * np.einsum("nbb->n", G) / B_all
-        G = G + lam[:, None, None] * np.eye(B)
+        G = G + lam[:, None, None] * np.eye(Bx)
         h = h.copy()
         h[:, 0] += lam
         t_, _ = nnls_batched(G, h, rr + lam)
-        sse = rr - 2 * np.einsum("nb,nb->n", t_, h - lam[:, None] * np.eye(B)[0]) + \
-            np.einsum("nb,nbc,nc->n", t_, G - lam[:, None, None] * np.eye(B), t_)
+        sse = rr - 2 * np.einsum("nb,nb->n", t_, h - lam[:, None] * np.eye(Bx)[0]) + \
+            np.einsum("nb,nbc,nc->n", t_, G - lam[:, None, None] * np.eye(Bx), t_)
         sse = np.maximum(sse, 0.0)
     else:
         t_, sse = nnls_batched(G, h, rr)
@@ -153,10 +163,11 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         worse = loo_sse(A, r, texel, G, t_) > own if select else np.zeros(n, bool)
         if max_albedo is not None:
             alone = texel_albedo(np.broadcast_to(np.eye(B)[0], (n, B)), labels, basis[:, :B])
-            worse |= texel_albedo(t_, labels, basis[:, :B]) > np.maximum(max_albedo, alone) * (1 + 1e-9)
-        t_[worse] = np.eye(B)[0]
+            worse |= texel_albedo(t_[:, :B], labels, basis[:, :B]) > np.maximum(max_albedo, alone) * (1 + 1e-9)
+        t_[worse] = np.eye(Bx)[0]
         sse[worse] = own[worse]
-    return np.pad(t_, ((0, 0), (0, B_all - B))), sse
+    weights = np.pad(t_[:, :B], ((0, 0), (0, B_all - B)))
+    return (weights, sse) if extra is None else (weights, sse, t_[:, B])
 
 
 def texel_albedo(weights, labels, basis) -> np.ndarray:

@@ -21,6 +21,7 @@ from .broadening import broadened_lobes, normal_turn_excess
 from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
+from .interreflection import Interreflection, axis_lobe
 from .normals import fit_normals_chunk
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
@@ -96,6 +97,9 @@ class SvbrdfFit:
         the texel's lobes when it predicts (:func:`~reconstruct.lensch.broadening.broadened_lobes`):
         its fitted normal's uncertainty. The projection weights and the Table II columns are
         those of the sharp lobes (the training samples pinned the normal they were fitted about).
+    interreflection : Interreflection or None
+        Each texel's inter-reflection lobe (``SvbrdfOptions.interreflection_lobe``), added to
+        :meth:`predict`; None without one.
     """
 
     labels: np.ndarray
@@ -115,6 +119,7 @@ class SvbrdfFit:
     history: tuple = field(default=())
     discovery_texels: int = 0
     lobe_variance: np.ndarray | None = None
+    interreflection: Interreflection | None = None
 
     @property
     def n_materials(self) -> int:
@@ -165,15 +170,17 @@ class SvbrdfFit:
 
         ``texel`` (S,), ``wi`` / ``wo`` (S, 3) in the texels' *input* local frames (as the fit was
         given them); fitted normals, when present, are applied (point-based rendering of the
-        recovered SVBRDF and normal map, as the paper displays its results, Sec. 10).
+        recovered SVBRDF and normal map, as the paper displays its results, Sec. 10), plus each
+        texel's inter-reflection lobe where it has one (:attr:`interreflection`).
         """
         texel = np.asarray(texel, np.int64)
         wi = np.asarray(wi, float)
         wo = np.asarray(wo, float)
+        other = 0.0 if self.interreflection is None else self.interreflection.predict(texel, wi, wo)
         if self.normals_local is not None:
             frames = tangent_frames(self.normals_local)[texel]
             wi, wo = to_local(wi, frames), to_local(wo, frames)
-        return self.brdf(texel).evaluate(wi, wo) * np.maximum(wi[:, 2:3], 0.0)
+        return self.brdf(texel).evaluate(wi, wo) * np.maximum(wi[:, 2:3], 0.0) + other
 
     def report(self) -> str:
         cols = "  ".join(f"{k}={'-' if v is None else f'{v:.4g}'}" for k, v in self.rms.items())
@@ -416,12 +423,12 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     # Sec. 8: bases and projection
     similar = _most_similar(similar_sums)
     basis, size = make_bases(mats, similar, lobes_alone=opt.lobes_alone)
-    weights, sse = _project(run, blocks, None, basis, size, labels, opt, max_albedo)
+    weights, sse, _ = _project(run, blocks, None, basis, size, labels, opt, max_albedo)
     rms["projection"] = _rms(sse.sum(), n_res)
     tick()
     if opt.pfa:  # Eq. 13 lowers the plain projection's error; kept if the selected one drops too
         trial = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
-        w_pfa, sse_pfa = _project(run, blocks, None, trial, size, labels, opt, max_albedo)
+        w_pfa, sse_pfa, _ = _project(run, blocks, None, trial, size, labels, opt, max_albedo)
         if sse_pfa.sum() < sse.sum():
             basis, weights, sse = trial, w_pfa, sse_pfa
         rms["pfa"] = _rms(sse.sum(), n_res)
@@ -429,29 +436,35 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
 
     normals_local = normals_out = None
     seen_in = None   # the normals (local) the samples are seen about; None: the mesh normals
+    axes = np.full((T, 3), np.nan)   # inter-reflection axes (local; NaN: none)
+    axis_w = None
     undone: list[str] = []
     if opt.fit_normals:  # Sec. 9, then refit the clusters' BRDFs in the new frames and project again
         normals_local = np.tile([0.0, 0.0, 1.0], (T, 1))
         for round_ in range(opt.normal_rounds):
             # a round that raises the total error is undone and ends the fitting (on some
             # clusterings of the demo object a round's refit blew the training error up 10x)
-            before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels)
+            before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w)
             if opt.relabel_normals and len(mats) > 1:   # Eq. 10, each material about its own normal
                 parts = run(_block_relabel, [(blocks, i, _part(seen_in, r), mats, opt.min_samples)
                                              for i, r in enumerate(blocks.ranges)])
                 labels = np.concatenate([p[0] for p in parts])
                 normals_local = seen_in = normalize(to_world(np.concatenate([p[1] for p in parts]),
                                                              tangent_frames(normals_local)))
-                weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
+                weights, sse, axis_w = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo, axes)
             model = [(_part(seen_in, r), basis, size, labels[r[0]:r[1]], weights[r[0]:r[1]]) for r in blocks.ranges]
             floor = None
             if opt.robust_samples:   # the median over all texels of their median residual
                 floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
-            tilt = np.concatenate(run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread,
-                                                        opt.brightest_dropped, opt.min_samples, opt.tukey_cutoff,
-                                                        opt.peak_ratio)
-                                                       for i in nb])) \
-                if T else np.zeros((0, 3))   # relative to the current normals
+            parts = run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread, opt.brightest_dropped,
+                                          opt.min_samples, opt.tukey_cutoff, opt.peak_ratio, opt.peak_compare)
+                                         for i in nb])
+            tilt = np.concatenate([p[0] for p in parts]) if T else np.zeros((0, 3))   # relative to the current normals
+            if opt.interreflection_lobe and T:   # a newly held texel's axis: its free fit's normal
+                new = np.concatenate([p[1] for p in parts])
+                held = np.isfinite(new[:, 0])
+                axes = axes.copy()
+                axes[held] = normalize(to_world(new[held], tangent_frames(normals_local[held])))
             w_fit_d = data.w if floor is None else data.w * _inliers(
                 data.chunk(slice(0, data.n_texels)), labels[disc], weights[disc], basis, size, floor, opt.robust_spread)
             if opt.brightest_dropped > 0:
@@ -461,6 +474,9 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             # a sample the tilted normal puts below the horizon is predicted dark (model 0)
             data, visible = _sorted(found, normals_local[disc], opt.chunk_texels)
             trusted = [_confident(errors_d) & ~mixed[disc]]   # which texels the refits trust
+            if opt.texel_undo and np.isfinite(axes[:, 0]).any():   # not a held texel its free normal fits better
+                trusted = [trusted[0] & ~_free_fits_better(run, blocks, seen_in, axes, basis, size, labels, opt,
+                                                           max_albedo)[0][disc]]
             if opt.refresh_confidence:   # judged about the new normals first; if that raises the error, the mesh's
                 trusted.insert(0, _confident(_label(data, mats)[1]) & ~mixed[disc])
             start = mats
@@ -471,14 +487,22 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 basis, size = make_bases(mats, similar, lobes_alone=opt.lobes_alone)
                 if opt.pfa:
                     basis = _pfa(data, basis, size, labels[disc], opt.fit_texels, rng)
-                weights, sse = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo)
-                if sse.sum() <= 1.05 * before[7].sum():
+                weights, sse, axis_w = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo, axes)
+                if sse.sum() <= opt.undo_ratio * before[7].sum():
                     break
+            if opt.texel_undo and np.isfinite(axes[:, 0]).any():   # the same under the refitted BRDFs, per texel
+                free, w_alt, sse_alt = _free_fits_better(run, blocks, seen_in, axes, basis, size, labels, opt,
+                                                         max_albedo, sse)
+                normals_local = seen_in = np.where(free[:, None], axes, normals_local)
+                axes = np.where(free[:, None], np.nan, axes)
+                weights, sse = np.where(free[:, None], w_alt, weights), np.where(free, sse_alt, sse)
+                axis_w = np.where(free, 0.0, axis_w)
+                data, _ = _sorted(found, normals_local[disc], opt.chunk_texels)
             tick()
-            if sse.sum() > 1.05 * before[7].sum():
+            if sse.sum() > opt.undo_ratio * before[7].sum():
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
                               f"{sse.sum() / before[7].sum():.2f}x: undone")
-                normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels = before
+                normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w = before
                 break
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
@@ -499,7 +523,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         weights=weights, normals=normals_out, normals_local=normals_local, rms=rms,
         relative_rms=rel, too_few_samples=counts < opt.min_samples, no_highlight=no_highlight,
         n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc),
-        lobe_variance=lobe_variance)
+        lobe_variance=lobe_variance,
+        interreflection=None if axis_w is None else Interreflection(axes, axis_w, labels, _lobes_alone(basis, size)))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
@@ -656,10 +681,20 @@ def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
             float(cluster_residuals(*ch, lab, mats).sum()))
 
 
-def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo):
-    """Sec. 8 projection of the block's texels: weights (n, B) and SSE (n,)."""
-    _, _, ch, _ = _in_frames(blocks.read(i), normals)
-    return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo)
+def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None):
+    """Sec. 8 projection of the block's texels: weights (n, B), SSE (n,) and, where ``axes``
+    (n, 3) are given (NaN: none), the weight of each texel's inter-reflection lobe (n,) (else None)."""
+    b = blocks.read(i)
+    _, _, ch, _ = _in_frames(b, normals)
+    if axes is None:
+        return (*project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo), None)
+    extra = axis_lobe(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size))
+    return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo, extra=extra)
+
+
+def _lobes_alone(basis, size) -> np.ndarray:
+    """Each cluster's lobes alone, (K, 3, P): its basis's last slot (``lobes_alone``)."""
+    return basis[np.arange(len(basis)), size - 1]
 
 
 def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights):
@@ -670,18 +705,21 @@ def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, l
 
 
 def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, spread,
-                   brightest, min_samples, tukey_cutoff, peak_ratio=None):
+                   brightest, min_samples, tukey_cutoff, peak_ratio=None, peak_compare=True):
     """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
     on the samples :func:`_inliers` keeps when ``floor`` is given, less each texel's
     ``brightest`` share (:func:`_below_brightest`), under Tukey's loss with ``tukey_cutoff``;
-    with ``peak_ratio``, the texels whose highlight it lost held at their peak (normals.py)."""
+    with ``peak_ratio``, the texels whose highlight it lost held at their peak (normals.py); and
+    the free fit's normals of the texels held (n, 3), relative to ``normals`` (NaN: not held)."""
     b = blocks.read(i)
     wi, wo, ch, _ = _in_frames(b, normals)
     w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor, spread)
     if brightest > 0:
         w = w * _below_brightest(b.texel, b.reflectance, brightest)
-    return fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples,
-                             tukey_c=tukey_cutoff, peak_weight=ch[5], peak_ratio=peak_ratio)[0]
+    out = fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples,
+                            tukey_c=tukey_cutoff, peak_weight=ch[5], peak_ratio=peak_ratio, peak_compare=peak_compare,
+                            return_axes=True)
+    return out[0], out[4]
 
 
 def _block_relabel(blocks: TexelBlocks, i: int, normals, mats, min_samples: int):
@@ -791,13 +829,32 @@ def _most_similar(sums):
     return similar
 
 
-def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo):
-    """Sec. 8 projection of every texel, block by block: weights (T, B) and SSE (T,)."""
+def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo, axes=None):
+    """Sec. 8 projection of every texel, block by block: weights (T, B), SSE (T,) and the
+    inter-reflection lobes' weights (T,) where ``opt.interreflection_lobe`` and some texel has
+    an axis in ``axes`` (T, 3) (else None)."""
+    if not (opt.interreflection_lobe and axes is not None and np.isfinite(axes[:, 0]).any()):
+        axes = None
     parts = run(_block_project, [(blocks, i, _part(seen_in, r), basis, size, labels[r[0]:r[1]], opt.weight_prior,
-                                  opt.select_projection, max_albedo) for i, r in enumerate(blocks.ranges)])
+                                  opt.select_projection, max_albedo, _part(axes, r)) for i, r in enumerate(blocks.ranges)])
     if not parts:
-        return np.zeros((0, basis.shape[1])), np.zeros(0)
-    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+        return np.zeros((0, basis.shape[1])), np.zeros(0), None
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+            None if axes is None else np.concatenate([p[2] for p in parts]))
+
+
+def _free_fits_better(run, blocks: TexelBlocks, normals_local, axes, basis, size, labels, opt: SvbrdfOptions,
+                      max_albedo, sse_held=None):
+    """The held texels (finite ``axes``, (T, 3)) whose free fit's normal (the axis), projected
+    into ``basis`` without the inter-reflection lobe, fits their samples better than the held
+    normal (``normals_local``) with it (SSE ``sse_held``, (T,), projected here if None): (T,)
+    bool, and that projection's weights (T, B) and SSE (T,)."""
+    has = np.isfinite(axes[:, 0])
+    if sse_held is None:
+        sse_held = _project(run, blocks, normals_local, basis, size, labels, opt, max_albedo, axes)[1]
+    w_alt, sse_alt, _ = _project(run, blocks, np.where(has[:, None], axes, normals_local), basis, size, labels,
+                                 opt, max_albedo)
+    return has & (sse_alt < sse_held), w_alt, sse_alt
 
 
 def _pfa(data: _Sorted, basis, size, labels, limit, rng):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from capture.importers import read_diligent
-from capture.pipeline.imported import ImportedInputs
+from capture.pipeline.imported import LENSCH_OPTIONS, ImportedInputs
 from reconstruct.lensch import fit_svbrdf_lumitexels
 from reconstruct.metrics import relative_rms
 from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
@@ -20,12 +20,25 @@ from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 README_LS_BEAR, ST14_BEAR = 8.53, 6.12
 
 
-@pytest.fixture(scope="module")
-def bear(shared_data):
-    src = shared_data / "diligent" / "bear"
+def _object(shared_data, name):
+    src = shared_data / "diligent" / name
     if not src.is_dir():
         pytest.skip(f"{src} is absent")
     return read_diligent(src)
+
+
+@pytest.fixture(scope="module")
+def bear(shared_data):
+    return _object(shared_data, "bear")
+
+
+def _lambertian_relighting(inp, data) -> float:
+    """Held-out rel. RMS of the Lambertian reference (least-squares normals and albedo)."""
+    held = inp.held
+    use = held.weight > 0
+    rows, cols = inp.pixels[held.texel, 0], inp.pixels[held.texel, 1]
+    shade = np.maximum(np.sum(inp.ls.normals[rows, cols] * data.light_directions[held.view], axis=1), 0)
+    return relative_rms((inp.ls.albedo[rows, cols] * shade[:, None])[use], held.reflectance[use])
 
 
 def test_least_squares_matches_the_readme(bear):
@@ -50,7 +63,25 @@ def test_lensch_normals_beat_least_squares_and_relight_better(bear):
     held = inp.held
     use = held.weight > 0
     rel_lensch = relative_rms(fit.predict(held.texel, held.wi, held.wo)[use], held.reflectance[use])
-    rows, cols = inp.pixels[held.texel, 0], inp.pixels[held.texel, 1]
-    shade = np.maximum(np.sum(inp.ls.normals[rows, cols] * bear.light_directions[held.view], axis=1), 0)
-    rel_lambert = relative_rms((inp.ls.albedo[rows, cols] * shade[:, None])[use], held.reflectance[use])
+    rel_lambert = _lambertian_relighting(inp, bear)
     assert rel_lensch < rel_lambert, (rel_lensch, rel_lambert)
+
+
+def test_goblets_interreflection_lobe_keeps_the_peak_normals_and_relights_better(shared_data):
+    """Goblet (a mirror-like metal that reflects itself), 500 texels, ``gonio process``'s
+    options (LENSCH_OPTIONS): the peak test holds texels at their highlight with an
+    inter-reflection lobe about their free fit's normal, where it fits better than that normal.
+    Measured 12.76 deg against robust least squares' 16.47 (round lensch7's options: 16.47,
+    its round undone) and held-out relighting 0.215 against the Lambertian reference's 0.229,
+    11 texels held at the end, 5 of them with a lobe of weight > 0: the normals must be 3 deg
+    closer than robust least squares, at least 3 texels must carry the lobe, and relighting
+    must beat the reference (docs/diligent.md, round lensch8)."""
+    goblet = _object(shared_data, "goblet")
+    inp = ImportedInputs(goblet, max_texels=500, rng=0)
+    fit = fit_svbrdf_lumitexels(inp.train, fit_normals=True, rng=0, **LENSCH_OPTIONS)
+    assert inp.normal_errors(fit.normals) < inp.normal_errors(inp.normals_robust) - 3.0, fit.history
+    assert np.count_nonzero(np.isfinite(fit.interreflection.axes[:, 0]) & (fit.interreflection.weight > 0)) >= 3
+    held = inp.held
+    use = held.weight > 0
+    rel = relative_rms(fit.predict(held.texel, held.wi, held.wo)[use], held.reflectance[use])
+    assert rel < _lambertian_relighting(inp, goblet), rel

@@ -9,7 +9,8 @@ from reconstruct.frames import tangent_frames, to_local, to_world
 from reconstruct.lensch import SvbrdfError, SvbrdfOptions
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.normals import fit_normals_chunk
-from reconstruct.lensch.projection import make_bases, project_chunk
+from reconstruct.lensch.projection import basis_values, make_bases, project_chunk
+from reconstruct.lensch.interreflection import axis_lobe
 from reconstruct.lensch.svbrdf import _below_brightest
 
 
@@ -99,12 +100,65 @@ def test_the_lobes_alone_slot_frees_a_texels_highlight_from_its_diffuse():
     assert sse[True].sum() < 1e-6 * sse[False].sum(), (sse[True].sum(), sse[False].sum())
 
 
+
+def test_a_held_texels_interreflection_lobe_predicts_lights_it_did_not_see():
+    """The mirror image of the first test (a weaker copy of the highlight about a normal 20 deg
+    off, as a mirror-like object's image of itself). With every flagged texel held
+    (``peak_compare=False``) the texels with the image must come out near the truth (median
+    < 6 deg), and each held texel's axis must be exactly its free fit's normal (the fit without
+    the peak test). About the true normals, a lobe about the image's axis (``axis_lobe``), its
+    weight fitted with the projection's (``extra``) on 3 of every 4 lights, must predict the 4th
+    (lights no fit saw) with under a tenth of the squared error of the projection alone."""
+    texel, wi, wo, refl, n_true, m = _sharp_texels(rho_d=0.0, exponent=60.0)
+    T = len(n_true)
+    tilted = np.arange(T) < T // 2
+    fake = n_true + np.tan(np.radians(20.0)) * np.cross(n_true, [0.0, 1.0, 0.0])
+    fake /= np.linalg.norm(fake, axis=1, keepdims=True)
+    frames = tangent_frames(fake)[texel]
+    u, v = to_local(wi, frames), to_local(wo, frames)
+    image = Lafortune(rho_d=0.0, cx=m.cx, cz=m.cz, n=m.n).evaluate(u, v) * u[:, 2:3] * (u[:, 2:3] > 0) * (v[:, 2:3] > 0)
+    refl = refl + 0.6 * image * tilted[texel, None]
+    s = np.arange(len(texel)) % 4 != 0   # the lights the fits see
+    basis, size = make_bases(params_of(m)[None], np.array([-1]), lobes_alone=True)
+    start = np.zeros((T, basis.shape[1]))
+    start[:, 0] = 1.0
+    labels = np.zeros(T, np.int64)
+    fit = {}
+    for ratio in (None, 3.0):
+        fit[ratio] = fit_normals_chunk(texel[s], wi[s], wo[s], refl[s], _below_brightest(texel[s], refl[s], 0.1) * 1.0,
+                                       labels, start, basis, size, tukey_c=2.0, peak_weight=np.ones(s.sum()),
+                                       peak_ratio=ratio, peak_compare=False, return_axes=True)
+    n, axes = fit[3.0][0], fit[3.0][4]
+    held = np.isfinite(axes[:, 0])
+    assert held[tilted].mean() > 0.8 and np.median(_angle(n[held & tilted], n_true[held & tilted])) < 6.0
+    np.testing.assert_array_equal(axes[held], fit[None][0][held])
+    assert np.all(np.isnan(fit[None][4]))
+    frames = tangent_frames(n_true)[texel]
+    u, v = to_local(wi, frames), to_local(wo, frames)
+    t, z = lobe_geometry(u, v)
+    cos_i = np.where((u[:, 2] > 0) & (v[:, 2] > 0), u[:, 2], 0.0)
+    extra = axis_lobe(texel, wi, wo, np.where(tilted[:, None], fake, np.nan), labels, basis[:, size[0] - 1])
+    out = ~s & tilted[texel]
+    sse = {}
+    for with_lobe in (False, True):
+        res = project_chunk(texel[s], t[s], z[s], cos_i[s], refl[s], np.ones(s.sum()), labels, basis, size,
+                            select=True, extra=extra[s] if with_lobe else None)
+        pred = np.einsum("sbc,sb->sc", basis_values(t, z, cos_i, texel, labels, basis, size), res[0][texel])
+        if with_lobe:
+            pred = pred + res[2][texel, None] * extra
+        sse[with_lobe] = np.sum((pred[out] - refl[out]) ** 2)
+    assert sse[True] < sse[False] / 10, sse
+
+
 @pytest.mark.parametrize("setting, message", [
     ({"peak_ratio": 0.0}, "peak_ratio must be > 0 or None, got 0.0"),
     ({"peak_ratio": float("nan")}, "peak_ratio must be > 0"),
     ({"lm_stall": (0, 1e-4)}, r"lm_stall must be \(window: an integer >= 1, rtol in \(0, 1\)\) or None, got \(0, 0.0001\)"),
     ({"lm_stall": (20, 1.5)}, "lm_stall must be"),
     ({"lm_stall": 20}, "lm_stall must be .* got 20"),
+    ({"undo_ratio": 0.9}, r"undo_ratio must be >= 1 \(inf: never undo\), got 0.9"),
+    ({"interreflection_lobe": True, "peak_ratio": 3.0}, "interreflection_lobe needs lobes_alone=True"),
+    ({"texel_undo": True}, r"texel_undo needs interreflection_lobe=True"),
 ])
 def test_bad_settings_name_themselves(setting, message):
     with pytest.raises(SvbrdfError, match=message):
