@@ -108,6 +108,11 @@ class SvbrdfOptions:
         prediction. On a mirror-like object that reflects itself (DiLiGenT's goblet) a light's
         image in the object is a second highlight, as sharp as the first, about another axis:
         the one the free fit follows (docs/diligent.md). Needs ``lobes_alone``.
+    interreflection_widths : tuple of float
+        The inter-reflection lobe's widths: one lobe per factor, each the material's lobes with
+        their exponents times the factor (> 1: sharper), each with a non-negative weight of its
+        own per texel, so that a texel's image of a light in the object may be sharper or
+        broader than the surface's own highlight. (1.0,): the material's lobes as they are.
     texel_undo : bool
         A texel the peak test held stays out of the round's BRDF refits where its free fit's
         normal (its inter-reflection axis; no lobe), projected into the basis, fits its samples
@@ -196,6 +201,7 @@ class SvbrdfOptions:
     lobes_alone: bool = False
     peak_compare: bool = True
     interreflection_lobe: bool = False
+    interreflection_widths: tuple[float, ...] = (1.0,)
     texel_undo: bool = False
     undo_ratio: float = 1.05
     lm_stall: tuple[int, float] | None = None
@@ -232,6 +238,12 @@ class SvbrdfOptions:
             raise SvbrdfError("interreflection_lobe needs lobes_alone=True (its lobe is that slot) and a "
                               f"peak_ratio (its axis is the free fit of a held texel), got lobes_alone="
                               f"{self.lobes_alone!r}, peak_ratio={self.peak_ratio!r}")
+        widths = self.interreflection_widths
+        if not (isinstance(widths, tuple) and widths and all(
+                isinstance(f, (int, float, np.floating)) and not isinstance(f, bool) and np.isfinite(f) and f > 0
+                for f in widths)):
+            raise SvbrdfError(f"interreflection_widths must be a non-empty tuple of finite exponent factors > 0, "
+                              f"got {widths!r}")
         if self.texel_undo and not self.interreflection_lobe:
             raise SvbrdfError("texel_undo needs interreflection_lobe=True (a held texel's alternative is its "
                               "inter-reflection axis)")

@@ -115,11 +115,11 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         upper bound of the mixture's albedo) and more than its cluster's BRDF alone, the weights
         become (1, 0, ..., 0): a large weight on a basis BRDF that is ~0 at the texel's samples
         (21.8 seen) fits them and predicts absurd values at other lights.
-    extra : ndarray (S, 3), optional
-        One more column, f cos of every sample under a texel's own extra BRDF (0 for texels
-        without one: an inter-reflection lobe, ``SvbrdfOptions.interreflection_lobe``), solved
-        with the basis weights under the same non-negativity; its weight is returned apart
-        (not a slot of the basis, so ``max_albedo`` does not count it).
+    extra : ndarray (S, E, 3), optional
+        E more columns, f cos of every sample under a texel's own extra BRDFs (0 for texels
+        without them: its inter-reflection lobes, ``SvbrdfOptions.interreflection_lobe``), solved
+        with the basis weights under the same non-negativity; their weights are returned apart
+        (not slots of the basis, so ``max_albedo`` does not count them).
 
     Returns
     -------
@@ -127,18 +127,18 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         Non-negative weights, the same for the three channels.
     sse : ndarray (n,)
         Weighted residual sum of squares over the texel's samples and channels.
-    extra_weight : ndarray (n,)
-        Only with ``extra``: its weight per texel.
+    extra_weight : ndarray (n, E)
+        Only with ``extra``: their weights per texel.
     """
     n = len(labels)
     B_all = basis.shape[1]
     # slots none of these texels uses are left out (every support with one is solved for nothing)
     B = int(basis_size[labels].max()) if n else B_all
     A = basis_values(t, z, cos_i, texel, labels, basis[:, :B], basis_size) * np.sqrt(weight)[:, None, None]
-    if extra is not None:   # solved as a last slot
-        A = np.concatenate([A, extra[:, None] * np.sqrt(weight)[:, None, None]], axis=1)
+    if extra is not None:   # solved as the last slots
+        A = np.concatenate([A, extra * np.sqrt(weight)[:, None, None]], axis=1)
     r = reflectance * np.sqrt(weight)[:, None]
-    Bx = B + (extra is not None)
+    Bx = A.shape[1]
     G = np.empty((n, Bx, Bx))
     for i in range(Bx):
         for j in range(i, Bx):
@@ -167,7 +167,7 @@ def project_chunk(texel, t, z, cos_i, reflectance, weight, labels, basis, basis_
         t_[worse] = np.eye(Bx)[0]
         sse[worse] = own[worse]
     weights = np.pad(t_[:, :B], ((0, 0), (0, B_all - B)))
-    return (weights, sse) if extra is None else (weights, sse, t_[:, B])
+    return (weights, sse) if extra is None else (weights, sse, t_[:, B:])
 
 
 def texel_albedo(weights, labels, basis) -> np.ndarray:

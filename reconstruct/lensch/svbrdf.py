@@ -21,7 +21,7 @@ from .broadening import broadened_lobes, normal_turn_excess
 from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
-from .interreflection import Interreflection, axis_lobe
+from .interreflection import Interreflection, axis_lobes, widened
 from .normals import fit_normals_chunk
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
@@ -496,7 +496,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 normals_local = seen_in = np.where(free[:, None], axes, normals_local)
                 axes = np.where(free[:, None], np.nan, axes)
                 weights, sse = np.where(free[:, None], w_alt, weights), np.where(free, sse_alt, sse)
-                axis_w = np.where(free, 0.0, axis_w)
+                axis_w = np.where(free[:, None], 0.0, axis_w)
                 data, _ = _sorted(found, normals_local[disc], opt.chunk_texels)
             tick()
             if sse.sum() > opt.undo_ratio * before[7].sum():
@@ -524,7 +524,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         relative_rms=rel, too_few_samples=counts < opt.min_samples, no_highlight=no_highlight,
         n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc),
         lobe_variance=lobe_variance,
-        interreflection=None if axis_w is None else Interreflection(axes, axis_w, labels, _lobes_alone(basis, size)))
+        interreflection=None if axis_w is None else Interreflection(
+            axes, axis_w, labels, widened(_lobes_alone(basis, size), opt.interreflection_widths)))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
@@ -681,14 +682,16 @@ def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
             float(cluster_residuals(*ch, lab, mats).sum()))
 
 
-def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None):
+def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None,
+                   widths=(1.0,)):
     """Sec. 8 projection of the block's texels: weights (n, B), SSE (n,) and, where ``axes``
-    (n, 3) are given (NaN: none), the weight of each texel's inter-reflection lobe (n,) (else None)."""
+    (n, 3) are given (NaN: none), the weights of each texel's inter-reflection lobes (n, E), one
+    per exponent factor of ``widths`` (else None)."""
     b = blocks.read(i)
     _, _, ch, _ = _in_frames(b, normals)
     if axes is None:
         return (*project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo), None)
-    extra = axis_lobe(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size))
+    extra = axis_lobes(b.texel, b.wi, b.wo, axes, labels, widened(_lobes_alone(basis, size), widths))
     return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo, extra=extra)
 
 
@@ -831,12 +834,13 @@ def _most_similar(sums):
 
 def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo, axes=None):
     """Sec. 8 projection of every texel, block by block: weights (T, B), SSE (T,) and the
-    inter-reflection lobes' weights (T,) where ``opt.interreflection_lobe`` and some texel has
+    inter-reflection lobes' weights (T, E) where ``opt.interreflection_lobe`` and some texel has
     an axis in ``axes`` (T, 3) (else None)."""
     if not (opt.interreflection_lobe and axes is not None and np.isfinite(axes[:, 0]).any()):
         axes = None
     parts = run(_block_project, [(blocks, i, _part(seen_in, r), basis, size, labels[r[0]:r[1]], opt.weight_prior,
-                                  opt.select_projection, max_albedo, _part(axes, r)) for i, r in enumerate(blocks.ranges)])
+                                  opt.select_projection, max_albedo, _part(axes, r), opt.interreflection_widths)
+                                 for i, r in enumerate(blocks.ranges)])
     if not parts:
         return np.zeros((0, basis.shape[1])), np.zeros(0), None
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
