@@ -120,6 +120,10 @@ class SvbrdfOptions:
         test under the new basis sends it back to its free fit's normal: the round's undo per
         texel, before the round as a whole is judged (``undo_ratio``). Needs
         ``interreflection_lobe``.
+    undo_tukey : float, optional
+        With ``texel_undo``, compare a held texel's two models by Tukey's loss cut off at this
+        many robust sigmas of its free fit's residuals (light neither explains counts little)
+        instead of by their squared errors (None).
     undo_ratio : float
         A normal-fitting round that raises the projection's total error more than this many
         times is undone, and ends the fitting (inf: never undone).
@@ -203,6 +207,7 @@ class SvbrdfOptions:
     interreflection_lobe: bool = False
     interreflection_widths: tuple[float, ...] = (1.0,)
     texel_undo: bool = False
+    undo_tukey: float | None = None
     undo_ratio: float = 1.05
     lm_stall: tuple[int, float] | None = None
     normal_broadening: float | None = None
@@ -244,6 +249,9 @@ class SvbrdfOptions:
                 for f in widths)):
             raise SvbrdfError(f"interreflection_widths must be a non-empty tuple of finite exponent factors > 0, "
                               f"got {widths!r}")
+        if self.undo_tukey is not None and not (self.undo_tukey > 0 and self.texel_undo):
+            raise SvbrdfError(f"undo_tukey must be > 0 robust sigmas, with texel_undo=True, or None; got "
+                              f"undo_tukey={self.undo_tukey!r}, texel_undo={self.texel_undo!r}")
         if self.texel_undo and not self.interreflection_lobe:
             raise SvbrdfError("texel_undo needs interreflection_lobe=True (a held texel's alternative is its "
                               "inter-reflection axis)")

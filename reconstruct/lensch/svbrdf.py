@@ -492,7 +492,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                     break
             if opt.texel_undo and np.isfinite(axes[:, 0]).any():   # the same under the refitted BRDFs, per texel
                 free, w_alt, sse_alt = _free_fits_better(run, blocks, seen_in, axes, basis, size, labels, opt,
-                                                         max_albedo, sse)
+                                                         max_albedo, (weights, sse, axis_w))
                 normals_local = seen_in = np.where(free[:, None], axes, normals_local)
                 axes = np.where(free[:, None], np.nan, axes)
                 weights, sse = np.where(free[:, None], w_alt, weights), np.where(free, sse_alt, sse)
@@ -790,11 +790,15 @@ def _residual_errors(ch, labels, weights, basis, size):
     A = basis_values(t, z, cos_i, tx, labels, basis, size)
     pred = np.einsum("sbc,sb->sc", A, weights[tx])
     e = np.linalg.norm(r - pred, axis=1)
+    return e, np.linalg.norm(pred, axis=1), _texel_medians(e, tx, n), np.bincount(tx, minlength=n)
+
+
+def _texel_medians(e, tx, n: int) -> np.ndarray:
+    """The (lower) median of each texel's values ``e`` (S,) (texel ``tx``), (n,); 0 without samples."""
     order = np.lexsort((e, tx))
     counts = np.bincount(tx, minlength=n)
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    med = np.where(counts > 0, e[order][np.minimum(start + (counts - 1) // 2, len(e) - 1)], 0.0) if len(e) else np.zeros(n)
-    return e, np.linalg.norm(pred, axis=1), med, counts
+    return np.where(counts > 0, e[order][np.minimum(start + (counts - 1) // 2, len(e) - 1)], 0.0) if len(e) else np.zeros(n)
 
 
 def _inliers(ch, labels, weights, basis, size, floor: float, spread: float) -> np.ndarray:
@@ -848,17 +852,50 @@ def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: Svbrdf
 
 
 def _free_fits_better(run, blocks: TexelBlocks, normals_local, axes, basis, size, labels, opt: SvbrdfOptions,
-                      max_albedo, sse_held=None):
+                      max_albedo, held=None):
     """The held texels (finite ``axes``, (T, 3)) whose free fit's normal (the axis), projected
     into ``basis`` without the inter-reflection lobe, fits their samples better than the held
-    normal (``normals_local``) with it (SSE ``sse_held``, (T,), projected here if None): (T,)
-    bool, and that projection's weights (T, B) and SSE (T,)."""
+    normal (``normals_local``) with it (its projection ``held``: weights, SSE, lobe weights;
+    projected here if None), by the SSE or, with ``opt.undo_tukey``, Tukey's loss: (T,) bool,
+    and that projection's weights (T, B) and SSE (T,)."""
     has = np.isfinite(axes[:, 0])
-    if sse_held is None:
-        sse_held = _project(run, blocks, normals_local, basis, size, labels, opt, max_albedo, axes)[1]
-    w_alt, sse_alt, _ = _project(run, blocks, np.where(has[:, None], axes, normals_local), basis, size, labels,
-                                 opt, max_albedo)
-    return has & (sse_alt < sse_held), w_alt, sse_alt
+    if held is None:
+        held = _project(run, blocks, normals_local, basis, size, labels, opt, max_albedo, axes)
+    free_normals = np.where(has[:, None], axes, normals_local)
+    w_alt, sse_alt, _ = _project(run, blocks, free_normals, basis, size, labels, opt, max_albedo)
+    if opt.undo_tukey is None:
+        return has & (sse_alt < held[1]), w_alt, sse_alt
+    parts = run(_block_undo_costs, [(blocks, i, normals_local[r[0]:r[1]], free_normals[r[0]:r[1]], basis, size,
+                                     labels[r[0]:r[1]], held[0][r[0]:r[1]], w_alt[r[0]:r[1]], axes[r[0]:r[1]],
+                                     held[2][r[0]:r[1]], opt.interreflection_widths, opt.undo_tukey)
+                                    for i, r in enumerate(blocks.ranges)])
+    cost_held, cost_free = (np.concatenate([p[j] for p in parts]) for j in (0, 1))
+    return has & (cost_free < cost_held), w_alt, sse_alt
+
+
+def _block_undo_costs(blocks: TexelBlocks, i: int, held_normals, free_normals, basis, size, labels, w_held, w_free,
+                      axes, axis_w, widths, cutoff: float):
+    """Tukey's loss (``cutoff`` robust sigmas of the free fit's residuals, per texel) of the
+    block's texels under the held model (its normals, weights and inter-reflection lobes) and
+    under the free one, (n,) each: light neither explains counts little."""
+    b = blocks.read(i)
+    n = b.n_texels
+
+    def errors(normals, weights, extra_w):
+        _, _, (tx, t, z, cos_i, r, _), _ = _in_frames(b, normals)
+        pred = np.einsum("sbc,sb->sc", basis_values(t, z, cos_i, tx, labels, basis, size), weights[tx])
+        if extra_w is not None:
+            lobes = axis_lobes(b.texel, b.wi, b.wo, axes, labels, widened(_lobes_alone(basis, size), widths))
+            pred = pred + np.einsum("se,sec->sc", extra_w[tx], lobes)
+        return np.linalg.norm(r - pred, axis=1)
+    e_held, e_free = errors(held_normals, w_held, axis_w), errors(free_normals, w_free, None)
+    sigma = 1.4826 * np.maximum(_texel_medians(e_free, b.texel, n), 1e-12)
+    s = cutoff * sigma[b.texel]
+
+    def loss(e):
+        rho = s * s / 6.0 * (1.0 - (1.0 - np.minimum((e / s) ** 2, 1.0)) ** 3)
+        return np.bincount(b.texel, rho * b.weight, minlength=n)
+    return loss(e_held), loss(e_free)
 
 
 def _pfa(data: _Sorted, basis, size, labels, limit, rng):
