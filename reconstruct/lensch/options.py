@@ -124,6 +124,9 @@ class SvbrdfOptions:
         With ``texel_undo``, compare a held texel's two models by Tukey's loss cut off at this
         many robust sigmas of its free fit's residuals (light neither explains counts little)
         instead of by their squared errors (None).
+    undo_margin : float
+        With ``texel_undo``, a held texel goes back to its free fit's normal only where that
+        fits its samples more than this many times better (1: any better).
     undo_ratio : float
         A normal-fitting round that raises the projection's total error more than this many
         times is undone, and ends the fitting (inf: never undone).
@@ -208,6 +211,7 @@ class SvbrdfOptions:
     interreflection_widths: tuple[float, ...] = (1.0,)
     texel_undo: bool = False
     undo_tukey: float | None = None
+    undo_margin: float = 1.0
     undo_ratio: float = 1.05
     lm_stall: tuple[int, float] | None = None
     normal_broadening: float | None = None
@@ -252,6 +256,8 @@ class SvbrdfOptions:
         if self.undo_tukey is not None and not (self.undo_tukey > 0 and self.texel_undo):
             raise SvbrdfError(f"undo_tukey must be > 0 robust sigmas, with texel_undo=True, or None; got "
                               f"undo_tukey={self.undo_tukey!r}, texel_undo={self.texel_undo!r}")
+        if not self.undo_margin >= 1:   # also refuses NaN
+            raise SvbrdfError(f"undo_margin must be >= 1, got {self.undo_margin!r}")
         if self.texel_undo and not self.interreflection_lobe:
             raise SvbrdfError("texel_undo needs interreflection_lobe=True (a held texel's alternative is its "
                               "inter-reflection axis)")

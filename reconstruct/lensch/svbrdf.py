@@ -856,7 +856,8 @@ def _free_fits_better(run, blocks: TexelBlocks, normals_local, axes, basis, size
     """The held texels (finite ``axes``, (T, 3)) whose free fit's normal (the axis), projected
     into ``basis`` without the inter-reflection lobe, fits their samples better than the held
     normal (``normals_local``) with it (its projection ``held``: weights, SSE, lobe weights;
-    projected here if None), by the SSE or, with ``opt.undo_tukey``, Tukey's loss: (T,) bool,
+    projected here if None), by the SSE or, with ``opt.undo_tukey``, Tukey's loss, more than
+    ``opt.undo_margin`` times: (T,) bool,
     and that projection's weights (T, B) and SSE (T,)."""
     has = np.isfinite(axes[:, 0])
     if held is None:
@@ -864,13 +865,13 @@ def _free_fits_better(run, blocks: TexelBlocks, normals_local, axes, basis, size
     free_normals = np.where(has[:, None], axes, normals_local)
     w_alt, sse_alt, _ = _project(run, blocks, free_normals, basis, size, labels, opt, max_albedo)
     if opt.undo_tukey is None:
-        return has & (sse_alt < held[1]), w_alt, sse_alt
+        return has & (opt.undo_margin * sse_alt < held[1]), w_alt, sse_alt
     parts = run(_block_undo_costs, [(blocks, i, normals_local[r[0]:r[1]], free_normals[r[0]:r[1]], basis, size,
                                      labels[r[0]:r[1]], held[0][r[0]:r[1]], w_alt[r[0]:r[1]], axes[r[0]:r[1]],
                                      held[2][r[0]:r[1]], opt.interreflection_widths, opt.undo_tukey)
                                     for i, r in enumerate(blocks.ranges)])
     cost_held, cost_free = (np.concatenate([p[j] for p in parts]) for j in (0, 1))
-    return has & (cost_free < cost_held), w_alt, sse_alt
+    return has & (opt.undo_margin * cost_free < cost_held), w_alt, sse_alt
 
 
 def _block_undo_costs(blocks: TexelBlocks, i: int, held_normals, free_normals, basis, size, labels, w_held, w_free,

@@ -204,6 +204,7 @@ def test_an_image_broader_than_the_highlight_needs_a_lobe_of_its_own_width():
     ({"interreflection_widths": (1.0, 0.0)}, r"interreflection_widths must be a non-empty tuple of finite "
                                               r"exponent factors > 0, got \(1.0, 0.0\)"),
     ({"interreflection_widths": ()}, "interreflection_widths must be a non-empty tuple"),
+    ({"undo_margin": 0.5}, "undo_margin must be >= 1, got 0.5"),
     ({"undo_tukey": 3.0}, r"undo_tukey must be > 0 robust sigmas, with texel_undo=True, or None; got "
                           r"undo_tukey=3.0, texel_undo=False"),
 ])
