@@ -23,7 +23,8 @@ Tukey's biweight loss (cut off at 2 robust sigmas of each texel's residuals) in 
 plus each material's lobes alone in its projection basis; plus the peak test; plus the
 Lafortune fits stopped where they crawl (round lensch7); the peak test at 1.5 with every
 flagged texel held, an inter-reflection lobe about its free fit's normal and the per-texel undo
-(the final configuration, ``LENSCH_OPTIONS``).
+(round lensch8); that undo judged by Tukey's loss (3 robust sigmas) and only where the free
+normal fits clearly better (the final configuration, ``LENSCH_OPTIONS``; round lensch9).
 Timings are wall-clock and CPU on whatever machine runs it.
 """
 from __future__ import annotations
@@ -69,7 +70,9 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ the peak test (3x)": {**_TUKEY, "lobes_alone": True, "peak_ratio": 3.0},
             "+ Lafortune fits stopped where they crawl": {**_TUKEY, "lobes_alone": True, "peak_ratio": 3.0,
                                                           "lm_stall": (20, 1e-4)},
-            "+ peak test 1.5, inter-reflection lobe, per-texel undo (final)": FINAL}
+            "+ peak test 1.5, inter-reflection lobe, per-texel undo": {
+                **FINAL, "undo_tukey": None, "undo_margin": 1.0},
+            "+ the undo by Tukey's loss, free normal clearly better (final)": FINAL}
 
 
 def lambertian_relighting(inp: ImportedInputs, ps) -> float:

@@ -70,17 +70,18 @@ def test_lensch_normals_beat_least_squares_and_relight_better(bear):
 def test_goblets_interreflection_lobe_keeps_the_peak_normals_and_relights_better(shared_data):
     """Goblet (a mirror-like metal that reflects itself), 500 texels, ``gonio process``'s
     options (LENSCH_OPTIONS): the peak test holds texels at their highlight with an
-    inter-reflection lobe about their free fit's normal, where it fits better than that normal.
-    Measured 12.76 deg against robust least squares' 16.47 (round lensch7's options: 16.47,
-    its round undone) and held-out relighting 0.215 against the Lambertian reference's 0.229,
-    11 texels held at the end, 5 of them with a lobe of weight > 0: the normals must be 3 deg
-    closer than robust least squares, at least 3 texels must carry the lobe, and relighting
-    must beat the reference (docs/diligent.md, round lensch8)."""
+    inter-reflection lobe about their free fit's normal, unless that normal fits clearly better
+    (Tukey's loss, margin 1.25). Measured 11.88 deg against robust least squares' 16.47 (round
+    lensch8's undo: 12.76; round lensch7's options: 16.47, its round undone) and held-out
+    relighting 0.222 against the Lambertian reference's 0.229, 45 texels held at the end, 22 of
+    them with a lobe of weight > 0: the normals must be 4 deg closer than robust least squares,
+    at least 10 texels must carry the lobe, and relighting must beat the reference
+    (docs/diligent.md, rounds lensch8-9)."""
     goblet = _object(shared_data, "goblet")
     inp = ImportedInputs(goblet, max_texels=500, rng=0)
     fit = fit_svbrdf_lumitexels(inp.train, fit_normals=True, rng=0, **LENSCH_OPTIONS)
-    assert inp.normal_errors(fit.normals) < inp.normal_errors(inp.normals_robust) - 3.0, fit.history
-    assert np.count_nonzero(np.isfinite(fit.interreflection.axes[:, 0]) & (fit.interreflection.weight.sum(axis=1) > 0)) >= 3
+    assert inp.normal_errors(fit.normals) < inp.normal_errors(inp.normals_robust) - 4.0, fit.history
+    assert np.count_nonzero(np.isfinite(fit.interreflection.axes[:, 0]) & (fit.interreflection.weight.sum(axis=1) > 0)) >= 10
     held = inp.held
     use = held.weight > 0
     rel = relative_rms(fit.predict(held.texel, held.wi, held.wo)[use], held.reflectance[use])
