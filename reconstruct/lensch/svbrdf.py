@@ -877,10 +877,14 @@ def _free_fits_better(run, blocks: TexelBlocks, normals_local, axes, basis, size
 def _block_undo_costs(blocks: TexelBlocks, i: int, held_normals, free_normals, basis, size, labels, w_held, w_free,
                       axes, axis_w, widths, cutoff: float):
     """Tukey's loss (``cutoff`` robust sigmas of the free fit's residuals, per texel) of the
-    block's texels under the held model (its normals, weights and inter-reflection lobes) and
-    under the free one, (n,) each: light neither explains counts little."""
+    block's held texels (finite ``axes``; 0 for the others) under the held model (its normals,
+    weights and inter-reflection lobes) and under the free one, (n,) each: light neither
+    explains counts little."""
     b = blocks.read(i)
     n = b.n_texels
+    held = np.isfinite(axes[b.texel, 0])   # only the held texels' samples (a few % of them)
+    b = dataclasses.replace(b, texel=b.texel[held], wi=b.wi[held], wo=b.wo[held], reflectance=b.reflectance[held],
+                            weight=b.weight[held], diffuse=None, specular=None)
 
     def errors(normals, weights, extra_w):
         _, _, (tx, t, z, cos_i, r, _), _ = _in_frames(b, normals)
