@@ -26,9 +26,10 @@ from .projection import basis_values
 class Interreflection:
     """Per-texel inter-reflection lobes (``SvbrdfOptions.interreflection_lobe``): for texel t
     with a finite ``axes[t]`` (unit, its input local frame: the normal its free fit found before
-    the peak test held it), the sum over widths e of ``weight[t, e]`` x its material's lobes at
-    that width, ``lobes[labels[t], e]`` (Lafortune parameters (3, P) with rho_d 0; see
-    :func:`widened`), about that axis: f_r cos(theta_i) about the axis, 1/sr."""
+    the peak test held it), ``weight[t, 0]`` x its material's lobes alone, ``lobes[labels[t], 0]``
+    (Lafortune parameters (3, P) with rho_d 0), about that axis: f_r cos(theta_i) about the
+    axis, 1/sr. (The lobe at several widths was tried and not kept: docs/diligent.md, round
+    lensch9.)"""
 
     axes: np.ndarray
     weight: np.ndarray
@@ -41,24 +42,9 @@ class Interreflection:
         return np.einsum("se,sec->sc", self.weight[texel], values)
 
 
-def widened(lobes, factors) -> np.ndarray:
-    """Lobes-alone parameters ``lobes`` (K, 3, P) at each exponent factor of ``factors`` (E,):
-    (K, E, 3, P), each lobe's exponent N times the factor (f > 1 sharper: the angular width
-    shrinks as 1/sqrt(f)) and its C_x, C_z scaled so that its value at normal incidence and
-    exitance, |C_z|^N, stays the lobe's own (the weights then stay of one scale)."""
-    f = np.asarray(factors, float)[None, :, None, None]
-    out = np.repeat(lobes[:, None], f.shape[1], axis=1).astype(float)
-    cz = np.maximum(np.abs(out[..., 2::3]), 1e-12)
-    scale = cz ** (1.0 / f - 1.0)
-    out[..., 1::3] *= scale
-    out[..., 2::3] *= scale
-    out[..., 3::3] *= f
-    return out
-
-
 def axis_lobes(texel, wi, wo, axes, labels, lobes) -> np.ndarray:
     """f cos (S, E, 3) of each sample under each of its texel's lobes ``lobes[labels]``
-    ((K, E, 3, P): one per width) about its ``axes`` ((n, 3), input local frames; NaN: none, 0),
+    ((K, E, 3, P)) about its ``axes`` ((n, 3), input local frames; NaN: none, 0),
     0 where either direction is below the axis's horizon."""
     has = np.isfinite(axes[:, 0])
     frames = tangent_frames(np.where(has[:, None], axes, [0.0, 0.0, 1.0]))[texel]

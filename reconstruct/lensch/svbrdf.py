@@ -21,7 +21,7 @@ from .broadening import broadened_lobes, normal_turn_excess
 from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
-from .interreflection import Interreflection, axis_lobes, widened
+from .interreflection import Interreflection, axis_lobes
 from .normals import fit_normals_chunk
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
@@ -457,7 +457,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             if opt.robust_samples:   # the median over all texels of their median residual
                 floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
             parts = run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread, opt.brightest_dropped,
-                                          opt.min_samples, opt.tukey_cutoff, opt.peak_ratio, opt.peak_compare)
+                                          opt.min_samples, opt.tukey_cutoff, opt.peak_ratio, opt.peak_compare,
+                                          opt.shadow_ratio)
                                          for i in nb])
             tilt = np.concatenate([p[0] for p in parts]) if T else np.zeros((0, 3))   # relative to the current normals
             if opt.interreflection_lobe and T:   # a newly held texel's axis: its free fit's normal
@@ -525,7 +526,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc),
         lobe_variance=lobe_variance,
         interreflection=None if axis_w is None else Interreflection(
-            axes, axis_w, labels, widened(_lobes_alone(basis, size), opt.interreflection_widths)))
+            axes, axis_w, labels, _lobes_alone(basis, size)[:, None]))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
@@ -682,16 +683,15 @@ def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
             float(cluster_residuals(*ch, lab, mats).sum()))
 
 
-def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None,
-                   widths=(1.0,)):
+def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None):
     """Sec. 8 projection of the block's texels: weights (n, B), SSE (n,) and, where ``axes``
-    (n, 3) are given (NaN: none), the weights of each texel's inter-reflection lobes (n, E), one
-    per exponent factor of ``widths`` (else None)."""
+    (n, 3) are given (NaN: none), the weights of each texel's inter-reflection lobe (n, 1) (else
+    None)."""
     b = blocks.read(i)
     _, _, ch, _ = _in_frames(b, normals)
     if axes is None:
         return (*project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo), None)
-    extra = axis_lobes(b.texel, b.wi, b.wo, axes, labels, widened(_lobes_alone(basis, size), widths))
+    extra = axis_lobes(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size)[:, None])
     return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo, extra=extra)
 
 
@@ -708,10 +708,11 @@ def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, l
 
 
 def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, spread,
-                   brightest, min_samples, tukey_cutoff, peak_ratio=None, peak_compare=True):
+                   brightest, min_samples, tukey_cutoff, peak_ratio=None, peak_compare=True, shadow_ratio=None):
     """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
     on the samples :func:`_inliers` keeps when ``floor`` is given, less each texel's
-    ``brightest`` share (:func:`_below_brightest`), under Tukey's loss with ``tukey_cutoff``;
+    ``brightest`` share (:func:`_below_brightest`) and, with ``shadow_ratio``, its samples below
+    that share of its median (:func:`_not_dark`), under Tukey's loss with ``tukey_cutoff``;
     with ``peak_ratio``, the texels whose highlight it lost held at their peak (normals.py); and
     the free fit's normals of the texels held (n, 3), relative to ``normals`` (NaN: not held)."""
     b = blocks.read(i)
@@ -719,6 +720,8 @@ def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, we
     w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor, spread)
     if brightest > 0:
         w = w * _below_brightest(b.texel, b.reflectance, brightest)
+    if shadow_ratio is not None:
+        w = w * _not_dark(b.texel, b.reflectance, shadow_ratio)
     out = fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples,
                             tukey_c=tukey_cutoff, peak_weight=ch[5], peak_ratio=peak_ratio, peak_compare=peak_compare,
                             return_axes=True)
@@ -810,6 +813,13 @@ def _inliers(ch, labels, weights, basis, size, floor: float, spread: float) -> n
     return e <= spread * sigma[ch[0]] + 0.05 * pred
 
 
+def _not_dark(texel, reflectance, ratio: float) -> np.ndarray:
+    """Samples whose channel-summed reflectance reaches ``ratio`` x their texel's median (the
+    lower median of all its samples), (S,) bool: the others are taken for cast shadows."""
+    r = reflectance.sum(axis=1)
+    return r >= ratio * _texel_medians(r, texel, int(texel.max()) + 1 if len(texel) else 0)[texel]
+
+
 def _below_brightest(texel, reflectance, share: float) -> np.ndarray:
     """Samples outside each texel's brightest ``share`` (by channel-summed reflectance, rank
     within the texel), (S,) bool."""
@@ -838,12 +848,12 @@ def _most_similar(sums):
 
 def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo, axes=None):
     """Sec. 8 projection of every texel, block by block: weights (T, B), SSE (T,) and the
-    inter-reflection lobes' weights (T, E) where ``opt.interreflection_lobe`` and some texel has
+    inter-reflection lobe's weights (T, 1) where ``opt.interreflection_lobe`` and some texel has
     an axis in ``axes`` (T, 3) (else None)."""
     if not (opt.interreflection_lobe and axes is not None and np.isfinite(axes[:, 0]).any()):
         axes = None
     parts = run(_block_project, [(blocks, i, _part(seen_in, r), basis, size, labels[r[0]:r[1]], opt.weight_prior,
-                                  opt.select_projection, max_albedo, _part(axes, r), opt.interreflection_widths)
+                                  opt.select_projection, max_albedo, _part(axes, r))
                                  for i, r in enumerate(blocks.ranges)])
     if not parts:
         return np.zeros((0, basis.shape[1])), np.zeros(0), None
@@ -868,14 +878,14 @@ def _free_fits_better(run, blocks: TexelBlocks, normals_local, axes, basis, size
         return has & (opt.undo_margin * sse_alt < held[1]), w_alt, sse_alt
     parts = run(_block_undo_costs, [(blocks, i, normals_local[r[0]:r[1]], free_normals[r[0]:r[1]], basis, size,
                                      labels[r[0]:r[1]], held[0][r[0]:r[1]], w_alt[r[0]:r[1]], axes[r[0]:r[1]],
-                                     held[2][r[0]:r[1]], opt.interreflection_widths, opt.undo_tukey)
+                                     held[2][r[0]:r[1]], opt.undo_tukey)
                                     for i, r in enumerate(blocks.ranges)])
     cost_held, cost_free = (np.concatenate([p[j] for p in parts]) for j in (0, 1))
     return has & (opt.undo_margin * cost_free < cost_held), w_alt, sse_alt
 
 
 def _block_undo_costs(blocks: TexelBlocks, i: int, held_normals, free_normals, basis, size, labels, w_held, w_free,
-                      axes, axis_w, widths, cutoff: float):
+                      axes, axis_w, cutoff: float):
     """Tukey's loss (``cutoff`` robust sigmas of the free fit's residuals, per texel) of the
     block's held texels (finite ``axes``; 0 for the others) under the held model (its normals,
     weights and inter-reflection lobes) and under the free one, (n,) each: light neither
@@ -890,7 +900,7 @@ def _block_undo_costs(blocks: TexelBlocks, i: int, held_normals, free_normals, b
         _, _, (tx, t, z, cos_i, r, _), _ = _in_frames(b, normals)
         pred = np.einsum("sbc,sb->sc", basis_values(t, z, cos_i, tx, labels, basis, size), weights[tx])
         if extra_w is not None:
-            lobes = axis_lobes(b.texel, b.wi, b.wo, axes, labels, widened(_lobes_alone(basis, size), widths))
+            lobes = axis_lobes(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size)[:, None])
             pred = pred + np.einsum("se,sec->sc", extra_w[tx], lobes)
         return np.linalg.norm(r - pred, axis=1)
     e_held, e_free = errors(held_normals, w_held, axis_w), errors(free_normals, w_free, None)
