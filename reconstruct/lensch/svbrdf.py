@@ -457,7 +457,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             if opt.robust_samples:   # the median over all texels of their median residual
                 floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
             parts = run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread, opt.brightest_dropped,
-                                          opt.min_samples, opt.tukey_cutoff, opt.peak_ratio, opt.peak_compare)
+                                          opt.min_samples, opt.tukey_cutoff, opt.peak_ratio, opt.peak_compare,
+                                          opt.shadow_ratio if round_ == opt.normal_rounds - 1 else None)
                                          for i in nb])
             tilt = np.concatenate([p[0] for p in parts]) if T else np.zeros((0, 3))   # relative to the current normals
             if opt.interreflection_lobe and T:   # a newly held texel's axis: its free fit's normal
@@ -707,10 +708,11 @@ def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, l
 
 
 def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights, floor, spread,
-                   brightest, min_samples, tukey_cutoff, peak_ratio=None, peak_compare=True):
+                   brightest, min_samples, tukey_cutoff, peak_ratio=None, peak_compare=True, shadow_ratio=None):
     """Sec. 9: the tilt (n, 3) of each of the block's normals from ``normals`` (None: the mesh's),
     on the samples :func:`_inliers` keeps when ``floor`` is given, less each texel's
-    ``brightest`` share (:func:`_below_brightest`), under Tukey's loss with ``tukey_cutoff``;
+    ``brightest`` share (:func:`_below_brightest`) and, with ``shadow_ratio``, its samples below
+    that share of its median (:func:`_not_dark`), under Tukey's loss with ``tukey_cutoff``;
     with ``peak_ratio``, the texels whose highlight it lost held at their peak (normals.py); and
     the free fit's normals of the texels held (n, 3), relative to ``normals`` (NaN: not held)."""
     b = blocks.read(i)
@@ -718,6 +720,8 @@ def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, we
     w = ch[5] if floor is None else ch[5] * _inliers(ch, labels, weights, basis, size, floor, spread)
     if brightest > 0:
         w = w * _below_brightest(b.texel, b.reflectance, brightest)
+    if shadow_ratio is not None:
+        w = w * _not_dark(b.texel, b.reflectance, shadow_ratio)
     out = fit_normals_chunk(b.texel, wi, wo, b.reflectance, w, labels, weights, basis, size, min_samples=min_samples,
                             tukey_c=tukey_cutoff, peak_weight=ch[5], peak_ratio=peak_ratio, peak_compare=peak_compare,
                             return_axes=True)
@@ -807,6 +811,13 @@ def _inliers(ch, labels, weights, basis, size, floor: float, spread: float) -> n
     e, pred, med, _ = _residual_errors(ch, labels, weights, basis, size)
     sigma = 1.4826 * np.maximum(med, floor)
     return e <= spread * sigma[ch[0]] + 0.05 * pred
+
+
+def _not_dark(texel, reflectance, ratio: float) -> np.ndarray:
+    """Samples whose channel-summed reflectance reaches ``ratio`` x their texel's median (the
+    lower median of all its samples), (S,) bool: the others are taken for cast shadows."""
+    r = reflectance.sum(axis=1)
+    return r >= ratio * _texel_medians(r, texel, int(texel.max()) + 1 if len(texel) else 0)[texel]
 
 
 def _below_brightest(texel, reflectance, share: float) -> np.ndarray:
