@@ -21,7 +21,7 @@ from .broadening import broadened_lobes, normal_turn_excess
 from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
-from .interreflection import Interreflection, axis_lobes
+from .interreflection import Interreflection, axis_lobes, held_extras
 from .normals import fit_normals_chunk
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
@@ -505,6 +505,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                               f"{sse.sum() / before[7].sum():.2f}x: undone")
                 normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w = before
                 break
+        if opt.interreflection_diffuse and axis_w is not None:   # the held texels' projection, last
+            weights, sse, axis_w = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo, axes, True)
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
             normals_out = to_world(normals_local, tangent_frames(np.asarray(normals, float)))
@@ -526,7 +528,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc),
         lobe_variance=lobe_variance,
         interreflection=None if axis_w is None else Interreflection(
-            axes, axis_w, labels, _lobes_alone(basis, size)[:, None]))
+            axes, axis_w, labels, _lobes_alone(basis, size)[:, None],
+            _diffuse_colours(basis) if opt.interreflection_diffuse else None))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
@@ -683,21 +686,31 @@ def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
             float(cluster_residuals(*ch, lab, mats).sum()))
 
 
-def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None):
+def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None,
+                   diffuse=False):
     """Sec. 8 projection of the block's texels: weights (n, B), SSE (n,) and, where ``axes``
-    (n, 3) are given (NaN: none), the weights of each texel's inter-reflection lobe (n, 1) (else
-    None)."""
+    (n, 3) are given (NaN: none), the weights of each texel's inter-reflection lobes (n, E) (else
+    None; ``diffuse``: with a diffuse term, see :func:`~reconstruct.lensch.interreflection.held_extras`)."""
     b = blocks.read(i)
     _, _, ch, _ = _in_frames(b, normals)
     if axes is None:
         return (*project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo), None)
-    extra = axis_lobes(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size)[:, None])
+    extra = held_extras(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size)[:, None],
+                        _diffuse_colours(basis) if diffuse else None)
     return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo, extra=extra)
 
 
 def _lobes_alone(basis, size) -> np.ndarray:
     """Each cluster's lobes alone, (K, 3, P): its basis's last slot (``lobes_alone``)."""
     return basis[np.arange(len(basis)), size - 1]
+
+
+def _diffuse_colours(basis) -> np.ndarray:
+    """Each cluster's diffuse colour at mean 1 (grey where it has none), (K, 3): the colour of a
+    held texel's diffuse inter-reflection term (``SvbrdfOptions.interreflection_diffuse``)."""
+    rho = basis[:, 0, :, 0]
+    mean = rho.mean(axis=1, keepdims=True)
+    return np.where(mean > 0, rho / np.where(mean > 0, mean, 1.0), 1.0)
 
 
 def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights):
@@ -846,14 +859,15 @@ def _most_similar(sums):
     return similar
 
 
-def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo, axes=None):
+def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo, axes=None,
+             diffuse=False):
     """Sec. 8 projection of every texel, block by block: weights (T, B), SSE (T,) and the
-    inter-reflection lobe's weights (T, 1) where ``opt.interreflection_lobe`` and some texel has
+    inter-reflection lobes' weights (T, E) where ``opt.interreflection_lobe`` and some texel has
     an axis in ``axes`` (T, 3) (else None)."""
     if not (opt.interreflection_lobe and axes is not None and np.isfinite(axes[:, 0]).any()):
         axes = None
     parts = run(_block_project, [(blocks, i, _part(seen_in, r), basis, size, labels[r[0]:r[1]], opt.weight_prior,
-                                  opt.select_projection, max_albedo, _part(axes, r))
+                                  opt.select_projection, max_albedo, _part(axes, r), diffuse)
                                  for i, r in enumerate(blocks.ranges)])
     if not parts:
         return np.zeros((0, basis.shape[1])), np.zeros(0), None
