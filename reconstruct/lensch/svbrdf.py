@@ -506,7 +506,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w = before
                 break
         if opt.interreflection_diffuse and axis_w is not None:   # the held texels' projection, last
-            weights, sse, axis_w = _project(run, blocks, seen_in, basis, size, labels, opt, max_albedo, axes, True)
+            weights, sse, axis_w = _with_held_diffuse(blocks, seen_in, axes, basis, size, labels, opt, max_albedo,
+                                                      weights, sse, axis_w)
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
             normals_out = to_world(normals_local, tangent_frames(np.asarray(normals, float)))
@@ -686,17 +687,15 @@ def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
             float(cluster_residuals(*ch, lab, mats).sum()))
 
 
-def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None,
-                   diffuse=False):
+def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, prior, select, max_albedo, axes=None):
     """Sec. 8 projection of the block's texels: weights (n, B), SSE (n,) and, where ``axes``
-    (n, 3) are given (NaN: none), the weights of each texel's inter-reflection lobes (n, E) (else
-    None; ``diffuse``: with a diffuse term, see :func:`~reconstruct.lensch.interreflection.held_extras`)."""
+    (n, 3) are given (NaN: none), the weights of each texel's inter-reflection lobe (n, 1) (else
+    None)."""
     b = blocks.read(i)
     _, _, ch, _ = _in_frames(b, normals)
     if axes is None:
         return (*project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo), None)
-    extra = held_extras(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size)[:, None],
-                        _diffuse_colours(basis) if diffuse else None)
+    extra = axis_lobes(b.texel, b.wi, b.wo, axes, labels, _lobes_alone(basis, size)[:, None])
     return project_chunk(*ch, labels, basis, size, prior=prior, select=select, max_albedo=max_albedo, extra=extra)
 
 
@@ -711,6 +710,24 @@ def _diffuse_colours(basis) -> np.ndarray:
     rho = basis[:, 0, :, 0]
     mean = rho.mean(axis=1, keepdims=True)
     return np.where(mean > 0, rho / np.where(mean > 0, mean, 1.0), 1.0)
+
+
+def _with_held_diffuse(blocks: TexelBlocks, normals_local, axes, basis, size, labels, opt: SvbrdfOptions,
+                       max_albedo, weights, sse, axis_w):
+    """The projection (weights (T, B), SSE (T,), inter-reflection weights (T, 2)) with the held
+    texels' (finite ``axes``) projected again with a diffuse term about their input normals
+    (``opt.interreflection_diffuse``); the others' as given, their diffuse weight 0. Only the
+    held texels' samples are read (a few % of them)."""
+    held = np.flatnonzero(np.isfinite(axes[:, 0]))
+    b = blocks.gather(held)
+    _, _, ch, _ = _in_frames(b, normals_local[held])
+    extra = held_extras(b.texel, b.wi, b.wo, axes[held], labels[held], _lobes_alone(basis, size)[:, None],
+                        _diffuse_colours(basis))
+    w, e, x = project_chunk(*ch, labels[held], basis, size, prior=opt.weight_prior, select=opt.select_projection,
+                            max_albedo=max_albedo, extra=extra)
+    weights, sse, axis_w = weights.copy(), sse.copy(), np.pad(axis_w, ((0, 0), (0, 1)))
+    weights[held], sse[held], axis_w[held] = w, e, x
+    return weights, sse, axis_w
 
 
 def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights):
@@ -859,15 +876,14 @@ def _most_similar(sums):
     return similar
 
 
-def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo, axes=None,
-             diffuse=False):
+def _project(run, blocks: TexelBlocks, seen_in, basis, size, labels, opt: SvbrdfOptions, max_albedo, axes=None):
     """Sec. 8 projection of every texel, block by block: weights (T, B), SSE (T,) and the
-    inter-reflection lobes' weights (T, E) where ``opt.interreflection_lobe`` and some texel has
+    inter-reflection lobe's weights (T, 1) where ``opt.interreflection_lobe`` and some texel has
     an axis in ``axes`` (T, 3) (else None)."""
     if not (opt.interreflection_lobe and axes is not None and np.isfinite(axes[:, 0]).any()):
         axes = None
     parts = run(_block_project, [(blocks, i, _part(seen_in, r), basis, size, labels[r[0]:r[1]], opt.weight_prior,
-                                  opt.select_projection, max_albedo, _part(axes, r), diffuse)
+                                  opt.select_projection, max_albedo, _part(axes, r))
                                  for i, r in enumerate(blocks.ranges)])
     if not parts:
         return np.zeros((0, basis.shape[1])), np.zeros(0), None
