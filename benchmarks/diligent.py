@@ -25,8 +25,9 @@ Lafortune fits stopped where they crawl (round lensch7); the peak test at 1.5 wi
 flagged texel held, an inter-reflection lobe about its free fit's normal and the per-texel undo
 (round lensch8); that undo judged by Tukey's loss (3 robust sigmas) and only where the free
 normal fits clearly better (round lensch9); in the last round each texel's samples below 0.1x
-its median left out of the normal fit as cast shadows (the final configuration,
-``LENSCH_OPTIONS``; round lensch10).
+its median left out of the normal fit as cast shadows (round lensch10); after the normal fit a
+diffuse term about each held texel's input normal (the final configuration, ``LENSCH_OPTIONS``;
+round lensch11).
 Timings are wall-clock and CPU on whatever machine runs it.
 """
 from __future__ import annotations
@@ -73,9 +74,11 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ Lafortune fits stopped where they crawl": {**_TUKEY, "lobes_alone": True, "peak_ratio": 3.0,
                                                           "lm_stall": (20, 1e-4)},
             "+ peak test 1.5, inter-reflection lobe, per-texel undo": {
-                **FINAL, "undo_tukey": None, "undo_margin": 1.0, "shadow_ratio": None},
-            "+ the undo by Tukey's loss, free normal clearly better": {**FINAL, "shadow_ratio": None},
-            "+ dark samples out of the last round's normal fit (final)": FINAL}
+                **FINAL, "undo_tukey": None, "undo_margin": 1.0, "shadow_ratio": None, "interreflection_diffuse": False},
+            "+ the undo by Tukey's loss, free normal clearly better": {**FINAL, "shadow_ratio": None,
+                                                                      "interreflection_diffuse": False},
+            "+ dark samples out of the last round's normal fit": {**FINAL, "interreflection_diffuse": False},
+            "+ a diffuse term about the held texels' input normals (final)": FINAL}
 
 
 def lambertian_relighting(inp: ImportedInputs, ps) -> float:

@@ -28,18 +28,34 @@ class Interreflection:
     with a finite ``axes[t]`` (unit, its input local frame: the normal its free fit found before
     the peak test held it), ``weight[t, 0]`` x its material's lobes alone, ``lobes[labels[t], 0]``
     (Lafortune parameters (3, P) with rho_d 0), about that axis: f_r cos(theta_i) about the
-    axis, 1/sr. (The lobe at several widths was tried and not kept: docs/diligent.md, round
+    axis, 1/sr; with ``diffuse`` ((K, 3), ``SvbrdfOptions.interreflection_diffuse``) also
+    ``weight[t, 1]`` x that colour's diffuse BRDF about the texel's input normal. (The lobe at several widths was tried and not kept: docs/diligent.md, round
     lensch9.)"""
 
     axes: np.ndarray
     weight: np.ndarray
     labels: np.ndarray
     lobes: np.ndarray
+    diffuse: np.ndarray | None = None
 
     def predict(self, texel, wi, wo) -> np.ndarray:
         """(S, 3) for samples ``texel`` (S,), ``wi`` / ``wo`` (S, 3) in the input local frames."""
-        values = axis_lobes(texel, wi, wo, self.axes, self.labels, self.lobes)   # (S, E, 3)
+        values = held_extras(texel, wi, wo, self.axes, self.labels, self.lobes, self.diffuse)   # (S, E, 3)
         return np.einsum("se,sec->sc", self.weight[texel], values)
+
+
+def held_extras(texel, wi, wo, axes, labels, lobes, diffuse=None) -> np.ndarray:
+    """f cos (S, E, 3) of each sample under its texel's inter-reflection terms: its lobes
+    ``lobes[labels]`` about its axis (:func:`axis_lobes`) and, where ``diffuse`` ((K, 3) a colour
+    per material) is given, that colour's diffuse BRDF (1/pi) about the texel's input normal (local
+    +z: the photometric-stereo normal its frame was built on, which the Lambertian reference
+    uses), for the texels with an axis only; 0 below either horizon."""
+    values = axis_lobes(texel, wi, wo, axes, labels, lobes)
+    if diffuse is None:
+        return values
+    lit = np.isfinite(axes[texel, 0]) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    flat = diffuse[labels[texel]] * (np.where(lit, wi[:, 2], 0.0) / np.pi)[:, None]
+    return np.concatenate([values, flat[:, None]], axis=1)
 
 
 def axis_lobes(texel, wi, wo, axes, labels, lobes) -> np.ndarray:

@@ -119,6 +119,14 @@ class SvbrdfOptions:
         prediction. On a mirror-like object that reflects itself (DiLiGenT's goblet) a light's
         image in the object is a second highlight, as sharp as the first, about another axis:
         the one the free fit follows (docs/diligent.md). Needs ``lobes_alone``.
+    interreflection_diffuse : bool
+        With ``interreflection_lobe``, after the normal fit each held texel's projection (Sec. 8)
+        also gets a diffuse term about its input normal (the photometric-stereo normal its frame
+        was built on; its material's diffuse colour, a non-negative weight of its own): a texel
+        the peak test holds at its highlight is lit besides by the object, broadly, which the
+        held model cannot express and the Lambertian reference explains about that normal.
+        Trained on the texel's own samples only; the normals do not move (DiLiGenT's goblet:
+        docs/diligent.md, round lensch11).
     texel_undo : bool
         A texel the peak test held stays out of the round's BRDF refits where its free fit's
         normal (its inter-reflection axis; no lobe), projected into the basis, fits its samples
@@ -215,6 +223,7 @@ class SvbrdfOptions:
     lobes_alone: bool = False
     peak_compare: bool = True
     interreflection_lobe: bool = False
+    interreflection_diffuse: bool = False
     texel_undo: bool = False
     undo_tukey: float | None = None
     undo_margin: float = 1.0
@@ -256,6 +265,8 @@ class SvbrdfOptions:
             raise SvbrdfError("interreflection_lobe needs lobes_alone=True (its lobe is that slot) and a "
                               f"peak_ratio (its axis is the free fit of a held texel), got lobes_alone="
                               f"{self.lobes_alone!r}, peak_ratio={self.peak_ratio!r}")
+        if self.interreflection_diffuse and not self.interreflection_lobe:
+            raise SvbrdfError("interreflection_diffuse needs interreflection_lobe=True (its axis is that lobe's)")
         if self.undo_tukey is not None and not (self.undo_tukey > 0 and self.texel_undo):
             raise SvbrdfError(f"undo_tukey must be > 0 robust sigmas, with texel_undo=True, or None; got "
                               f"undo_tukey={self.undo_tukey!r}, texel_undo={self.texel_undo!r}")

@@ -21,7 +21,7 @@ from .broadening import broadened_lobes, normal_turn_excess
 from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
-from .interreflection import Interreflection, axis_lobes
+from .interreflection import Interreflection, axis_lobes, held_extras
 from .normals import fit_normals_chunk
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
@@ -505,6 +505,9 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                               f"{sse.sum() / before[7].sum():.2f}x: undone")
                 normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w = before
                 break
+        if opt.interreflection_diffuse and axis_w is not None:   # the held texels' projection, last
+            weights, sse, axis_w = _with_held_diffuse(blocks, seen_in, axes, basis, size, labels, opt, max_albedo,
+                                                      weights, sse, axis_w)
         rms["normal_fit"] = _rms(sse.sum(), n_res)
         if normals is not None:
             normals_out = to_world(normals_local, tangent_frames(np.asarray(normals, float)))
@@ -526,7 +529,8 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
         n_samples=counts, mixed_footprint=mixed, cluster_material=clus.material, history=(*clus.history, *undone), discovery_texels=len(disc),
         lobe_variance=lobe_variance,
         interreflection=None if axis_w is None else Interreflection(
-            axes, axis_w, labels, _lobes_alone(basis, size)[:, None]))
+            axes, axis_w, labels, _lobes_alone(basis, size)[:, None],
+            _diffuse_colours(basis) if opt.interreflection_diffuse else None))
 
 
 def fit_svbrdf_lumitexels(lt, options: SvbrdfOptions | None = None, **kw) -> SvbrdfFit:
@@ -698,6 +702,32 @@ def _block_project(blocks: TexelBlocks, i: int, normals, basis, size, labels, pr
 def _lobes_alone(basis, size) -> np.ndarray:
     """Each cluster's lobes alone, (K, 3, P): its basis's last slot (``lobes_alone``)."""
     return basis[np.arange(len(basis)), size - 1]
+
+
+def _diffuse_colours(basis) -> np.ndarray:
+    """Each cluster's diffuse colour at mean 1 (grey where it has none), (K, 3): the colour of a
+    held texel's diffuse inter-reflection term (``SvbrdfOptions.interreflection_diffuse``)."""
+    rho = basis[:, 0, :, 0]
+    mean = rho.mean(axis=1, keepdims=True)
+    return np.where(mean > 0, rho / np.where(mean > 0, mean, 1.0), 1.0)
+
+
+def _with_held_diffuse(blocks: TexelBlocks, normals_local, axes, basis, size, labels, opt: SvbrdfOptions,
+                       max_albedo, weights, sse, axis_w):
+    """The projection (weights (T, B), SSE (T,), inter-reflection weights (T, 2)) with the held
+    texels' (finite ``axes``) projected again with a diffuse term about their input normals
+    (``opt.interreflection_diffuse``); the others' as given, their diffuse weight 0. Only the
+    held texels' samples are read (a few % of them)."""
+    held = np.flatnonzero(np.isfinite(axes[:, 0]))
+    b = blocks.gather(held)
+    _, _, ch, _ = _in_frames(b, normals_local[held])
+    extra = held_extras(b.texel, b.wi, b.wo, axes[held], labels[held], _lobes_alone(basis, size)[:, None],
+                        _diffuse_colours(basis))
+    w, e, x = project_chunk(*ch, labels[held], basis, size, prior=opt.weight_prior, select=opt.select_projection,
+                            max_albedo=max_albedo, extra=extra)
+    weights, sse, axis_w = weights.copy(), sse.copy(), np.pad(axis_w, ((0, 0), (0, 1)))
+    weights[held], sse[held], axis_w[held] = w, e, x
+    return weights, sse, axis_w
 
 
 def _block_residual_medians(blocks: TexelBlocks, i: int, normals, basis, size, labels, weights):
