@@ -92,6 +92,11 @@ class SvbrdfOptions:
         draw of 5000 texels where it had not, and on another the first round's error rose 1.74x
         (undone); in the last round alone, 0.1 brought pot1's normals 0.24 deg and goblet's
         0.51 deg closer, relighting still ahead (docs/diligent.md, round lensch10).
+    shadow_every_round : bool
+        With ``shadow_ratio``, the cut in every round of normal fitting, not only the last; a
+        round before the last that with it raises the projection's training error more than
+        ``undo_ratio`` times is run again without it (the guard, on training samples only)
+        instead of ending the fitting (False: the last round only).
     tukey_cutoff : float, optional
         Fit each texel's normal (Sec. 9) under Tukey's biweight loss on each sample's RGB
         residual, cut off at this many robust standard deviations (1.4826 x the median residual
@@ -218,6 +223,7 @@ class SvbrdfOptions:
     robust_spread: float = 3.0
     brightest_dropped: float = 0.0
     shadow_ratio: float | None = None
+    shadow_every_round: bool = False
     tukey_cutoff: float | None = None
     peak_ratio: float | None = None
     lobes_alone: bool = False
@@ -252,6 +258,8 @@ class SvbrdfOptions:
         if self.shadow_ratio is not None and not 0 < self.shadow_ratio < 1:   # also refuses NaN
             raise SvbrdfError(f"shadow_ratio must be a share of the texel's median in (0, 1) or None, "
                               f"got {self.shadow_ratio!r}")
+        if self.shadow_every_round and self.shadow_ratio is None:
+            raise SvbrdfError("shadow_every_round needs a shadow_ratio (the cut it puts in every round), got None")
         if self.tukey_cutoff is not None and not self.tukey_cutoff > 0:   # also refuses NaN
             raise SvbrdfError(f"tukey_cutoff must be > 0 robust sigmas or None, got {self.tukey_cutoff!r}")
         if self.normal_broadening is not None and not (np.isfinite(self.normal_broadening)
