@@ -26,9 +26,8 @@ flagged texel held, an inter-reflection lobe about its free fit's normal and the
 (round lensch8); that undo judged by Tukey's loss (3 robust sigmas) and only where the free
 normal fits clearly better (round lensch9); in the last round each texel's samples below 0.1x
 its median left out of the normal fit as cast shadows (round lensch10); after the normal fit a
-diffuse term about each held texel's input normal (round lensch11); those samples out of every
-round's normal fit, a round they make worse on the training samples run again without them
-(the final configuration, ``LENSCH_OPTIONS``; round lensch12).
+diffuse term about each held texel's input normal (the final configuration, ``LENSCH_OPTIONS``;
+round lensch11).
 ``--draws N`` repeats every figure on N draws of texels (rng RNG .. RNG+N-1), prints the tables
 with each object's mean over the draws, then per object each draw's figures, their spread and
 on how many draws Lensch relights ahead of the Lambertian reference, and the mean of the
@@ -81,14 +80,11 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ Lafortune fits stopped where they crawl": {**_TUKEY, "lobes_alone": True, "peak_ratio": 3.0,
                                                           "lm_stall": (20, 1e-4)},
             "+ peak test 1.5, inter-reflection lobe, per-texel undo": {
-                **FINAL, "undo_tukey": None, "undo_margin": 1.0, "shadow_ratio": None, "shadow_every_round": False,
-                "interreflection_diffuse": False},
-            "+ the undo by Tukey's loss, free normal clearly better": {
-                **FINAL, "shadow_ratio": None, "shadow_every_round": False, "interreflection_diffuse": False},
-            "+ dark samples out of the last round's normal fit": {**FINAL, "shadow_every_round": False,
-                                                                  "interreflection_diffuse": False},
-            "+ a diffuse term about the held texels' input normals": {**FINAL, "shadow_every_round": False},
-            "+ dark samples out of every round's, guarded (final)": FINAL}
+                **FINAL, "undo_tukey": None, "undo_margin": 1.0, "shadow_ratio": None, "interreflection_diffuse": False},
+            "+ the undo by Tukey's loss, free normal clearly better": {**FINAL, "shadow_ratio": None,
+                                                                      "interreflection_diffuse": False},
+            "+ dark samples out of the last round's normal fit": {**FINAL, "interreflection_diffuse": False},
+            "+ a diffuse term about the held texels' input normals (final)": FINAL}
 
 
 def lambertian_relighting(inp: ImportedInputs, ps) -> float:

@@ -67,9 +67,8 @@ SKIPPED_STAGES = {
 #: (the object's image of the light in itself), each held texel kept out of the BRDF refits and
 #: sent back to that free normal where it fits its samples clearly better under Tukey's loss
 #: (3 robust sigmas; the per-texel undo; a round as a whole undone only past 1.5x its error),
-#: each texel's samples below 0.1x its median left out of the normal fit (cast shadows) in every
-#: round, a round they make worse on the training samples (past undo_ratio) run again without them
-#: (round lensch12), after the normal fit a diffuse term about each held texel's input normal (the light
+#: in the last round each texel's samples below 0.1x its median left out of the normal fit (cast
+#: shadows), after the normal fit a diffuse term about each held texel's input normal (the light
 #: the object sends it, broadly; round lensch11), and the Lafortune fits stopped where
 #: they crawl (20 iterations, 1e-4) (see benchmarks/diligent.py --ablation and docs/diligent.md
 #: for what each buys).
@@ -77,7 +76,7 @@ LENSCH_OPTIONS = {"robust_samples": True, "n_lobes": 2, "robust_spread": 1.5, "b
                   "tukey_cutoff": 2.0, "lobes_alone": True, "peak_ratio": 1.5, "peak_compare": False,
                   "interreflection_lobe": True, "texel_undo": True, "undo_tukey": 3.0, "undo_margin": 1.25,
                   "undo_ratio": 1.5, "lm_stall": (20, 1e-4), "shadow_ratio": 0.1,
-                  "shadow_every_round": True, "interreflection_diffuse": True}
+                  "interreflection_diffuse": True}
 
 
 def is_imported(store: Store, session: str) -> bool:

@@ -82,8 +82,8 @@ class SvbrdfOptions:
         lobes cannot express (DiLiGenT's goblet: 16.5 -> 15.2 deg at 0.1; 0.2 and more cost
         pot1's painted pattern its highlight evidence: +0.2 deg).
     shadow_ratio : float, optional
-        In the last round of normal fitting (every round with ``shadow_every_round``; Sec. 9;
-        not in the BRDF refits nor in the peak test), leave out each texel's samples whose channel-summed reflectance is below this
+        In the last round of normal fitting (Sec. 9; not in the BRDF refits nor in the peak
+        test), leave out each texel's samples whose channel-summed reflectance is below this
         share of the texel's median (None: none): in a cast shadow a light above the texel's
         horizon leaves it dark, and a normal tilted to put that light below its horizon explains
         the darkness as an attached shadow, which Tukey's loss does not undo (the tilted model
@@ -91,16 +91,9 @@ class SvbrdfOptions:
         normals on, it made DiLiGenT's goblet relight worse than the Lambertian reference on a
         draw of 5000 texels where it had not, and on another the first round's error rose 1.74x
         (undone); in the last round alone, 0.1 brought pot1's normals 0.24 deg and goblet's
-        0.51 deg closer, relighting still ahead (docs/diligent.md, round lensch10).
-    shadow_every_round : bool
-        With ``shadow_ratio``, the cut in every round of normal fitting, not only the last; a
-        round before the last that with it raises the projection's training error more than
-        ``undo_ratio`` times is run again without it (the guard, on training samples only)
-        instead of ending the fitting (False: the last round only). The redo draws the same
-        random texels, so it gives exactly the last-round-only fit. On DiLiGenT (5000 texels,
-        rng 0-2, with ``interreflection_diffuse``) it fired on goblet's rng 2 (1.74x) and took the
-        draw-averaged normals error of pot1 / bear / goblet from 7.54 to 7.50 deg, relighting
-        still ahead of the Lambertian reference on each (docs/diligent.md, round lensch12).
+        0.51 deg closer, relighting still ahead (docs/diligent.md, round lensch10). In every round
+        with a round it worsens run again without it: 0.04 deg closer over three draws, within
+        their spread, for goblet's relighting 0.0062 worse on one draw (round lensch12, not kept).
     tukey_cutoff : float, optional
         Fit each texel's normal (Sec. 9) under Tukey's biweight loss on each sample's RGB
         residual, cut off at this many robust standard deviations (1.4826 x the median residual
@@ -227,7 +220,6 @@ class SvbrdfOptions:
     robust_spread: float = 3.0
     brightest_dropped: float = 0.0
     shadow_ratio: float | None = None
-    shadow_every_round: bool = False
     tukey_cutoff: float | None = None
     peak_ratio: float | None = None
     lobes_alone: bool = False
@@ -262,8 +254,6 @@ class SvbrdfOptions:
         if self.shadow_ratio is not None and not 0 < self.shadow_ratio < 1:   # also refuses NaN
             raise SvbrdfError(f"shadow_ratio must be a share of the texel's median in (0, 1) or None, "
                               f"got {self.shadow_ratio!r}")
-        if self.shadow_every_round and self.shadow_ratio is None:
-            raise SvbrdfError("shadow_every_round needs a shadow_ratio (the cut it puts in every round), got None")
         if self.tukey_cutoff is not None and not self.tukey_cutoff > 0:   # also refuses NaN
             raise SvbrdfError(f"tukey_cutoff must be > 0 robust sigmas or None, got {self.tukey_cutoff!r}")
         if self.normal_broadening is not None and not (np.isfinite(self.normal_broadening)

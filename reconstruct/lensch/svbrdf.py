@@ -441,16 +441,10 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     undone: list[str] = []
     if opt.fit_normals:  # Sec. 9, then refit the clusters' BRDFs in the new frames and project again
         normals_local = np.tile([0.0, 0.0, 1.0], (T, 1))
-        # (round, shadow ratio) to run: the cut in the last round, or with the guard in every round,
-        # a round that raises the training error with it run again without it
-        todo = [(r, opt.shadow_ratio if opt.shadow_every_round or r == opt.normal_rounds - 1 else None)
-                for r in range(opt.normal_rounds)]
-        while todo:
-            round_, shadow = todo.pop(0)
+        for round_ in range(opt.normal_rounds):
             # a round that raises the total error is undone and ends the fitting (on some
             # clusterings of the demo object a round's refit blew the training error up 10x)
             before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w)
-            draws = rng.bit_generator.state
             if opt.relabel_normals and len(mats) > 1:   # Eq. 10, each material about its own normal
                 parts = run(_block_relabel, [(blocks, i, _part(seen_in, r), mats, opt.min_samples)
                                              for i, r in enumerate(blocks.ranges)])
@@ -464,7 +458,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 floor = float(np.median(np.concatenate(run(_block_residual_medians, [(blocks, i, *model[i]) for i in nb]))))
             parts = run(_block_normals, [(blocks, i, *model[i], floor, opt.robust_spread, opt.brightest_dropped,
                                           opt.min_samples, opt.tukey_cutoff, opt.peak_ratio, opt.peak_compare,
-                                          shadow)
+                                          opt.shadow_ratio if round_ == opt.normal_rounds - 1 else None)
                                          for i in nb])
             tilt = np.concatenate([p[0] for p in parts]) if T else np.zeros((0, 3))   # relative to the current normals
             if opt.interreflection_lobe and T:   # a newly held texel's axis: its free fit's normal
@@ -507,16 +501,10 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 data, _ = _sorted(found, normals_local[disc], opt.chunk_texels)
             tick()
             if sse.sum() > opt.undo_ratio * before[7].sum():
-                again = shadow is not None and round_ < opt.normal_rounds - 1   # the guard
                 undone.append(f"normal-fitting round {round_ + 1} raised the error "
-                              f"{sse.sum() / before[7].sum():.2f}x: undone"
-                              + (", run again without the shadow cut" if again else ""))
+                              f"{sse.sum() / before[7].sum():.2f}x: undone")
                 normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w = before
-                if not again:
-                    break
-                todo.insert(0, (round_, None))
-                rng.bit_generator.state = draws   # the round again exactly as it runs without the cut
-                stages += 2
+                break
         if opt.interreflection_diffuse and axis_w is not None:   # the held texels' projection, last
             weights, sse, axis_w = _with_held_diffuse(blocks, seen_in, axes, basis, size, labels, opt, max_albedo,
                                                       weights, sse, axis_w)

@@ -1,15 +1,13 @@
 """The peak test of Lensch's per-texel normal fit (:func:`reconstruct.lensch.normals.fit_normals_chunk`,
 ``peak_ratio``), the basis slot of a material's lobes alone (``make_bases(lobes_alone=True)``)
-and the dark samples left out of the normal fit (``shadow_ratio``, in every round with the guard:
-``shadow_every_round``), on synthetic lumitexels of a
+and the dark samples left out of the normal fit (``shadow_ratio``), on synthetic lumitexels of a
 sharp lobe whose true normals are known."""
 import numpy as np
 import pytest
 
-from capture.pipeline.imported import LENSCH_OPTIONS
 from reconstruct.brdf import Lafortune
 from reconstruct.frames import tangent_frames, to_local, to_world
-from reconstruct.lensch import SvbrdfError, SvbrdfOptions, fit_svbrdf
+from reconstruct.lensch import SvbrdfError, SvbrdfOptions
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.normals import fit_normals_chunk
 from reconstruct.lensch.projection import basis_values, make_bases, project_chunk
@@ -227,34 +225,6 @@ def test_cast_shadows_left_out_of_the_normal_fit_no_longer_tilt_it():
     np.testing.assert_array_equal(err[True][~shadowed], err[False][~shadowed])
 
 
-def _shadowed_texels(tilt_deg: float):
-    """The cast-shadow texels of the test above (every second texel's lights with u_x > 0.2 in
-    its true frame hold noise only), 200 texels, the first half's frames ``tilt_deg`` off:
-    (texel, wi, wo, reflectance), the true normals, which texels are shadowed."""
-    texel, wi, wo, refl, n_true, m = _sharp_texels(rho_d=0.6, exponent=30.0, tilt_deg=tilt_deg)
-    shadowed = np.arange(len(n_true)) % 2 == 0
-    cast = shadowed[texel] & (to_local(wi, tangent_frames(n_true)[texel])[:, 0] > 0.2)
-    refl = np.where(cast[:, None], np.abs(np.random.default_rng(1).normal(0, 0.002, refl.shape)), refl)
-    return (texel, wi, wo, refl), n_true, shadowed
-
-
-def test_a_round_the_shadow_cut_makes_worse_is_run_again_without_it():
-    """``shadow_every_round``: the cut in every normal-fitting round, and a round that with it
-    raises the projection's training error past ``undo_ratio`` run again without it. Imported
-    sets' options, frames 1 deg off, ``undo_ratio`` 2.5: round 1 with the cut raised the error
-    2.67x (measured; without it 2.40x), so it must be run again without it, and the fit must
-    then be exactly the one with the cut in the last round only (the same normals and weights:
-    the redo draws the same random texels)."""
-    samples, _, _ = _shadowed_texels(1.0)
-    options = {k: v for k, v in LENSCH_OPTIONS.items() if k not in ("undo_ratio", "shadow_every_round")}
-    guarded, plain = (fit_svbrdf(*samples, fit_normals=True, rng=0, shadow_every_round=every, undo_ratio=2.5,
-                                 **options) for every in (True, False))
-    assert any("run again without the shadow cut" in h for h in guarded.history), guarded.history
-    assert not any("normal-fitting" in h for h in plain.history), plain.history
-    np.testing.assert_array_equal(guarded.normals_local, plain.normals_local)
-    np.testing.assert_array_equal(guarded.weights, plain.weights)
-
-
 @pytest.mark.parametrize("setting, message", [
     ({"peak_ratio": 0.0}, "peak_ratio must be > 0 or None, got 0.0"),
     ({"peak_ratio": float("nan")}, "peak_ratio must be > 0"),
@@ -268,7 +238,6 @@ def test_a_round_the_shadow_cut_makes_worse_is_run_again_without_it():
     ({"interreflection_diffuse": True}, r"interreflection_diffuse needs interreflection_lobe=True"),
     ({"shadow_ratio": 1.0}, r"shadow_ratio must be a share of the texel's median in \(0, 1\) or None, got 1.0"),
     ({"shadow_ratio": float("nan")}, "shadow_ratio must be a share"),
-    ({"shadow_every_round": True}, r"shadow_every_round needs a shadow_ratio .*got None"),
     ({"undo_tukey": 3.0}, r"undo_tukey must be > 0 robust sigmas, with texel_undo=True, or None; got "
                           r"undo_tukey=3.0, texel_undo=False"),
 ])
