@@ -149,8 +149,10 @@ def lensch_fitted(fit: SvbrdfFit, opt: SvbrdfOptions, rng: int) -> Fitted:
     """A Lensch fit as the pipeline stores it: ``arrays["labels"]`` the cluster of each texel (Eq. 10;
     a material's variant clusters apart), ``arrays["materials"]`` its material
     (``fit.cluster_material[labels]``: clusters no held-out test tells apart are one material),
-    the projection weights, the fitted normals (object frame) and, with ``normal_broadening``,
-    each texel's ``lobe_variance``."""
+    the projection weights, the fitted normals (object frame), with ``normal_broadening`` each
+    texel's ``lobe_variance``, and with ``interreflection_lobe`` each texel's inter-reflection
+    axis and weights (with ``interreflection_diffuse`` also the diffuse term's colour per
+    cluster)."""
     flags = {"too_few_samples": int(np.sum(fit.too_few_samples)), "no_highlight": int(np.sum(fit.no_highlight)),
              "mixed_footprint": int(np.sum(fit.mixed_footprint)), "material_variant": int(np.sum(fit.variant))}
     arrays = {"labels": np.asarray(fit.labels), "materials": np.asarray(fit.cluster_material[fit.labels], np.int64),
@@ -162,6 +164,8 @@ def lensch_fitted(fit: SvbrdfFit, opt: SvbrdfOptions, rng: int) -> Fitted:
     if fit.interreflection is not None:   # part of what predict() adds (not of the BRDFs)
         arrays["interreflection_axes"] = np.asarray(fit.interreflection.axes, np.float32)
         arrays["interreflection_weight"] = np.asarray(fit.interreflection.weight, np.float32)
+        if fit.interreflection.diffuse is not None:   # the colour of weight[:, 1]'s diffuse term, per cluster
+            arrays["interreflection_diffuse"] = np.asarray(fit.interreflection.diffuse, np.float32)
     return Fitted(fit.predict, fit.brdf, arrays=arrays,   # fitted normals applied
                   params={"n_materials": "from the data", "fit_normals": True, "rng": rng,
                           "discovery_texels": opt.discovery_texels, "robust_samples": opt.robust_samples,

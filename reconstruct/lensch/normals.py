@@ -116,6 +116,12 @@ def _robust_sigma(x, U, V, R, W, basis_t) -> np.ndarray:
     return 1.4826 * np.maximum(np.nanmedian(e, axis=1), 1e-9)
 
 
+def tukey_loss(e, s):
+    """Tukey's biweight loss rho(e) = s^2 / 6 (1 - (1 - (e / s)^2)^3) of residual norms ``e``
+    cut off at ``s`` (s^2 / 6 beyond it), broadcast."""
+    return s * s / 6.0 * (1.0 - (1.0 - np.minimum((e / s) ** 2, 1.0)) ** 3)
+
+
 def _tukey(r, J, scale):
     """Residuals (m, 3M) and Jacobian (m, 3M, P) of a least-squares problem turned into Tukey's
     biweight loss on each sample's RGB residual norm e, cut off at ``scale`` (m,): the residuals
@@ -126,7 +132,7 @@ def _tukey(r, J, scale):
     e = np.linalg.norm(r.reshape(m, -1, 3), axis=2)
     s = scale[:, None]
     u2 = np.minimum((e / s) ** 2, 1.0)
-    rho = s * s / 6.0 * (1.0 - (1.0 - u2) ** 3)
+    rho = tukey_loss(e, s)
     k = np.repeat(np.where(e > 0, np.sqrt(2.0 * rho) / np.maximum(e, 1e-300), 1.0), 3, axis=1)
     w = np.repeat(1.0 - u2, 3, axis=1)   # sqrt of the biweight
     return r * k, J * w[..., None]

@@ -22,7 +22,7 @@ from .clustering import _Samples, deal_halves, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
 from .interreflection import Interreflection, axis_lobes, held_extras
-from .normals import fit_normals_chunk
+from .normals import fit_normals_chunk, tukey_loss
 from .options import SvbrdfError, SvbrdfOptions
 from .projection import (basis_values, cluster_errors, cluster_residuals, make_bases, pfa_refine,
                          project_chunk)
@@ -938,8 +938,7 @@ def _block_undo_costs(blocks: TexelBlocks, i: int, held_normals, free_normals, b
     s = cutoff * sigma[b.texel]
 
     def loss(e):
-        rho = s * s / 6.0 * (1.0 - (1.0 - np.minimum((e / s) ** 2, 1.0)) ** 3)
-        return np.bincount(b.texel, rho * b.weight, minlength=n)
+        return np.bincount(b.texel, tukey_loss(e, s) * b.weight, minlength=n)
     return loss(e_held), loss(e_free)
 
 

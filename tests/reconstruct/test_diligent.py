@@ -12,7 +12,9 @@ import pytest
 
 from capture.importers import read_diligent
 from capture.pipeline.imported import LENSCH_OPTIONS, ImportedInputs
-from reconstruct.lensch import fit_svbrdf_lumitexels
+from capture.pipeline.methods import lensch_fitted
+from reconstruct.lensch import SvbrdfOptions, fit_svbrdf_lumitexels
+from reconstruct.lensch.interreflection import Interreflection
 from reconstruct.metrics import relative_rms
 from reconstruct.photometric_stereo import angular_error_deg, photometric_stereo
 
@@ -90,3 +92,10 @@ def test_goblets_interreflection_lobe_keeps_the_peak_normals_and_relights_better
     use = held.weight > 0
     rel = relative_rms(fit.predict(held.texel, held.wi, held.wo)[use], held.reflectance[use])
     assert rel < _lambertian_relighting(inp, goblet), rel
+    # what the pipeline stores (model.npz) carries the inter-reflection terms predict() adds
+    arrays = lensch_fitted(fit, SvbrdfOptions(**LENSCH_OPTIONS), 0).arrays
+    ir = fit.interreflection
+    stored = Interreflection(*(arrays[f"interreflection_{k}"].astype(float) for k in ("axes", "weight")), fit.labels,
+                             ir.lobes, arrays["interreflection_diffuse"].astype(float))
+    np.testing.assert_allclose(stored.predict(held.texel, held.wi, held.wo), ir.predict(held.texel, held.wi, held.wo),
+                               rtol=1e-4, atol=1e-6)
