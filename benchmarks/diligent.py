@@ -87,18 +87,6 @@ ABLATION = {"paper (LS frames, all samples)": {"frames_from": "least_squares", "
             "+ a diffuse term about the held texels' input normals (final)": FINAL}
 
 
-def lambertian_relighting(inp: ImportedInputs, ps) -> float:
-    """Held-out rel. RMS of rho_c max(0, n . l) with a photometric-stereo result's normals and
-    per-channel albedo, on the held-out samples of the texels."""
-    held = inp.held
-    rows, cols = inp.pixels[held.texel, 0], inp.pixels[held.texel, 1]
-    n = ps.normals[rows, cols].astype(np.float64)
-    shade = np.maximum(np.sum(n * inp.data.light_directions[held.view], axis=1), 0.0)
-    pred = ps.albedo[rows, cols].astype(np.float64) * shade[:, None]
-    use = held.weight > 0
-    return relative_rms(pred[use], held.reflectance[use])
-
-
 def run_lensch(inp: ImportedInputs, options: dict, rng: int = 0):
     stages, t0, c0 = [], time.perf_counter(), time.process_time()
     settings = SvbrdfOptions(fit_normals=True, **{k: v for k, v in options.items() if k != "frames_from"})
@@ -124,8 +112,8 @@ def measure_draw(obj: str, data, texels: int, rng: int, configs: dict, ablation:
             angular_error_deg(inp.ls.normals[data.mask], data.normals_gt[data.mask]).mean(),
             "least squares": inp.normal_errors(inp.normals_ls),
             "robust least squares": inp.normal_errors(inp.normals_robust)}
-    relight = {LAMBERTIAN: lambertian_relighting(inp, inp.ls),
-               "Lambertian, robust normals": lambertian_relighting(inp, inp.robust)}
+    relight = {LAMBERTIAN: inp.lambertian_relighting(inp.ls),
+               "Lambertian, robust normals": inp.lambertian_relighting(inp.robust)}
     print(f"\n== {obj}, rng {rng}: {inp.train.n_texels} texels, {inp.train.n_samples / inp.train.n_texels:.1f} "
           f"training samples per texel; photometric stereo + lumitexels {t_inputs:.1f} s ==", flush=True)
     for name, opts in configs.items():

@@ -127,6 +127,20 @@ class ImportedInputs:
         self.held = held
         self.data = data
 
+    def lambertian_relighting(self, ps=None) -> float:
+        """Held-out relative RMS of the Lambertian reference, rho_c max(0, n . l), with the
+        normals and per-channel albedo of a photometric-stereo result (the least-squares one,
+        ``ls``, by default), on the held-out samples of the texels: the relighting every
+        method must beat."""
+        ps = self.ls if ps is None else ps
+        held = self.held
+        rows, cols = self.pixels[held.texel, 0], self.pixels[held.texel, 1]
+        n = ps.normals[rows, cols].astype(np.float64)
+        shade = np.maximum(np.sum(n * self.data.light_directions[held.view], axis=1), 0.0)
+        pred = ps.albedo[rows, cols].astype(np.float64) * shade[:, None]
+        use = held.weight > 0
+        return relative_rms(pred[use], held.reflectance[use])
+
     def normal_errors(self, normals: np.ndarray) -> float | None:
         """Mean angular error (deg) of (T, 3) normals against the truth; None without truth."""
         if self.truth is None:

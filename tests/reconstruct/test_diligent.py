@@ -34,15 +34,6 @@ def bear(shared_data):
     return _object(shared_data, "bear")
 
 
-def _lambertian_relighting(inp, data) -> float:
-    """Held-out rel. RMS of the Lambertian reference (least-squares normals and albedo)."""
-    held = inp.held
-    use = held.weight > 0
-    rows, cols = inp.pixels[held.texel, 0], inp.pixels[held.texel, 1]
-    shade = np.maximum(np.sum(inp.ls.normals[rows, cols] * data.light_directions[held.view], axis=1), 0)
-    return relative_rms((inp.ls.albedo[rows, cols] * shade[:, None])[use], held.reflectance[use])
-
-
 def test_least_squares_matches_the_readme(bear):
     """The README's 8.53 deg is least squares on a luma image (ITU-R BT.601 weights) of every
     light: the importer's frames, intensities and mask must reproduce it to 0.05 deg. (gonio's
@@ -65,7 +56,7 @@ def test_lensch_normals_beat_least_squares_and_relight_better(bear):
     held = inp.held
     use = held.weight > 0
     rel_lensch = relative_rms(fit.predict(held.texel, held.wi, held.wo)[use], held.reflectance[use])
-    rel_lambert = _lambertian_relighting(inp, bear)
+    rel_lambert = inp.lambertian_relighting()
     assert rel_lensch < rel_lambert, (rel_lensch, rel_lambert)
 
 
@@ -91,7 +82,7 @@ def test_goblets_interreflection_lobe_keeps_the_peak_normals_and_relights_better
     held = inp.held
     use = held.weight > 0
     rel = relative_rms(fit.predict(held.texel, held.wi, held.wo)[use], held.reflectance[use])
-    assert rel < _lambertian_relighting(inp, goblet), rel
+    assert rel < inp.lambertian_relighting(), rel
     # what the pipeline stores (model.npz) carries the inter-reflection terms predict() adds
     arrays = lensch_fitted(fit, SvbrdfOptions(**LENSCH_OPTIONS), 0).arrays
     ir = fit.interreflection
