@@ -1,6 +1,6 @@
 """``gonio calibrate SESSION``: run the calibration pipeline on a recorded session.
 
-Runs :func:`capture.calibrate.calibrate_session` with a progress bar, prints a summary table
+Runs :func:`capture.pipeline.calibrate.calibrate_session` with a progress bar, prints a summary table
 (stage, status, key figures or the reason a stage was skipped / failed), stores the results in
 the session (``gonio session show`` lists them) and writes the PNG report
 ``<session>-calibration.png`` next to the store (or into ``--out``).
@@ -76,7 +76,14 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
               as_json: bool = typer.Option(False, "--json",
                                            help="Print the stages as JSON instead of a table."),
               quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
-    """Calibrate a session from its own captures and write the PNG report."""
+    """Calibrate a session from its own captures and write the PNG report.
+
+    Every stage's result is stored in the session (gonio session show lists them); the report is
+    <session>-calibration.png beside the store, or in --out.
+
+    Exit status: 0 every stage that ran succeeded, 1 a stage failed, 2 bad input, 3 nothing to
+    calibrate or interrupted.
+    """
     lab_targets = _targets(targets)
     if out is not None:
         try:   # before the work: a file given as the folder would fail at the end

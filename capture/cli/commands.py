@@ -24,11 +24,10 @@ def _root(version: bool = typer.Option(False, "--version", help="Print gonio's v
 
 
 def _register() -> None:
-    # one line per command group; each module defines `app`, a typer.Typer (a command's help:
-    # its docstring with the paragraphs unwrapped, as the groups' own commands do)
+    # one line per command or command group (a group's module defines `app`, a typer.Typer; a
+    # command's help: its docstring with the paragraphs unwrapped, as the groups' own commands do)
     from .session import unwrap
     from .rig import app as rig_app; app.add_typer(rig_app, name="rig")  # noqa: E702
-    from .tui import app as tui_app; app.add_typer(tui_app, name="tui")  # noqa: E702
     from .session import app as session_app; app.add_typer(session_app, name="session")  # noqa: E702
     from .capture import app as capture_app; app.add_typer(capture_app, name="capture")  # noqa: E702
     from .sim import app as sim_app; app.add_typer(sim_app, name="sim")  # noqa: E702
@@ -36,8 +35,8 @@ def _register() -> None:
     from .process import process; app.command("process", help=unwrap(process.__doc__))(process)  # noqa: E702
     from .demo import demo; app.command("demo", help=unwrap(demo.__doc__))(demo)  # noqa: E702
     from .export import export; app.command("export", help=unwrap(export.__doc__))(export)  # noqa: E702
+    from .tui import tui; app.command("tui", help=unwrap(tui.__doc__))(tui)  # noqa: E702
     from .importers import app as import_app; app.add_typer(import_app, name="import")  # noqa: E702
-    pass
 
 
 _register()

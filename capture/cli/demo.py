@@ -26,7 +26,14 @@ def demo(quick: bool = typer.Option(False, "--quick", help="A small plan at 320 
          out: str = typer.Option(None, "--out", help="Folder for the store and report.html (default: a "
                                   "new temporary folder)."),
          quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.")) -> None:
-    """Capture, calibrate and reconstruct on the simulated lab, then write report.html."""
+    """Capture, calibrate and reconstruct on the simulated lab, then write report.html.
+
+    Writes into --out (printed): store/, the session store (session demo, or demo-quick with
+    --quick), and report.html with its report.json.
+
+    Exit status: 0 done, 1 a method failed, 2 a bad --out, 3 interrupted (the message says how to
+    finish from what was stored).
+    """
     from ..pipeline.demo import run_demo
     if out is not None:
         try:

@@ -40,7 +40,11 @@ def export(session: str = typer.Argument(..., help="Session name (see 'gonio ses
     """Export a method's recovered appearance: texture maps (EXR, 16-bit PNG), glTF 2.0, a Mitsuba 3
     scene per captured light, MERL tables; model.json names every file, its units, the exact BRDF
     formula and the export's approximation error; DIR/report.html links every file and shows Mitsuba's
-    render of a held-out capture beside gonio's prediction (with Mitsuba installed)."""
+    render of a held-out capture beside gonio's prediction (with Mitsuba installed).
+
+    Exit status: 0 written, 2 a request it cannot carry out (the message says which; nothing is
+    written), 3 interrupted.
+    """
     from ..export.session import ExportError, export_session
     from ..pipeline.mesh_checks import load_mesh
     from ..pipeline.process import ProcessError

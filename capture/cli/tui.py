@@ -9,23 +9,22 @@ import typer
 #: the slowest device-table refresh, s
 MAX_POLL_S = 60.0
 
-app = typer.Typer(name="tui", help="Open the operator console (terminal UI).",
-                  invoke_without_command=True)
 
-
-@app.callback()
 def tui(rig: str = typer.Option("sim", "--rig",
                                 help="'sim' for the built-in simulated lab, or a rig TOML file."),
-        store: str = typer.Option("gonio-store", "--store",
-                                  help="Session store directory (created if missing)."),
+        store: str = typer.Option("gonio-store", "--store", envvar="GONIO_STORE",
+                                  help="Session store directory (created if missing). Env: GONIO_STORE."),
         plan: Optional[Path] = typer.Option(None, "--plan", help="Open this plan file at start."),
         fast: bool = typer.Option(False, help="Simulated devices move instantly."),
         poll: float = typer.Option(0.25, help="Device table refresh period, seconds."),
         mesh: Optional[Path] = typer.Option(None, "--mesh", help="The object's mesh, for processing "
                                             "sessions (P on the Session tab); sessions recorded on "
                                             "--rig sim bring their own.")) -> None:
-    """Devices (jog, home, stop, camera test shot), sessions (plan, start, pause, resume, abort,
-    progress), preview with histograms, and the event log. Press F1 inside for the keys."""
+    """Open the operator console (terminal UI).
+
+    Devices (jog, home, stop, camera test shot), sessions (plan, start, pause, resume, abort,
+    progress, process), preview with histograms, and the event log. Press F1 inside for the keys.
+    """
     if not 0 < poll <= MAX_POLL_S:   # also false for NaN
         raise typer.BadParameter(f"must be > 0 seconds and at most {MAX_POLL_S:g}, got {poll}", param_hint="--poll")
     from .session import check_store_option

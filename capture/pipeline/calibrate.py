@@ -195,8 +195,9 @@ class StageDataError(ValueError):
 class CalibrationReport:
     """Everything one :func:`calibrate_session` run produced.
 
-    ``plots`` holds in-memory arrays for :func:`capture.report.write_report` (per-view errors,
-    coverage grid, example images); they are not persisted beyond what the stages store.
+    ``plots`` holds in-memory arrays for :func:`capture.pipeline.calibration_report.write_report`
+    (per-view errors, coverage grid, example images); they are not persisted beyond what the
+    stages store.
     """
 
     session: str

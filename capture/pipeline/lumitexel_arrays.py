@@ -9,7 +9,7 @@ tasks an :class:`capture.pipeline.cluster.Executor` maps onto this process or a 
    column of ``areas`` (F, V));
 2. here: the best view per face and the texels it makes, written in view order to
    ``texels/{position,normal,best_view,pixel}`` (T, ...);
-3. per view: decode and merge its raw brackets (:func:`capture.pipeline.process.merge_bracket`),
+3. per view: decode and merge its raw brackets (:func:`capture.pipeline.process.merge_pose`),
    make the view, sample it over the texels block by block and write each block's column of
    ``samples`` (T, V, 16) float32, chunked (block, 1, 16): per (texel, view) ``wi``, ``wo``,
    ``reflectance``, ``diffuse``, ``specular`` (3 each) and 1 where the pair holds a sample (one

@@ -1,7 +1,7 @@
 """A stored, calibrated session -> what the reconstruction methods take (once, for all of them).
 
 :func:`read_calibration` gathers the session's stored calibration results (``Store.results``,
-written by :func:`capture.calibrate.calibrate_session`) into a :class:`SessionCalibration`: the
+written by :func:`capture.pipeline.calibrate.calibrate_session`) into a :class:`SessionCalibration`: the
 camera (intrinsics + lab -> camera pose), the turntable's angle model, a calibrated light
 position for every step, the lamp's radiant intensity in HDR units (from the gray card) and the
 mirror-probe environment map. :func:`session_inputs` then turns every measurement pose into a

@@ -9,7 +9,7 @@ ids of the frames and calibrations it used, the code version, and its arrays (``
 report pictures (``report.npz``) as content-addressed objects. A method already stored for the
 session is skipped unless ``force``.
 
-With a :class:`capture.demo_lab.DemoTruth` (the simulated lab's ground truth) the figures gain
+With a :class:`capture.pipeline.demo_lab.DemoTruth` (the simulated lab's ground truth) the figures gain
 truth columns: calibration errors (focal length, lights, lamp intensity), the inputs' own error
 (measured reflectance against the true ``f_r cos``: what calibration and noise leave) and each
 model's error against the truth on the held-out samples, and the :class:`Floor`: the true model
@@ -111,7 +111,7 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
     store, session
         The captured session.
     methods : sequence of str
-        Names from :data:`capture.methods.METHODS`; each is run if the captures allow it.
+        Names from :data:`capture.pipeline.methods.METHODS`; each is run if the captures allow it.
     mesh : trimesh.Trimesh
         The object's mesh in the object frame (the lab frame at turntable reading 0), mm (needed
         unless the session was recorded in the built-in simulated lab).
@@ -121,14 +121,14 @@ def process_session(store: Store, session: str, *, methods: Sequence[str] = DEFA
         The card's pose, for the lamp's absolute intensity.
     probe_reflectance : float, optional
         The mirror probe's reflectance (divided out of the environment map; default 1).
-    truth : capture.demo_lab.DemoTruth, optional
+    truth : capture.pipeline.demo_lab.DemoTruth, optional
         Ground truth of a simulated session (adds truth columns).
     force : bool
         Re-run the calibration and every method even when stored.
     rng : int
         Seed handed to the methods.
     method_options : dict of str -> dict, optional
-        Per method, its own options (:func:`capture.methods.fit_method`; they replace the built-in
+        Per method, its own options (:func:`capture.pipeline.methods.fit_method`; they replace the built-in
         lab's for that method).
     progress : callable(Progress), optional
         Each stage as it starts and its progress (:mod:`capture.pipeline.progress`).
