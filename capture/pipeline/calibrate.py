@@ -854,9 +854,10 @@ def calibrate_session(store: Store, session_name: str, *,
         Subset of :data:`STAGES` to run (later stages skip when an earlier one they need is
         left out).
     measurement_hdr : bool
-        Also merge (and report) every measurement step's bracket. A 24 MP, 3-exposure step
-        takes ~9 s on two cores, so False keeps the hdr stage to the calibration steps for
-        big sessions (the polarization check still merges the few poses it looks at).
+        Also merge (and report) every measurement step's bracket: each step's frames decoded,
+        dark-subtracted, merged and demosaiced (:meth:`SessionImages.merge`), so False keeps
+        the hdr stage to the calibration steps for big sessions (the polarization check still
+        merges the few poses it looks at; ``gonio process`` passes False).
 
     Returns
     -------
