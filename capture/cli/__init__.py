@@ -2,8 +2,10 @@
 application is built in :mod:`capture.cli.commands` and reached as ``capture.cli.app``.
 
 This module stays light: :func:`main` installs gonio's Ctrl-C handling (:mod:`capture.cli.interrupts`)
-before the commands and the pipeline load (about 2 s), so that no Ctrl-C, not even one while gonio
-starts, ends it by SIGINT.
+before the commands load, so that no Ctrl-C, not even one while gonio starts, ends it by SIGINT. The
+command modules load typer, rich and the store; each command imports its heavy layers (the pipeline,
+the simulated lab, the runner) when it runs, so ``--help`` stays quick
+(``tests/capture/test_cli_import_cost.py``).
 """
 from __future__ import annotations
 

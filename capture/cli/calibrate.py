@@ -16,6 +16,7 @@ import errno
 import json
 from dataclasses import fields
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
@@ -25,12 +26,14 @@ from rich.table import Table
 
 from rig.tomlfile import read_toml
 
-from ..pipeline.calibrate import STAGES, LabTargets, NothingToCalibrate, TargetsNeeded, calibrate_session
-from ..pipeline.progress import Progress as PipelineProgress
 from .interrupts import command_line, interruptible_command
 from .session import STORE_OPTION, fail, open_store
 from ..outputs import OutputError, check_out_folder, session_file
 from ..store import ObjectDamaged, SessionBusy, SessionNotFound
+
+if TYPE_CHECKING:
+    from ..lab import LabTargets
+    from ..pipeline.progress import Progress as PipelineProgress
 
 EXIT_OK, EXIT_FAILED, EXIT_NOTHING = 0, 1, 3
 
@@ -44,6 +47,7 @@ def _targets(path: Path | None) -> LabTargets | None:
     without a file (the simulator's, for a session recorded on the simulated lab only)."""
     if path is None:
         return None
+    from ..lab import LabTargets   # here, not at the top: it loads trimesh
     try:
         data = read_toml(path, error=TargetsFileError, what="--targets file")
     except TargetsFileError as exc:
@@ -84,6 +88,7 @@ def calibrate(session: str = typer.Argument(..., help="Session name (see 'gonio 
     Exit status: 0 every stage that ran succeeded, 1 a stage failed, 2 bad input, 3 nothing to
     calibrate or interrupted.
     """
+    from ..pipeline.calibrate import STAGES, NothingToCalibrate, TargetsNeeded, calibrate_session
     lab_targets = _targets(targets)
     if out is not None:
         try:   # before the work: a file given as the folder would fail at the end

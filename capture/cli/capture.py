@@ -18,7 +18,7 @@ import sys
 import threading
 from collections import Counter
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import typer
 from rich.console import Console
@@ -34,9 +34,11 @@ from .sim import MAX_SIDE_PX
 from .interrupts import command_line, counted, interruptible, interruptible_command
 from ..events import Event, EventKind
 from ..plan import Estimate, MotionModel, Plan, PlanError, Step, step_prompt
-from ..rigs import OpenedRig, open_rig
-from ..runner import Runner, RunnerError, check_plan_unchanged, create_session, estimate_remaining
 from ..store import Store, StoreError, check_session_name
+
+if TYPE_CHECKING:
+    from ..rigs import OpenedRig
+    from ..runner import Runner
 
 HELP = """Plan, run and resume capture sessions.
 
@@ -96,6 +98,7 @@ def _sim_camera(text: str | None, rig: str | None) -> dict[str, Any]:
 
 
 def _open_rig(spec: str, fast: bool, sim_camera: str | None = None) -> OpenedRig:
+    from ..rigs import open_rig   # here, not at the top: the simulated lab and its scenes load with it
     options = _sim_camera(sim_camera, spec)
     try:
         return open_rig(spec, fast=fast, **options)
@@ -221,6 +224,7 @@ def _execute(runner: Runner, store_path: str, quiet: bool, interrupts: list[int]
     """Run in a worker thread so Ctrl-C here can ask for a pause (then a stop) cleanly;
     ``interrupts`` is :func:`capture.cli.interrupts.counted`'s list; ``rig_spec`` the --rig given (for the
     resume hint)."""
+    from ..runner import RunnerError
     columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("steps"), TextColumn("{task.fields[frames]}"), TimeElapsedColumn(),
                TextColumn("{task.fields[eta]}")]
@@ -309,6 +313,7 @@ def run(plan_file: Path = typer.Argument(..., help="Plan TOML file."),
     check_store_option(store, readonly=False)   # an archive or "": refused before the rig opens
     created: list[str] = []   # the session's name once recorded (for the resume hint)
     with interruptible(lambda: _resume_hint(store, created[0] if created else None, rig)):
+        from ..runner import Runner, RunnerError, create_session   # the metering's calibration and scipy load here
         opened = _open_rig(rig, fast, sim_camera)
         with counted() as interrupts, opened:
             try:  # before the store is created: a plan the rig cannot run leaves no empty store
@@ -368,6 +373,7 @@ def resume(name: str = typer.Argument(..., help="Session name."),
 
     Exit status: 0 done (or already done), 3 paused again, 4 aborted, 2 error.
     """
+    from ..runner import Runner, RunnerError, check_plan_unchanged, estimate_remaining
     st = open_store(store)
     with st:
         try:

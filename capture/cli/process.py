@@ -27,13 +27,13 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from ..outputs import OutputError, check_out_file, session_file
-from ..pipeline.progress import Progress as PipelineProgress
 from ..store import ObjectDamaged, SessionBusy, SessionNotFound, StoreFull
 from .calibrate import _targets
 from .interrupts import command_line, interruptible_command
 from .session import STORE_OPTION, fail, human_bytes, open_store
 
 if TYPE_CHECKING:
+    from ..pipeline.progress import Progress as PipelineProgress
     from ..pipeline.run import ProcessReport
 
 EXIT_OK, EXIT_FAILED, EXIT_NO_INPUTS = 0, 1, 3

@@ -22,7 +22,6 @@ from rig import RigError
 from rig.rig import MAX_DURATION_S, ROLES
 
 from ..outputs import OutputError, check_out_file, write_atomically
-from ..rigs import home_all, open_rig, position_text, to_toml
 
 app = typer.Typer(name="rig", help="Check, home and simulate the measurement rig.", no_args_is_help=True)
 
@@ -35,6 +34,7 @@ def _fail(message: str, code: int = 2) -> typer.Exit:
 
 
 def _open(rig: str, fast: bool, connect: bool):
+    from ..rigs import open_rig   # here, not at the top: the simulated lab and its scenes load with it
     try:
         return open_rig(rig, fast=fast, connect=connect)
     except (RigError, OSError) as exc:   # a bad rig file is a ConfigError (a RigError)
@@ -46,6 +46,7 @@ def check(rig: str = typer.Option("sim", "--rig", help=RIG_HELP),
           fast: bool = typer.Option(True, help="Simulated devices move instantly."),
           as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table.")) -> None:
     """Connect every device, print what it is and where it stands; exit 1 if any fails."""
+    from ..rigs import position_text
     opened = _open(rig, fast, connect=False)
     rows: list[dict[str, Any]] = []
     with opened:
@@ -97,6 +98,7 @@ def home(rig: str = typer.Option("sim", "--rig", help=RIG_HELP),
          fast: bool = typer.Option(True, help="Simulated devices move instantly."),
          timeout: float = typer.Option(120.0, help="Seconds allowed for homing.")) -> None:
     """Home the axes and the light positioner (all at the same time)."""
+    from ..rigs import home_all, position_text
     if role:
         bad = set(role) - set(ROLES)
         if bad:
@@ -120,6 +122,7 @@ def sim(fast: bool = typer.Option(False, help="Complete moves instantly (default
         ) -> None:
     """Run the simulated serial devices for another process; print their ports and a rig TOML."""
     from sims.lab import KINEMATICS, SimLab
+    from ..rigs import to_toml
 
     if kinematics not in KINEMATICS:
         raise _fail(f"--kinematics must be one of {', '.join(KINEMATICS)}, got {kinematics!r}")

@@ -285,7 +285,7 @@ def test_a_full_disk_while_the_calibration_report_is_drawn_leaves_no_partial_png
     calibration is kept."""
     import errno
     import os
-    import capture.cli.calibrate as cli_calibrate
+    import capture.pipeline.calibrate as pipeline_calibrate
     from capture.pipeline.calibrate import STAGES, CalibrationReport, StageResult
     from capture.store import Store
     store = tmp_path / "store"
@@ -295,7 +295,7 @@ def test_a_full_disk_while_the_calibration_report_is_drawn_leaves_no_partial_png
     def calibrated(st, session, **kw):
         st.add_calibration(sid, "dark", result={"kept": True})
         return CalibrationReport(session, [StageResult(s, "skipped", "no captures for it") for s in STAGES])
-    monkeypatch.setattr(cli_calibrate, "calibrate_session", calibrated)
+    monkeypatch.setattr(pipeline_calibrate, "calibrate_session", calibrated)
     monkeypatch.setenv("GONIO_STORE_DURABLE", "0")   # the first fsync is the PNG's
     from matplotlib.figure import Figure   # rendering is test_calibrate's: here only the bytes' way out
     monkeypatch.setattr(Figure, "savefig", lambda self, f, **kw: f.write(b"\x89PNG\r\n\x1a\n"))

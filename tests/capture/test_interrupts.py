@@ -68,11 +68,11 @@ def _store_with_session(root, state="done"):
 
 
 def test_calibrate_and_export_interrupted_say_the_command_that_runs_them_again(tmp_path, monkeypatch):
-    import capture.cli.calibrate
     import capture.export.session
+    import capture.pipeline.calibrate
     store = tmp_path / "store"
     _store_with_session(store)
-    monkeypatch.setattr(capture.cli.calibrate, "calibrate_session", _interrupt)
+    monkeypatch.setattr(capture.pipeline.calibrate, "calibrate_session", _interrupt)
     r = cli.invoke(app, ["calibrate", "s1", "--store", str(store), "-q"])
     assert r.exit_code == 3 and "Traceback" not in r.output
     assert ("interrupted; the session's frames are kept and a calibration cut short is never reused; "
@@ -108,7 +108,7 @@ def test_an_interrupted_demo_names_the_commands_that_finish_it(tmp_path, monkeyp
 
 def test_gonio_installs_its_ctrl_c_handling_before_loading_the_commands():
     """``capture.cli`` (what the ``gonio`` script and ``python -m capture.cli`` import first) loads
-    only the interrupt handling: the commands and the pipeline (about 2 s) load after
+    only the interrupt handling: the commands (and a running command's layers) load after
     :func:`capture.cli.interrupts.install`, so a Ctrl-C while gonio starts exits 3 too."""
     import subprocess
     import sys
