@@ -58,10 +58,8 @@ from typing import Any, Iterable, Sequence
 
 from rig.device import LightTarget
 from rig.errors import LimitError
-from rig.kinematics import kinematics_from_config
 from rig.motion import move_time_s
 from rig.tomlfile import read_toml
-from sims.handheld import handheld_view
 
 #: The scene targets: what stands in front of the camera for a step, and what the operator does
 #: to set it up. One vocabulary: a calibration kind is named after its target, and the simulated
@@ -531,6 +529,7 @@ def step_prompt(step: Step) -> str:
     hand-held board view which view it is and how to hold the board."""
     text = SCENE_TARGETS.get(step.target, f"set up {step.target}")
     if step.view is not None and step.views is not None:
+        from sims.handheld import handheld_view   # here, not at the top: numpy would load with every plan and store
         text = f"{text}: {handheld_view(step.view, step.views).prompt}"
     return text
 
@@ -1087,6 +1086,7 @@ def _check_reach(light: LightGrid, desc: dict[str, Any]) -> None:
     config = desc.get("kinematics")
     if not isinstance(config, dict):
         return  # the driver does not tell its reach: the move itself will say
+    from rig.kinematics import kinematics_from_config   # here, not at the top: numpy would load with every plan and store
     kin = kinematics_from_config(config)
     if light.xyz_mm is not None:
         for i, p in enumerate(light.xyz_mm):
