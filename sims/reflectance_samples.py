@@ -202,7 +202,8 @@ class AssignedFit:
 def fit_true_assignment(samples: SyntheticSamples, *, n_lobes: int = 1,
                         noise: str = "relative") -> AssignedFit:
     """Fit each material on the texels truly made of it (Lensch Sec. 6), then label every texel
-    by its least Eq. 6 error under those fits: what a clustering that found the true assignment
+    by its least Eq. 6 error under those fits (relative under ``noise="relative"``, as
+    :func:`~reconstruct.lensch.fit_svbrdf` labels): what a clustering that found the true assignment
     would give, noise included (the paper's accuracy claim is met when a fit is this close)."""
     t, z = lobe_geometry(samples.wi, samples.wo)
     w = np.ones(len(t))
@@ -212,5 +213,5 @@ def fit_true_assignment(samples: SyntheticSamples, *, n_lobes: int = 1,
                                     noise=noise).channel_params
                        for k in range(int(samples.material.max()) + 1)])
     errors = cluster_errors(t, z, samples.wi[:, 2], samples.reflectance, w, samples.texel,
-                            len(samples.material), params)
+                            len(samples.material), params, relative=noise == "relative")
     return AssignedFit(params=params, labels=errors.argmin(axis=0))

@@ -74,17 +74,25 @@ LOOK_AHEAD = 1
 CLUSTERING_ALBEDO = 1e3
 
 
-def sample_errors(params: np.ndarray, t, z, cos_i, reflectance, *, intensity_weight: float = 1.0):
+def sample_errors(params: np.ndarray, t, z, cos_i, reflectance, *, intensity_weight: float = 1.0,
+                  relative: bool = False):
     """Per-sample error of Eq. 6 for one model (3, P): s * I + D, (S,).
 
     With the residual e = f_r cos(theta_i) - r per channel and its channel mean e_bar,
     I = 3 e_bar^2 is the intensity difference and D = sum_c (e_c - e_bar)^2 the colour
-    difference; with ``intensity_weight`` s = 1, I + D is the squared RGB error.
+    difference; with ``intensity_weight`` s = 1, I + D is the squared RGB error. With
+    ``relative`` (multiplicative noise, the fits' ``noise="relative"``) it is divided by the
+    model's squared value (channel mean, floored at 1 % of its diffuse level rho_d / pi), as the
+    fits weigh it: else the noise of a highlight's samples swamps a difference in diffuse colour.
     """
     f, _ = model_and_jacobian(params, t, z, cos_i, want_jac=False)
     e = f - reflectance.T
     mean = e.mean(axis=0)
-    return intensity_weight * 3 * mean ** 2 + ((e - mean) ** 2).sum(axis=0)
+    err = intensity_weight * 3 * mean ** 2 + ((e - mean) ** 2).sum(axis=0)
+    if relative:
+        floor = 0.01 * max(float(np.mean(params[:, 0])) / np.pi, 1e-12)
+        err = err / np.maximum(f.mean(axis=0), floor) ** 2
+    return err
 
 
 def texel_mean(values, texel, n_texels: int, weight, mask=None) -> np.ndarray:
@@ -114,6 +122,7 @@ class _Samples:
     texel: np.ndarray
     n_texels: int
     half: np.ndarray  # (S,) 0/1: the half of its texel's samples a sample is dealt into
+    relative: bool = False  # Eq. 6 under multiplicative noise (:func:`sample_errors`)
 
     def take(self, keep: np.ndarray):
         return self.t[keep], self.z[keep], self.cos_i[keep], self.r[keep], self.w[keep]
@@ -122,7 +131,7 @@ class _Samples:
         """Eq. 6 per texel (n_texels,) of a model (3, P) over all samples or those in ``mask``."""
         sel = slice(None) if mask is None else mask
         e = sample_errors(params, self.t[sel], self.z[sel], self.cos_i[sel], self.r[sel],
-                          intensity_weight=s)
+                          intensity_weight=s, relative=self.relative)
         return texel_mean(e, self.texel[sel], self.n_texels, self.w[sel])
 
     def projected_half_errors(self, params) -> tuple[np.ndarray, np.ndarray]:

@@ -32,7 +32,10 @@ class SvbrdfOptions:
     pfa : bool
         Refine each cluster's basis by principal function analysis (Eq. 13).
     noise : {"absolute", "relative"}
-        Noise model of the BRDF fits (see :func:`~reconstruct.lensch.fit_lafortune`).
+        Noise model of the BRDF fits (see :func:`~reconstruct.lensch.fit_lafortune`) and of the
+        texels' labels (Eq. 10; "relative": Eq. 6 divided by the model's squared value, see
+        :func:`~reconstruct.lensch.clustering.sample_errors`); the clustering's splits use the
+        squared error either way.
     max_materials : int
         Cap on clusters (so on materials) when ``n_materials`` is None.
     cluster_texels : int

@@ -213,10 +213,12 @@ def cluster_residuals(texel, t, z, cos_i, reflectance, weight, labels, materials
     return sse
 
 
-def cluster_errors(t, z, cos_i, reflectance, weight, texel, n_texels, materials) -> np.ndarray:
-    """Eq. 6 (s = 1) of every texel under every cluster's BRDF, (K, n)."""
-    return np.stack([texel_mean(sample_errors(m, t, z, cos_i, reflectance), texel, n_texels, weight)
-                     for m in materials])
+def cluster_errors(t, z, cos_i, reflectance, weight, texel, n_texels, materials, *,
+                   relative: bool = False) -> np.ndarray:
+    """Eq. 6 (s = 1) of every texel under every cluster's BRDF, (K, n); ``relative``: under
+    multiplicative noise (:func:`~reconstruct.lensch.clustering.sample_errors`)."""
+    return np.stack([texel_mean(sample_errors(m, t, z, cos_i, reflectance, relative=relative),
+                                texel, n_texels, weight) for m in materials])
 
 
 def pfa_refine(basis_k: np.ndarray, texel, t, z, cos_i, reflectance, weight, *, rounds: int = 2,

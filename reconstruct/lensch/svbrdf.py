@@ -394,7 +394,9 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
     n_pick = min(opt.cluster_texels, len(usable))
     prob = (0.25 + score_d) / (0.25 + score_d).sum()
     chosen = np.sort(rng.choice(usable, n_pick, replace=False, p=prob))
-    # clustering fits in absolute units (cheaper); the final fits below use ``noise``
+    # clustering fits in absolute units (cheaper); the final fits below use ``noise``, and every
+    # label follows it (Eq. 6 relative under multiplicative noise)
+    relative = opt.noise == "relative"
     clus = split_recluster_fit(data.subset(chosen, rng), n_materials=opt.n_materials,
                                n_lobes=opt.n_lobes, max_materials=opt.max_materials,
                                min_texels=max(3, min(10, len(chosen) // 20)), rng=rng, stall=opt.lm_stall)
@@ -402,12 +404,12 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
 
     # Eq. 10 for the discovered texels, then each cluster's BRDF refit on (up to fit_texels of) them
     mats = np.stack([f.channel_params for f in clus.fits])
-    labels_d, errors_d = _label(data, mats)
+    labels_d, errors_d = _label(data, mats, relative)
     fits = _refit(data, mats, labels_d, opt, rng, max_albedo, texels=_confident(errors_d) & ~mixed[disc])
     mats = np.stack([f.channel_params for f in fits])
     # ... and for every texel, block by block, with the RMS of one and of the clusters' BRDFs
-    parts = run(_block_labels, [(blocks, i, mats, clus.single.channel_params[None], _within(disc, blocks.ranges[i]))
-                                for i in nb])
+    parts = run(_block_labels, [(blocks, i, mats, clus.single.channel_params[None], _within(disc, blocks.ranges[i]),
+                                 relative) for i in nb])
     labels = np.concatenate([p[0] for p in parts])
     errors_d = np.concatenate([p[1] for p in parts], axis=1)
     similar_sums = sum(p[2] for p in parts)
@@ -479,7 +481,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
                 trusted = [trusted[0] & ~_free_fits_better(run, blocks, seen_in, axes, basis, size, labels, opt,
                                                            max_albedo)[0][disc]]
             if opt.refresh_confidence:   # judged about the new normals first; if that raises the error, the mesh's
-                trusted.insert(0, _confident(_label(data, mats)[1]) & ~mixed[disc])
+                trusted.insert(0, _confident(_label(data, mats, relative)[1]) & ~mixed[disc])
             start = mats
             for trust in trusted:
                 fits = _refit(dataclasses.replace(data, w=w_fit_d), start, labels[disc], opt, rng, max_albedo,
@@ -583,24 +585,26 @@ class _Sorted:
         """Indices of the samples of the (sorted, unique) ``texels``."""
         return np.flatnonzero(np.isin(self.tx, texels))
 
-    def subset(self, texels, rng) -> _Samples:
-        """The samples of ``texels`` re-indexed 0..n-1, for clustering."""
+    def subset(self, texels, rng, relative: bool = False) -> _Samples:
+        """The samples of ``texels`` re-indexed 0..n-1, for clustering (``relative``: Eq. 6 under
+        multiplicative noise)."""
         idx = self.index(texels)
         local = np.searchsorted(texels, self.tx[idx])
         return _Samples(self.t[idx], self.z[idx], self.cos_i[idx], self.r[idx], self.w[idx], local,
-                        len(texels), deal_halves(local, rng))
+                        len(texels), deal_halves(local, rng), relative)
 
 
 def _rms(sse, n_res):
     return float(np.sqrt(sse / max(n_res, 1e-300)))
 
 
-def _label(data: _Sorted, mats):
-    """Eq. 10 labels (T,) and the errors (K, T) of every texel under every cluster."""
+def _label(data: _Sorted, mats, relative: bool = False):
+    """Eq. 10 labels (T,) and the errors (K, T) of every texel under every cluster (``relative``:
+    Eq. 6 under multiplicative noise)."""
     E = np.zeros((len(mats), data.n_texels))
     for c in data.chunks():
         ct, ctt, cz, cc, cr, cw = data.chunk(c)
-        E[:, c] = cluster_errors(ctt, cz, cc, cr, cw, ct, c.stop - c.start, mats)
+        E[:, c] = cluster_errors(ctt, cz, cc, cr, cw, ct, c.stop - c.start, mats, relative=relative)
     return np.argmin(E, axis=0), E
 
 
@@ -674,13 +678,13 @@ def _block_stats(blocks: TexelBlocks, i: int):
             float(b.weight.sum()))
 
 
-def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc):
+def _block_labels(blocks: TexelBlocks, i: int, mats, single, disc, relative: bool = False):
     """Eq. 10 labels of the block's texels, the errors (K, len(disc)) of its discovery texels
     ``disc`` (numbered within the block), the errors of each label's texels under every cluster
     (K, K), and the residual sums of squares under one BRDF (``single``) and the clusters'."""
     b = blocks.read(i)
     _, _, ch, _ = _in_frames(b, None)
-    E = cluster_errors(*ch[1:], ch[0], b.n_texels, mats)
+    E = cluster_errors(*ch[1:], ch[0], b.n_texels, mats, relative=relative)
     lab = np.argmin(E, axis=0)
     sums = np.stack([E[:, lab == k].sum(axis=1) for k in range(len(mats))])
     return (lab, E[:, disc], sums, float(cluster_residuals(*ch, np.zeros(b.n_texels, np.int64), single).sum()),
