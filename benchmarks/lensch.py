@@ -91,16 +91,18 @@ def material_count(n_sets: int):
         line = []
         for look in (levels, 0):
             clustering.LOOK_AHEAD = look
-            t0 = time.process_time()
-            fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, SvbrdfOptions(noise="relative"), rng=s)
+            try:
+                t0 = time.process_time()
+                fit = fit_svbrdf(d.texel, d.wi, d.wo, d.reflectance, SvbrdfOptions(noise="relative"), rng=s)
+            finally:
+                clustering.LOOK_AHEAD = levels
             label = fit.cluster_material[fit.labels]
-            majority = np.array([np.bincount(d.material[label == m]).argmax()
+            majority = np.array([np.argmax(np.bincount(d.material[label == m], minlength=k))
                                  for m in range(fit.n_materials)])
             right[look] += fit.n_materials == k
             line.append(f"look-ahead {look}: {fit.n_materials} found, labels "
                         f"{100 * np.mean(majority[label] == d.material):.1f} % "
                         f"({time.process_time() - t0:.1f} s CPU)")
-        clustering.LOOK_AHEAD = levels
         print(f"  set {s}: {k} materials; " + "; ".join(line), flush=True)
     print(f"  count right: {right[levels]} of {n_sets} with LOOK_AHEAD = {levels}, {right[0]} of "
           f"{n_sets} with 0 (no look-ahead)")

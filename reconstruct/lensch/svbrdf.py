@@ -18,7 +18,7 @@ from ..brdf import Lafortune
 from ..frames import normalize, tangent_frames, to_local, to_world
 from ..lumitexels import pixel_neighbours
 from .broadening import broadened_lobes, normal_turn_excess
-from .clustering import _Samples, deal_halves, split_recluster_fit
+from .clustering import _Samples, deal_halves, relative_error, split_recluster_fit
 from .lafortune_fit import (MAX_LOBE_ALBEDO, albedo_unit, check_samples, fit_geometry, lobe_geometry,
                             model_of, params_of)
 from .interreflection import Interreflection, axis_lobes, held_extras
@@ -448,7 +448,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             # clusterings of the demo object a round's refit blew the training error up 10x)
             before = (normals_local, seen_in, fits, mats, basis, size, weights, sse, data, labels, axes, axis_w)
             if opt.relabel_normals and len(mats) > 1:   # Eq. 10, each material about its own normal
-                parts = run(_block_relabel, [(blocks, i, _part(seen_in, r), mats, opt.min_samples)
+                parts = run(_block_relabel, [(blocks, i, _part(seen_in, r), mats, opt.min_samples, relative)
                                              for i, r in enumerate(blocks.ranges)])
                 labels = np.concatenate([p[0] for p in parts])
                 normals_local = seen_in = normalize(to_world(np.concatenate([p[1] for p in parts]),
@@ -585,13 +585,12 @@ class _Sorted:
         """Indices of the samples of the (sorted, unique) ``texels``."""
         return np.flatnonzero(np.isin(self.tx, texels))
 
-    def subset(self, texels, rng, relative: bool = False) -> _Samples:
-        """The samples of ``texels`` re-indexed 0..n-1, for clustering (``relative``: Eq. 6 under
-        multiplicative noise)."""
+    def subset(self, texels, rng) -> _Samples:
+        """The samples of ``texels`` re-indexed 0..n-1, for clustering."""
         idx = self.index(texels)
         local = np.searchsorted(texels, self.tx[idx])
         return _Samples(self.t[idx], self.z[idx], self.cos_i[idx], self.r[idx], self.w[idx], local,
-                        len(texels), deal_halves(local, rng), relative)
+                        len(texels), deal_halves(local, rng))
 
 
 def _rms(sse, n_res):
@@ -762,12 +761,13 @@ def _block_normals(blocks: TexelBlocks, i: int, normals, basis, size, labels, we
     return out[0], out[4]
 
 
-def _block_relabel(blocks: TexelBlocks, i: int, normals, mats, min_samples: int):
+def _block_relabel(blocks: TexelBlocks, i: int, normals, mats, min_samples: int, relative: bool = False):
     """Eq. 10 with the normal free: for each material the block's texels' normal and scale that
     fit their samples best under it alone (:func:`fit_normals_chunk`), then the material of
     least residual; returns the labels (n,) and that material's normals (n, 3), relative to
     ``normals`` (a texel on relief its mesh lacks shows its highlight where no material's lobe
-    about the mesh normal puts it, and a wrong material wins)."""
+    about the mesh normal puts it, and a wrong material wins). ``relative``: the residuals under
+    multiplicative noise (:func:`~reconstruct.lensch.clustering.relative_error`)."""
     b = blocks.read(i)
     wi, wo, _, _ = _in_frames(b, normals)
     n = b.n_texels
@@ -782,8 +782,11 @@ def _block_relabel(blocks: TexelBlocks, i: int, normals, mats, min_samples: int)
         visible = (wik[:, 2] > 0) & (wok[:, 2] > 0)
         t, z = lobe_geometry(wik, wok)
         pred = basis_values(t, z, np.where(visible, wik[:, 2], 0.0), b.texel, zeros, basis, one)[:, 0]
-        sse[k] = np.bincount(b.texel, np.sum((pred * scale[b.texel] - b.reflectance) ** 2, axis=1) * b.weight,
-                             minlength=n)
+        model = pred * scale[b.texel]
+        err = np.sum((model - b.reflectance) ** 2, axis=1)
+        if relative:
+            err = relative_error(err, model.mean(axis=1), m)
+        sse[k] = np.bincount(b.texel, err * b.weight, minlength=n)
     best = np.argmin(sse, axis=0)
     return best, tilts[best, np.arange(n)]
 
