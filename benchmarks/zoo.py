@@ -142,7 +142,7 @@ def sharing_row(truth, size: int, angular_weight, merge_radius: float = 0.0):
                         angular_weight=angular_weight, merge_radius=merge_radius)
     t_fit = time.perf_counter() - t0
     old = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, log_values=False, m_w=0.5,
-                        angular_weight=None)
+                        angular_weight=None, reciprocal=True)
     k = s.valid & (s.wi[:, 2] > 0.05)
     laf = min((err(fit_lafortune(s.wi[k], s.wo[k], s.brdf[k] * s.wi[k, 2:3], n_lobes=n).model)
                for n in (1, 2, 3)), key=lambda e: e[1])
@@ -179,7 +179,9 @@ def rgl_section(size: int, merge_radius: float) -> None:
     in the five median held-out images the RBF's and the reciprocal floor's squared error lies
     (light or view beyond 80 deg; theta_h < 10 deg), and the RBF fed the nearest reciprocal
     BRDF's images instead (no conflicting orderings), the RBF with near pairs merged
-    (``merge_radius``), and each of these per held-out image (which image is the median)."""
+    (``merge_radius``), and each of these per held-out image (which image is the median); and
+    first the reciprocity check and the default fit, which is not reciprocal where the check
+    finds the data are not (``sharing.reciprocity``)."""
     rng = np.random.default_rng(1)
     a, b = rng.normal(size=(2, 200_000, 3))
     a[:, 2], b[:, 2] = np.abs(a[:, 2]), np.abs(b[:, 2])
@@ -213,7 +215,13 @@ def rgl_section(size: int, merge_radius: float) -> None:
         pooled, median = held_out_errors(rec, test.radiance)
         print(f"  floor, nearest reciprocal: {100 * median:.2f} / {100 * pooled:.2f} %")
         s = samples_from_images(train.normals, train.radiance, train.directions)
-        fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
+        default = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)
+        own = held_out_errors(render_distant(default.brdf, size, test.directions).radiance,
+                              test.radiance)[1]
+        print(f"  samples {default.reciprocity.report()}; the default fit (m_w "
+              f"{default.m_w:g}, un-doubled phi_d weight {default.brdf.asymmetry_weight}): "
+              f"{100 * own:.2f} % median; reciprocal fits (reciprocal=True) below")
+        fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image, reciprocal=True)
         pred = render_distant(fit.brdf, size, test.directions).radiance
         per = per_image_errors(pred, test.radiance)
         lit = np.flatnonzero(test.radiance.max(axis=(1, 2)) > 0)
@@ -233,7 +241,7 @@ def rgl_section(size: int, merge_radius: float) -> None:
                   f"80 deg, {sq[peak].sum() / sq.sum():.0%} at theta_h < 10 deg")
         print(f"  RBF (m_w {fit.m_w:g}): {100 * np.median(per[lit]):.2f} % median")
         merged = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image,
-                               merge_radius=merge_radius)
+                               merge_radius=merge_radius, reciprocal=True)
         train_rec = render_distant(nearest, size, theta_d_lights(stratified(10)))
         s = samples_from_images(train_rec.normals, train_rec.radiance, train_rec.directions)
         fed = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, groups=s.image)

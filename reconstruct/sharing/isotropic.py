@@ -44,8 +44,10 @@ import numpy as np
 
 from ..coords import uvw_from_directions
 from .fits import MIN_COS, _samples, _values, _w_varies, _weight
-from .models import ANGULAR_WEIGHT, RbfBRDF, _check_angular_weight, angular_points
+from .models import (ANGULAR_WEIGHT, ASYMMETRY_WEIGHT, RbfBRDF, _check_angular_weight,
+                     angular_points, with_asymmetry)
 from .rbf import RbfFit, SharingError, fit_rbf
+from .reciprocity import ReciprocityCheck, check_reciprocity
 
 #: log(f_r + offset) is interpolated with offset = LOG_OFFSET x the median f_r of the samples:
 #: small enough that highlights are compressed, large enough that a nearly black channel's
@@ -102,6 +104,9 @@ class IsotropicFit:
         The w scale of M used.
     scale_choice : ScaleChoice or None
         With ``m_w="auto"``: the candidates' held-out errors.
+    reciprocity : ReciprocityCheck or None
+        With ``reciprocal="auto"``: how far the samples' two orderings of a pair disagree, which
+        decided whether ``brdf`` is reciprocal.
     """
 
     brdf: RbfBRDF
@@ -110,11 +115,12 @@ class IsotropicFit:
     n_dropped: int
     m_w: float
     scale_choice: ScaleChoice | None = None
+    reciprocity: ReciprocityCheck | None = None
 
     def brdf_with(self, n_centers: int) -> RbfBRDF:
         """The BRDF refitted on the first ``n_centers`` greedy centres (error vs centre count)."""
         return RbfBRDF(self.fit.refit(n_centers), self.brdf.log_offset,
-                       self.brdf.angular_weight)
+                       self.brdf.angular_weight, self.brdf.asymmetry_weight)
 
     def report(self) -> str:
         values = "f_r" if self.brdf.log_offset is None else \
@@ -124,6 +130,10 @@ class IsotropicFit:
                                              self.scale_choice.errors)) + ")"
         space = ("(u, v, w)" if self.brdf.angular_weight is None else
                  f"(u, v, w) in polar form, angular weight {self.brdf.angular_weight:g}")
+        if self.brdf.asymmetry_weight is not None:
+            space += f" and the un-doubled phi_d, weight {self.brdf.asymmetry_weight:g}"
+        if self.reciprocity is not None:
+            space += f" (samples {self.reciprocity.report()})"
         return (f"isotropic RBF BRDF of {values} over {space} from {self.n_used} samples "
                 f"({self.n_dropped} dropped), m_w {self.m_w:g}{choice}: " + self.fit.report())
 
@@ -177,7 +187,7 @@ def _choose_m_w(points, target, weight, cos_i, f, decode, groups, max_centers,
 def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_values: bool = True,
                   angular_weight: float | None = ANGULAR_WEIGHT, groups=None, weight=None,
                   valid=None, min_cos: float = MIN_COS, tol=None, smoothing: float = 0.0, rng=0,
-                  merge_radius: float = 0.0,
+                  merge_radius: float = 0.0, reciprocal="auto",
                   progress: Callable[[int, int], None] | None = None) -> IsotropicFit:
     """Homogeneous isotropic BRDF f(u, v, w) by greedy linear-RBF interpolation (Sect. 5, Eq. 5).
 
@@ -215,6 +225,13 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         ``merge_radius`` over the fit's scaled points; the held-out fits of ``m_w="auto"`` use
         it too). ``merge_radius`` > 0 is not the default: on the zoo it trades one row for
         another (docs/zoo.md, "The two RGL files").
+    reciprocal : bool or "auto"
+        True: f(wi, wo) = f(wo, wi) by construction, as the paper's (u, v, w). False: the points
+        carry the un-doubled phi_d too (``models.with_asymmetry``, weight ``ASYMMETRY_WEIGHT``),
+        so the fit can follow measured data whose two orderings differ. "auto": False only
+        where ``reciprocity.check_reciprocity`` finds the samples' orderings disagree beyond
+        their sampling and noise (a gonio-photometer's tables can; a physical surface seen by
+        a camera should not).
 
     Returns
     -------
@@ -239,6 +256,8 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
     if not (m_w == "auto" or (isinstance(m_w, (int, float)) and m_w > 0)):
         raise SharingError(f"m_w must be > 0 or 'auto', got {m_w!r}")
     _check_angular_weight(angular_weight)
+    if reciprocal not in (True, False, "auto"):
+        raise SharingError(f"reciprocal must be True, False or 'auto', got {reciprocal!r}")
     if groups is not None and np.shape(groups) != (len(s.wi),):
         raise SharingError(f"groups must have shape ({len(s.wi)},), got {np.shape(groups)}")
     f = values[k]
@@ -257,6 +276,13 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         def decode(g):
             return np.maximum(g, 0.0)
     points = angular_points(uvw, angular_weight)
+    check = None
+    if reciprocal == "auto" and np.count_nonzero(f.mean(axis=1) > 0) >= 3:
+        check = check_reciprocity(s.wi[k], s.wo[k], f)
+    asymmetry = None
+    if reciprocal is False or (check is not None and not check.reciprocal):
+        asymmetry = ASYMMETRY_WEIGHT
+        points = with_asymmetry(points, s.wi[k], s.wo[k], asymmetry)
     choice = None
     if m_w == "auto":
         labels = _groups(uvw, None if groups is None else np.asarray(groups)[k])
@@ -268,5 +294,5 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
                   max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
                   progress=progress, merge_radius=merge_radius)
     n_used = int(k.sum())
-    return IsotropicFit(RbfBRDF(fit.model, offset, angular_weight), fit, n_used,
-                        len(s.wi) - n_used, float(m_w), choice)
+    return IsotropicFit(RbfBRDF(fit.model, offset, angular_weight, asymmetry), fit, n_used,
+                        len(s.wi) - n_used, float(m_w), choice, check)

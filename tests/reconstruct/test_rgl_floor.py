@@ -80,7 +80,9 @@ def test_merging_near_pairs_brings_the_vinyl_fit_towards_the_reciprocal_images(s
     nearest reciprocal BRDF, the best any reciprocal fit can aim at. Measured 2026-11-26 off
     those images (m_w 0.25), plain / merged / the same fit fed them: 48 px, 400 centres 4.24 /
     3.73 / 3.30 %; 100 px, 1000 centres 2.77 / 2.26 / 1.94 % (docs/zoo.md: off the truth the
-    gain changes sign with the size, which is why merging is not the default)."""
+    gain changes sign with the size, which is why merging is not the default). Reciprocal fits
+    (``reciprocal=True``): by default the vinyl is found not reciprocal and fitted as it is
+    (``test_sharing_reciprocity.py``)."""
     truth = read_rgl(shared_data / "brdfs" / "rgl" / "vch_golden_yellow_rgb.bsdf")
     nearest = NearestReciprocal(truth)
     lights, held_out = theta_d_lights(stratified(10)), theta_d_lights(stratified(21))
@@ -90,7 +92,8 @@ def test_merging_near_pairs_brings_the_vinyl_fit_towards_the_reciprocal_images(s
 
     def off_reciprocal(images, **kw):
         s = samples_from_images(images.normals, images.radiance, images.directions)
-        fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, m_w=0.25, max_centers=400, **kw)
+        fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, m_w=0.25, max_centers=400,
+                              reciprocal=True, **kw)
         pred = render_distant(fit.brdf, SPHERE, held_out).radiance
         per = np.sqrt(((pred - rec) ** 2).sum(axis=(1, 2)) / (rec ** 2).sum(axis=(1, 2)))
         return float(np.median(per)), fit
