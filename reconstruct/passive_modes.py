@@ -43,6 +43,11 @@ N_MODES = 40
 #: The remainder's per-node variance is floored at this fraction of its mean, so that a node
 #: every library member agrees on is held strongly, not infinitely.
 REMAINDER_FLOOR = 1e-2
+#: ... and at this fraction of the library's mean per-node variance. Where the kept modes span
+#: the library exactly (a few Lambertians), the remainder is ~1e-31: the precision's Woodbury
+#: form then loses the free shift to rounding, and a recovered albedo depended on the CPU's last
+#: bits. MERL's smallest remainder is 2e-4 of its mean variance, far above this.
+SPAN_FLOOR = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,7 +147,9 @@ def learn_modes(brdfs, grid=(32, 32), *, n_modes: int = N_MODES, offset: float =
     modes = u.T @ (x - mean) / np.sqrt(var)[:, None]
     rest = (x - mean) - ((x - mean) @ modes.T) @ modes
     rest_var = np.sum(rest ** 2, axis=0) / (len(x) - 1)
-    rest_var = np.maximum(rest_var, REMAINDER_FLOOR * np.mean(rest_var) + 1e-300)
+    node_var = np.sum((x - mean) ** 2, axis=0) / (len(x) - 1)
+    rest_var = np.maximum(rest_var, REMAINDER_FLOOR * np.mean(rest_var)
+                          + SPAN_FLOOR * np.mean(node_var) + 1e-300)
     return ModesPrior(mean, modes, var / (len(x) - 1), rest_var, check_grid(grid), float(offset),
                       name, len(tables))
 

@@ -403,6 +403,22 @@ class _Clusterer:
         return fits, labels
 
 
+def judge_materials(smp: _Samples, fits, labels: np.ndarray, *, n_lobes: int = 1,
+                    min_texels: int = 10, min_gain: float = 0.05, z_min: float = 4.0,
+                    intensity_weight: float = 1.0, noise: str = "absolute", rng=0,
+                    stall: tuple[int, float] | None = None, history: list | None = None) -> np.ndarray:
+    """The material of each of the clusters ``fits`` (K,) int, by the held-out pair test of
+    :meth:`_Clusterer.materials` on the samples ``smp`` as they are now: e.g. about the normals
+    fitted after the clustering (Sec. 9), where clusters that only stood for "slightly wrong
+    normals" (Sec. 7.4) should no longer be told apart. ``labels`` (texels of ``smp``) give each
+    cluster's members; the pairs' lines are appended to ``history``."""
+    cl = _Clusterer(smp, n_lobes=n_lobes, intensity_weight=intensity_weight,
+                    min_texels=min_texels, min_gain=min_gain, z_min=z_min, noise=noise,
+                    rng=np.random.default_rng(rng))
+    cl.stall = stall
+    return cl.materials(list(fits), np.asarray(labels), [] if history is None else history)
+
+
 def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int = 1,
                         max_materials: int = 12, intensity_weight: float = 1.0,
                         min_texels: int = 10, min_gain: float = 0.05, z_min: float = 4.0,

@@ -702,7 +702,7 @@ def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_w
     does not gather them: the inputs' truth figures, the floor, Lambertian, its scores and the
     pictures come from texel blocks, equal to the gathered route's (``processed``: the same
     calibrated session, gathered) to 1e-9; sharing runs over the blocks too, its RBFs on every
-    texel here (the lab's option), with the gathered run's figures to 1e-9. (Lensch over blocks
+    texel here (the lab's option), with the gathered run's figures to 1e-6 (float32 sums). (Lensch over blocks
     equals its gathered fit in test_block_methods; here it would add 25 s.)"""
     _, lab, _ = captured
     session_lab = replace(lab.session_lab("proc"), method_options={"sharing": {"max_centers": 200,
@@ -750,5 +750,6 @@ def test_a_memory_limit_below_the_gathered_lumitexels_runs_process_over_blocks_w
     numbers = [k for k, v in g.figures.items() if isinstance(v, (int, float))]
     assert {"held_out_rel_rms", "normals_fitted", "normal_error_fitted_deg"} <= set(numbers)
     for key in numbers:   # scored over blocks of another size: the RBF evaluates its distances and
-        # sums its ~200 centres in float32 GEMMs, whose rounding depends on a row's batch (1e-6 a sample)
-        assert b.figures[key] == pytest.approx(g.figures[key], rel=1e-7), key
+        # sums its ~200 centres in float32 GEMMs, whose rounding depends on a row's batch and the
+        # CPU's kernels (1e-6 a sample; the training figure 1.3e-7 apart on an AMD EPYC)
+        assert b.figures[key] == pytest.approx(g.figures[key], rel=1e-6), key

