@@ -208,7 +208,8 @@ class Clustering:
     ``history`` one line per split tried (for reports); ``single`` the one average BRDF fitted to
     all of them before any split; ``material`` (K,) the material of each cluster, 0..M-1 in order
     of first appearance (:meth:`_Clusterer.materials`; each cluster its own where the count was
-    given).
+    given); ``pair_gain`` (K, K) the pair test's held-out gains behind it (inf: told apart;
+    None where the count was given).
     """
 
     fits: tuple
@@ -216,6 +217,7 @@ class Clustering:
     history: tuple
     single: LafortuneFit
     material: np.ndarray
+    pair_gain: np.ndarray | None = None
 
 
 class _Clusterer:
@@ -344,8 +346,9 @@ class _Clusterer:
                 worst = (float(gain.mean()), float(z))
         return worst
 
-    def materials(self, fits: list, labels: np.ndarray, history: list) -> np.ndarray:
-        """The material of each cluster once the splitting has stopped, (K,) int.
+    def materials(self, fits: list, labels: np.ndarray, history: list) -> tuple[np.ndarray, np.ndarray]:
+        """The material of each cluster once the splitting has stopped, (K,) int, and the pair
+        gains (K, K) it was decided from (inf: the pair passes, two materials).
 
         Each split passed the held-out test against the cluster it split, but the global
         reclusterings after it move texels between all clusters, and what a split separated
@@ -371,18 +374,7 @@ class _Clusterer:
                 gain[a, b] = gain[b, a] = np.inf if (g > self.min_gain and z > self.z_min) else g
                 if np.isfinite(gain[a, b]):
                     history.append(f"clusters {a} and {b}: held-out gain {g:.3f}, z = {z:.1f}, one material")
-        groups = [[k] for k in range(K)]
-        while len(groups) > 1:
-            link = [(max(gain[a, b] for a in groups[i] for b in groups[j]), i, j)
-                    for i in range(len(groups)) for j in range(i + 1, len(groups))]
-            g, i, j = min(link)
-            if not np.isfinite(g):
-                break
-            groups[i] += groups.pop(j)
-        material = np.empty(K, np.int64)
-        for m, g in enumerate(sorted(groups, key=min)):
-            material[g] = m
-        return material
+        return _linked(gain), gain
 
     def recluster(self, fits: list, labels: np.ndarray, *, max_rounds: int = 10, tol: float = 0.005):
         """Global reclustering (Eq. 10): every texel to its best cluster, refit, repeat."""
@@ -403,20 +395,44 @@ class _Clusterer:
         return fits, labels
 
 
+def _linked(gain: np.ndarray) -> np.ndarray:
+    """Materials (K,) from pair gains (K, K): complete linkage over the pairs that failed (finite
+    gain), the least gain first; numbered in order of first appearance."""
+    K = len(gain)
+    groups = [[k] for k in range(K)]
+    while len(groups) > 1:
+        link = [(max(gain[a, b] for a in groups[i] for b in groups[j]), i, j)
+                for i in range(len(groups)) for j in range(i + 1, len(groups))]
+        g, i, j = min(link)
+        if not np.isfinite(g):
+            break
+        groups[i] += groups.pop(j)
+    material = np.empty(K, np.int64)
+    for m, g in enumerate(sorted(groups, key=min)):
+        material[g] = m
+    return material
+
+
 def judge_materials(smp: _Samples, fits, labels: np.ndarray, *, n_lobes: int = 1,
                     min_texels: int = 10, min_gain: float = 0.05, z_min: float = 4.0,
                     intensity_weight: float = 1.0, noise: str = "absolute", rng=0,
-                    stall: tuple[int, float] | None = None, history: list | None = None) -> np.ndarray:
+                    stall: tuple[int, float] | None = None, history: list | None = None,
+                    earlier: np.ndarray | None = None) -> np.ndarray:
     """The material of each of the clusters ``fits`` (K,) int, by the held-out pair test of
     :meth:`_Clusterer.materials` on the samples ``smp`` as they are now: e.g. about the normals
     fitted after the clustering (Sec. 9), where clusters that only stood for "slightly wrong
     normals" (Sec. 7.4) should no longer be told apart. ``labels`` (texels of ``smp``) give each
-    cluster's members; the pairs' lines are appended to ``history``."""
+    cluster's members; the pairs' lines are appended to ``history``. With ``earlier`` (K, K), an
+    earlier judgement's pair gains (``Clustering.pair_gain``), a pair either judgement failed is
+    one material."""
     cl = _Clusterer(smp, n_lobes=n_lobes, intensity_weight=intensity_weight,
                     min_texels=min_texels, min_gain=min_gain, z_min=z_min, noise=noise,
                     rng=np.random.default_rng(rng))
     cl.stall = stall
-    return cl.materials(list(fits), np.asarray(labels), [] if history is None else history)
+    gain = cl.materials(list(fits), np.asarray(labels), [] if history is None else history)[1]
+    # only joins: a pair the first judgement (``earlier``) found one material stays one (a normal
+    # fitted with each cluster's own lobe can make its cluster look apart)
+    return _linked(gain if earlier is None else np.minimum(gain, earlier))
 
 
 def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int = 1,
@@ -520,5 +536,7 @@ def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int 
             progress(len(fits), target)
         if not done:
             break
-    material = np.arange(len(fits)) if n_materials is not None else cl.materials(fits, labels, history)
-    return Clustering(fits=tuple(fits), labels=labels, history=tuple(history), single=single, material=material)
+    material, gain = (np.arange(len(fits)), None) if n_materials is not None else \
+        cl.materials(fits, labels, history)
+    return Clustering(fits=tuple(fits), labels=labels, history=tuple(history), single=single,
+                      material=material, pair_gain=gain)

@@ -521,7 +521,7 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             material = judge_materials(
                 data.subset(chosen, copy.deepcopy(rng)), fits, labels[disc][chosen], n_lobes=opt.n_lobes,
                 min_texels=max(3, min(10, len(chosen) // 20)), rng=copy.deepcopy(rng), stall=opt.lm_stall,
-                history=judged)
+                history=judged, earlier=clus.pair_gain)
             if material.max() < clus.material.max():
                 undone.append(f"about the fitted normals {material.max() + 1} materials, not "
                               f"{clus.material.max() + 1}: " + "; ".join(judged))
