@@ -148,8 +148,8 @@ def learn_modes(brdfs, grid=(32, 32), *, n_modes: int = N_MODES, offset: float =
     rest = (x - mean) - ((x - mean) @ modes.T) @ modes
     rest_var = np.sum(rest ** 2, axis=0) / (len(x) - 1)
     node_var = np.sum((x - mean) ** 2, axis=0) / (len(x) - 1)
-    rest_var = np.maximum(rest_var, REMAINDER_FLOOR * np.mean(rest_var)
-                          + SPAN_FLOOR * np.mean(node_var) + 1e-300)
+    rest_var = np.maximum(rest_var, max(REMAINDER_FLOOR * np.mean(rest_var),
+                                        SPAN_FLOOR * np.mean(node_var), 1e-300))
     return ModesPrior(mean, modes, var / (len(x) - 1), rest_var, check_grid(grid), float(offset),
                       name, len(tables))
 

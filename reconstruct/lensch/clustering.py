@@ -208,8 +208,7 @@ class Clustering:
     ``history`` one line per split tried (for reports); ``single`` the one average BRDF fitted to
     all of them before any split; ``material`` (K,) the material of each cluster, 0..M-1 in order
     of first appearance (:meth:`_Clusterer.materials`; each cluster its own where the count was
-    given); ``pair_gain`` (K, K) the pair test's held-out gains behind it (inf: told apart;
-    None where the count was given).
+    given).
     """
 
     fits: tuple
@@ -217,7 +216,6 @@ class Clustering:
     history: tuple
     single: LafortuneFit
     material: np.ndarray
-    pair_gain: np.ndarray | None = None
 
 
 class _Clusterer:
@@ -365,8 +363,11 @@ class _Clusterer:
         K = len(fits)
         gain = np.full((K, K), -np.inf)
         rng = copy.deepcopy(self.rng)   # judging the clusters leaves the fit's later draws as they were
+        counts = np.bincount(labels, minlength=K)
         for a in range(K):
             for b in range(a + 1, K):
+                if max(counts[a], counts[b]) < self.min_texels:
+                    continue   # neither has texels to judge on: told apart (nothing to join on)
                 members = np.flatnonzero((labels == a) | (labels == b))
                 both = self.fit(members, init=fits[a].channel_params, rng=rng)
                 g, z = self.held_out_gain(both, fits[a], fits[b], members)
@@ -395,11 +396,13 @@ class _Clusterer:
         return fits, labels
 
 
-def _linked(gain: np.ndarray) -> np.ndarray:
+def _linked(gain: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
     """Materials (K,) from pair gains (K, K): complete linkage over the pairs that failed (finite
-    gain), the least gain first; numbered in order of first appearance."""
+    gain), the least gain first, from single clusters or from the groups of ``start`` (K,)
+    materials; numbered in order of first appearance."""
     K = len(gain)
-    groups = [[k] for k in range(K)]
+    groups = [[k] for k in range(K)] if start is None else \
+        [list(np.flatnonzero(start == m)) for m in np.unique(start)]
     while len(groups) > 1:
         link = [(max(gain[a, b] for a in groups[i] for b in groups[j]), i, j)
                 for i in range(len(groups)) for j in range(i + 1, len(groups))]
@@ -422,17 +425,19 @@ def judge_materials(smp: _Samples, fits, labels: np.ndarray, *, n_lobes: int = 1
     :meth:`_Clusterer.materials` on the samples ``smp`` as they are now: e.g. about the normals
     fitted after the clustering (Sec. 9), where clusters that only stood for "slightly wrong
     normals" (Sec. 7.4) should no longer be told apart. ``labels`` (texels of ``smp``) give each
-    cluster's members; the pairs' lines are appended to ``history``. With ``earlier`` (K, K), an
-    earlier judgement's pair gains (``Clustering.pair_gain``), a pair either judgement failed is
-    one material."""
+    cluster's members (a pair with fewer than ``min_texels`` in both is not judged, so not joined;
+    a cluster the relabelling about the fitted normals emptied is judged on its partner's texels,
+    which its own lobe does not fit better: it joins); the pairs' lines are appended to
+    ``history``. With ``earlier`` (K,), an earlier judgement's materials (``Clustering.material``),
+    the clusters start in those groups: this judgement can only join them."""
     cl = _Clusterer(smp, n_lobes=n_lobes, intensity_weight=intensity_weight,
                     min_texels=min_texels, min_gain=min_gain, z_min=z_min, noise=noise,
                     rng=np.random.default_rng(rng))
     cl.stall = stall
     gain = cl.materials(list(fits), np.asarray(labels), [] if history is None else history)[1]
-    # only joins: a pair the first judgement (``earlier``) found one material stays one (a normal
+    # only joins: what the first judgement (``earlier``) made one material stays one (a normal
     # fitted with each cluster's own lobe can make its cluster look apart)
-    return _linked(gain if earlier is None else np.minimum(gain, earlier))
+    return _linked(gain, None if earlier is None else np.asarray(earlier))
 
 
 def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int = 1,
@@ -536,7 +541,7 @@ def split_recluster_fit(smp: _Samples, *, n_materials: int | None, n_lobes: int 
             progress(len(fits), target)
         if not done:
             break
-    material, gain = (np.arange(len(fits)), None) if n_materials is not None else \
-        cl.materials(fits, labels, history)
+    material = np.arange(len(fits)) if n_materials is not None else \
+        cl.materials(fits, labels, history)[0]
     return Clustering(fits=tuple(fits), labels=labels, history=tuple(history), single=single,
-                      material=material, pair_gain=gain)
+                      material=material)

@@ -49,7 +49,9 @@ class SvbrdfFit:
     cluster_material : ndarray (K,) int
         The material of each cluster, 0 .. :attr:`n_materials` - 1: clusters that no held-out
         test tells apart are one material (:meth:`~reconstruct.lensch.clustering._Clusterer.materials`;
-        each cluster is its own material where ``n_materials`` was given). A material's clusters
+        judged again about the fitted normals, which can only join them,
+        :func:`~reconstruct.lensch.clustering.judge_materials`; each cluster is its own material
+        where ``n_materials`` was given). A material's clusters
         beyond its largest are its variants (:attr:`variant`).
     material_covariance : tuple of ndarray (P, P)
         Covariance of each material's flat parameters (layout of
@@ -521,10 +523,10 @@ def fit_svbrdf_blocks(blocks: TexelBlocks, options: SvbrdfOptions | None = None,
             material = judge_materials(
                 data.subset(chosen, copy.deepcopy(rng)), fits, labels[disc][chosen], n_lobes=opt.n_lobes,
                 min_texels=max(3, min(10, len(chosen) // 20)), rng=copy.deepcopy(rng), stall=opt.lm_stall,
-                history=judged, earlier=clus.pair_gain)
+                history=judged, earlier=clus.material)
             if material.max() < clus.material.max():
-                undone.append(f"about the fitted normals {material.max() + 1} materials, not "
-                              f"{clus.material.max() + 1}: " + "; ".join(judged))
+                undone.append(f"about the fitted normals the clusters make {material.max() + 1} "
+                              f"material(s), not {clus.material.max() + 1}: " + "; ".join(judged))
             cluster_material = material
         if normals is not None:
             normals_out = to_world(normals_local, tangent_frames(np.asarray(normals, float)))

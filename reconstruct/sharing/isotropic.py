@@ -105,8 +105,9 @@ class IsotropicFit:
     scale_choice : ScaleChoice or None
         With ``m_w="auto"``: the candidates' held-out errors.
     reciprocity : ReciprocityCheck or None
-        With ``reciprocal="auto"``: how far the samples' two orderings of a pair disagree, which
-        decided whether ``brdf`` is reciprocal.
+        With ``reciprocal="auto"`` and at least ``MIN_SAMPLES_FOR_CHOICE`` weighted samples: how
+        far the samples' two orderings of a pair disagree, which decided whether ``brdf`` is
+        reciprocal (None: too few to tell, so reciprocal).
     """
 
     brdf: RbfBRDF
@@ -229,7 +230,8 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         True: f(wi, wo) = f(wo, wi) by construction, as the paper's (u, v, w). False: the points
         carry the un-doubled phi_d too (``models.with_asymmetry``, weight ``ASYMMETRY_WEIGHT``),
         so the fit can follow measured data whose two orderings differ. "auto": False only
-        where ``reciprocity.check_reciprocity`` finds the samples' orderings disagree beyond
+        where ``reciprocity.check_reciprocity``, given at least ``MIN_SAMPLES_FOR_CHOICE``
+        weighted samples, finds the samples' orderings disagree beyond
         their sampling and noise (a gonio-photometer's tables can; a physical surface seen by
         a camera should not).
 
@@ -277,8 +279,9 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
             return np.maximum(g, 0.0)
     points = angular_points(uvw, angular_weight)
     check = None
-    if reciprocal == "auto" and np.count_nonzero(f.mean(axis=1) > 0) >= 3:
-        check = check_reciprocity(s.wi[k], s.wo[k], f)
+    voting = (f.mean(axis=1) > 0) & (fit_weight > 0)   # the samples the fit weighs
+    if reciprocal == "auto" and np.count_nonzero(voting) >= MIN_SAMPLES_FOR_CHOICE:
+        check = check_reciprocity(s.wi[k][voting], s.wo[k][voting], f[voting])
     asymmetry = None
     if reciprocal is False or (check is not None and not check.reciprocal):
         asymmetry = ASYMMETRY_WEIGHT

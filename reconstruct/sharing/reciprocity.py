@@ -31,6 +31,8 @@ from scipy.spatial import cKDTree
 RECIPROCITY_TOLERANCE = 0.01
 #: Samples closer than this in (cos theta_i, cos theta_o, wi . wo) are one pair seen twice.
 _TWIN = 1e-9
+#: Nearest samples searched for one that is not the sample's twin (repeated captures repeat them).
+_NEAREST = 16
 
 
 @dataclass(frozen=True)
@@ -44,7 +46,8 @@ class ReciprocityCheck:
     neighbour : float
         Median of the same with s the nearest other sample: the sampling step and the noise.
     n_samples : int
-        Samples compared (those with f > 0).
+        Samples compared: those with f > 0 that are not their own swap and have a neighbour that
+        is not their twin (0: nothing to judge, called reciprocal).
     """
 
     partner: float
@@ -58,7 +61,7 @@ class ReciprocityCheck:
 
     @property
     def reciprocal(self) -> bool:
-        return self.gap <= RECIPROCITY_TOLERANCE
+        return not self.gap > RECIPROCITY_TOLERANCE
 
     def report(self) -> str:
         verdict = "reciprocal" if self.reciprocal else "not reciprocal"
@@ -96,8 +99,14 @@ def check_reciprocity(wi, wo, brdf) -> ReciprocityCheck:
     x = np.column_stack([wi[:, 2], wo[:, 2], np.einsum("ij,ij->i", wi, wo)])
     tree = cKDTree(x)
     partner = tree.query(x[:, [1, 0, 2]], k=1)[1]
-    dist, near = tree.query(x, k=min(4, len(x)))
-    first = np.argmax(dist > _TWIN, axis=1)         # past the sample itself and its mirror twin
-    neighbour = near[np.arange(len(x)), first]
-    return ReciprocityCheck(float(np.median(np.abs(log_f - log_f[partner]))),
-                            float(np.median(np.abs(log_f - log_f[neighbour]))), len(x))
+    dist, near = tree.query(x, k=min(_NEAREST, len(x)))
+    far = dist > _TWIN                               # past the sample itself and its twins
+    neighbour = near[np.arange(len(x)), np.argmax(far, axis=1)]
+    # a sample that is its own swap (cos theta_i = cos theta_o within the sampling), or has no
+    # other sample near it, says nothing either way
+    told = far.any(axis=1) & (np.linalg.norm(x[partner] - x, axis=1) > _TWIN)
+    if not told.any():
+        return ReciprocityCheck(0.0, 0.0, 0)
+    return ReciprocityCheck(float(np.median(np.abs(log_f - log_f[partner])[told])),
+                            float(np.median(np.abs(log_f - log_f[neighbour])[told])),
+                            int(told.sum()))

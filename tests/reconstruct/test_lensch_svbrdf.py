@@ -11,6 +11,7 @@ import pytest
 from reconstruct.brdf import Lafortune
 from reconstruct.frames import tangent_frames, to_local
 from reconstruct.lensch import SvbrdfError, SvbrdfOptions, fit_svbrdf
+from reconstruct.lensch.clustering import _linked
 from reconstruct.lensch.svbrdf import _below_brightest
 from reconstruct.lensch.lafortune_fit import lobe_geometry, params_of
 from reconstruct.lensch.normals import fit_normals_chunk
@@ -501,7 +502,8 @@ def test_clusters_that_stood_for_tilted_normals_are_one_material_about_the_fitte
 
     one, _ = fit_of((Lafortune.phong(rho_d=(0.2, 0.3, 0.5), rho_s=0.8, exponent=40.0),))
     assert len(one.materials) == 2 and one.n_materials == 1, one.history
-    assert any(h.startswith("about the fitted normals 1 materials, not 2") for h in one.history)
+    assert any(h.startswith("about the fitted normals the clusters make 1 material(s), not 2")
+               for h in one.history)
     two, d = fit_of((Lafortune.phong(rho_d=(0.2, 0.3, 0.5), rho_s=0.8, exponent=20.0),
                      Lafortune.phong(rho_d=(0.2, 0.3, 0.5), rho_s=0.8, exponent=80.0)))
     assert two.n_materials == 2, two.history
@@ -511,3 +513,17 @@ def test_clusters_that_stood_for_tilted_normals_are_one_material_about_the_fitte
         assert share.max() > 0.8 * share.sum()
     assert np.bincount(material[d.material == 0], minlength=2).argmax() != \
         np.bincount(material[d.material == 1], minlength=2).argmax()
+
+
+def test_the_second_judgement_starts_from_the_firsts_materials():
+    """Complete linkage from single clusters over the second judgement's gains could split what
+    the first joined (review: clusters 0-1 and 2-3 joined first; a new failed pair 1-2 alone
+    linked 1 and 2 and left 0 and 3 apart). Started from the first judgement's groups it can
+    only join: a group pair joins when every pair across fails."""
+    inf = np.inf
+    gain = np.full((4, 4), inf)
+    gain[1, 2] = gain[2, 1] = 0.001
+    np.testing.assert_array_equal(_linked(gain, np.array([0, 0, 1, 1])), [0, 0, 1, 1])
+    assert list(_linked(gain)) == [0, 1, 1, 2]   # from single clusters
+    gain[:2, 2:] = gain[2:, :2] = 0.0
+    np.testing.assert_array_equal(_linked(gain, np.array([0, 0, 1, 1])), [0, 0, 0, 0])
