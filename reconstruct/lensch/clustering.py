@@ -366,8 +366,9 @@ class _Clusterer:
         counts = np.bincount(labels, minlength=K)
         for a in range(K):
             for b in range(a + 1, K):
-                if max(counts[a], counts[b]) < self.min_texels:
-                    continue   # neither has texels to judge on: told apart (nothing to join on)
+                if max(counts[a], counts[b]) < self.min_texels:   # nothing to judge on: told apart
+                    gain[a, b] = gain[b, a] = np.inf
+                    continue
                 members = np.flatnonzero((labels == a) | (labels == b))
                 both = self.fit(members, init=fits[a].channel_params, rng=rng)
                 g, z = self.held_out_gain(both, fits[a], fits[b], members)
