@@ -34,6 +34,18 @@ experiment, 10 images of 100 x 100 px, 21 held out; ``benchmarks/zoo.py``):
   along it the same fit is within 0.78-1.12 x over 0.4-1 deg at both phi_d (2.2 x at the foot)
   and the held-out median falls 9.4 -> 4.7 %; every other zoo row improves too (docs/zoo.md).
   A sqrt(theta_h) warp of u, v does the opposite (it weighs phi_d 2 x theta_h) and made it worse.
+
+Data that are not reciprocal (``reciprocity``; in practice a gonio-photometer's tables) are
+fitted over the points with the un-doubled phi_d too (``models.with_asymmetry``), with
+``NON_RECIPROCAL_BUDGET`` x the centres, and the value is
+h = f_r cos theta_i / (cos theta_i + min_cos), not f_r. Such tables store f_r cos theta_i, and
+where the stored value stays finite to the horizon f_r grows as 1 / cos theta_i past the
+terminator rule (``min_cos``), beyond the last sample: the measured RGL matte paint keeps
+0.0014-0.0018 of its 0.0028 (78 deg) at 87-90 deg, and log f_r's extrapolation there gave
+0.2-0.8 x that radiance, 40-47 % off on those pixels and most of each held-out image's error. h
+is f_r well above the terminator and the radiance form near it, so its extrapolation holds the
+radiance instead. (cos theta_i is no function of the reciprocal (u, v, w), so a reciprocal fit
+keeps f_r.) The matte paint's held-out median: 2.75 -> 1.88 % (docs/zoo.md).
 """
 from __future__ import annotations
 
@@ -62,6 +74,9 @@ M_W_FOLDS = 3
 MIN_SAMPLES_FOR_CHOICE = 100
 #: More distinct w values than this are not images: they are binned into this many groups.
 MAX_GROUPS = 64
+#: A fit that is not reciprocal gets this many times ``max_centers``: its domain is the
+#: reciprocal one twice over (no swap fold), so the same density takes twice the centres.
+NON_RECIPROCAL_BUDGET = 2
 
 
 @dataclass(frozen=True)
@@ -121,11 +136,13 @@ class IsotropicFit:
     def brdf_with(self, n_centers: int) -> RbfBRDF:
         """The BRDF refitted on the first ``n_centers`` greedy centres (error vs centre count)."""
         return RbfBRDF(self.fit.refit(n_centers), self.brdf.log_offset,
-                       self.brdf.angular_weight, self.brdf.asymmetry_weight)
+                       self.brdf.angular_weight, self.brdf.asymmetry_weight, self.brdf.horizon)
 
     def report(self) -> str:
-        values = "f_r" if self.brdf.log_offset is None else \
-            f"log(f_r + {self.brdf.log_offset:.3g})"
+        values = "f_r" if self.brdf.horizon is None else \
+            f"f_r cos theta_i / (cos theta_i + {self.brdf.horizon:g})"
+        if self.brdf.log_offset is not None:
+            values = f"log({values} + {self.brdf.log_offset:.3g})"
         choice = "" if self.scale_choice is None else " (chosen by held-out images: " + ", ".join(
             f"{m:g}: {e:.2%}" for m, e in zip(self.scale_choice.candidates,
                                              self.scale_choice.errors)) + ")"
@@ -157,11 +174,12 @@ def _scale(points: np.ndarray, m_w: float) -> tuple:
     return (1.0,) * (points.shape[1] - 1) + (m_w,)
 
 
-def _choose_m_w(points, target, weight, cos_i, f, decode, groups, max_centers,
+def _choose_m_w(points, target, weight, factor, values, decode, groups, max_centers,
                 rng, merge_radius) -> ScaleChoice:
     """Hold out interior theta_d groups one at a time; fit the rest with each m_w candidate
     (half the centre budget); score the relative radiance error on the held-out group.
-    ``points``: the fit's points, w last."""
+    ``points``: the fit's points, w last; ``values`` (decoded ``target``) times ``factor`` is
+    radiance."""
     n_groups = int(groups.max()) + 1
     by_w = np.argsort(np.bincount(groups, points[:, -1], n_groups) / np.bincount(groups, None,
                                                                                  n_groups))
@@ -177,9 +195,9 @@ def _choose_m_w(points, target, weight, cos_i, f, decode, groups, max_centers,
                             weight=weight[~test], max_centers=budget, rng=rng,
                             merge_radius=merge_radius).model
             pred = decode(model(points[test]))
-            c = cos_i[test, None]
-            per_group.append(np.sqrt(np.sum((c * (pred - f[test])) ** 2)
-                                     / max(np.sum((c * f[test]) ** 2), 1e-300)))
+            c = factor[test, None]
+            per_group.append(np.sqrt(np.sum((c * (pred - values[test])) ** 2)
+                                     / max(np.sum((c * values[test]) ** 2), 1e-300)))
         errors.append(float(np.median(per_group)))
     best = int(np.argmin(errors))
     return ScaleChoice(tuple(M_W_CANDIDATES), tuple(errors), M_W_CANDIDATES[best], len(held))
@@ -199,7 +217,8 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
     brdf : array_like, (S, 3) or (S,)
         f_r samples, 1/sr (negative values, from noise, count as 0 in the log domain).
     max_centers : int
-        Centre budget (the paper: < 1000 suffice for 10 sphere images).
+        Centre budget (the paper: < 1000 suffice for 10 sphere images); a fit that is not
+        reciprocal gets ``NON_RECIPROCAL_BUDGET`` x it.
     m_w : float or "auto"
         Scale of the w = 2 theta_d / pi axis, M = diag(1, 1, m_w) (Eq. 4; the paper's typical
         values 0.1-0.5), diag(1, 1, 1, m_w) over the polar points. "auto": chosen from
@@ -220,7 +239,9 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
     valid : array_like of bool, (S,), optional
         False drops a sample (it may hold NaN).
     min_cos : float
-        Samples with cos theta_i below this are dropped (``fits`` module docstring).
+        Samples with cos theta_i below this are dropped (``fits`` module docstring). A fit that
+        is not reciprocal interpolates f_r cos theta_i / (cos theta_i + min_cos) (module
+        docstring).
     tol, smoothing, rng, merge_radius, progress
         As :func:`reconstruct.sharing.fit_rbf` (``tol`` in the fitted values' units,
         ``merge_radius`` over the fit's scaled points; the held-out fits of ``m_w="auto"`` use
@@ -263,39 +284,48 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
     if groups is not None and np.shape(groups) != (len(s.wi),):
         raise SharingError(f"groups must have shape ({len(s.wi)},), got {np.shape(groups)}")
     f = values[k]
+    check = None
+    voting = (f.mean(axis=1) > 0) & (w[k] > 0)   # the samples the fit weighs
+    if reciprocal == "auto" and np.count_nonzero(voting) >= MIN_SAMPLES_FOR_CHOICE:
+        check = check_reciprocity(s.wi[k][voting], s.wo[k][voting], f[voting])
+    points = angular_points(uvw, angular_weight)
+    cos_i = s.cos_i[k]
+    factor = cos_i          # radiance under unit irradiance = factor x the interpolated value
+    asymmetry = horizon = None
+    budget = max_centers
+    if reciprocal is False or (check is not None and not check.reciprocal):
+        asymmetry = ASYMMETRY_WEIGHT
+        points = with_asymmetry(points, s.wi[k], s.wo[k], asymmetry)
+        budget = NON_RECIPROCAL_BUDGET * max_centers
+        if min_cos > 0:
+            horizon = min_cos
+            factor = cos_i + horizon
+            f = f * (cos_i / factor)[:, None]
+    weight_q = w[k] * (factor / cos_i)
     if log_values:
         positive = f[f > 0]
         offset = LOG_OFFSET * (float(np.median(positive)) if positive.size else 1.0)
         clipped = np.maximum(f, 0.0)
         target = np.log(clipped + offset)
-        fit_weight = w[k] * (clipped.mean(axis=1) + offset)
+        fit_weight = weight_q * (clipped.mean(axis=1) + offset)
 
         def decode(g):
             return np.maximum(np.exp(np.minimum(g, 700.0)) - offset, 0.0)
     else:
-        offset, target, fit_weight = None, f, w[k]
+        offset, target, fit_weight = None, f, weight_q
 
         def decode(g):
             return np.maximum(g, 0.0)
-    points = angular_points(uvw, angular_weight)
-    check = None
-    voting = (f.mean(axis=1) > 0) & (fit_weight > 0)   # the samples the fit weighs
-    if reciprocal == "auto" and np.count_nonzero(voting) >= MIN_SAMPLES_FOR_CHOICE:
-        check = check_reciprocity(s.wi[k][voting], s.wo[k][voting], f[voting])
-    asymmetry = None
-    if reciprocal is False or (check is not None and not check.reciprocal):
-        asymmetry = ASYMMETRY_WEIGHT
-        points = with_asymmetry(points, s.wi[k], s.wo[k], asymmetry)
     choice = None
     if m_w == "auto":
         labels = _groups(uvw, None if groups is None else np.asarray(groups)[k])
         if labels.max() >= 2 and len(uvw) >= MIN_SAMPLES_FOR_CHOICE:
-            choice = _choose_m_w(points, target, fit_weight, s.cos_i[k], f, decode, labels,
-                                 max_centers, rng, merge_radius)
+            choice = _choose_m_w(points, target, fit_weight, factor, f, decode, labels,
+                                 budget, rng, merge_radius)
         m_w = choice.m_w if choice is not None else 0.5
     fit = fit_rbf(points, target, scale=_scale(points, m_w), weight=fit_weight,
-                  max_centers=max_centers, tol=tol, smoothing=smoothing, rng=rng,
+                  max_centers=budget, tol=tol, smoothing=smoothing, rng=rng,
                   progress=progress, merge_radius=merge_radius)
     n_used = int(k.sum())
-    return IsotropicFit(RbfBRDF(fit.model, offset, angular_weight, asymmetry), fit, n_used,
-                        len(s.wi) - n_used, float(m_w), choice, check)
+    return IsotropicFit(RbfBRDF(fit.model, offset, angular_weight, asymmetry, horizon), fit,
+                        n_used, len(s.wi) - n_used, float(m_w), choice, check)

@@ -88,12 +88,18 @@ class RbfBRDF(BRDF):
     asymmetry_weight : float, optional
         Set (> 0) when the points carry :func:`with_asymmetry`'s two columns (D + 2): the model
         is not reciprocal. None: f_r(wi, wo) = f_r(wo, wi) by construction.
+    horizon : float, optional
+        Set (> 0, with ``asymmetry_weight``) when the interpolated value is not f_r but
+        h = f_r cos theta_i / (cos theta_i + horizon): f_r well above the horizon, the radiance
+        form f_r cos theta_i (over ``horizon``) near it; f_r = h (cos theta_i + horizon) /
+        cos theta_i (``isotropic`` module docstring for why).
     """
 
     model: RbfModel
     log_offset: float | None = None
     angular_weight: float | None = None
     asymmetry_weight: float | None = None
+    horizon: float | None = None
 
     def __post_init__(self):
         _check_angular_weight(self.angular_weight)
@@ -107,6 +113,10 @@ class RbfBRDF(BRDF):
             raise SharingError(f"model must be {dim}-D (over {over}), got {self.model.dim}-D")
         if self.log_offset is not None and not self.log_offset > 0:
             raise SharingError(f"log_offset must be > 0 or None, got {self.log_offset!r}")
+        if self.horizon is not None and not (self.horizon > 0 and self.asymmetry_weight):
+            raise SharingError(f"horizon must be None, or > 0 with an asymmetry_weight (its "
+                               f"cos theta_i is not a function of (u, v, w)), got "
+                               f"{self.horizon!r}")
 
     def _evaluate(self, wi, wo):
         points = angular_points(uvw_from_directions(wi, wo), self.angular_weight)
@@ -115,6 +125,8 @@ class RbfBRDF(BRDF):
         g = self.model(points)
         if self.log_offset is not None:
             g = np.exp(np.minimum(g, 700.0)) - self.log_offset
+        if self.horizon is not None:
+            g = g * (1.0 + self.horizon / wi[:, 2:3])
         return np.maximum(g, 0.0)
 
     def take(self, index) -> "RbfBRDF":

@@ -4,10 +4,12 @@ noise, and the fit then follows what no reciprocal model can.
 
 Measured 2026-11-27 on Zickler Sect. 5.1's sphere experiment (10 images in, 21 held out,
 median relative RMS), reciprocal fit / the default ("auto") / the nearest reciprocal BRDF:
-a Cook-Torrance lobe times (1 + 0.3 (cos theta_i - cos theta_o)) at 32 px 7.81 / 0.61 / 6.55 %
+a Cook-Torrance lobe times (1 + 0.3 (cos theta_i - cos theta_o)) at 32 px 7.81 / 0.96 / 6.55 %
 (check gap 0.122, 0.115 with 2 % noise); the lobe itself 0.55 / 0.55 / 0 % (gap -0.001 and
--0.002); the RGL vinyl at 48 px 6.50 / 4.64 / 4.73 % (gap 0.102), the RGL matte paint
-5.14 / 3.64 / 4.06 % (gap 0.028); at 100 px docs/zoo.md.
+-0.002); the RGL vinyl at 48 px 6.50 / 4.15 / 4.73 % (gap 0.102), the RGL matte paint
+5.14 / 2.03 / 4.06 % (gap 0.028); at 100 px docs/zoo.md. The default's figures before the fit
+that is not reciprocal took the value f_r cos theta_i / (cos theta_i + min_cos) and twice the
+centres (2026-11-27): 0.61, 4.64 and 3.64 %; the value alone: 1.29, 4.59 and 2.81 %.
 """
 from __future__ import annotations
 
@@ -20,8 +22,9 @@ from reconstruct.brdf.analytic import CookTorrance
 from reconstruct.brdf.base import BRDF
 from reconstruct.brdf.rgl import read_rgl
 from reconstruct.brdf.zoo import NearestReciprocal
-from reconstruct.sharing import (RECIPROCITY_TOLERANCE, SharingError, check_reciprocity,
-                                 fit_isotropic, samples_from_images)
+from reconstruct.sharing import (RECIPROCITY_TOLERANCE, RbfBRDF, SharingError,
+                                 check_reciprocity, fit_isotropic, samples_from_images)
+from reconstruct.sharing.fits import MIN_COS
 from sims.distant_scenes import render_distant, stratified, theta_d_lights
 
 LOBE = CookTorrance((0.4, 0.3, 0.2), 0.04, 0.2)
@@ -105,10 +108,14 @@ def test_a_skewed_lobe_is_fitted_past_the_floor_of_reciprocal_models():
     forced = fit_isotropic(s.wi, s.wo, s.brdf, reciprocal=True, **kw)
     assert auto.brdf.asymmetry_weight is not None and not auto.reciprocity.reciprocal
     assert "not reciprocal" in auto.report() and "un-doubled phi_d" in auto.report()
+    # the value that holds radiance past the terminator rule, and twice the centres
+    assert auto.brdf.horizon == MIN_COS and forced.brdf.horizon is None
+    assert "cos theta_i / (cos theta_i + 0.05)" in auto.report()
+    assert auto.fit.model.n_centers == 800 and forced.fit.model.n_centers == 400
     floor = _median_error(NearestReciprocal(truth), test, 32)
     assert floor > 0.05                                     # measured 6.55 %
     assert _median_error(forced.brdf, test, 32) > floor     # 7.81 %
-    assert _median_error(auto.brdf, test, 32) < 0.2 * floor  # 0.61 %
+    assert _median_error(auto.brdf, test, 32) < 0.2 * floor  # 0.96 %
     # the model itself tells the orderings apart, as the truth does
     wi, wo = s.wi[s.valid][::50], s.wo[s.valid][::50]
     up = (wi[:, 2] > 0.2) & (wo[:, 2] > 0.2) & (np.abs(wi[:, 2] - wo[:, 2]) > 0.3)
@@ -121,7 +128,12 @@ def test_a_skewed_lobe_is_fitted_past_the_floor_of_reciprocal_models():
     asked = fit_isotropic(s.wi, s.wo, s.brdf, reciprocal=False, **kw)
     assert asked.reciprocity is None
     np.testing.assert_array_equal(asked.brdf.evaluate(wi, wo), auto.brdf.evaluate(wi, wo))
-    assert auto.brdf_with(100).asymmetry_weight == auto.brdf.asymmetry_weight
+    fewer = auto.brdf_with(100)
+    assert (fewer.asymmetry_weight, fewer.horizon) == (auto.brdf.asymmetry_weight, MIN_COS)
+    # cos theta_i is no function of the reciprocal (u, v, w): the value needs the asymmetry
+    with pytest.raises(SharingError, match="horizon"):
+        RbfBRDF(forced.fit.model, forced.brdf.log_offset, forced.brdf.angular_weight,
+                horizon=MIN_COS)
 
 
 def test_reciprocal_data_get_the_papers_reciprocal_fit_unchanged():
@@ -135,12 +147,15 @@ def test_reciprocal_data_get_the_papers_reciprocal_fit_unchanged():
 
 
 @pytest.mark.realdata
-@pytest.mark.parametrize("name, bound", [
-    ("vch_golden_yellow_rgb", 0.05),    # glossy vinyl: the issue's 5 % (measured 4.64 %)
-    ("colodur_napoli_4f_rgb", 0.042),   # matte paint (3.64 %; its 2 % target is not met)
+@pytest.mark.parametrize("name, bound, terminator", [
+    # glossy vinyl: the issue's 5 % (measured 4.15 %); past the terminator 0.68 x (0.30 before)
+    ("vch_golden_yellow_rgb", 0.05, 0.55),
+    # matte paint: measured 2.03 % (its 2 % target is the 100 px experiment's: 1.88 % there);
+    # past the terminator 0.81 x the truth's radiance (0.50 x before)
+    ("colodur_napoli_4f_rgb", 0.025, 0.65),
 ])
 def test_rgl_files_are_found_not_reciprocal_and_fitted_below_the_reciprocal_floor(
-        shared_data, name, bound):
+        shared_data, name, bound, terminator):
     truth = read_rgl(shared_data / "brdfs" / "rgl" / f"{name}.bsdf")
     s, test = _experiment(truth, 48)
     fit = fit_isotropic(s.wi, s.wo, s.brdf, valid=s.valid, max_centers=400)
@@ -148,3 +163,12 @@ def test_rgl_files_are_found_not_reciprocal_and_fitted_below_the_reciprocal_floo
     error = _median_error(fit.brdf, test, 48)
     assert error < bound
     assert error < _median_error(NearestReciprocal(truth), test, 48)
+    # Held-out pixels lit from beyond the terminator rule (no sample there): the files keep
+    # f_r cos theta_i finite to the horizon (matte paint: 0.0014 at 89-90 deg against 0.0028
+    # at 78 deg), and the fit holds that radiance (median ratio to the truth's).
+    pred = render_distant(fit.brdf, 48, test.directions).radiance[..., 1]
+    true = test.radiance[..., 1]
+    cos_i = (test.normals @ test.directions.T).T
+    past = (cos_i < MIN_COS) & (true > 0)
+    ratio = np.median(pred[past] / true[past])
+    assert terminator < ratio < 1 / terminator
