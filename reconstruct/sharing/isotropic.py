@@ -45,7 +45,7 @@ terminator rule (``min_cos``), beyond the last sample: the measured RGL matte pa
 0.2-0.8 x that radiance, 40-47 % off on those pixels and most of each held-out image's error. h
 is f_r well above the terminator and the radiance form near it, so its extrapolation holds the
 radiance instead. (cos theta_i is no function of the reciprocal (u, v, w), so a reciprocal fit
-keeps f_r.) The matte paint's held-out median: 2.75 -> 1.88 % (docs/zoo.md).
+keeps f_r.) The matte paint's held-out median: 2.75 -> 1.83 % (docs/zoo.md).
 """
 from __future__ import annotations
 
@@ -112,7 +112,8 @@ class IsotropicFit:
         The recovered BRDF (f_r, 1/sr).
     fit : RbfFit
         The RBF fit over (u, v, w), or their ``polar_points`` when ``brdf.angular_weight`` is
-        set (of log(f_r + offset) when ``brdf.log_offset`` is set).
+        set (of log(v + offset) when ``brdf.log_offset`` is set; v is f_r, or
+        f_r cos theta_i / (cos theta_i + ``brdf.horizon``) when that is set).
     n_used, n_dropped : int
         Samples used / dropped (terminator, invalid, below the horizon).
     m_w : float
@@ -227,6 +228,7 @@ def fit_isotropic(wi, wo, brdf, *, max_centers: int = 1000, m_w="auto", log_valu
         ``MIN_SAMPLES_FOR_CHOICE`` samples; with fewer, 0.5.
     log_values : bool
         Interpolate log(f_r + offset) (module docstring); False: f_r as the paper wrote it.
+        (A fit that is not reciprocal interpolates h, below, in place of f_r.)
     angular_weight : float in (0, 1) or None
         Fit over ``polar_points(uvw, angular_weight)``: distances in phi_d at fixed theta_h
         weigh this much of distances in sin theta_h (module docstring); None: over (u, v, w)

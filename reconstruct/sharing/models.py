@@ -6,7 +6,8 @@ report use them unchanged. Directions are local unit vectors (normal = +z); the 
 coordinates are Zickler et al.'s (u, v, w) of Eq. 1 (``reconstruct.coords.uvw_from_directions``).
 A linear RBF can undershoot below zero between samples; the models clamp f_r at 0. A homogeneous
 model may interpolate log(f_r + offset) instead of f_r (``RbfBRDF.log_offset``) and over the
-polar points of :func:`polar_points` instead of (u, v, w) (``RbfBRDF.angular_weight``), see
+polar points of :func:`polar_points` instead of (u, v, w) (``RbfBRDF.angular_weight``), and,
+when it is not reciprocal, f_r cos theta_i / (cos theta_i + horizon) (``RbfBRDF.horizon``), see
 ``isotropic.fit_isotropic``; a spatial model likewise over (x, y) and the polar points
 (``SpatialRbfBRDF.angular_weight``, ``fits.fit_spatial``).
 """
@@ -81,8 +82,8 @@ class RbfBRDF(BRDF):
         Interpolant over (u, v, w), D = 3, or over :func:`polar_points` of them, D = 4; with 1
         (grey) or 3 (RGB) channels.
     log_offset : float, optional
-        When set, the interpolant is of g = log(f_r + log_offset) (1/sr inside the log), and
-        f_r = exp(g) - log_offset; None: of f_r itself.
+        When set, the interpolant is of g = log(v + log_offset) (1/sr inside the log), and
+        v = exp(g) - log_offset; None: of v itself. v is f_r, or h with ``horizon``.
     angular_weight : float, optional
         Set (in (0, 1)) when the model is over ``polar_points(uvw, angular_weight)``.
     asymmetry_weight : float, optional
@@ -113,8 +114,8 @@ class RbfBRDF(BRDF):
             raise SharingError(f"model must be {dim}-D (over {over}), got {self.model.dim}-D")
         if self.log_offset is not None and not self.log_offset > 0:
             raise SharingError(f"log_offset must be > 0 or None, got {self.log_offset!r}")
-        if self.horizon is not None and not (self.horizon > 0 and self.asymmetry_weight):
-            raise SharingError(f"horizon must be None, or > 0 with an asymmetry_weight (its "
+        if self.horizon is not None and not (0 < self.horizon < np.inf and self.asymmetry_weight):
+            raise SharingError(f"horizon must be None, or finite > 0 with an asymmetry_weight (its "
                                f"cos theta_i is not a function of (u, v, w)), got "
                                f"{self.horizon!r}")
 
