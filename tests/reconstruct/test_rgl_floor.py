@@ -58,7 +58,7 @@ def test_cosine_table_holds_the_truth_at_its_nodes_and_nearest_reciprocal_is_rec
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("name, reciprocal_floor", [
-    ("colodur_napoli_4f_rgb", (0.03, 0.06)),   # matte paint: above its 2 % target
+    ("colodur_napoli_4f_rgb", (0.03, 0.06)),   # matte paint: above its 2 % target (the default fit is not reciprocal)
     ("vch_golden_yellow_rgb", (0.035, 0.065)),  # glossy vinyl
 ])
 def test_rgl_floors_on_the_sphere_experiment(shared_data, name, reciprocal_floor):
