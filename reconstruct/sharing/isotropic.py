@@ -40,9 +40,10 @@ fitted over the points with the un-doubled phi_d too (``models.with_asymmetry``)
 ``NON_RECIPROCAL_BUDGET`` x the centres, and the value is
 h = f_r cos theta_i / (cos theta_i + min_cos), not f_r. Such tables store f_r cos theta_i, and
 where the stored value stays finite to the horizon f_r grows as 1 / cos theta_i past the
-terminator rule (``min_cos``), beyond the last sample: the measured RGL matte paint keeps
-0.0014-0.0018 of its 0.0028 (78 deg) at 87-90 deg, and log f_r's extrapolation there gave
-0.2-0.8 x that radiance, 40-47 % off on those pixels and most of each held-out image's error. h
+terminator rule (``min_cos``), beyond the last sample: at theta_d 45 deg the measured RGL
+matte paint keeps 0.0018-0.0014 of its 0.0044 (79-80 deg) at 87-90 deg, and log f_r's
+extrapolation gave 0.2-0.8 x that radiance, 40-47 % off on those pixels and most of each
+held-out image's error. h
 is f_r well above the terminator and the radiance form near it, so its extrapolation holds the
 radiance instead. (cos theta_i is no function of the reciprocal (u, v, w), so a reciprocal fit
 keeps f_r.) The matte paint's held-out median: 2.75 -> 1.83 % (docs/zoo.md).
